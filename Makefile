@@ -1,0 +1,31 @@
+# Two commands on a fresh machine: `make forest` and `make test`.
+# Each creates (or reuses) .venv and installs what it needs from pyproject.toml.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: forest test lint bench figures clean
+
+$(STAMP): pyproject.toml
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "usdforest needs Python >= 3.11")'
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+forest: $(STAMP)
+	$(BIN)/usdforest lsystem --preset paper-rule-3 --json > forest-lsystem.json
+	@echo "wrote forest-lsystem.json (the forest build lands with issue 5)"
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+lint: $(STAMP)
+	$(BIN)/ruff check usdforest tests benchmarks
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/run.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache forest.usda forest_assets forest-lsystem.json

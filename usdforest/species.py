@@ -1,0 +1,197 @@
+"""Species presets: an L-system, its turtle settings and how many iterations to grow.
+
+The paper presets translate the notation of Tanveer, Thomas, Wu and Zhu ("Simulate forest
+trees by integrating L-system and 3D CAD files"). Their axiom is ``g`` and rule k is a run of
+k+1 groups ``d(d)+d)`` separated by ``[``. The paper's parentheses do not balance, so we read
+each group as one trunk internode ``d`` carrying a pair of branches ``(d)`` and ``+d)``, the
+``+`` rotating the second branch around the trunk; ``[`` starts the next group higher up.
+In ABOP syntax one group becomes::
+
+    d(0.5) [&(45) b(l,r)] /(180) [&(45) b(l,r)] /(90)
+
+(``&`` pitches a branch away from the trunk, ``/(180)`` rolls around the trunk to the opposite
+side, ``/(90)`` turns the next pair a quarter turn). Rule k applied over two whorls
+(``g -> groups h``, ``h -> groups a``) gives 2 x 2(k+1) = 8, 12, 16 first-order branches for
+k = 1, 2, 3, as in the paper's figures. Then each branch ``b`` grows sub-branches ``c`` and each
+sub-branch grows leaves ``L``. Angles and lengths vary by seed through ``uniform(a, b)``.
+Parameters follow the research group's MATLAB pine model (branch angle 45 degrees, length
+ratios 0.9/0.7, radius ratio 0.7).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import UsdForestError
+from .lsystem import DEFAULT_MAX_MODULES, Derivation, LSystem, derive, make_lsystem
+from .skeleton import Skeleton
+from .turtle import TurtleConfig, interpret
+
+
+@dataclass(frozen=True)
+class Species:
+    """A tree species: grammar, turtle settings and the number of derivation steps."""
+
+    name: str
+    description: str
+    axiom: str
+    rules: tuple[str, ...]
+    iterations: int
+    turtle: TurtleConfig = field(default_factory=TurtleConfig)
+    kind: str = "tree"
+
+    def lsystem(self) -> LSystem:
+        return make_lsystem(self.axiom, self.rules)
+
+
+@dataclass(frozen=True)
+class Grown:
+    """A grown tree: the derivation and the skeleton the turtle drew from it."""
+
+    species: Species
+    seed: int
+    derivation: Derivation
+    skeleton: Skeleton
+
+
+def grow(
+    species: Species,
+    seed: int = 0,
+    *,
+    iterations: int | None = None,
+    max_modules: int = DEFAULT_MAX_MODULES,
+) -> Grown:
+    """Derive the species' L-system with ``seed`` and interpret it with its turtle."""
+    n = species.iterations if iterations is None else iterations
+    d = derive(species.lsystem(), n, seed=np.random.default_rng(seed), max_modules=max_modules)
+    return Grown(species, seed, d, interpret(d.word, species.turtle))
+
+
+def _paper_rule(k: int) -> Species:
+    pair = "[&(uniform(40,50)) b({l},{r})] /(uniform(170,190)) [&(uniform(40,50)) b({l},{r})]"
+    group = "d(uniform(0.45,0.55)) " + pair + " /(uniform(80,100))"
+
+    def groups(length: float, radius: float, trunk: float) -> str:
+        one = group.format(l=length, r=radius)
+        return " ".join(f"!({trunk}) {one}" for _ in range(k + 1))
+
+    twig = "[&(uniform(35,55)) L(uniform(0.8,1.2))] [^(uniform(35,55)) L(uniform(0.8,1.2))]"
+    return Species(
+        name=f"paper-rule-{k}",
+        description=(
+            f"The paper's rule {k}: {k + 1} branch pairs per whorl, two whorls, "
+            f"{4 * (k + 1)} first-order branches, sub-branches and leaves."
+        ),
+        axiom="!(0.14) d(1.5) g",
+        rules=(
+            f"g -> {groups(2.2, 0.05, 0.12)} h",
+            f"h -> {groups(1.6, 0.04, 0.09)} a",
+            "a -> !(0.05) d(0.6) !(0.03) c(0.5,0.03)",
+            # a first-order branch: two pairs of sub-branches, then a leafy tip
+            "b(l,r) -> !(r) d(l*0.35) [+(uniform(35,50)) c(l*0.45,r*0.7)]"
+            " [-(uniform(35,50)) c(l*0.45,r*0.7)] !(r*0.85) d(l*0.35)"
+            " [+(uniform(35,50)) c(l*0.35,r*0.7)] [-(uniform(35,50)) c(l*0.35,r*0.7)]"
+            " !(r*0.7) c(l*0.3,r*0.6)",
+            # a sub-branch: two internodes, a pair of leaves at each node and one at the tip
+            f"c(l,r) -> !(r) d(l*0.5) {twig} !(r*0.8) d(l*0.5) {twig} L(uniform(0.8,1.2))",
+        ),
+        iterations=4,
+        turtle=TurtleConfig(angle=45.0, step=0.5, radius=0.14, draw="dbc"),
+    )
+
+
+def _pine() -> Species:
+    whorls = 12
+    branch = "[&(uniform(70,90)) B({l},{r})] /(72)"
+    whorl = " ".join([branch] * 5)
+    return Species(
+        name="pine",
+        description="Conifer: monopodial leader with whorls of five branches, drooping twigs, "
+        "needle fascicles along the twigs.",
+        axiom="!(0.22) F(2.0) A(0)",
+        rules=(
+            f"A(i) : i < {whorls} -> !(0.2*(1-i/{whorls})+0.02) F(uniform(0.4,0.5)) "
+            + whorl.format(
+                l=f"(2.6*(1-i/{whorls})+0.4)*uniform(0.85,1.15)", r=f"0.05*(1-i/{whorls})+0.01"
+            )
+            + " /(uniform(25,40)) A(i+1)",
+            f"A(i) : i >= {whorls} -> !(0.02) F(0.5) L(1)",
+            "B(l,r) -> !(r) F(l/3) [+(uniform(50,70)) C(l*0.45,r*0.6)]"
+            " [-(uniform(50,70)) C(l*0.45,r*0.6)] !(r*0.8) F(l/3)"
+            " [+(uniform(50,70)) C(l*0.3,r*0.6)] [-(uniform(50,70)) C(l*0.3,r*0.6)]"
+            " !(r*0.6) C(l/3,r*0.5)",
+            "C(l,r) -> !(r) F(l/2) [&(60) L(1)] [^(60) L(1)] /(90) F(l/2) [&(60) L(1)]"
+            " [^(60) L(1)] L(1)",
+        ),
+        iterations=whorls + 3,
+        turtle=TurtleConfig(
+            angle=30.0, step=0.5, radius=0.22, draw="F", elasticity=0.12,
+            tropism=(0.0, 0.0, -1.0),
+        ),
+    )
+
+
+def _broadleaf() -> Species:
+    leaves = "[&(uniform(30,60)) L(1)] [^(uniform(30,60)) L(1)]"
+    return Species(
+        name="broadleaf",
+        description="Broadleaf: sympodial branching (each apex forks into two), a spreading "
+        "crown with leaves on the twigs.",
+        axiom="!(0.2) F(2.2) /(uniform(0,360)) A(1.6,0.14)",
+        rules=(
+            "A(l,r) : l > 0.35 -> !(r) F(l) [&(uniform(25,40)) /(uniform(80,100)) A(l*uniform(0.72,0.82),r*0.7)]"
+            " /(uniform(170,190)) [&(uniform(25,40)) /(uniform(80,100)) A(l*uniform(0.7,0.8),r*0.7)]",
+            f"A(l,r) : l <= 0.35 -> !(r) F(l) {leaves} /(90) F(l*0.6) {leaves} /(90) L(1)",
+        ),
+        iterations=10,
+        turtle=TurtleConfig(
+            angle=30.0, step=0.5, radius=0.2, draw="F", elasticity=0.06,
+            tropism=(0.0, 0.0, -1.0),
+        ),
+    )
+
+
+def _abop(name: str, description: str, axiom: str, rules: tuple[str, ...], n: int, angle: float):
+    return Species(
+        name=name,
+        description=description,
+        axiom=axiom,
+        rules=rules,
+        iterations=n,
+        turtle=TurtleConfig(angle=angle, step=1.0, radius=0.05),
+        kind="abop",
+    )
+
+
+PRESETS: dict[str, Species] = {
+    s.name: s
+    for s in (
+        _paper_rule(1),
+        _paper_rule(2),
+        _paper_rule(3),
+        _pine(),
+        _broadleaf(),
+        _abop("abop-1.24a", "ABOP Fig. 1.24a, edge rewriting", "F", ("F -> F[+F]F[-F]F",), 5, 25.7),
+        _abop("abop-1.24b", "ABOP Fig. 1.24b", "F", ("F -> F[+F]F[-F][F]",), 5, 20.0),
+        _abop("abop-1.24c", "ABOP Fig. 1.24c", "F", ("F -> FF-[-F+F+F]+[+F-F-F]",), 4, 22.5),
+        _abop("abop-1.24d", "ABOP Fig. 1.24d, node rewriting", "X",
+              ("X -> F[+X]F[-X]+X", "F -> FF"), 7, 20.0),
+        _abop("abop-1.24e", "ABOP Fig. 1.24e", "X", ("X -> F[+X][-X]FX", "F -> FF"), 7, 25.7),
+        _abop("abop-1.24f", "ABOP Fig. 1.24f", "X", ("X -> F-[[X]+X]+F[+FX]-X", "F -> FF"), 5,
+              22.5),
+        _abop("abop-1.27", "ABOP Fig. 1.27, stochastic plant", "F",
+              ("F -(1/3)-> F[+F]F[-F]F", "F -(1/3)-> F[+F]F", "F -(1/3)-> F[-F]F"), 5, 25.7),
+    )
+}
+
+
+def get_species(name: str) -> Species:
+    """Look up a preset by name, with a clear error listing the known names."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise UsdForestError(
+            f"unknown species {name!r}; known presets: {', '.join(PRESETS)}"
+        ) from None
