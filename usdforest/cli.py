@@ -90,7 +90,9 @@ def lsystem_cmd(
         str | None,
         typer.Option("--preset", "-p", help="Use a species preset's axiom and rules."),
     ] = None,
-    seed: Annotated[int, typer.Option(help="Seed for stochastic rules and random().")] = 0,
+    seed: Annotated[
+        int, typer.Option(help="Seed for stochastic rules and uniform()/normal() parameters.")
+    ] = 0,
     max_modules: Annotated[
         int, typer.Option(min=1, help="Refuse words longer than this.")
     ] = 5_000_000,

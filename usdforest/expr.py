@@ -195,7 +195,7 @@ class _Compiler:
         where = f" at column {col + 1}" if col is not None else ""
         return ExpressionError(f"{self.what}: {message}{where} in {self.source!r}")
 
-    def compile(self, node: ast.AST, depth: int) -> _Node:  # noqa: C901 - one dispatch
+    def compile(self, node: ast.AST, depth: int) -> _Node:
         if depth > MAX_DEPTH:
             raise self.fail(node, f"nested deeper than {MAX_DEPTH} levels")
         d = depth + 1
@@ -263,18 +263,18 @@ class _Compiler:
         if not isinstance(node.func, ast.Name) or node.keywords:
             raise self.fail(node, "only plain function calls like sqrt(x) are allowed")
         name = node.func.id
+        if name not in FUNCTIONS and (name not in RANDOM_FUNCTIONS or not self.allow_random):
+            if name in RANDOM_FUNCTIONS:
+                raise self.fail(node, f"random function {name}() is not allowed here")
+            known = sorted(FUNCTIONS) + (sorted(RANDOM_FUNCTIONS) if self.allow_random else [])
+            raise self.fail(node, f"unknown function {name!r} (known: {', '.join(known)})")
         args = [self.compile(a, depth) for a in node.args]
         if name in RANDOM_FUNCTIONS:
-            if not self.allow_random:
-                raise self.fail(node, f"random function {name}() is not allowed here")
             self._check_arity(node, name, len(args), RANDOM_FUNCTIONS[name])
             self.uses_random = True
             lo_fn, hi_fn = args
             draw = _uniform if name == "uniform" else _normal
             return lambda ctx: draw(ctx, lo_fn(ctx), hi_fn(ctx))
-        if name not in FUNCTIONS:
-            known = ", ".join(sorted(FUNCTIONS) + (sorted(RANDOM_FUNCTIONS) if self.allow_random else []))
-            raise self.fail(node, f"unknown function {name!r} (known: {known})")
         fn, arity = FUNCTIONS[name]
         self._check_arity(node, name, len(args), arity)
         return lambda ctx: fn(*(a(ctx) for a in args))

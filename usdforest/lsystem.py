@@ -122,7 +122,9 @@ class ModuleSpec:
     column: int
 
 
-def _scan_modules(text: str, where: str) -> list[tuple[str, list[str], int]]:
+def _scan_modules(
+    text: str, where: str, *, check_brackets: bool = True
+) -> list[tuple[str, list[str], int]]:
     """Split ``text`` into (symbol, [argument source], column) without evaluating anything."""
     out: list[tuple[str, list[str], int]] = []
     i, n = 0, len(text)
@@ -162,7 +164,8 @@ def _scan_modules(text: str, where: str) -> list[tuple[str, list[str], int]]:
                 )
             i = j + 1
         out.append((ch, args, col))
-    _check_brackets([(s, c) for s, _, c in out], text, where)
+    if check_brackets:
+        _check_brackets([(s, c) for s, _, c in out], text, where)
     return out
 
 
@@ -258,7 +261,7 @@ def parse_rule(text: str, index: int = 0) -> Rule:
     pred_text = pred_text.strip()
     if "<" in pred_text or ">" in pred_text:
         raise LSystemError(f"{where}: context-sensitive rules (with '<' or '>') are not supported")
-    pred = _scan_modules(pred_text, where)
+    pred = _scan_modules(pred_text, where, check_brackets=False)
     if len(pred) != 1:
         raise LSystemError(
             f"{where}: the predecessor must be exactly one module, got {pred_text.strip()!r}"
@@ -347,9 +350,11 @@ def make_lsystem(axiom: str, rules: Iterable[str]) -> LSystem:
                 f"{len(first.formals)} in {first.name}"
             )
     groups = tuple((sym, _group_rules(rs)) for sym, rs in by_symbol.items())
-    arities = [len(m.args) for m in ax] + [
-        len(m.args) for r in parsed for m in r.successor
-    ] + [len(r.formals) for r in parsed]
+    arities = (
+        [len(m.args) for m in ax]
+        + [len(m.args) for r in parsed for m in r.successor]
+        + [len(r.formals) for r in parsed]
+    )
     return LSystem(ax, parsed, tuple(alphabet), groups, max(arities, default=0))
 
 
@@ -455,9 +460,7 @@ def derive(
     return Derivation(word, tuple(lengths))
 
 
-def _step(
-    ls: LSystem, word: Word, rng: np.random.Generator, max_modules: int, step: int
-) -> Word:
+def _step(ls: LSystem, word: Word, rng: np.random.Generator, max_modules: int, step: int) -> Word:
     sym, params, arity = word.symbols, word.params, word.arity
     n = len(word)
     index = {s: i for i, s in enumerate(ls.alphabet)}

@@ -127,7 +127,11 @@ def _pine() -> Species:
         ),
         iterations=whorls + 3,
         turtle=TurtleConfig(
-            angle=30.0, step=0.5, radius=0.22, draw="F", elasticity=0.12,
+            angle=30.0,
+            step=0.5,
+            radius=0.22,
+            draw="F",
+            elasticity=0.12,
             tropism=(0.0, 0.0, -1.0),
         ),
     )
@@ -141,13 +145,19 @@ def _broadleaf() -> Species:
         "crown with leaves on the twigs.",
         axiom="!(0.2) F(2.2) /(uniform(0,360)) A(1.6,0.14)",
         rules=(
-            "A(l,r) : l > 0.35 -> !(r) F(l) [&(uniform(25,40)) /(uniform(80,100)) A(l*uniform(0.72,0.82),r*0.7)]"
-            " /(uniform(170,190)) [&(uniform(25,40)) /(uniform(80,100)) A(l*uniform(0.7,0.8),r*0.7)]",
+            "A(l,r) : l > 0.35 -> !(r) F(l)"
+            " [&(uniform(25,40)) /(uniform(80,100)) A(l*uniform(0.72,0.82),r*0.7)]"
+            " /(uniform(170,190))"
+            " [&(uniform(25,40)) /(uniform(80,100)) A(l*uniform(0.7,0.8),r*0.7)]",
             f"A(l,r) : l <= 0.35 -> !(r) F(l) {leaves} /(90) F(l*0.6) {leaves} /(90) L(1)",
         ),
         iterations=10,
         turtle=TurtleConfig(
-            angle=30.0, step=0.5, radius=0.2, draw="F", elasticity=0.06,
+            angle=30.0,
+            step=0.5,
+            radius=0.2,
+            draw="F",
+            elasticity=0.06,
             tropism=(0.0, 0.0, -1.0),
         ),
     )
@@ -176,13 +186,26 @@ PRESETS: dict[str, Species] = {
         _abop("abop-1.24a", "ABOP Fig. 1.24a, edge rewriting", "F", ("F -> F[+F]F[-F]F",), 5, 25.7),
         _abop("abop-1.24b", "ABOP Fig. 1.24b", "F", ("F -> F[+F]F[-F][F]",), 5, 20.0),
         _abop("abop-1.24c", "ABOP Fig. 1.24c", "F", ("F -> FF-[-F+F+F]+[+F-F-F]",), 4, 22.5),
-        _abop("abop-1.24d", "ABOP Fig. 1.24d, node rewriting", "X",
-              ("X -> F[+X]F[-X]+X", "F -> FF"), 7, 20.0),
+        _abop(
+            "abop-1.24d",
+            "ABOP Fig. 1.24d, node rewriting",
+            "X",
+            ("X -> F[+X]F[-X]+X", "F -> FF"),
+            7,
+            20.0,
+        ),
         _abop("abop-1.24e", "ABOP Fig. 1.24e", "X", ("X -> F[+X][-X]FX", "F -> FF"), 7, 25.7),
-        _abop("abop-1.24f", "ABOP Fig. 1.24f", "X", ("X -> F-[[X]+X]+F[+FX]-X", "F -> FF"), 5,
-              22.5),
-        _abop("abop-1.27", "ABOP Fig. 1.27, stochastic plant", "F",
-              ("F -(1/3)-> F[+F]F[-F]F", "F -(1/3)-> F[+F]F", "F -(1/3)-> F[-F]F"), 5, 25.7),
+        _abop(
+            "abop-1.24f", "ABOP Fig. 1.24f", "X", ("X -> F-[[X]+X]+F[+FX]-X", "F -> FF"), 5, 22.5
+        ),
+        _abop(
+            "abop-1.27",
+            "ABOP Fig. 1.27, stochastic plant",
+            "F",
+            ("F -(1/3)-> F[+F]F[-F]F", "F -(1/3)-> F[+F]F", "F -(1/3)-> F[-F]F"),
+            5,
+            25.7,
+        ),
     )
 }
 

@@ -121,7 +121,7 @@ class TurtleConfig:
         return ops
 
 
-def interpret(word: Word, config: TurtleConfig | None = None) -> Skeleton:  # noqa: C901
+def interpret(word: Word, config: TurtleConfig | None = None) -> Skeleton:
     """Run the turtle over ``word`` and return the skeleton it draws.
 
     Parameters
@@ -209,30 +209,76 @@ def interpret(word: Word, config: TurtleConfig | None = None) -> Skeleton:  # no
                 s = -s
             if op <= _RIGHT:  # about U: H towards L
                 hx, hy, hz, lx, ly, lz = (
-                    hx * c + lx * s, hy * c + ly * s, hz * c + lz * s,
-                    lx * c - hx * s, ly * c - hy * s, lz * c - hz * s,
+                    hx * c + lx * s,
+                    hy * c + ly * s,
+                    hz * c + lz * s,
+                    lx * c - hx * s,
+                    ly * c - hy * s,
+                    lz * c - hz * s,
                 )
             elif op <= _UP:  # about L: H towards -U
                 hx, hy, hz, ux, uy, uz = (
-                    hx * c - ux * s, hy * c - uy * s, hz * c - uz * s,
-                    ux * c + hx * s, uy * c + hy * s, uz * c + hz * s,
+                    hx * c - ux * s,
+                    hy * c - uy * s,
+                    hz * c - uz * s,
+                    ux * c + hx * s,
+                    uy * c + hy * s,
+                    uz * c + hz * s,
                 )
             else:  # about H: L towards -U
                 lx, ly, lz, ux, uy, uz = (
-                    lx * c - ux * s, ly * c - uy * s, lz * c - uz * s,
-                    ux * c + lx * s, uy * c + ly * s, uz * c + lz * s,
+                    lx * c - ux * s,
+                    ly * c - uy * s,
+                    lz * c - uz * s,
+                    ux * c + lx * s,
+                    uy * c + ly * s,
+                    uz * c + lz * s,
                 )
         elif op == _PUSH:
             stack.append(
-                (px, py, pz, hx, hy, hz, lx, ly, lz, ux, uy, uz, radius, parent, order, axis,
-                 new_axis)
+                (
+                    px,
+                    py,
+                    pz,
+                    hx,
+                    hy,
+                    hz,
+                    lx,
+                    ly,
+                    lz,
+                    ux,
+                    uy,
+                    uz,
+                    radius,
+                    parent,
+                    order,
+                    axis,
+                    new_axis,
+                )
             )
             new_axis = True
         elif op == _POP:
             if not stack:
                 raise LSystemError("turtle: ']' without a matching '['")
-            (px, py, pz, hx, hy, hz, lx, ly, lz, ux, uy, uz, radius, parent, order, axis,
-             new_axis) = stack.pop()
+            (
+                px,
+                py,
+                pz,
+                hx,
+                hy,
+                hz,
+                lx,
+                ly,
+                lz,
+                ux,
+                uy,
+                uz,
+                radius,
+                parent,
+                order,
+                axis,
+                new_axis,
+            ) = stack.pop()
         elif op == _AROUND:
             hx, hy, hz, lx, ly, lz = -hx, -hy, -hz, -lx, -ly, -lz
         elif op == _WIDTH:

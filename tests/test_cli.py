@@ -1,0 +1,106 @@
+"""The command line: output formats, exit codes and clean errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from usdforest.cli import app
+
+
+def test_lsystem_json(runner):
+    r = runner.invoke(
+        app, ["lsystem", "-a", "b", "-r", "a -> ab", "-r", "b -> a", "-n", "5", "--json"]
+    )
+    assert r.exit_code == 0, r.output
+    data = json.loads(r.stdout)
+    assert data == {"string": "abaababa", "length": 8, "counts": {"b": 3, "a": 5}}
+
+
+def test_lsystem_parametric_length_counts_modules(runner):
+    r = runner.invoke(
+        app,
+        [
+            "lsystem",
+            "-a",
+            "B(2)A(4,4)",
+            "-r",
+            "A(x,y) : y <= 3 -> A(x*2,x+y)",
+            "-r",
+            "A(x,y) : y > 3 -> B(x)A(x/y,0)",
+            "-r",
+            "B(x) : x < 1 -> C",
+            "-r",
+            "B(x) : x >= 1 -> B(x-1)",
+            "-n",
+            "4",
+            "--json",
+        ],
+    )
+    data = json.loads(r.stdout)
+    assert data["string"] == "CB(1)A(8,7)" and data["length"] == 3
+    assert data["counts"] == {"B": 1, "A": 1, "C": 1}
+
+
+def test_lsystem_stochastic_with_seed(runner):
+    args = ["lsystem", "-a", "F", "-r", "F -(0.5)-> F[+F]F", "-r", "F -(0.5)-> F[-F]F", "-n", "4"]
+    a = runner.invoke(app, [*args, "--seed", "3"]).stdout
+    b = runner.invoke(app, [*args, "--seed", "3"]).stdout
+    assert a == b and a.count("F") == 3**4
+
+
+def test_lsystem_preset(runner):
+    r = runner.invoke(app, ["lsystem", "--preset", "abop-1.24a", "-n", "2", "--json"])
+    assert r.exit_code == 0
+    assert json.loads(r.stdout)["counts"]["F"] == 25
+
+
+def test_species_lists_presets(runner):
+    r = runner.invoke(app, ["species", "--json"])
+    names = [s["name"] for s in json.loads(r.stdout)]
+    assert {"paper-rule-1", "paper-rule-2", "paper-rule-3", "pine", "broadleaf"} <= set(names)
+    r = runner.invoke(app, ["species"])
+    assert r.exit_code == 0 and "paper-rule-3" in r.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["lsystem", "-a", "F[", "-n", "1"], "unbalanced brackets"),
+        (["lsystem", "-a", "F", "-r", "F -> F]", "-n", "1"], "rule 1 ('F -> F]')"),
+        (["lsystem", "-a", "F", "-r", "F -(0.3)-> A", "-r", "F -(0.3)-> B"], "sum to 0.6"),
+        (["lsystem", "-a", "A", "-r", "A -> AAAA", "-n", "30"], "more than the limit"),
+        (["lsystem", "-a", "A(1)", "-r", "A(x,y) -> B"], "has 1 parameter(s)"),
+        (["lsystem", "-a", "F", "-r", "F -> G(os.system)"], "Attribute is not allowed"),
+        (["lsystem", "--preset", "nope"], "unknown species 'nope'"),
+        (["lsystem", "--preset", "pine", "-a", "F"], "cannot be combined"),
+        (["lsystem"], "give --axiom"),
+    ],
+)
+def test_errors_exit_2_without_traceback(runner, args, fragment):
+    r = runner.invoke(app, args)
+    assert r.exit_code == 2
+    assert fragment in r.stderr
+    assert "Traceback" not in r.output and "Traceback" not in r.stderr
+
+
+def test_installed_console_script_exit_code_and_stderr():
+    r = subprocess.run(
+        [sys.executable, "-m", "usdforest.cli", "lsystem", "-a", "F]"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert r.returncode == 2
+    assert r.stderr.startswith("error: axiom: unbalanced brackets")
+    assert "Traceback" not in r.stderr and r.stdout == ""
+
+
+def test_help_reads_well(runner):
+    r = runner.invoke(app, ["--help"])
+    assert r.exit_code == 0 and "lsystem" in r.stdout and "species" in r.stdout
+    r = runner.invoke(app, ["lsystem", "--help"])
+    assert "stochastic" in r.stdout and "--iterations" in r.stdout
