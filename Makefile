@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: forest test lint bench figures clean
+.PHONY: forest test lint bench figures templates clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "usdforest needs Python >= 3.11")'
@@ -22,7 +22,11 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)
-	$(BIN)/ruff check usdforest tests benchmarks
+	$(BIN)/ruff check usdforest tests benchmarks templates
+
+templates: $(STAMP)
+	$(BIN)/python templates/make_cad.py
+	$(BIN)/usdforest template build pipelines/templates.toml
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run.py

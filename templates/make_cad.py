@@ -1,0 +1,187 @@
+"""Generate the starter CAD library in templates/cad/ (metres, Z up). Deterministic.
+
+Run ``python templates/make_cad.py`` to rewrite the files; then
+``usdforest template build pipelines/templates.toml`` derives the template layers.
+
+Every part is a swept tube (a centreline with radii) or a triangulated surface, authored
+here by the project (no third-party models), exported with trimesh as STL, OBJ or PLY.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+OUT = Path(__file__).resolve().parent / "cad"
+RNG_SEED = 20261122
+
+
+def tube(
+    centre: np.ndarray, radius: np.ndarray, sections: int = 12, profile=None
+) -> trimesh.Trimesh:
+    """A closed tube along ``centre`` (k, 3) with per-ring ``radius`` (k,), capped at both ends.
+
+    ``profile(ring_index, angles) -> radius factors`` shapes the cross-section (root flare
+    lobes, bark ridges).
+    """
+    k = len(centre)
+    tangents = np.gradient(centre, axis=0)
+    tangents /= np.linalg.norm(tangents, axis=1)[:, None]
+    # parallel-transport frame along the centreline
+    ref = np.array([1.0, 0.0, 0.0]) if abs(tangents[0, 0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    n = np.cross(tangents[0], ref)
+    n /= np.linalg.norm(n)
+    normals = [n]
+    for i in range(1, k):
+        n = normals[-1] - np.dot(normals[-1], tangents[i]) * tangents[i]
+        n /= np.linalg.norm(n)
+        normals.append(n)
+    normals = np.array(normals)
+    binormals = np.cross(tangents, normals)
+    ang = np.linspace(0.0, 2 * math.pi, sections, endpoint=False)
+    verts = []
+    for i in range(k):
+        factor = profile(i, ang) if profile else np.ones(sections)
+        r = radius[i] * factor
+        ring = (
+            centre[i]
+            + (np.cos(ang)[:, None] * normals[i] + np.sin(ang)[:, None] * binormals[i]) * r[:, None]
+        )
+        verts.append(ring)
+    v = np.concatenate([*verts, centre[:1], centre[-1:]])
+    faces = []
+    for i in range(k - 1):
+        for j in range(sections):
+            a, b = i * sections + j, i * sections + (j + 1) % sections
+            c, d = a + sections, b + sections
+            faces += [(a, b, d), (a, d, c)]
+    bottom, top = k * sections, k * sections + 1
+    for j in range(sections):
+        faces.append((bottom, (j + 1) % sections, j))
+        last = (k - 1) * sections
+        faces.append((top, last + j, last + (j + 1) % sections))
+    return trimesh.Trimesh(v, np.array(faces), process=False)
+
+
+def trunk() -> trimesh.Trimesh:
+    """A 6 m trunk: base radius 0.2 m with a five-lobed root flare, tapering to 0.07 m."""
+    z = np.concatenate([np.linspace(0.0, 0.6, 10), np.linspace(0.7, 6.0, 30)])
+    r = 0.2 - 0.13 * (z / 6.0) ** 0.8
+    flare = 1.0 + 0.75 * np.exp(-z / 0.18)
+    rng = np.random.default_rng(RNG_SEED)
+    ridges = rng.uniform(0.0, 2 * math.pi, 3)
+    centre = np.stack([0.02 * np.sin(z * 0.9), 0.015 * np.sin(z * 0.6 + 1.0), z], axis=1)
+
+    def profile(i, ang):
+        lobes = 1.0 + (flare[i] - 1.0) * (0.55 + 0.45 * np.cos(5 * ang))
+        bark = 1.0 + 0.025 * sum(np.sin(7 * ang + p) for p in ridges) / 3
+        return lobes * bark
+
+    return tube(centre, r, sections=24, profile=profile)
+
+
+def branch(
+    length: float,
+    r0: float,
+    r1: float,
+    bend: float,
+    s_curve: float = 0.0,
+    sections: int = 10,
+    rings: int = 16,
+) -> trimesh.Trimesh:
+    """A tapered branch along +Z, bent by ``bend`` radians in the XZ plane (upturned tip)."""
+    s = np.linspace(0.0, 1.0, rings)
+    # curvature grows towards the tip; s_curve adds an opposite bend near the base
+    theta = bend * s**1.5 - s_curve * np.sin(math.pi * s) * 0.5
+    step = length / (rings - 1)
+    dirs = np.stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)], axis=1)
+    centre = np.concatenate([[np.zeros(3)], np.cumsum(dirs[:-1] * step, axis=0)])
+    radius = r0 + (r1 - r0) * s
+    return tube(centre, radius, sections=sections)
+
+
+def leaf() -> trimesh.Trimesh:
+    """A broadleaf leaf with petiole: 3 cm petiole, 12 cm ovate blade, folded along the midrib.
+
+    Attachment at the origin, blade along +X, lying in the XY plane with a slight V fold and a
+    downward curl towards the tip.
+    """
+    pet_len, blade_len, half_width = 0.03, 0.12, 0.032
+    u = np.linspace(0.0, 1.0, 17)  # along the blade
+    w = np.linspace(-1.0, 1.0, 9)  # across
+    uu, ww = np.meshgrid(u, w, indexing="ij")
+    width = half_width * np.sin(math.pi * uu**0.8) ** 0.9 * (1.0 - 0.15 * uu)
+    x = pet_len + blade_len * uu
+    y = ww * width
+    z = 0.006 * np.abs(ww) - 0.012 * uu**2  # V fold and curl
+    blade = np.stack([x, y, z], axis=-1).reshape(-1, 3)
+    nu, nw = len(u), len(w)
+    faces = []
+    for i in range(nu - 1):
+        for j in range(nw - 1):
+            a = i * nw + j
+            b, c, d = a + 1, a + nw, a + nw + 1
+            faces += [(a, c, d), (a, d, b)]
+    blade_mesh = trimesh.Trimesh(blade, np.array(faces), process=False)
+    pet = tube(
+        np.stack([np.linspace(0.0, pet_len + 0.004, 5), np.zeros(5), np.zeros(5)], axis=1),
+        np.linspace(0.0012, 0.0009, 5),
+        sections=6,
+    )
+    return trimesh.util.concatenate([pet, blade_mesh])
+
+
+def needle_fascicle() -> trimesh.Trimesh:
+    """Two needles (as in Scots pine) of 7 cm from a 5 mm sheath, diverging by 10 degrees."""
+    parts = [tube(np.array([[0, 0, 0], [0, 0, 0.005]], float), np.array([0.0012, 0.001]), 6)]
+    for sign in (-1.0, 1.0):
+        a = math.radians(5.0) * sign
+        s = np.linspace(0.0, 1.0, 8)
+        centre = np.stack(
+            [
+                np.sin(a) * 0.07 * s + 0.004 * sign * s**2,
+                np.zeros_like(s),
+                0.004 + np.cos(a) * 0.07 * s,
+            ],
+            axis=1,
+        )
+        parts.append(tube(centre, 0.0007 * (1 - s) + 0.0001, sections=4))
+    return trimesh.util.concatenate(parts)
+
+
+FILES = {
+    "trunk.obj": trunk,
+    "branch_straight.stl": lambda: branch(2.0, 0.06, 0.018, 0.0),
+    "branch_curved_a.stl": lambda: branch(2.0, 0.06, 0.018, math.radians(25)),
+    "branch_curved_b.ply": lambda: branch(2.0, 0.06, 0.018, math.radians(40), s_curve=0.5),
+    "twig.stl": lambda: branch(0.3, 0.008, 0.0025, math.radians(15), sections=6, rings=8),
+    "leaf_broadleaf.obj": leaf,
+    "needle_fascicle.stl": needle_fascicle,
+}
+
+
+def main() -> None:
+    OUT.mkdir(exist_ok=True)
+    for name, make in FILES.items():
+        mesh = make()
+        path = OUT / name
+        if path.suffix == ".stl":
+            data = trimesh.exchange.stl.export_stl(mesh)  # binary
+            path.write_bytes(data)
+        elif path.suffix == ".ply":
+            path.write_bytes(trimesh.exchange.ply.export_ply(mesh, encoding="binary"))
+        else:
+            path.write_text(
+                trimesh.exchange.obj.export_obj(mesh, include_normals=False, include_texture=False)
+            )
+        print(
+            f"{path.relative_to(OUT.parent.parent)}: {len(mesh.faces)} triangles, "
+            f"bounds {np.round(mesh.bounds, 3).tolist()}"
+        )
+
+
+if __name__ == "__main__":
+    main()

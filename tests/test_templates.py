@@ -1,0 +1,175 @@
+"""Template layers: structure read back with pxr, validation, the shipped library."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pxr import Sdf, Usd, UsdGeom, UsdShade
+
+from usdforest.cli import app
+from usdforest.errors import RecipeError
+from usdforest.library import read_manifest, template_dir
+from usdforest.usd.template import read_template
+from usdforest.validate import validate
+
+ROOT = Path(__file__).resolve().parents[1]
+MANIFEST = ROOT / "pipelines" / "templates.toml"
+SHIPPED = sorted(template_dir().glob("*.usdc"))
+
+
+def test_library_has_the_starter_parts():
+    names = {p.stem for p in SHIPPED}
+    assert {
+        "trunk",
+        "branch_straight",
+        "branch_curved_a",
+        "branch_curved_b",
+        "twig",
+        "leaf_broadleaf",
+        "needle_fascicle",
+    } <= names
+    parts = {read_template(p).name: read_template(p).part for p in SHIPPED}
+    assert parts["trunk"] == "trunk" and parts["twig"] == "twig"
+    assert parts["leaf_broadleaf"] == parts["needle_fascicle"] == "leaf"
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
+def test_shipped_template_structure_and_validation(path):
+    assert validate(path) == []
+    stage = Usd.Stage.Open(str(path))
+    assert UsdGeom.GetStageUpAxis(stage) == "Z"
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    root = stage.GetDefaultPrim()
+    assert root.GetPath() == Sdf.Path("/Template") and root.GetTypeName() == "Xform"
+    assert Usd.ModelAPI(root).GetKind() == "component"
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Template/Mesh"))
+    pts = np.array(mesh.GetPointsAttr().Get())
+    counts = np.array(mesh.GetFaceVertexCountsAttr().Get())
+    idx = np.array(mesh.GetFaceVertexIndicesAttr().Get())
+    assert np.all(counts == 3) and idx.size == 3 * counts.size and idx.max() < len(pts)
+    normals = np.array(mesh.GetNormalsAttr().Get())
+    assert normals.shape == pts.shape
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
+    ext = np.array(mesh.GetExtentAttr().Get())
+    np.testing.assert_allclose(ext, [pts.min(axis=0), pts.max(axis=0)], atol=1e-6)
+    data = root.GetCustomDataByKey("usdforest")
+    assert data["measurements"]["triangles"] == counts.size
+    # unit length along the part's axis
+    axis = 0 if data["part"] == "leaf" else 2
+    assert np.ptp(pts[:, axis]) == pytest.approx(1.0, abs=1e-6)
+    mat, _ = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()
+    assert mat and mat.GetSurfaceOutput().HasConnectedSource()
+    label = mesh.GetPrim().GetAttribute("semantics:labels:class").Get()
+    assert list(label) == [{"leaf": "leaf", "trunk": "trunk"}.get(data["part"], "branch")]
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
+def test_shipped_templates_are_built_from_the_committed_cad(path):
+    prov = read_template(path)
+    stage = Usd.Stage.Open(str(path))
+    data = stage.GetDefaultPrim().GetCustomDataByKey("usdforest")
+    source = template_dir() / "cad" / data["provenance"]["source"]
+    assert hashlib.sha256(source.read_bytes()).hexdigest() == data["provenance"]["sha256"]
+    assert prov.measurements["length"] > 0
+
+
+def test_manifest_rebuild_is_byte_identical(tmp_path):
+    manifest = read_manifest(MANIFEST)
+    assert len(manifest.templates) == 7
+    from usdforest.library import build_manifest
+
+    a = build_manifest(manifest, tmp_path / "a")
+    b = build_manifest(manifest, tmp_path / "b")
+    for pa, pb in zip(a, b, strict=True):
+        assert pa.read_bytes() == pb.read_bytes()
+        shipped = template_dir() / pa.name
+        assert pa.read_bytes() == shipped.read_bytes(), f"{shipped} is out of date"
+
+
+def test_template_build_cli(tmp_path, runner):
+    r = runner.invoke(app, ["template", "build", str(MANIFEST), "-o", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    assert len(list(tmp_path.glob("*.usdc"))) == 7
+    assert not list(tmp_path.glob(".*"))  # no temporary files left behind
+
+
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [
+        (
+            'outptu = "x"\n[[template]]\nname="a"\nsource="a.stl"\npart="leaf"\n',
+            "unknown key 'outptu'",
+        ),
+        ('[[template]]\nname="a"\nsource="a.stl"\npart="root"\n', "template[0].part: 'root'"),
+        (
+            '[[template]]\nname="a"\nsource="a.stl"\npart="leaf"\ncolour=[1,0,0]\n',
+            "unknown key 'colour'",
+        ),
+        (
+            '[[template]]\nname="a"\nsource="a.stl"\npart="leaf"\ncolor=[2,0,0]\n',
+            "template[0].color",
+        ),
+        (
+            '[[template]]\nname="a"\npart="leaf"\n',
+            "template[0].source: expected a non-empty string",
+        ),
+        ('[[template]]\nname="a"\nsource="a.stl"\npart="leaf"\nunits="yd"\n', "units: 'yd'"),
+        ("template = [", "not valid TOML"),
+        ('output="."\n', "'template' must be a non-empty array"),
+    ],
+)
+def test_manifest_errors_name_the_key(tmp_path, text, fragment):
+    p = tmp_path / "m.toml"
+    p.write_text(text)
+    with pytest.raises(RecipeError) as exc:
+        read_manifest(p)
+    assert fragment in str(exc.value) and str(p) in str(exc.value)
+
+
+def test_import_writes_a_valid_layer_and_refuses_overwrite(tmp_path, runner):
+    src = template_dir() / "cad" / "twig.stl"
+    out = tmp_path / "twig.usdc"
+    r = runner.invoke(
+        app,
+        [
+            "template",
+            "import",
+            str(src),
+            "--part",
+            "twig",
+            "-o",
+            str(out),
+            "--units",
+            "m",
+            "--up",
+            "Z",
+            "--json",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    info = json.loads(r.stdout)
+    assert info["measurements"]["length"] == pytest.approx(0.3, rel=1e-3)
+    assert validate(out) == []
+    before = out.read_bytes()
+    r = runner.invoke(app, ["template", "import", str(src), "--part", "leaf", "-o", str(out)])
+    assert r.exit_code == 2 and "--force" in r.stderr
+    assert out.read_bytes() == before
+
+
+def test_template_list_cli(runner):
+    r = runner.invoke(app, ["template", "list", "--json"])
+    rows = json.loads(r.stdout)
+    assert {row["name"] for row in rows} >= {"trunk", "leaf_broadleaf"}
+
+
+def test_templates_folder_is_self_contained_when_copied(tmp_path):
+    # template layers reference nothing outside themselves
+    for p in SHIPPED:
+        shutil.copy(p, tmp_path / p.name)
+        layer = Sdf.Layer.FindOrOpen(str(tmp_path / p.name))
+        assert not layer.GetExternalReferences()

@@ -1,0 +1,610 @@
+"""CAD import: read STL/OBJ/PLY/glTF with trimesh, check, clean, convert units and up axis,
+normalise a part's frame and measure it.
+
+Frames after :func:`normalise_part` (all in metres, Z up, then scaled to unit length):
+
+* **trunk, branch, twig**: the base centre at the origin, the growth axis (base to tip) along
+  +Z, length 1; the second principal axis (the plane a curved branch bends in) along +X.
+* **leaf**: the attachment point (petiole or fascicle base) at the origin, the blade axis
+  (attachment to tip) along +X, the blade normal along +Z, the width along +Y, length 1.
+
+Real dimensions are kept in :class:`Measurements` (and written to the template's customData).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from .errors import CADError
+
+PARTS = ("trunk", "branch", "twig", "leaf")
+WOOD_PARTS = ("trunk", "branch", "twig")
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
+UP_AXES = ("Y", "Z")
+MAX_TRIANGLES = 20_000_000
+MAX_FILE_BYTES = 2 * 2**30
+
+# typical real size (m) of each part, for --units auto
+TYPICAL_SIZE = {"trunk": 5.0, "branch": 1.5, "twig": 0.3, "leaf": 0.08, "tree": 8.0}
+# default up axis by format when --up auto: glTF is Y-up by its spec; OBJ exporters
+# (Blender, Maya) write Y-up by default; STL and PLY come from CAD tools that use Z-up
+DEFAULT_UP = {"obj": "Y", "glb": "Y", "gltf": "Y", "stl": "Z", "ply": "Z"}
+
+
+@dataclass(frozen=True, eq=False)
+class CADMesh:
+    """A triangle mesh read from a CAD file, with faces grouped by material or object.
+
+    Attributes
+    ----------
+    vertices
+        ``float64[n, 3]``.
+    faces
+        ``int64[m, 3]`` vertex indices.
+    face_group
+        ``int32[m]`` index into ``groups`` of each face.
+    groups
+        Material (or object) names, e.g. ``("Bark", "Tree_Leaves")``.
+    source, sha256, fmt
+        File name, content hash and format of the file it came from.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    face_group: np.ndarray
+    groups: tuple[str, ...]
+    source: str
+    sha256: str
+    fmt: str
+
+    @property
+    def n_triangles(self) -> int:
+        return int(self.faces.shape[0])
+
+    def trimesh(self) -> trimesh.Trimesh:
+        return trimesh.Trimesh(self.vertices, self.faces, process=False)
+
+    def subset(self, face_mask: np.ndarray) -> CADMesh:
+        """The faces selected by ``face_mask`` with only the vertices they use."""
+        faces = self.faces[face_mask]
+        used, inverse = np.unique(faces, return_inverse=True)
+        return CADMesh(
+            self.vertices[used],
+            inverse.reshape(-1, 3).astype(np.int64),
+            self.face_group[face_mask],
+            self.groups,
+            self.source,
+            self.sha256,
+            self.fmt,
+        )
+
+    def with_vertices(self, vertices: np.ndarray) -> CADMesh:
+        return CADMesh(
+            vertices, self.faces, self.face_group, self.groups, self.source, self.sha256, self.fmt
+        )
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _check_stl(path: Path, data: bytes) -> None:
+    head = data[:512].lstrip()
+    if len(data) >= 84:
+        n = int(np.frombuffer(data, dtype="<u4", count=1, offset=80)[0])
+        if len(data) == 84 + 50 * n:
+            if n > MAX_TRIANGLES:
+                raise CADError(f"{path.name}: binary STL with {n:,} triangles, over the limit")
+            return
+    if head[:5].lower() == b"solid" and b"facet" in data[:4096].lower():
+        return  # ASCII STL
+    if len(data) < 84:
+        raise CADError(f"{path.name}: not an STL file ({len(data)} bytes, no ASCII 'solid')")
+    n = int(np.frombuffer(data, dtype="<u4", count=1, offset=80)[0])
+    if n > MAX_TRIANGLES:
+        raise CADError(
+            f"{path.name}: binary STL header claims {n:,} triangles, over the limit of "
+            f"{MAX_TRIANGLES:,} (a corrupt or hostile header?)"
+        )
+    need = 84 + 50 * n
+    if len(data) < need:
+        raise CADError(
+            f"{path.name}: truncated binary STL: header claims {n:,} triangles "
+            f"({need:,} bytes) but the file has {len(data):,} bytes"
+        )
+
+
+_OBJ_FACE = re.compile(rb"^\s*f\s+(.*)$")
+
+
+def _check_obj(path: Path, data: bytes) -> None:
+    nv = 0
+    for lineno, line in enumerate(data.splitlines(), 1):
+        s = line.lstrip()
+        if s.startswith(b"v ") or s.startswith(b"v\t"):
+            nv += 1
+        elif s.startswith(b"f ") or s.startswith(b"f\t"):
+            refs = s[1:].split()
+            if len(refs) < 3:
+                raise CADError(f"{path.name}: line {lineno}: a face needs at least 3 vertices")
+            for ref in refs:
+                try:
+                    i = int(ref.split(b"/")[0])
+                except ValueError:
+                    raise CADError(
+                        f"{path.name}: line {lineno}: face vertex {ref.decode(errors='replace')!r}"
+                        " is not a number"
+                    ) from None
+                if i == 0 or i > nv or -i > nv:
+                    raise CADError(
+                        f"{path.name}: line {lineno}: face refers to vertex {i} but only {nv} "
+                        "vertices are defined before it"
+                    )
+    if nv == 0:
+        raise CADError(f"{path.name}: OBJ file with no vertices ('v' lines)")
+
+
+def _check_ply(path: Path, data: bytes) -> None:
+    if not data.startswith(b"ply"):
+        raise CADError(f"{path.name}: not a PLY file (no 'ply' magic)")
+    end = data.find(b"end_header")
+    if end < 0:
+        raise CADError(f"{path.name}: PLY header has no end_header")
+    for name, count in re.findall(rb"element\s+(\w+)\s+(\d+)", data[:end]):
+        if int(count) > MAX_TRIANGLES * 3:
+            raise CADError(
+                f"{path.name}: PLY header claims {int(count):,} {name.decode()} elements, over "
+                "the limit"
+            )
+
+
+def _check_none(path: Path, data: bytes) -> None:
+    return None
+
+
+# loaders registered by format: a pre-check that gives a clear message before trimesh reads
+_FORMATS: dict[str, tuple[str, Callable[[Path, bytes], None]]] = {
+    ".stl": ("stl", _check_stl),
+    ".obj": ("obj", _check_obj),
+    ".ply": ("ply", _check_ply),
+    ".glb": ("glb", _check_none),
+    ".gltf": ("gltf", _check_none),
+}
+
+
+def read_cad(path: str | Path) -> CADMesh:
+    """Read a CAD mesh file, refusing anything that is not a finite triangle mesh.
+
+    Parameters
+    ----------
+    path
+        An STL (ASCII or binary), OBJ (+MTL), PLY, GLB or glTF file.
+
+    Returns
+    -------
+    CADMesh
+        Triangles in the file's own units and axes, faces grouped by material or object, with
+        duplicate vertices merged and degenerate or repeated faces removed.
+
+    Raises
+    ------
+    CADError
+        Naming the file and the reason: missing, empty, unknown format, truncated, a header that
+        claims more triangles than the limit, faces pointing at missing vertices, NaN or
+        infinite coordinates, or no triangles at all.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CADError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if suffix not in _FORMATS:
+        raise CADError(
+            f"{path.name}: unknown CAD format {suffix!r}; supported: {', '.join(_FORMATS)}"
+        )
+    fmt, check = _FORMATS[suffix]
+    size = path.stat().st_size
+    if size == 0:
+        raise CADError(f"{path.name}: the file is empty")
+    if size > MAX_FILE_BYTES:
+        raise CADError(f"{path.name}: {size:,} bytes, over the {MAX_FILE_BYTES:,}-byte limit")
+    data = path.read_bytes()
+    check(path, data)
+    try:
+        loaded = trimesh.load(str(path), file_type=fmt, process=False, force="scene")
+    except CADError:
+        raise
+    except Exception as exc:  # trimesh raises many types for malformed files
+        raise CADError(f"{path.name}: cannot read as {fmt.upper()}: {exc}") from None
+    meshes = [
+        g for g in loaded.dump(concatenate=False) if isinstance(g, trimesh.Trimesh) and len(g.faces)
+    ]
+    if not meshes:
+        raise CADError(f"{path.name}: contains no triangles (is it a mesh file?)")
+    groups: list[str] = []
+    verts, faces, fgroup = [], [], []
+    offset = 0
+    for g in meshes:
+        name = _group_name(g)
+        if name not in groups:
+            groups.append(name)
+        verts.append(np.asarray(g.vertices, dtype=np.float64))
+        faces.append(np.asarray(g.faces, dtype=np.int64) + offset)
+        fgroup.append(np.full(len(g.faces), groups.index(name), dtype=np.int32))
+        offset += len(g.vertices)
+    v = np.concatenate(verts)
+    bad = ~np.all(np.isfinite(v), axis=1)
+    if bad.any():
+        raise CADError(f"{path.name}: {int(bad.sum())} vertices have NaN or infinite coordinates")
+    mesh = CADMesh(
+        v,
+        np.concatenate(faces),
+        np.concatenate(fgroup),
+        tuple(groups),
+        path.name,
+        hashlib.sha256(data).hexdigest(),
+        fmt,
+    )
+    mesh = clean(mesh)
+    if mesh.n_triangles == 0:
+        raise CADError(f"{path.name}: all triangles are degenerate")
+    return mesh
+
+
+def _group_name(g: trimesh.Trimesh) -> str:
+    material = getattr(g.visual, "material", None)
+    name = getattr(material, "name", None)
+    if name:
+        return str(name)
+    return str(g.metadata.get("name") or g.metadata.get("node") or "mesh")
+
+
+def clean(mesh: CADMesh) -> CADMesh:
+    """Merge duplicate vertices, drop degenerate and repeated faces and unused vertices."""
+    v = mesh.vertices
+    scale = float(np.ptp(v, axis=0).max()) if len(v) else 1.0
+    key = np.round(v / max(scale, 1e-300) * 1e9).astype(np.int64)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    faces = inverse.reshape(-1)[mesh.faces]
+    ok = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    tri = v[first][faces]
+    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    ok &= area2 > (scale * 1e-9) ** 2
+    sorted_faces = np.sort(faces, axis=1)
+    _, unique_idx = np.unique(sorted_faces[ok], axis=0, return_index=True)
+    keep = np.flatnonzero(ok)[np.sort(unique_idx)]
+    merged = CADMesh(
+        v[first], faces, mesh.face_group, mesh.groups, mesh.source, mesh.sha256, mesh.fmt
+    )
+    mask = np.zeros(len(faces), dtype=bool)
+    mask[keep] = True
+    return merged.subset(mask)
+
+
+# --------------------------------------------------------------------------- units and axes
+
+
+def y_up_to_z_up(vertices: np.ndarray) -> np.ndarray:
+    """Rotate +90 degrees about X: (x, y, z) -> (x, -z, y), so +Y becomes +Z."""
+    return np.stack([vertices[:, 0], -vertices[:, 2], vertices[:, 1]], axis=1)
+
+
+def resolve_units(mesh: CADMesh, units: str, part: str) -> tuple[str, float]:
+    """The unit name and metres-per-unit, guessing from the part's typical size for ``auto``.
+
+    glTF is metres by its specification; for other formats ``auto`` picks the unit that brings
+    the largest extent closest (in ratio) to the part's typical real size.
+    """
+    if units != "auto":
+        if units not in UNITS:
+            raise CADError(f"unknown units {units!r}; use one of {', '.join(UNITS)} or auto")
+        return units, UNITS[units]
+    if mesh.fmt in ("glb", "gltf"):
+        return "m", 1.0
+    extent = float(np.ptp(mesh.vertices, axis=0).max())
+    typical = TYPICAL_SIZE[part]
+    best = min(UNITS, key=lambda u: abs(math.log(max(extent * UNITS[u], 1e-12) / typical)))
+    return best, UNITS[best]
+
+
+def resolve_up(mesh: CADMesh, up: str) -> str:
+    if up == "auto":
+        return DEFAULT_UP.get(mesh.fmt, "Z")
+    up = up.upper()
+    if up not in UP_AXES:
+        raise CADError(f"unknown up axis {up!r}; use Y, Z or auto")
+    return up
+
+
+def to_metres_z_up(mesh: CADMesh, units: str, up: str, part: str) -> tuple[CADMesh, str, str]:
+    """Convert to metres and Z up; returns the mesh and the units and up axis used."""
+    unit, factor = resolve_units(mesh, units, part)
+    axis = resolve_up(mesh, up)
+    v = mesh.vertices * factor
+    if axis == "Y":
+        v = y_up_to_z_up(v)
+    return mesh.with_vertices(v), unit, axis
+
+
+# --------------------------------------------------------------------------- geometry helpers
+
+
+def components(mesh: CADMesh) -> np.ndarray:
+    """``int[m]`` connected-component label of each face (faces sharing a vertex connect)."""
+    n = len(mesh.vertices)
+    f = mesh.faces
+    rows = np.repeat(f[:, 0], 3)
+    graph = coo_matrix((np.ones(rows.size), (rows, f.ravel())), shape=(n, n))
+    _, vertex_label = connected_components(graph, directed=False)
+    return vertex_label[f[:, 0]]
+
+
+def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    tri = vertices[faces]
+    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
+def principal_axes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Area-weighted centroid and principal axes (rows, largest variance first).
+
+    Each axis's sign is fixed (largest component positive) so the result is deterministic.
+    """
+    tri = vertices[faces]
+    centres = tri.mean(axis=1)
+    w = face_areas(vertices, faces)
+    if w.sum() <= 0:
+        w = np.ones(len(faces))
+    c = (centres * w[:, None]).sum(axis=0) / w.sum()
+    d = centres - c
+    cov = (d * w[:, None]).T @ d / w.sum() + np.cov(vertices.T, bias=True) * 1e-6
+    _, vecs = np.linalg.eigh(cov)
+    axes = vecs[:, ::-1].T.copy()
+    for i in range(3):
+        if axes[i, np.argmax(np.abs(axes[i]))] < 0:
+            axes[i] = -axes[i]
+    if np.linalg.det(axes) < 0:
+        axes[2] = -axes[2]
+    return c, axes
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals (unit length; +Z for isolated vertices)."""
+    tri = vertices[faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    vn = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(vn, faces[:, k], fn)
+    norm = np.linalg.norm(vn, axis=1)
+    vn[norm == 0] = (0.0, 0.0, 1.0)
+    norm[norm == 0] = 1.0
+    return vn / norm[:, None]
+
+
+# --------------------------------------------------------------------------- normalisation
+
+
+@dataclass(frozen=True)
+class Measurements:
+    """Real dimensions of a part in metres (m², for areas)."""
+
+    length: float
+    base_radius: float
+    tip_radius: float
+    width: float
+    surface_area: float
+    leaf_area: float
+    equivalent_disk_radius: float
+    triangles: int
+
+    def as_dict(self) -> dict[str, float | int]:
+        return asdict(self)
+
+
+@dataclass(frozen=True, eq=False)
+class TemplatePart:
+    """A normalised part ready to be written as a template layer.
+
+    ``vertices`` are in the part's normalised frame (unit length, see module docstring).
+    """
+
+    name: str
+    part: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray
+    measurements: Measurements
+    provenance: dict[str, object] = field(default_factory=dict)
+    color: tuple[float, float, float] = (0.4, 0.3, 0.2)
+
+    @property
+    def normalised_base_radius(self) -> float:
+        return self.measurements.base_radius / self.measurements.length
+
+    @property
+    def normalised_tip_radius(self) -> float:
+        return self.measurements.tip_radius / self.measurements.length
+
+
+DEFAULT_COLORS = {
+    "trunk": (0.33, 0.24, 0.17),
+    "branch": (0.38, 0.28, 0.2),
+    "twig": (0.42, 0.32, 0.22),
+    "leaf": (0.23, 0.48, 0.17),
+}
+
+
+def _end_slab(t: np.ndarray, at_max: bool, fraction: float = 0.03) -> np.ndarray:
+    lo, hi = float(t.min()), float(t.max())
+    span = max(hi - lo, 1e-12)
+    return t >= hi - fraction * span if at_max else t <= lo + fraction * span
+
+
+def normalise_part(
+    mesh: CADMesh,
+    part: str,
+    *,
+    name: str | None = None,
+    provenance: dict[str, object] | None = None,
+    color: tuple[float, float, float] | None = None,
+) -> TemplatePart:
+    """Move a part (metres, Z up) into its template frame and measure it.
+
+    Parameters
+    ----------
+    mesh
+        The part's triangles in metres with Z up (see :func:`to_metres_z_up`).
+    part
+        ``trunk``, ``branch``, ``twig`` or ``leaf``.
+
+    Returns
+    -------
+    TemplatePart
+        Unit-length geometry in the part's frame with normals, and its real measurements.
+    """
+    if part not in PARTS:
+        raise CADError(f"unknown part {part!r}; use one of {', '.join(PARTS)}")
+    v, f = mesh.vertices, mesh.faces
+    centre, axes = principal_axes(v, f)
+    local = (v - centre) @ axes.T  # coordinates along the principal axes
+    t = local[:, 0]
+    lo_slab, hi_slab = _end_slab(t, False), _end_slab(t, True)
+    radial = np.linalg.norm(local[:, 1:], axis=1)
+    width_lo = float(np.ptp(local[lo_slab, 1])) if lo_slab.any() else 0.0
+    width_hi = float(np.ptp(local[hi_slab, 1])) if hi_slab.any() else 0.0
+
+    if part in WOOD_PARTS:
+        r_lo = _slab_radius(local, lo_slab)
+        r_hi = _slab_radius(local, hi_slab)
+        if abs(r_lo - r_hi) <= 0.05 * max(r_lo, r_hi):
+            # no clear taper: the base is the lower end (Z up)
+            base_at_max = float(np.mean(v[hi_slab, 2])) < float(np.mean(v[lo_slab, 2]))
+        else:
+            base_at_max = r_hi > r_lo
+        sign = -1.0 if base_at_max else 1.0
+        base_slab = hi_slab if base_at_max else lo_slab
+        base_centre_local = local[base_slab].mean(axis=0)
+        base_centre_local[0] = t.max() if base_at_max else t.min()
+        # new frame: X = second axis, Y = Z x X, Z = growth axis
+        z = axes[0] * sign
+        x = axes[1]
+        y = np.cross(z, x)
+        basis = np.stack([x, y, z])
+        origin = centre + base_centre_local @ axes
+        out = (v - origin) @ basis.T
+        length = float(out[:, 2].max() - out[:, 2].min())
+        base_r, tip_r = (r_hi, r_lo) if base_at_max else (r_lo, r_hi)
+        width = 2.0 * float(radial.max())
+    else:
+        # leaf: attachment at the narrow end of the blade axis
+        attach_at_max = width_hi < width_lo
+        sign = -1.0 if attach_at_max else 1.0
+        x = axes[0] * sign
+        zn = axes[2]
+        # the blade's upper side is the one its face winding points to
+        tri = v[f]
+        winding = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).sum(axis=0)
+        if float(winding @ zn) < 0:
+            zn = -zn
+        y = np.cross(zn, x)
+        basis = np.stack([x, y, zn])
+        slab = hi_slab if attach_at_max else lo_slab
+        attach_local = local[slab].mean(axis=0)
+        attach_local[0] = t.max() if attach_at_max else t.min()
+        origin = centre + attach_local @ axes
+        out = (v - origin) @ basis.T
+        length = float(out[:, 0].max() - out[:, 0].min())
+        base_r, tip_r = 0.0, 0.0
+        width = float(np.ptp(out[:, 1]))
+    if length <= 0:
+        raise CADError(f"{mesh.source}: the {part} has no length")
+    area = float(face_areas(v, f).sum())
+    leaf_area = 0.0
+    if part == "leaf":
+        closed = _is_closed(f)
+        leaf_area = area / 2.0 if closed else area
+    scaled = out / length
+    measurements = Measurements(
+        length=length,
+        base_radius=float(base_r),
+        tip_radius=float(tip_r),
+        width=width,
+        surface_area=area,
+        leaf_area=leaf_area,
+        equivalent_disk_radius=math.sqrt(leaf_area / math.pi) if leaf_area else 0.0,
+        triangles=len(f),
+    )
+    return TemplatePart(
+        name=name or part,
+        part=part,
+        vertices=scaled,
+        faces=f.copy(),
+        normals=vertex_normals(scaled, f),
+        measurements=measurements,
+        provenance=dict(provenance or {}),
+        color=color or DEFAULT_COLORS[part],
+    )
+
+
+def _slab_radius(local: np.ndarray, slab: np.ndarray) -> float:
+    """Median distance of a slab's vertices from their centre, across the axis.
+
+    The median ignores cap centres and keeps a root flare's lobes from dominating.
+    """
+    if not slab.any():
+        return 0.0
+    pts = local[slab, 1:]
+    return float(np.median(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))
+
+
+def _is_closed(faces: np.ndarray) -> bool:
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool(np.all(counts == 2))
+
+
+def import_part(
+    path: str | Path,
+    part: str,
+    *,
+    units: str = "auto",
+    up: str = "auto",
+    name: str | None = None,
+    color: tuple[float, float, float] | None = None,
+) -> TemplatePart:
+    """Read a CAD file and normalise it as one template part.
+
+    Parameters
+    ----------
+    path
+        STL, OBJ, PLY, GLB or glTF file holding one part.
+    part
+        ``trunk``, ``branch``, ``twig`` or ``leaf``.
+    units
+        ``mm``, ``cm``, ``m``, ``in`` or ``auto`` (see :func:`resolve_units`).
+    up
+        ``Y``, ``Z`` or ``auto`` (glTF and OBJ: Y; STL and PLY: Z).
+    """
+    if part not in PARTS:
+        raise CADError(f"unknown part {part!r}; use one of {', '.join(PARTS)}")
+    raw = read_cad(path)
+    mesh, unit, axis = to_metres_z_up(raw, units, up, part)
+    lo, hi = raw.vertices.min(axis=0), raw.vertices.max(axis=0)
+    provenance = {
+        "source": raw.source,
+        "sha256": raw.sha256,
+        "format": raw.fmt,
+        "units": unit,
+        "upAxis": axis,
+        "originalBoundsMin": [float(x) for x in lo],
+        "originalBoundsMax": [float(x) for x in hi],
+        "triangles": raw.n_triangles,
+    }
+    return normalise_part(mesh, part, name=name, provenance=provenance, color=color)

@@ -1,0 +1,137 @@
+"""The template library: where the shipped templates live and how a manifest builds them.
+
+A manifest (``pipelines/templates.toml``) lists CAD sources and how to import each::
+
+    output = "../templates"          # folder for the .usdc layers, relative to the manifest
+
+    [[template]]
+    name = "trunk"                   # layer name: <output>/<name>.usdc
+    source = "../templates/cad/trunk.obj"
+    part = "trunk"                   # trunk | branch | twig | leaf
+    units = "m"                      # m | cm | mm | in | auto (default auto)
+    up = "Z"                         # Y | Z | auto (default auto)
+    color = [0.33, 0.24, 0.17]       # optional display colour (linear RGB)
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+from .cad import PARTS, UNITS, import_part
+from .errors import RecipeError
+
+MANIFEST_KEYS = {"output", "template"}
+TEMPLATE_KEYS = {"name", "source", "part", "units", "up", "color"}
+
+
+def template_dir() -> Path:
+    """The folder holding the shipped template layers (source checkout or installed package)."""
+    return Path(str(resources.files("usdforest.templates")))
+
+
+def template_path(name: str) -> Path:
+    """Path of the shipped template ``name`` (e.g. ``"trunk"``), with a clear error if absent."""
+    path = template_dir() / f"{name}.usdc"
+    if not path.is_file():
+        known = ", ".join(sorted(p.stem for p in template_dir().glob("*.usdc")))
+        raise RecipeError(f"unknown template {name!r}; shipped templates: {known or 'none'}")
+    return path
+
+
+@dataclass(frozen=True)
+class TemplateSpec:
+    name: str
+    source: Path
+    part: str
+    units: str = "auto"
+    up: str = "auto"
+    color: tuple[float, float, float] | None = None
+
+
+@dataclass(frozen=True)
+class Manifest:
+    path: Path
+    output: Path
+    templates: tuple[TemplateSpec, ...]
+
+
+def read_manifest(path: str | Path) -> Manifest:
+    """Parse and check a template manifest; every problem names the file and key."""
+    path = Path(path)
+    if not path.is_file():
+        raise RecipeError(f"{path}: no such file")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise RecipeError(f"{path}: not valid TOML: {exc}") from None
+    unknown = set(data) - MANIFEST_KEYS
+    if unknown:
+        raise RecipeError(
+            f"{path}: unknown key {sorted(unknown)[0]!r} (expected: output, template)"
+        )
+    base = path.parent
+    output = base / str(data.get("output", "."))
+    entries = data.get("template", [])
+    if not isinstance(entries, list) or not entries:
+        raise RecipeError(f"{path}: 'template' must be a non-empty array of tables")
+    specs = []
+    for i, e in enumerate(entries):
+        where = f"{path}: template[{i}]"
+        if not isinstance(e, dict):
+            raise RecipeError(f"{where} must be a table")
+        unknown = set(e) - TEMPLATE_KEYS
+        if unknown:
+            raise RecipeError(
+                f"{where}: unknown key {sorted(unknown)[0]!r} "
+                f"(expected: {', '.join(sorted(TEMPLATE_KEYS))})"
+            )
+        for key in ("name", "source", "part"):
+            if not isinstance(e.get(key), str) or not e[key]:
+                raise RecipeError(f"{where}.{key}: expected a non-empty string")
+        if e["part"] not in PARTS:
+            raise RecipeError(f"{where}.part: {e['part']!r} is not one of {', '.join(PARTS)}")
+        units = e.get("units", "auto")
+        if units not in (*UNITS, "auto"):
+            raise RecipeError(f"{where}.units: {units!r} is not one of {', '.join(UNITS)}, auto")
+        up = e.get("up", "auto")
+        if up not in ("Y", "Z", "auto"):
+            raise RecipeError(f"{where}.up: {up!r} is not one of Y, Z, auto")
+        color = e.get("color")
+        if color is not None and (
+            not isinstance(color, list)
+            or len(color) != 3
+            or not all(isinstance(c, int | float) and 0 <= c <= 1 for c in color)
+        ):
+            raise RecipeError(f"{where}.color: expected three numbers in [0, 1]")
+        specs.append(
+            TemplateSpec(
+                e["name"],
+                base / e["source"],
+                e["part"],
+                units,
+                up,
+                tuple(float(c) for c in color) if color else None,
+            )
+        )
+    names = [s.name for s in specs]
+    dupes = {n for n in names if names.count(n) > 1}
+    if dupes:
+        raise RecipeError(f"{path}: template name {sorted(dupes)[0]!r} is used twice")
+    return Manifest(path, output, tuple(specs))
+
+
+def build_manifest(manifest: Manifest, output: Path | None = None) -> list[Path]:
+    """Import every template of ``manifest`` and write ``<output>/<name>.usdc``."""
+    from .usd.template import write_template
+
+    out = output or manifest.output
+    written = []
+    for spec in manifest.templates:
+        part = import_part(
+            spec.source, spec.part, units=spec.units, up=spec.up, name=spec.name, color=spec.color
+        )
+        written.append(write_template(part, out / f"{spec.name}.usdc"))
+    return written

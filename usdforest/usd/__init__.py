@@ -1,0 +1,1 @@
+"""The only package that imports pxr: layers, templates, trees, forests."""

@@ -1,0 +1,152 @@
+"""Stage metadata, Sdf authoring helpers and atomic saves."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import numpy as np
+from pxr import Sdf, Vt
+
+from ..errors import UsdForestError
+
+T = Sdf.ValueTypeNames
+
+
+def new_layer(default_prim: str, *, comment: str = "") -> Sdf.Layer:
+    """An anonymous layer with the project's stage metadata.
+
+    ``defaultPrim`` set, ``upAxis = "Z"``, ``metersPerUnit = 1``, ``kilogramsPerUnit = 1``.
+    """
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    root = layer.pseudoRoot
+    root.SetInfo("upAxis", "Z")
+    root.SetInfo("metersPerUnit", 1.0)
+    root.SetInfo("kilogramsPerUnit", 1.0)
+    layer.defaultPrim = default_prim
+    if comment:
+        layer.comment = comment
+    return layer
+
+
+def save_layer(layer: Sdf.Layer, path: str | Path) -> Path:
+    """Write ``layer`` to ``path`` atomically (a temporary file in the same folder, renamed).
+
+    The file format follows the extension (``.usda`` text, ``.usdc`` crate).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        if not layer.Export(tmp):
+            raise UsdForestError(f"{path}: could not write the layer")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def prim(
+    parent: Sdf.PrimSpec | Sdf.Layer,
+    name: str,
+    type_name: str = "",
+    specifier: Sdf.Specifier = Sdf.SpecifierDef,
+) -> Sdf.PrimSpec:
+    """Create (or fetch) a prim spec under a layer's root or another prim spec."""
+    owner = parent.pseudoRoot if isinstance(parent, Sdf.Layer) else parent
+    existing = owner.nameChildren.get(name) if hasattr(owner, "nameChildren") else None
+    if existing is not None:
+        return existing
+    return Sdf.PrimSpec(owner, name, specifier, type_name)
+
+
+def attr(
+    spec: Sdf.PrimSpec,
+    name: str,
+    type_name,
+    value=None,
+    *,
+    uniform: bool = False,
+    interpolation: str | None = None,
+) -> Sdf.AttributeSpec:
+    """Author an attribute with a default value."""
+    a = Sdf.AttributeSpec(
+        spec, name, type_name, Sdf.VariabilityUniform if uniform else Sdf.VariabilityVarying
+    )
+    if value is not None:
+        a.default = value
+    if interpolation:
+        a.SetInfo("interpolation", interpolation)
+    return a
+
+
+def rel(spec: Sdf.PrimSpec, name: str, targets: Sequence[Sdf.Path]) -> Sdf.RelationshipSpec:
+    r = Sdf.RelationshipSpec(spec, name, custom=False)
+    r.targetPathList.explicitItems = list(targets)
+    return r
+
+
+def apply_schemas(spec: Sdf.PrimSpec, schemas: Iterable[str]) -> None:
+    spec.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=list(schemas)))
+
+
+def vec3f(a: np.ndarray) -> Vt.Vec3fArray:
+    return Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(a, dtype=np.float32))
+
+
+def ints(a: np.ndarray) -> Vt.IntArray:
+    return Vt.IntArray.FromNumpy(np.ascontiguousarray(a, dtype=np.int32))
+
+
+def extent_of(points: np.ndarray) -> Vt.Vec3fArray:
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        return vec3f(np.zeros((2, 3)))
+    return vec3f(np.stack([pts.min(axis=0), pts.max(axis=0)]))
+
+
+def semantic_label(spec: Sdf.PrimSpec, label: str | Sequence[str]) -> None:
+    """Apply ``SemanticsLabelsAPI:class`` with ``semantics:labels:class = [label, ...]``."""
+    labels = [label] if isinstance(label, str) else list(label)
+    existing = spec.GetInfo("apiSchemas") if spec.HasInfo("apiSchemas") else None
+    items = list(existing.prependedItems) if existing else []
+    if "SemanticsLabelsAPI:class" not in items:
+        items.append("SemanticsLabelsAPI:class")
+    spec.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=items))
+    attr(spec, "semantics:labels:class", T.TokenArray, Vt.TokenArray(labels), uniform=True)
+
+
+def preview_material(
+    parent: Sdf.PrimSpec,
+    name: str,
+    color: Sequence[float],
+    *,
+    roughness: float = 0.8,
+    opacity: float = 1.0,
+) -> Sdf.Path:
+    """A Material with a UsdPreviewSurface shader; returns the material's path."""
+    mat = prim(parent, name, "Material")
+    shader = prim(mat, "PreviewSurface", "Shader")
+    attr(shader, "info:id", T.Token, "UsdPreviewSurface", uniform=True)
+    attr(shader, "inputs:diffuseColor", T.Color3f, tuple(float(c) for c in color))
+    attr(shader, "inputs:roughness", T.Float, float(roughness))
+    attr(shader, "inputs:metallic", T.Float, 0.0)
+    if opacity < 1.0:
+        attr(shader, "inputs:opacity", T.Float, float(opacity))
+    out = attr(shader, "outputs:surface", T.Token)
+    surf = attr(mat, "outputs:surface", T.Token)
+    surf.connectionPathList.explicitItems = [out.path]
+    return mat.path
+
+
+def bind_material(spec: Sdf.PrimSpec, material: Sdf.Path) -> None:
+    existing = spec.GetInfo("apiSchemas") if spec.HasInfo("apiSchemas") else None
+    items = list(existing.prependedItems) if existing else []
+    if "MaterialBindingAPI" not in items:
+        items.insert(0, "MaterialBindingAPI")
+    spec.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=items))
+    rel(spec, "material:binding", [material])

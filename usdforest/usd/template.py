@@ -1,0 +1,144 @@
+"""Template layers: one CAD-derived part, normalised, as ``/Template`` (Xform) holding a Mesh."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from pxr import Sdf, Usd, UsdGeom, Vt
+
+from ..cad import TemplatePart
+from ..errors import UsdForestError
+from .layers import (
+    T,
+    attr,
+    bind_material,
+    extent_of,
+    ints,
+    new_layer,
+    preview_material,
+    prim,
+    save_layer,
+    semantic_label,
+    vec3f,
+)
+
+SEMANTIC_CLASS = {"trunk": "trunk", "branch": "branch", "twig": "branch", "leaf": "leaf"}
+
+
+def template_layer(part: TemplatePart) -> Sdf.Layer:
+    """Author a template layer for ``part`` (in memory).
+
+    ``/Template`` is an Xform (kind component) with customData ``usdforest`` holding the part
+    type, real measurements and provenance; ``/Template/Mesh`` carries points, face counts and
+    indices, vertex normals, extent, displayColor and a bound UsdPreviewSurface material under
+    ``/Template/Looks``.
+    """
+    layer = new_layer("Template", comment=f"usdforest template {part.name!r} ({part.part})")
+    m = part.measurements
+    with Sdf.ChangeBlock():
+        root = prim(layer, "Template", "Xform")
+        root.kind = "component"
+        root.customData = {
+            "usdforest": {
+                "part": part.part,
+                "name": part.name,
+                "frame": _frame_doc(part.part),
+                "normalisedBaseRadius": part.normalised_base_radius,
+                "normalisedTipRadius": part.normalised_tip_radius,
+                "measurements": {k: v for k, v in m.as_dict().items()},
+                "provenance": _plain(part.provenance),
+            }
+        }
+        extent = extent_of(part.vertices)
+        attr(root, "extentsHint", T.Float3Array, extent)
+        looks = prim(root, "Looks", "Scope")
+        material = preview_material(
+            looks,
+            "Leaf" if part.part == "leaf" else "Bark",
+            part.color,
+            roughness=0.6 if part.part == "leaf" else 0.9,
+        )
+        mesh = prim(root, "Mesh", "Mesh")
+        attr(mesh, "points", T.Point3fArray, vec3f(part.vertices))
+        attr(mesh, "faceVertexCounts", T.IntArray, ints(np.full(len(part.faces), 3)))
+        attr(mesh, "faceVertexIndices", T.IntArray, ints(part.faces.ravel()))
+        attr(mesh, "normals", T.Normal3fArray, vec3f(part.normals), interpolation="vertex")
+        attr(mesh, "extent", T.Float3Array, extent)
+        attr(mesh, "subdivisionScheme", T.Token, "none", uniform=True)
+        attr(mesh, "doubleSided", T.Bool, part.part == "leaf", uniform=True)
+        attr(
+            mesh,
+            "primvars:displayColor",
+            T.Color3fArray,
+            Vt.Vec3fArray([tuple(part.color)]),
+            interpolation="constant",
+        )
+        bind_material(mesh, material)
+        semantic_label(mesh, SEMANTIC_CLASS[part.part])
+    return layer
+
+
+def _frame_doc(part: str) -> str:
+    if part == "leaf":
+        return "attachment at origin, blade axis +X, normal +Z, unit length"
+    return "base centre at origin, growth axis +Z, unit length"
+
+
+def _plain(d: dict) -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, list | tuple):
+            out[k] = Vt.DoubleArray([float(x) for x in v])
+        else:
+            out[k] = v
+    return out
+
+
+def write_template(part: TemplatePart, path: str | Path) -> Path:
+    """Write ``part`` as a template layer at ``path`` (``.usdc`` or ``.usda``), atomically."""
+    path = Path(path)
+    if path.suffix not in (".usdc", ".usda", ".usd"):
+        raise UsdForestError(f"{path}: a template layer must end in .usdc, .usda or .usd")
+    return save_layer(template_layer(part), path)
+
+
+@dataclass(frozen=True)
+class TemplateInfo:
+    """What a tree needs to know about a template layer."""
+
+    path: Path
+    part: str
+    name: str
+    base_radius: float  # normalised (unit length)
+    tip_radius: float
+    extent: np.ndarray  # (2, 3)
+    measurements: dict
+
+
+def read_template(path: str | Path) -> TemplateInfo:
+    """Read a template layer's part type, normalised radii and extent."""
+    path = Path(path)
+    layer = Sdf.Layer.FindOrOpen(str(path))
+    if layer is None:
+        raise UsdForestError(f"{path}: cannot open the template layer")
+    spec = layer.GetPrimAtPath("/Template")
+    if spec is None or "usdforest" not in spec.customData:
+        raise UsdForestError(f"{path}: not a usdforest template (no /Template with customData)")
+    data = spec.customData["usdforest"]
+    stage = Usd.Stage.Open(layer)
+    box = (
+        UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"])
+        .ComputeUntransformedBound(stage.GetPrimAtPath("/Template"))
+        .ComputeAlignedRange()
+    )
+    return TemplateInfo(
+        path=path,
+        part=str(data["part"]),
+        name=str(data["name"]),
+        base_radius=float(data["normalisedBaseRadius"]),
+        tip_radius=float(data["normalisedTipRadius"]),
+        extent=np.array([list(box.GetMin()), list(box.GetMax())]),
+        measurements=dict(data["measurements"]),
+    )
