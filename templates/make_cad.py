@@ -110,8 +110,8 @@ def leaf() -> trimesh.Trimesh:
     downward curl towards the tip.
     """
     pet_len, blade_len, half_width = 0.03, 0.12, 0.032
-    u = np.linspace(0.0, 1.0, 17)  # along the blade
-    w = np.linspace(-1.0, 1.0, 9)  # across
+    u = np.linspace(0.0, 1.0, 11)  # along the blade
+    w = np.linspace(-1.0, 1.0, 5)  # across
     uu, ww = np.meshgrid(u, w, indexing="ij")
     width = half_width * np.sin(math.pi * uu**0.8) ** 0.9 * (1.0 - 0.15 * uu)
     x = pet_len + blade_len * uu
@@ -127,9 +127,9 @@ def leaf() -> trimesh.Trimesh:
             faces += [(a, c, d), (a, d, b)]
     blade_mesh = trimesh.Trimesh(blade, np.array(faces), process=False)
     pet = tube(
-        np.stack([np.linspace(0.0, pet_len + 0.004, 5), np.zeros(5), np.zeros(5)], axis=1),
-        np.linspace(0.0012, 0.0009, 5),
-        sections=6,
+        np.stack([np.linspace(0.0, pet_len + 0.004, 2), np.zeros(2), np.zeros(2)], axis=1),
+        np.linspace(0.0012, 0.0009, 2),
+        sections=4,
     )
     return trimesh.util.concatenate([pet, blade_mesh])
 

@@ -5,6 +5,8 @@ Frames after :func:`normalise_part` (all in metres, Z up, then scaled to unit le
 
 * **trunk, branch, twig**: the base centre at the origin, the growth axis (base to tip) along
   +Z, length 1; the second principal axis (the plane a curved branch bends in) along +X.
+  A trunk's growth axis is the file's up axis (a trunk stands upright; forks fused to it would
+  tilt its principal axis); a branch's is its principal axis, the base being the thicker end.
 * **leaf**: the attachment point (petiole or fascicle base) at the origin, the blade axis
   (attachment to tip) along +X, the blade normal along +Z, the width along +Y, length 1.
 
@@ -473,6 +475,15 @@ def normalise_part(
         raise CADError(f"unknown part {part!r}; use one of {', '.join(PARTS)}")
     v, f = mesh.vertices, mesh.faces
     centre, axes = principal_axes(v, f)
+    if part == "trunk":
+        # a trunk stands upright in its (Z-up) file: grow along +Z, whatever its forks do
+        # to the principal axes; the second axis is the widest horizontal direction
+        _, flat = principal_axes(v * [1.0, 1.0, 0.0], f)
+        second = flat[0] - flat[0, 2] * np.array([0.0, 0.0, 1.0])
+        if np.linalg.norm(second) < 1e-9:
+            second = np.array([1.0, 0.0, 0.0])
+        second /= np.linalg.norm(second)
+        axes = np.stack([[0.0, 0.0, 1.0], second, np.cross([0.0, 0.0, 1.0], second)])
     local = (v - centre) @ axes.T  # coordinates along the principal axes
     t = local[:, 0]
     lo_slab, hi_slab = _end_slab(t, False), _end_slab(t, True)
@@ -483,7 +494,7 @@ def normalise_part(
     if part in WOOD_PARTS:
         r_lo = _slab_radius(local, lo_slab)
         r_hi = _slab_radius(local, hi_slab)
-        if abs(r_lo - r_hi) <= 0.05 * max(r_lo, r_hi):
+        if part == "trunk" or abs(r_lo - r_hi) <= 0.05 * max(r_lo, r_hi):
             # no clear taper: the base is the lower end (Z up)
             base_at_max = float(np.mean(v[hi_slab, 2])) < float(np.mean(v[lo_slab, 2]))
         else:

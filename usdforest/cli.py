@@ -14,6 +14,7 @@ from typing import Annotated, Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from . import __version__
@@ -28,8 +29,8 @@ app = typer.Typer(
     add_completion=False,
     rich_markup_mode="rich",
 )
-out = Console(soft_wrap=True)
-err = Console(stderr=True, soft_wrap=True)
+out = Console(soft_wrap=True, markup=False)
+err = Console(stderr=True, soft_wrap=True, markup=False)
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -42,7 +43,7 @@ def handles_errors(fn: F) -> F:
         try:
             return fn(*args, **kwargs)
         except UsdForestError as exc:
-            err.print(f"[bold red]error:[/] {exc}", markup=True, highlight=False)
+            err.print(f"[bold red]error:[/] {escape(str(exc))}", markup=True, highlight=False)
             raise typer.Exit(2) from None
         except MemoryError:
             err.print("[bold red]error:[/] out of memory", markup=True)
@@ -159,6 +160,117 @@ def species_cmd(
     table = Table("name", "kind", "n", "description", box=None, header_style="bold")
     for s in PRESETS.values():
         table.add_row(s.name, s.kind, str(s.iterations), s.description)
+    out.print(table)
+
+
+@app.command("tree")
+@handles_errors
+def tree_cmd(
+    output: Annotated[Path, typer.Argument(help="Tree layer to write (.usda or .usdc).")],
+    species: Annotated[
+        str | None, typer.Option("--species", "-s", help="Preset or pipeline species name.")
+    ] = None,
+    pipeline: Annotated[
+        Path | None, typer.Option("--pipeline", "-p", help="Recipe (TOML) defining species.")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed for growth and placement.")] = 0,
+    variant: Annotated[int, typer.Option(min=0, help="Variant number (another tree).")] = 0,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite existing output.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print statistics as JSON.")] = False,
+) -> None:
+    """Grow one tree and write it as a USD component with its templates beside it."""
+    from .usd.tree import write_tree
+
+    template_base = None
+    if pipeline is not None:
+        from .recipe import read_species
+
+        entries = read_species(pipeline)
+        name = species or next(iter(entries))
+        if name not in entries:
+            raise UsdForestError(
+                f"{pipeline}: no species {name!r}; it defines {', '.join(entries)}"
+            )
+        sp, template_base = entries[name].species, entries[name].template_base
+    else:
+        from .species import get_species
+
+        sp = get_species(species or "paper-rule-3")
+    b = write_tree(sp, output, seed=seed, variant=variant, force=force, template_base=template_base)
+    stats = {
+        "output": str(output),
+        "species": sp.name,
+        "seed": seed,
+        "variant": variant,
+        "segments": b.grown.skeleton.n_segments,
+        "wood_prims": b.placement.n_wood,
+        "leaves": b.placement.n_leaves,
+        "branches_by_order": b.grown.skeleton.branch_counts(),
+        "height": float(b.extent[1, 2] - b.extent[0, 2]),
+    }
+    if as_json:
+        sys.stdout.write(json.dumps(stats) + "\n")
+    else:
+        out.print(
+            f"{output}: {sp.name} (seed {seed}, variant {variant}), {stats['height']:.2f} m, "
+            f"{stats['wood_prims']} wood prims, {stats['leaves']:,} leaves; branches by order "
+            + ", ".join(f"{k}: {v}" for k, v in stats["branches_by_order"].items()),
+            highlight=False,
+        )
+
+
+@app.command("validate")
+@handles_errors
+def validate_cmd(
+    stage: Annotated[Path, typer.Argument(help="Any USD stage.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print findings as JSON.")] = False,
+) -> None:
+    """Run every pxr.UsdValidation validator plus usdforest's rules; exit 0 only if clean."""
+    from .validate import validate
+
+    findings = validate(stage)
+    if as_json:
+        sys.stdout.write(
+            json.dumps(
+                {
+                    "stage": str(stage),
+                    "clean": not findings,
+                    "findings": [f.as_dict() for f in findings],
+                }
+            )
+            + "\n"
+        )
+    else:
+        for f in findings:
+            out.print(f"{f.severity}: {f.source}: {f.path}: {f.message}", highlight=False)
+        out.print(
+            f"{stage}: {'clean' if not findings else f'{len(findings)} finding(s)'}",
+            highlight=False,
+        )
+    if findings:
+        raise typer.Exit(1)
+
+
+@app.command("info")
+@handles_errors
+def info_cmd(
+    stage: Annotated[Path, typer.Argument(help="A usdforest stage (tree or forest).")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print as JSON.")] = False,
+) -> None:
+    """Composed statistics: prims, meshes, branches by order, leaves, triangles, extent."""
+    from .usd.stats import stage_info
+
+    info = stage_info(stage)
+    if as_json:
+        sys.stdout.write(json.dumps(info) + "\n")
+        return
+    table = Table(box=None, show_header=False)
+    for k, v in info.items():
+        if isinstance(v, list) and k == "layers":
+            v = "\n".join(v)
+        elif isinstance(v, int):
+            v = f"{v:,}"
+        table.add_row(k, str(v))
     out.print(table)
 
 

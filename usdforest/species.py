@@ -31,8 +31,53 @@ from .turtle import TurtleConfig, interpret
 
 
 @dataclass(frozen=True)
+class Geometry:
+    """How a species dresses its skeleton with CAD templates.
+
+    Template names refer to the shipped library (``usdforest template list``) or to paths of
+    template layers. Lengths are metres, angles degrees.
+
+    Attributes
+    ----------
+    trunk, branches, twig, leaf
+        Templates for the trunk (the first straight run of the order-0 axis), branches (one
+        variant drawn per axis with ``branch_weights``), thin axes (radius below
+        ``twig_radius``) and leaves.
+    leaf_size, leaf_size_jitter
+        Leaf length (the leaf template is unit length) and its relative standard deviation.
+    leaves_per_site
+        Mean number of leaves at each leaf site of the skeleton (at least one each).
+    leaf_spread
+        Fraction of a terminal segment (from its tip back) along which a site's leaves spread.
+    leaf_angle, leaf_angle_jitter
+        Angle between the leaf blade and its twig, and its uniform jitter.
+    phyllotaxis
+        Divergence angle between successive leaves of a site around the twig (137.5: golden).
+    bend_split
+        An axis that turns by more than this is split into straight runs (one prim each).
+    """
+
+    trunk: str = "trunk"
+    branches: tuple[str, ...] = ("branch_straight", "branch_curved_a", "branch_curved_b")
+    branch_weights: tuple[float, ...] = (0.5, 0.25, 0.25)
+    twig: str = "twig"
+    twig_radius: float = 0.012
+    leaf: str = "leaf_broadleaf"
+    leaf_size: float = 0.14
+    leaf_size_jitter: float = 0.15
+    leaves_per_site: float = 3.0
+    leaf_spread: float = 0.8
+    leaf_angle: float = 50.0
+    leaf_angle_jitter: float = 15.0
+    phyllotaxis: float = 137.5
+    bend_split: float = 12.0
+    bark_color: tuple[float, float, float] = (0.33, 0.24, 0.17)
+    leaf_color: tuple[float, float, float] = (0.23, 0.48, 0.17)
+
+
+@dataclass(frozen=True)
 class Species:
-    """A tree species: grammar, turtle settings and the number of derivation steps."""
+    """A tree species: grammar, turtle settings, derivation steps and geometry."""
 
     name: str
     description: str
@@ -41,6 +86,7 @@ class Species:
     iterations: int
     turtle: TurtleConfig = field(default_factory=TurtleConfig)
     kind: str = "tree"
+    geometry: Geometry = field(default_factory=Geometry)
 
     def lsystem(self) -> LSystem:
         return make_lsystem(self.axiom, self.rules)
@@ -99,6 +145,7 @@ def _paper_rule(k: int) -> Species:
         ),
         iterations=4,
         turtle=TurtleConfig(angle=45.0, step=0.5, radius=0.14, draw="dbc"),
+        geometry=Geometry(leaves_per_site=6.0, leaf_size=0.13),
     )
 
 
@@ -134,6 +181,17 @@ def _pine() -> Species:
             elasticity=0.12,
             tropism=(0.0, 0.0, -1.0),
         ),
+        geometry=Geometry(
+            branches=("branch_straight", "branch_curved_a"),
+            branch_weights=(0.7, 0.3),
+            leaf="needle_fascicle",
+            leaf_size=0.07,
+            leaves_per_site=10.0,
+            leaf_spread=1.0,
+            leaf_angle=40.0,
+            bark_color=(0.36, 0.22, 0.14),
+            leaf_color=(0.13, 0.3, 0.14),
+        ),
     )
 
 
@@ -160,6 +218,7 @@ def _broadleaf() -> Species:
             elasticity=0.06,
             tropism=(0.0, 0.0, -1.0),
         ),
+        geometry=Geometry(leaves_per_site=10.0, leaf_size=0.15, leaf_color=(0.27, 0.52, 0.18)),
     )
 
 
@@ -218,3 +277,69 @@ def get_species(name: str) -> Species:
         raise UsdForestError(
             f"unknown species {name!r}; known presets: {', '.join(PRESETS)}"
         ) from None
+
+
+def species_from_profile(profile: dict, name: str = "profile") -> Species:
+    """A species that carries the measured dimensions of a whole-tree CAD model.
+
+    ``profile`` is the data of a ``profile.toml`` written by ``usdforest template extract``.
+    The trunk has the measured length and base radius; first-order branches sit at the
+    measured insertion heights with the measured lengths, base radii and angles to the trunk
+    (rolled by the golden angle around it). A model without separate branches (foliage clumps
+    on the trunk) gets one branch per clump, at the clump's height and as long as its radius.
+    Each branch then grows sub-branches and leaves like the paper presets.
+    """
+    try:
+        trunk = profile["trunk"]
+        b = profile["branches"]
+        f = profile["foliage"]
+        height, r0 = float(trunk["length"]), float(trunk["base_radius"])
+        if b["count"]:
+            rows = zip(
+                b["insertion_heights"],
+                b["lengths"],
+                b["base_radii"],
+                b["angles_to_trunk_deg"],
+                strict=True,
+            )
+            branches = [(float(h), float(ln), float(r), float(a)) for h, ln, r, a in rows]
+        else:
+            branches = [
+                (float(h), float(r), 0.3 * r0, 75.0)
+                for h, r in zip(f["clump_heights"], f["clump_radii"], strict=True)
+            ]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UsdForestError(f"profile {name!r}: missing or malformed entry ({exc})") from None
+    if height <= 0 or r0 <= 0:
+        raise UsdForestError(f"profile {name!r}: trunk length and base radius must be > 0")
+    branches = sorted((h, ln, r, a) for h, ln, r, a in branches if 0 < h < height and ln > 0)
+    parts = [f"!({r0:.6g})"]
+    z = 0.0
+    for h, ln, r, a in branches:
+        angle = min(max(a, 20.0), 100.0)
+        radius = min(r, 0.8 * r0 * (1 - h / height) + 0.01)
+        if h > z:
+            parts.append(f"F({h - z:.6g})")
+            z = h
+        parts.append(
+            f"[&(uniform({angle - 5:.4g},{angle + 5:.4g})) b({ln:.6g},{radius:.6g})]"
+            " /(uniform(130,145))"
+        )
+    parts.append(f"!({0.3 * r0:.6g}) F({max(height - z, 0.05):.6g}) L(1)")
+    twig = "[&(uniform(35,55)) L(uniform(0.8,1.2))] [^(uniform(35,55)) L(uniform(0.8,1.2))]"
+    return Species(
+        name=name,
+        description=f"Grown from a measured profile: height {height:.3g} m, "
+        f"{len(branches)} first-order branches.",
+        axiom=" ".join(parts),
+        rules=(
+            "b(l,r) -> !(r) d(l*0.4) [+(uniform(35,50)) c(l*0.4,r*0.6)]"
+            " [-(uniform(35,50)) c(l*0.4,r*0.6)] !(r*0.8) d(l*0.3)"
+            " [+(uniform(35,50)) c(l*0.3,r*0.6)] [-(uniform(35,50)) c(l*0.3,r*0.6)]"
+            " !(r*0.6) c(l*0.3,r*0.5)",
+            f"c(l,r) -> !(r) d(l*0.5) {twig} !(r*0.8) d(l*0.5) {twig} L(uniform(0.8,1.2))",
+        ),
+        iterations=2,
+        turtle=TurtleConfig(angle=45.0, step=0.5, radius=r0, draw="Fdbc"),
+        geometry=Geometry(leaves_per_site=6.0),
+    )

@@ -58,7 +58,7 @@ def prim(
 ) -> Sdf.PrimSpec:
     """Create (or fetch) a prim spec under a layer's root or another prim spec."""
     owner = parent.pseudoRoot if isinstance(parent, Sdf.Layer) else parent
-    existing = owner.nameChildren.get(name) if hasattr(owner, "nameChildren") else None
+    existing = owner.nameChildren.get(name)
     if existing is not None:
         return existing
     return Sdf.PrimSpec(owner, name, specifier, type_name)
@@ -143,10 +143,17 @@ def preview_material(
     return mat.path
 
 
-def bind_material(spec: Sdf.PrimSpec, material: Sdf.Path) -> None:
+def bind_material(spec: Sdf.PrimSpec, material: Sdf.Path, *, stronger: bool = False) -> None:
+    """Apply MaterialBindingAPI and bind ``material``.
+
+    ``stronger`` sets ``bindMaterialAs = strongerThanDescendants``, so the binding wins over the
+    ones inside referenced templates.
+    """
     existing = spec.GetInfo("apiSchemas") if spec.HasInfo("apiSchemas") else None
     items = list(existing.prependedItems) if existing else []
     if "MaterialBindingAPI" not in items:
         items.insert(0, "MaterialBindingAPI")
     spec.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=items))
-    rel(spec, "material:binding", [material])
+    r = rel(spec, "material:binding", [material])
+    if stronger:
+        r.SetInfo("bindMaterialAs", "strongerThanDescendants")

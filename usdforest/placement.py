@@ -1,0 +1,248 @@
+"""Dress a skeleton with templates: one transform per branch prim, one per leaf instance.
+
+Pure numpy (no pxr): the USD writer (:mod:`usdforest.usd.tree`) only copies these arrays.
+
+* Wood: each axis of the skeleton (the trunk, each branch) becomes one prim, or several if it
+  turns by more than ``Geometry.bend_split`` (a straight run each). A run's template is placed
+  from the run's base to its tip: the template's unit length is scaled to the run's length and
+  its normalised base radius to the run's base radius. The first run of the trunk uses the
+  trunk template; axes thinner than ``twig_radius`` the twig template; other axes a branch
+  variant drawn per axis, with a random roll about the axis.
+* Leaves: each leaf site of the skeleton carries ``1 + Poisson(leaves_per_site - 1)`` leaves.
+  On a terminal segment they spread back from the tip over ``leaf_spread`` of its length; their
+  azimuths around the twig follow the phyllotaxis angle; the blade leaves the twig at
+  ``leaf_angle`` and its normal leans towards the sky.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .skeleton import Skeleton
+from .species import Geometry
+
+
+@dataclass(frozen=True, eq=False)
+class Placement:
+    """Transforms of a tree's wood prims and leaf instances.
+
+    Wood arrays have one row per prim: ``translate (w,3)``, ``orient (w,4)`` quaternions
+    (x, y, z, w: real part last), ``scale (w,3)``, ``template (w,)`` index into
+    ``templates``, ``order``, ``axis``, ``length``, ``radius``, ``parent`` (prim index, -1).
+    Leaf arrays: ``leaf_position (m,3)``, ``leaf_orient (m,4)``, ``leaf_scale (m,)``,
+    ``leaf_segment (m,)``.
+    """
+
+    templates: tuple[str, ...]
+    translate: np.ndarray
+    orient: np.ndarray
+    scale: np.ndarray
+    template: np.ndarray
+    order: np.ndarray
+    axis: np.ndarray
+    length: np.ndarray
+    radius: np.ndarray
+    parent: np.ndarray
+    leaf_position: np.ndarray
+    leaf_orient: np.ndarray
+    leaf_scale: np.ndarray
+    leaf_segment: np.ndarray
+
+    @property
+    def n_wood(self) -> int:
+        return int(self.translate.shape[0])
+
+    @property
+    def n_leaves(self) -> int:
+        return int(self.leaf_position.shape[0])
+
+    def wood_matrices(self) -> np.ndarray:
+        """``(w, 4, 4)`` row-vector transforms (USD convention: p' = p @ M)."""
+        rot = Rotation.from_quat(self.orient).as_matrix()  # column-vector rotations
+        m = np.zeros((self.n_wood, 4, 4))
+        m[:, :3, :3] = np.transpose(rot, (0, 2, 1)) * self.scale[:, :, None]
+        m[:, 3, :3] = self.translate
+        m[:, 3, 3] = 1.0
+        return m
+
+
+def frames_from_directions(d: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """Rotation matrices (column vectors) taking +Z to each unit direction ``d``, rolled."""
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    ref = np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    x0 = ref - d * np.sum(ref * d, axis=1, keepdims=True)
+    x0 /= np.linalg.norm(x0, axis=1, keepdims=True)
+    y0 = np.cross(d, x0)
+    c, s = np.cos(roll)[:, None], np.sin(roll)[:, None]
+    x = c * x0 + s * y0
+    y = np.cross(d, x)
+    return np.stack([x, y, d], axis=2)
+
+
+def _runs(sk: Skeleton, bend_split_deg: float) -> tuple[list[list[int]], np.ndarray]:
+    """Split axes into straight runs of consecutive segments; returns runs and seg -> run."""
+    direction = sk.end - sk.start
+    direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-300)
+    cos_limit = math.cos(math.radians(bend_split_deg))
+    run_of = np.full(sk.n_segments, -1, dtype=np.int64)
+    runs: list[list[int]] = []
+    run_dir: list[np.ndarray] = []
+    axis = sk.axis.tolist()
+    parent = sk.parent.tolist()
+    for i in range(sk.n_segments):
+        p = parent[i]
+        if p >= 0 and axis[p] == axis[i]:
+            r = int(run_of[p])
+            if runs[r][-1] == p and float(direction[i] @ run_dir[r]) >= cos_limit:
+                runs[r].append(i)
+                run_of[i] = r
+                continue
+        run_of[i] = len(runs)
+        runs.append([i])
+        run_dir.append(direction[i])
+    return runs, run_of
+
+
+def place(
+    sk: Skeleton,
+    geometry: Geometry,
+    base_radius: Mapping[str, float],
+    rng: np.random.Generator,
+) -> Placement:
+    """Compute wood and leaf transforms for ``sk``.
+
+    Parameters
+    ----------
+    sk
+        The tree's skeleton.
+    geometry
+        The species' template choices and leaf settings.
+    base_radius
+        Normalised base radius of each template named in ``geometry`` (template radius at unit
+        length, from the template layer's customData).
+    rng
+        Seeded generator for template variants, rolls and leaf scatter.
+    """
+    names = [geometry.trunk, *geometry.branches, geometry.twig]
+    templates = tuple(dict.fromkeys(names))
+    index = {n: i for i, n in enumerate(templates)}
+
+    runs, run_of = _runs(sk, geometry.bend_split)
+    first = np.array([r[0] for r in runs], dtype=np.int64)
+    last = np.array([r[-1] for r in runs], dtype=np.int64)
+    base = sk.start[first]
+    tip = sk.end[last]
+    vec = tip - base
+    length = np.linalg.norm(vec, axis=1)
+    length = np.where(length > 0, length, 1e-6)
+    radius = sk.radius[first]
+    order = sk.order[first].astype(np.int32)
+    axis = sk.axis[first].astype(np.int32)
+    parent_seg = sk.parent[first]
+    parent = np.where(parent_seg >= 0, run_of[np.maximum(parent_seg, 0)], -1).astype(np.int32)
+
+    n_axes = int(sk.axis_order.shape[0])
+    weights = np.asarray(geometry.branch_weights, dtype=float)
+    variant_of_axis = rng.choice(len(geometry.branches), size=n_axes, p=weights / weights.sum())
+    roll = rng.uniform(0.0, 2 * math.pi, size=n_axes)[axis]
+    template = np.array([index[geometry.branches[v]] for v in variant_of_axis], dtype=np.int32)[
+        axis
+    ]
+    template = np.where(radius < geometry.twig_radius, index[geometry.twig], template)
+    is_trunk = (order == 0) & (parent < 0)
+    template = np.where(is_trunk, index[geometry.trunk], template).astype(np.int32)
+
+    rn = np.array([base_radius[t] for t in templates])[template]
+    scale = np.stack([radius / rn, radius / rn, length], axis=1)
+    rot = frames_from_directions(vec / length[:, None], roll)
+    orient = Rotation.from_matrix(rot).as_quat()  # x, y, z, w
+
+    leaves = _leaves(sk, geometry, rng)
+    return Placement(
+        templates=templates,
+        translate=base,
+        orient=orient,
+        scale=scale,
+        template=template,
+        order=order,
+        axis=axis,
+        length=length,
+        radius=radius,
+        parent=parent,
+        **leaves,
+    )
+
+
+def _leaves(sk: Skeleton, g: Geometry, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    sites = sk.n_leaves
+    if sites == 0:
+        empty = np.zeros((0, 3))
+        return {
+            "leaf_position": empty,
+            "leaf_orient": np.zeros((0, 4)),
+            "leaf_scale": np.zeros(0),
+            "leaf_segment": np.zeros(0, dtype=np.int32),
+        }
+    extra = rng.poisson(max(g.leaves_per_site - 1.0, 0.0), size=sites)
+    count = 1 + extra
+    site = np.repeat(np.arange(sites), count)
+    k = np.arange(site.size) - np.repeat(np.cumsum(count) - count, count)  # index within site
+    seg = sk.leaf_segment[site]
+    has_seg = seg >= 0
+    segc = np.maximum(seg, 0)
+    seg_dir = sk.end[segc] - sk.start[segc]
+    seg_len = np.linalg.norm(seg_dir, axis=1)
+    seg_dir = np.where(
+        has_seg[:, None], seg_dir / np.maximum(seg_len, 1e-300)[:, None], sk.leaf_frame[site, 0]
+    )
+    terminal = sk.is_terminal()[segc] & has_seg
+    # spread back from the tip of terminal segments; leaves of inner nodes stay at the node
+    along = np.where(terminal, rng.uniform(0.0, g.leaf_spread, site.size) * seg_len, 0.0)
+    along = np.where(k == 0, 0.0, along)
+    pos = sk.leaf_position[site] - seg_dir * along[:, None]
+
+    # azimuth around the twig, in the site's own frame (its left and up vectors)
+    frame = sk.leaf_frame[site]
+    e1 = frame[:, 1] - seg_dir * np.sum(frame[:, 1] * seg_dir, axis=1, keepdims=True)
+    bad = np.linalg.norm(e1, axis=1) < 1e-6
+    e1[bad] = frame[bad, 2]
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(seg_dir, e1)
+    phi = np.radians(k * g.phyllotaxis + rng.uniform(-20.0, 20.0, site.size))
+    out = np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2
+    alpha = np.radians(
+        g.leaf_angle + rng.uniform(-g.leaf_angle_jitter, g.leaf_angle_jitter, site.size)
+    )
+    blade = np.cos(alpha)[:, None] * seg_dir + np.sin(alpha)[:, None] * out
+    blade /= np.linalg.norm(blade, axis=1, keepdims=True)
+    # offset to the twig's surface
+    r = np.where(has_seg, sk.radius[segc], 0.0)
+    pos = pos + out * r[:, None]
+
+    # blade normal: towards the sky, tilted at random about the blade
+    sky = np.array([0.0, 0.0, 1.0])
+    n = sky - blade * (blade @ sky)[:, None]
+    flat = np.linalg.norm(n, axis=1) < 1e-6
+    n[flat] = out[flat]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    tilt = np.radians(rng.uniform(-35.0, 35.0, site.size))
+    side = np.cross(n, blade)
+    n = np.cos(tilt)[:, None] * n + np.sin(tilt)[:, None] * side
+    y = np.cross(n, blade)
+    rot = np.stack([blade, y, n], axis=2)  # template +X -> blade, +Z -> normal
+    size = (
+        g.leaf_size
+        * sk.leaf_size[site]
+        * np.clip(1.0 + g.leaf_size_jitter * rng.standard_normal(site.size), 0.4, 1.8)
+    )
+    return {
+        "leaf_position": pos,
+        "leaf_orient": Rotation.from_matrix(rot).as_quat(),
+        "leaf_scale": size,
+        "leaf_segment": seg.astype(np.int32),
+    }

@@ -1,0 +1,309 @@
+"""Tree assets: one USD component per tree, wood and leaves referenced from template layers.
+
+::
+
+    /Tree                     Xform, kind component, extentsHint, assetInfo, customData
+      /Looks/Bark, /Looks/Leaf  UsdPreviewSurface materials
+      /Trunk                  Xform -> trunk template (instanceable, kind subcomponent)
+      /Branches/B_0000 ...    Xform -> branch or twig template; usdforest:order, length, ...
+      /Leaves                 PointInstancer; /Leaves/Prototypes/Leaf -> leaf template
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import zlib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from pxr import Gf, Sdf, Vt
+
+from ..errors import UsdForestError
+from ..library import template_path
+from ..placement import Placement, place
+from ..species import Grown, Species, grow
+from .layers import (
+    T,
+    attr,
+    bind_material,
+    new_layer,
+    preview_material,
+    prim,
+    save_layer,
+    semantic_label,
+    vec3f,
+)
+from .template import TemplateInfo, read_template
+
+BOX_CORNERS = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dtype=float)
+
+
+def stream(seed: int, *key: str | int) -> np.random.Generator:
+    """A generator seeded from ``seed`` and a stable key (names hashed with CRC-32)."""
+    words = [int(seed) & 0xFFFFFFFF] + [
+        zlib.crc32(k.encode()) if isinstance(k, str) else int(k) & 0xFFFFFFFF for k in key
+    ]
+    return np.random.default_rng(words)
+
+
+def resolve_template(name: str, base: Path | None = None) -> Path:
+    """A template by shipped name (``trunk``) or by path (``extracted/trunk.usdc``)."""
+    if name.endswith((".usdc", ".usda", ".usd")):
+        p = Path(name)
+        if not p.is_absolute() and base is not None:
+            p = base / p
+        if not p.is_file():
+            raise UsdForestError(f"template {name!r}: no such file {p}")
+        return p
+    return template_path(name)
+
+
+@dataclass(frozen=True, eq=False)
+class TreeBuild:
+    """Everything a tree asset is made from (for writing, statistics and tests)."""
+
+    grown: Grown
+    placement: Placement
+    templates: Mapping[str, TemplateInfo]  # by template name (wood and leaf)
+    leaf_template: str
+    variant: int
+    extent: np.ndarray  # (2, 3)
+
+
+def build_tree(
+    species: Species, seed: int = 0, variant: int = 0, *, template_base: Path | None = None
+) -> TreeBuild:
+    """Grow a tree and place its templates (no files written)."""
+    g = species.geometry
+    grown = grow(species, seed=int(stream(seed, species.name, variant, "lsystem").integers(2**63)))
+    names = dict.fromkeys([g.trunk, *g.branches, g.twig, g.leaf])
+    infos = {n: read_template(resolve_template(n, template_base)) for n in names}
+    for n in (g.trunk, *g.branches, g.twig):
+        if infos[n].part == "leaf":
+            raise UsdForestError(
+                f"template {n!r} is a leaf; the {species.name} wood needs "
+                "a trunk, branch or twig template"
+            )
+    if infos[g.leaf].part != "leaf":
+        raise UsdForestError(f"template {g.leaf!r} is a {infos[g.leaf].part}, not a leaf")
+    placement = place(
+        grown.skeleton,
+        g,
+        {n: max(infos[n].base_radius, 1e-6) for n in names if infos[n].part != "leaf"},
+        stream(seed, species.name, variant, "place"),
+    )
+    extent = _extent(placement, infos, g.leaf)
+    return TreeBuild(grown, placement, infos, g.leaf, variant, extent)
+
+
+def _corners(ext: np.ndarray) -> np.ndarray:
+    return ext[0] + BOX_CORNERS * (ext[1] - ext[0])
+
+
+def _wood_extent(p: Placement, infos: Mapping[str, TemplateInfo]) -> np.ndarray:
+    corners = np.stack([_corners(infos[t].extent) for t in p.templates])  # (t, 8, 3)
+    m = p.wood_matrices()
+    pts = np.einsum("wcj,wjk->wck", corners[p.template], m[:, :3, :3]) + m[:, None, 3, :3]
+    return np.stack([pts.reshape(-1, 3).min(axis=0), pts.reshape(-1, 3).max(axis=0)])
+
+
+def leaf_instance_extent(p: Placement, info: TemplateInfo) -> np.ndarray:
+    """Extent of the leaf PointInstancer in the tree's space."""
+    from scipy.spatial.transform import Rotation
+
+    if p.n_leaves == 0:
+        return np.zeros((2, 3))
+    rot = Rotation.from_quat(p.leaf_orient).as_matrix()  # (m, 3, 3) column vectors
+    c = _corners(info.extent)
+    pts = np.einsum("mij,cj->mci", rot, c) * p.leaf_scale[:, None, None] + p.leaf_position[:, None]
+    flat = pts.reshape(-1, 3)
+    return np.stack([flat.min(axis=0), flat.max(axis=0)])
+
+
+def _extent(p: Placement, infos: Mapping[str, TemplateInfo], leaf: str) -> np.ndarray:
+    boxes = [_wood_extent(p, infos)]
+    if p.n_leaves:
+        boxes.append(leaf_instance_extent(p, infos[leaf]))
+    b = np.stack(boxes)
+    return np.stack([b[:, 0].min(axis=0), b[:, 1].max(axis=0)])
+
+
+def _xform_ops(spec: Sdf.PrimSpec, t: np.ndarray, q: np.ndarray, s: np.ndarray) -> None:
+    attr(spec, "xformOp:translate", T.Double3, Gf.Vec3d(*map(float, t)))
+    attr(
+        spec,
+        "xformOp:orient",
+        T.Quatf,
+        Gf.Quatf(float(q[3]), float(q[0]), float(q[1]), float(q[2])),
+    )
+    attr(spec, "xformOp:scale", T.Float3, Gf.Vec3f(*map(float, s)))
+    attr(
+        spec,
+        "xformOpOrder",
+        T.TokenArray,
+        Vt.TokenArray(["xformOp:translate", "xformOp:orient", "xformOp:scale"]),
+        uniform=True,
+    )
+
+
+def _reference(spec: Sdf.PrimSpec, asset: str) -> None:
+    spec.referenceList.prependedItems = [Sdf.Reference(asset)]
+    spec.kind = "subcomponent"
+
+
+def tree_layer(
+    build: TreeBuild,
+    template_assets: Mapping[str, str],
+    *,
+    asset_name: str,
+    identifier: str,
+) -> Sdf.Layer:
+    """Author the tree asset layer.
+
+    ``template_assets`` maps each template name to the asset path the layer references it by
+    (relative to where the layer is saved).
+    """
+    sp = build.grown.species
+    g = sp.geometry
+    p = build.placement
+    sk = build.grown.skeleton
+    layer = new_layer(
+        "Tree",
+        comment=f"usdforest tree: {sp.name}, seed {build.grown.seed}, variant {build.variant}",
+    )
+    stats = {
+        "modules": len(build.grown.derivation.word),
+        "iterations": build.grown.derivation.iterations,
+        "segments": sk.n_segments,
+        "leafSites": sk.n_leaves,
+        "leaves": p.n_leaves,
+        "woodPrims": p.n_wood,
+        "branchesByOrder": {str(k): v for k, v in sk.branch_counts().items()},
+        "height": float(build.extent[1, 2] - build.extent[0, 2]),
+    }
+    with Sdf.ChangeBlock():
+        root = prim(layer, "Tree", "Xform")
+        root.kind = "component"
+        root.assetInfo = {"name": asset_name, "identifier": Sdf.AssetPath(identifier)}
+        root.customData = {
+            "usdforest": {
+                "species": sp.name,
+                "seed": build.grown.seed,
+                "variant": build.variant,
+                "lsystem": stats,
+            }
+        }
+        attr(root, "extentsHint", T.Float3Array, vec3f(build.extent))
+        semantic_label(root, "tree")
+        _species_label(root, sp.name)
+        looks = prim(root, "Looks", "Scope")
+        bark = preview_material(looks, "Bark", g.bark_color, roughness=0.9)
+        leaf_mat = preview_material(looks, "Leaf", g.leaf_color, roughness=0.6)
+
+        # wood prim i is /Tree/Trunk for the trunk's first run, else /Tree/Branches/B_<i>;
+        # usdforest:parent holds that index of the prim a branch grows from
+        trunk = int(np.flatnonzero((p.order == 0) & (p.parent < 0))[0])
+        branches = prim(root, "Branches", "Xform")
+        bind_material(branches, bark, stronger=True)
+        for i in range(p.n_wood):
+            if i == trunk:
+                spec = prim(root, "Trunk", "Xform")
+                bind_material(spec, bark, stronger=True)
+                semantic_label(spec, "trunk")
+            else:
+                spec = prim(branches, f"B_{i:04d}", "Xform")
+                semantic_label(spec, "branch")
+            _reference(spec, template_assets[p.templates[p.template[i]]])
+            spec.SetInfo("instanceable", True)
+            _xform_ops(spec, p.translate[i], p.orient[i], p.scale[i])
+            attr(spec, "usdforest:order", T.Int, int(p.order[i]))
+            attr(spec, "usdforest:axis", T.Int, int(p.axis[i]))
+            attr(spec, "usdforest:length", T.Float, float(p.length[i]))
+            attr(spec, "usdforest:radius", T.Float, float(p.radius[i]))
+            attr(spec, "usdforest:parent", T.Int, int(p.parent[i]))
+            attr(spec, "usdforest:template", T.String, p.templates[p.template[i]])
+
+        leaves = prim(root, "Leaves", "PointInstancer")
+        bind_material(leaves, leaf_mat, stronger=True)
+        semantic_label(leaves, "leaf")
+        protos = prim(leaves, "Prototypes", "Scope")
+        proto = prim(protos, "Leaf", "Xform")
+        _reference(proto, template_assets[build.leaf_template])
+        r = Sdf.RelationshipSpec(leaves, "prototypes", custom=False)
+        r.targetPathList.explicitItems = [proto.path]
+        n = p.n_leaves
+        attr(leaves, "positions", T.Point3fArray, vec3f(p.leaf_position))
+        attr(
+            leaves,
+            "orientations",
+            T.QuathArray,
+            Vt.QuathArray.FromNumpy(np.ascontiguousarray(p.leaf_orient, dtype=np.float16)),
+        )
+        attr(leaves, "scales", T.Float3Array, vec3f(np.repeat(p.leaf_scale[:, None], 3, axis=1)))
+        attr(leaves, "protoIndices", T.IntArray, Vt.IntArray.FromNumpy(np.zeros(n, np.int32)))
+        attr(leaves, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(np.arange(n, dtype=np.int64)))
+        attr(
+            leaves,
+            "extent",
+            T.Float3Array,
+            vec3f(leaf_instance_extent(p, build.templates[build.leaf_template])),
+        )
+    return layer
+
+
+def _species_label(spec: Sdf.PrimSpec, species: str) -> None:
+    items = list(spec.GetInfo("apiSchemas").prependedItems)
+    items.append("SemanticsLabelsAPI:species")
+    spec.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=items))
+    attr(spec, "semantics:labels:species", T.TokenArray, Vt.TokenArray([species]), uniform=True)
+
+
+def write_tree(
+    species: Species,
+    out: str | Path,
+    *,
+    seed: int = 0,
+    variant: int = 0,
+    force: bool = False,
+    template_base: Path | None = None,
+) -> TreeBuild:
+    """Build one tree and write ``out`` plus ``<stem>_assets/templates/`` beside it.
+
+    Everything is written into a temporary folder next to ``out`` and moved into place at the
+    end, so a failed build leaves nothing behind. Refuses to overwrite without ``force``.
+    """
+    out = Path(out)
+    if out.suffix not in (".usda", ".usdc", ".usd"):
+        raise UsdForestError(f"{out}: the tree layer must end in .usda, .usdc or .usd")
+    assets = out.parent / f"{out.stem}_assets"
+    if not force:
+        for p in (out, assets):
+            if p.exists():
+                raise UsdForestError(f"{p} exists; pass --force to overwrite it")
+    build = build_tree(species, seed, variant, template_base=template_base)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.stem}.", dir=out.parent))
+    try:
+        refs = {}
+        used = {build.placement.templates[i] for i in np.unique(build.placement.template)}
+        used.add(build.leaf_template)
+        for name, info in build.templates.items():
+            if name not in used:
+                continue
+            dest = tmp / "assets" / "templates" / info.path.name
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(info.path, dest)
+            refs[name] = f"./{assets.name}/templates/{info.path.name}"
+        layer = tree_layer(build, refs, asset_name=out.stem, identifier=f"./{out.name}")
+        save_layer(layer, tmp / out.name)
+        if assets.exists():
+            shutil.rmtree(assets)
+        os.replace(tmp / "assets", assets)
+        os.replace(tmp / out.name, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return build
