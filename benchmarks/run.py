@@ -1,51 +1,63 @@
 """Run the benchmarks and print a Markdown table (copied into the README by hand).
 
-Usage: ``python benchmarks/run.py [name ...]`` (``make bench``). Each benchmark reports the best
-of a few repeats and the peak traced memory of one run.
+Usage: ``python benchmarks/run.py [substring ...]`` (``make bench``). Each benchmark runs in a
+fresh subprocess: the time is the best of three runs, the memory the process's peak resident
+set size (numpy, USD and everything else) minus its size before the first run.
 """
 
 from __future__ import annotations
 
+import json
+import resource
+import subprocess
 import sys
 import time
-import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from bench_lsystem import BENCHMARKS as LSYSTEM
-
-ALL: dict[str, Callable[[], tuple[int, str]]] = {**LSYSTEM}
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
 
 
-def measure(fn: Callable[[], tuple[int, str]], repeats: int = 3) -> tuple[float, int, str, float]:
+def registry() -> dict[str, Callable[[], tuple[int, str]]]:
+    from bench_lsystem import BENCHMARKS as LSYSTEM
+    from bench_tree import BENCHMARKS as TREE
+
+    return {**LSYSTEM, **TREE}
+
+
+def run_one(name: str) -> dict:
+    fn = registry()[name]
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     best = float("inf")
     units, label = 0, ""
-    for _ in range(repeats):
+    for _ in range(3):
         t = time.perf_counter()
         units, label = fn()
         best = min(best, time.perf_counter() - t)
-    tracemalloc.start()
-    fn()
-    _, peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
-    return best, units, label, peak / 2**20
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return {"seconds": best, "units": units, "label": label, "peak_mib": (peak - base) / 1024}
 
 
-def main(names: list[str]) -> None:
+def main(filters: list[str]) -> None:
     print("| benchmark | size | time | throughput | peak memory |")
     print("| --- | --- | --- | --- | --- |")
-    for name, fn in ALL.items():
-        if names and name not in names:
+    for name in registry():
+        if filters and not any(f in name for f in filters):
             continue
-        secs, units, label, peak = measure(fn)
+        r = subprocess.run([sys.executable, __file__, "--one", name], capture_output=True,
+                           text=True, check=True)
+        d = json.loads(r.stdout)
         print(
-            f"| {name} | {units:,} {label} | {secs * 1000:,.0f} ms | "
-            f"{units / secs / 1e6:,.2f} M {label}/s | {peak:,.0f} MiB |",
+            f"| {name} | {d['units']:,} {d['label']} | {d['seconds'] * 1000:,.0f} ms | "
+            f"{d['units'] / d['seconds'] / 1e6:,.2f} M {d['label']}/s | "
+            f"{d['peak_mib']:,.0f} MiB |",
             flush=True,
         )
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    if len(sys.argv) == 3 and sys.argv[1] == "--one":
+        print(json.dumps(run_one(sys.argv[2])))
+    else:
+        main(sys.argv[1:])
