@@ -15,8 +15,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 forest: $(STAMP)
-	$(BIN)/usdforest lsystem --preset paper-rule-3 --json > forest-lsystem.json
-	@echo "wrote forest-lsystem.json (the forest build lands with issue 5)"
+	$(BIN)/usdforest build forest.usda --force
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
@@ -32,4 +31,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/run.py
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache forest.usda forest_assets forest-lsystem.json
+	rm -rf $(VENV) build *.egg-info .pytest_cache forest.usda forest_assets

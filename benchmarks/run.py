@@ -45,8 +45,9 @@ def main(filters: list[str]) -> None:
     for name in registry():
         if filters and not any(f in name for f in filters):
             continue
-        r = subprocess.run([sys.executable, __file__, "--one", name], capture_output=True,
-                           text=True, check=True)
+        r = subprocess.run(
+            [sys.executable, __file__, "--one", name], capture_output=True, text=True, check=True
+        )
         d = json.loads(r.stdout)
         print(
             f"| {name} | {d['units']:,} {d['label']} | {d['seconds'] * 1000:,.0f} ms | "

@@ -12,6 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.markup import escape
@@ -272,6 +273,136 @@ def info_cmd(
             v = f"{v:,}"
         table.add_row(k, str(v))
     out.print(table)
+
+
+def _load_recipe(pipeline: Path | None, seed: int | None):
+    from .recipe import default_recipe_path, read_recipe
+
+    return read_recipe(pipeline or default_recipe_path(), seed=seed)
+
+
+@app.command("build")
+@handles_errors
+def build_cmd(
+    output: Annotated[Path, typer.Argument(help="Forest interface layer to write (.usda).")],
+    pipeline: Annotated[
+        Path | None,
+        typer.Option("--pipeline", "-p", help="Recipe (TOML); default: the embedded one."),
+    ] = None,
+    seed: Annotated[int | None, typer.Option(help="Override the recipe's seed.")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite existing output.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
+) -> None:
+    """Build a forest: sample tree sites, grow tree variants, write the USD layers."""
+    import time
+
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from .usd.forest import write_forest
+
+    t0 = time.perf_counter()
+    recipe = _load_recipe(pipeline, seed)
+    show = not (quiet or as_json)
+    with Progress(
+        TextColumn("{task.description:<18}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(),
+        console=err,
+        disable=not show,
+        transient=True,
+    ) as bar:
+        tasks: dict[str, int] = {}
+
+        def tick(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = bar.add_task(stage, total=total)
+            bar.update(tasks[stage], completed=done, total=total)
+
+        b = write_forest(recipe, output, force=force, progress=tick)
+    secs = time.perf_counter() - t0
+    counts = np.bincount(b.sites.species, minlength=len(b.sites.names))
+    summary = {
+        "output": str(output),
+        "assets": str(b.assets),
+        "seed": recipe.seed,
+        "trees": b.n_trees,
+        "expected_trees": round(recipe.expected_trees(), 3),
+        "trees_by_species": {n: int(c) for n, c in zip(b.sites.names, counts, strict=True)},
+        "prototypes": len(b.prototypes),
+        "extent": b.extent.tolist(),
+        "seconds": round(secs, 3),
+    }
+    if as_json:
+        sys.stdout.write(json.dumps(summary) + "\n")
+    elif not quiet:
+        note = f" before the {recipe.hard_core:g} m hard core" if recipe.hard_core else ""
+        out.print(
+            f"{output}: {b.n_trees:,} trees (expected {summary['expected_trees']:,.0f}{note}) of "
+            + ", ".join(f"{n} {c:,}" for n, c in summary["trees_by_species"].items())
+            + f"; {len(b.prototypes)} tree assets in {b.assets}/ ({secs:.1f} s)",
+            highlight=False,
+        )
+
+
+@app.command("sample")
+@handles_errors
+def sample_cmd(
+    output: Annotated[Path, typer.Argument(help="CSV to write: replicate,x,y and the marks.")],
+    pipeline: Annotated[
+        Path | None, typer.Option("--pipeline", "-p", help="Recipe (default: embedded).")
+    ] = None,
+    intensity: Annotated[
+        str | None, typer.Option(help="Override the intensity: an expression in x, y.")
+    ] = None,
+    region: Annotated[
+        str | None, typer.Option(help="Override the region: x0,y0,x1,y1 (metres).")
+    ] = None,
+    seed: Annotated[int | None, typer.Option(help="Override the recipe's seed.")] = None,
+    replicates: Annotated[int, typer.Option(min=1, max=100_000, help="Independent draws.")] = 1,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
+) -> None:
+    """Sample tree sites (and marks) from the recipe's point process into a CSV."""
+    from .forest import sample_sites, write_sites_csv
+    from .recipe import default_recipe_path, load_toml, parse_recipe
+
+    path = pipeline or default_recipe_path()
+    data = load_toml(path)
+    if intensity is not None:
+        data["intensity"] = {"kind": "expression", "expr": intensity}
+        data.pop("sites", None)
+    if region is not None:
+        try:
+            b = [float(v) for v in region.split(",")]
+        except ValueError:
+            raise UsdForestError(f"--region: expected x0,y0,x1,y1, got {region!r}") from None
+        if len(b) != 4:
+            raise UsdForestError(f"--region: expected 4 numbers x0,y0,x1,y1, got {len(b)}")
+        data["region"] = {"kind": "rectangle", "bounds": b}
+    recipe = parse_recipe(data, path.parent, str(path), seed=seed)
+    if output.exists() and not force:
+        raise UsdForestError(f"{output} exists; pass --force to overwrite it")
+    reps = [sample_sites(recipe, r) for r in range(replicates)]
+    write_sites_csv(output, reps)
+    counts = [len(r) for r in reps]
+    summary = {
+        "output": str(output),
+        "replicates": replicates,
+        "expected_per_replicate": recipe.expected_trees(),
+        "hard_core": recipe.hard_core,
+        "counts": counts,
+    }
+    note = f", before the {recipe.hard_core:g} m hard core" if recipe.hard_core else ""
+    if as_json:
+        sys.stdout.write(json.dumps(summary) + "\n")
+    else:
+        out.print(
+            f"{output}: {sum(counts):,} sites in {replicates} replicate(s), mean "
+            f"{np.mean(counts):,.1f} (expected {recipe.expected_trees():,.1f}{note})",
+            highlight=False,
+        )
 
 
 template_app = typer.Typer(

@@ -31,6 +31,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from .errors import RecipeError, UsdForestError
 from .species import Geometry, Species, get_species, species_from_profile
 from .turtle import TurtleConfig
@@ -228,3 +230,332 @@ __all__ = [
     "parse_species",
     "read_species",
 ]
+
+
+# --------------------------------------------------------------------------- forest recipes
+
+TOP_KEYS = {"seed", "region", "intensity", "sites", "mix", "species", "forest"}
+FOREST_KEYS = {"variants", "hard_core", "scale", "max_trees"}
+DEFAULT_MAX_TREES = 2_000_000
+
+
+@dataclass(frozen=True)
+class ScaleSpec:
+    """Tree scale: ``fixed`` (a), ``uniform`` [a, b] or ``lognormal`` (mean a, sd b)."""
+
+    kind: str = "uniform"
+    a: float = 0.85
+    b: float = 1.15
+
+    def as_tuple(self) -> tuple[str, float, float]:
+        return (self.kind, self.a, self.b)
+
+
+@dataclass(frozen=True, eq=False)
+class Recipe:
+    """A whole pipeline: region, intensity (or explicit sites), species mix, seed."""
+
+    source: str
+    base: Path
+    seed: int
+    region: Any
+    intensity: Any
+    sites: tuple[dict, ...] | None
+    species: dict[str, SpeciesEntry]
+    mix: tuple[tuple[str, Any], ...]  # (species, float or Expression)
+    variants: dict[str, int]
+    hard_core: float
+    scale: ScaleSpec
+    max_trees: int
+    data: dict
+
+    @property
+    def species_names(self) -> tuple[str, ...]:
+        return tuple(name for name, _ in self.mix)
+
+    def expected_trees(self) -> float:
+        if self.sites is not None:
+            return float(len(self.sites))
+        return float(self.intensity.integral(self.region))
+
+
+def _num(v: Any, where: str, *, lo: float | None = None, positive: bool = False) -> float:
+    x = _coerce(v, float, where)
+    if positive and x <= 0:
+        raise RecipeError(f"{where}: must be > 0, got {x:g}")
+    if lo is not None and x < lo:
+        raise RecipeError(f"{where}: must be >= {lo:g}, got {x:g}")
+    return x
+
+
+def parse_region(t: Any, where: str) -> Any:
+    from .pointprocess import Polygon, Rectangle
+
+    if not isinstance(t, Mapping):
+        raise RecipeError(f"{where}: expected a table")
+    kind = t.get("kind", "rectangle")
+    if kind == "rectangle":
+        check_keys(t, {"kind", "bounds"}, where)
+        if "bounds" not in t:
+            raise RecipeError(f"{where}.bounds: missing [x0, y0, x1, y1]")
+        b = _coerce(t["bounds"], tuple[float, float, float, float], f"{where}.bounds")
+        try:
+            return Rectangle(*b)
+        except RecipeError as exc:
+            raise RecipeError(f"{where}: {exc}") from None
+    if kind == "polygon":
+        check_keys(t, {"kind", "vertices"}, where)
+        v = t.get("vertices")
+        if not isinstance(v, list):
+            raise RecipeError(f"{where}.vertices: expected an array of [x, y]")
+        pts = tuple(
+            _coerce(p, tuple[float, float], f"{where}.vertices[{i}]") for i, p in enumerate(v)
+        )
+        try:
+            return Polygon(pts)
+        except RecipeError as exc:
+            raise RecipeError(f"{where}: {exc}") from None
+    raise RecipeError(f"{where}.kind: {kind!r} is not one of rectangle, polygon")
+
+
+def parse_intensity(t: Any, region: Any, base: Path, where: str) -> Any:
+    from .pointprocess import (
+        Bump,
+        Constant,
+        ExpressionIntensity,
+        GaussianMixture,
+        load_raster,
+    )
+
+    if not isinstance(t, Mapping):
+        raise RecipeError(f"{where}: expected a table")
+    kind = t.get("kind")
+    try:
+        if kind == "constant":
+            check_keys(t, {"kind", "value"}, where)
+            return Constant(_num(t.get("value"), f"{where}.value", lo=0))
+        if kind == "gaussian-mixture":
+            check_keys(t, {"kind", "base", "bumps"}, where)
+            bumps = []
+            for i, b in enumerate(t.get("bumps", [])):
+                w = f"{where}.bumps[{i}]"
+                if not isinstance(b, Mapping):
+                    raise RecipeError(f"{w}: expected a table {{x, y, sigma, peak}}")
+                check_keys(b, {"x", "y", "sigma", "peak"}, w)
+                missing = {"x", "y", "sigma", "peak"} - set(b)
+                if missing:
+                    raise RecipeError(f"{w}: missing {sorted(missing)[0]!r}")
+                bumps.append(Bump(*(_num(b[k], f"{w}.{k}") for k in ("x", "y", "sigma", "peak"))))
+            return GaussianMixture(_num(t.get("base", 0.0), f"{where}.base", lo=0), tuple(bumps))
+        if kind == "expression":
+            check_keys(t, {"kind", "expr", "bound"}, where)
+            bound = t.get("bound")
+            return ExpressionIntensity(
+                _coerce(t.get("expr"), str, f"{where}.expr"),
+                None if bound is None else _num(bound, f"{where}.bound", positive=True),
+            )
+        if kind == "raster":
+            check_keys(t, {"kind", "file", "max"}, where)
+            peak = t.get("max")
+            return load_raster(
+                base / _coerce(t.get("file"), str, f"{where}.file"),
+                region.bounds,
+                None if peak is None else _num(peak, f"{where}.max", lo=0),
+            )
+    except RecipeError as exc:
+        msg = str(exc)
+        raise RecipeError(msg if msg.startswith(where) else f"{where}: {msg}") from None
+    raise RecipeError(
+        f"{where}.kind: {kind!r} is not one of constant, gaussian-mixture, expression, raster"
+    )
+
+
+def _parse_sites(v: Any, names: tuple[str, ...], region: Any, where: str) -> tuple[dict, ...]:
+    if not isinstance(v, list) or not v:
+        raise RecipeError(f"{where}: expected a non-empty array of {{x, y, species}} tables")
+    out = []
+    for i, s in enumerate(v):
+        w = f"{where}[{i}]"
+        if not isinstance(s, Mapping):
+            raise RecipeError(f"{w}: expected a table {{x, y, species, yaw, scale}}")
+        check_keys(s, {"x", "y", "species", "yaw", "scale"}, w)
+        site = {"x": _num(s.get("x"), f"{w}.x"), "y": _num(s.get("y"), f"{w}.y")}
+        if "species" in s:
+            if s["species"] not in names:
+                raise RecipeError(f"{w}.species: {s['species']!r} is not one of {', '.join(names)}")
+            site["species"] = s["species"]
+        if "yaw" in s:
+            site["yaw"] = _num(s["yaw"], f"{w}.yaw")
+        if "scale" in s:
+            site["scale"] = _num(s["scale"], f"{w}.scale", positive=True)
+        if not bool(region.contains(np.array([site["x"]]), np.array([site["y"]]))[0]):
+            raise RecipeError(f"{w}: ({site['x']:g}, {site['y']:g}) is outside the region")
+        out.append(site)
+    return tuple(out)
+
+
+def parse_recipe(
+    data: Mapping[str, Any], base: Path, source: str, *, seed: int | None = None
+) -> Recipe:
+    """Check and convert a pipeline's TOML data; every error names ``source`` and the key."""
+    from .expr import compile_expression
+
+    def fail(exc: RecipeError) -> RecipeError:
+        msg = str(exc)
+        return RecipeError(msg if msg.startswith(source) else f"{source}: {msg}")
+
+    try:
+        check_keys(data, TOP_KEYS, "pipeline")
+        s = seed if seed is not None else data.get("seed", 0)
+        s = _coerce(s, int, "seed")
+        if s < 0:
+            raise RecipeError(f"seed: must be >= 0, got {s}")
+        if "region" not in data:
+            raise RecipeError("region: missing (e.g. [region] bounds = [0, 0, 100, 100])")
+        region = parse_region(data["region"], "region")
+        species_tables = data.get("species")
+        if not isinstance(species_tables, Mapping) or not species_tables:
+            raise RecipeError("species: no [species.NAME] tables")
+        species = {n: parse_species(n, t, base, f"species.{n}") for n, t in species_tables.items()}
+        mix_t = data.get("mix", {n: 1.0 for n in species})
+        if not isinstance(mix_t, Mapping) or not mix_t:
+            raise RecipeError("mix: expected a table of species = weight")
+        mix = []
+        for n, w in mix_t.items():
+            if n not in species:
+                raise RecipeError(f"mix.{n}: no [species.{n}] table defines it")
+            if isinstance(w, str):
+                try:
+                    mix.append((n, compile_expression(w, ("x", "y"), what=f"mix.{n}")))
+                except UsdForestError as exc:
+                    raise RecipeError(str(exc)) from None
+            else:
+                mix.append((n, _num(w, f"mix.{n}", lo=0)))
+        if all(isinstance(w, float) and w == 0 for _, w in mix):
+            raise RecipeError("mix: all species weights are 0")
+        forest = data.get("forest", {})
+        if not isinstance(forest, Mapping):
+            raise RecipeError("forest: expected a table")
+        check_keys(forest, FOREST_KEYS, "forest")
+        v = forest.get("variants", 3)
+        if isinstance(v, Mapping):
+            check_keys(v, set(species), "forest.variants")
+            variants = {n: _coerce(v.get(n, 3), int, f"forest.variants.{n}") for n, _ in mix}
+        else:
+            variants = {n: _coerce(v, int, "forest.variants") for n, _ in mix}
+        for n, k in variants.items():
+            if not 1 <= k <= 64:
+                raise RecipeError(f"forest.variants: {n} has {k}; use 1 to 64 variants")
+        hard_core = _num(forest.get("hard_core", 0.0), "forest.hard_core", lo=0)
+        st = forest.get("scale", {"kind": "uniform", "low": 0.85, "high": 1.15})
+        scale = _parse_scale(st)
+        max_trees = _coerce(forest.get("max_trees", DEFAULT_MAX_TREES), int, "forest.max_trees")
+        if max_trees < 1:
+            raise RecipeError("forest.max_trees: must be >= 1")
+        names = tuple(n for n, _ in mix)
+        if "sites" in data:
+            if "intensity" in data:
+                raise RecipeError("sites: give either explicit sites or an intensity, not both")
+            sites = _parse_sites(data["sites"], names, region, "sites")
+            intensity = None
+        else:
+            if "intensity" not in data:
+                raise RecipeError("intensity: missing (or give explicit [[sites]])")
+            sites = None
+            intensity = parse_intensity(data["intensity"], region, base, "intensity")
+    except RecipeError as exc:
+        raise fail(exc) from None
+    recipe = Recipe(
+        source,
+        base,
+        s,
+        region,
+        intensity,
+        sites,
+        species,
+        tuple(mix),
+        variants,
+        hard_core,
+        scale,
+        max_trees,
+        dict(data),
+    )
+    try:
+        expected = recipe.expected_trees()
+    except RecipeError as exc:
+        raise fail(exc) from None
+    if expected > max_trees:
+        gib = expected * 120 / 2**30
+        raise RecipeError(
+            f"{source}: the intensity expects {expected:,.0f} trees, more than forest.max_trees "
+            f"= {max_trees:,} (about {gib:.1f} GiB to build); raise forest.max_trees if you "
+            "mean it"
+        )
+    return recipe
+
+
+def _parse_scale(t: Any) -> ScaleSpec:
+    if not isinstance(t, Mapping):
+        raise RecipeError("forest.scale: expected a table {kind, ...}")
+    kind = t.get("kind", "uniform")
+    if kind == "fixed":
+        check_keys(t, {"kind", "value"}, "forest.scale")
+        v = _num(t.get("value", 1.0), "forest.scale.value", positive=True)
+        return ScaleSpec("fixed", v, v)
+    if kind == "uniform":
+        check_keys(t, {"kind", "low", "high"}, "forest.scale")
+        lo = _num(t.get("low", 0.85), "forest.scale.low", positive=True)
+        hi = _num(t.get("high", 1.15), "forest.scale.high", positive=True)
+        if hi < lo:
+            raise RecipeError(f"forest.scale: high {hi:g} < low {lo:g}")
+        return ScaleSpec("uniform", lo, hi)
+    if kind == "lognormal":
+        check_keys(t, {"kind", "mean", "sd"}, "forest.scale")
+        return ScaleSpec(
+            "lognormal",
+            _num(t.get("mean", 1.0), "forest.scale.mean", positive=True),
+            _num(t.get("sd", 0.1), "forest.scale.sd", positive=True),
+        )
+    raise RecipeError(f"forest.scale.kind: {kind!r} is not one of fixed, uniform, lognormal")
+
+
+def read_recipe(path: str | Path, *, seed: int | None = None) -> Recipe:
+    """Read and check a pipeline recipe file."""
+    path = Path(path)
+    return parse_recipe(load_toml(path), path.parent, str(path), seed=seed)
+
+
+def default_recipe_path() -> Path:
+    """The embedded default pipeline (shipped in the package)."""
+    from importlib import resources
+
+    return Path(str(resources.files("usdforest.pipelines") / "default.toml"))
+
+
+def resolved_toml(recipe: Recipe, to_dir: Path) -> dict:
+    """The recipe's data with the seed filled in and relative paths rebased to ``to_dir``."""
+    import copy
+    import os
+
+    data = copy.deepcopy(recipe.data)
+    data["seed"] = recipe.seed
+
+    def rebase(p: str) -> str:
+        src = (recipe.base / p).resolve()
+        return os.path.relpath(src, to_dir.resolve())
+
+    inten = data.get("intensity")
+    if isinstance(inten, dict) and "file" in inten:
+        inten["file"] = rebase(inten["file"])
+    for t in data.get("species", {}).values():
+        if "profile" in t:
+            t["profile"] = rebase(t["profile"])
+        g = t.get("geometry", {})
+        for k in ("trunk", "twig", "leaf"):
+            if isinstance(g.get(k), str) and g[k].endswith((".usdc", ".usda", ".usd")):
+                g[k] = rebase(g[k])
+        if isinstance(g.get("branches"), list):
+            g["branches"] = [
+                rebase(b) if b.endswith((".usdc", ".usda", ".usd")) else b for b in g["branches"]
+            ]
+    return data

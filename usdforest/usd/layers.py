@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
 from pxr import Sdf, Vt
 
+from ..atomic import atomic_path
 from ..errors import UsdForestError
 
 T = Sdf.ValueTypeNames
@@ -37,16 +36,9 @@ def save_layer(layer: Sdf.Layer, path: str | Path) -> Path:
     The file format follows the extension (``.usda`` text, ``.usdc`` crate).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        if not layer.Export(tmp):
+    with atomic_path(path) as tmp:
+        if not layer.Export(str(tmp)):
             raise UsdForestError(f"{path}: could not write the layer")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path
 
 

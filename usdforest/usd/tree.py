@@ -14,7 +14,6 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +24,7 @@ from pxr import Gf, Sdf, Vt
 from ..errors import UsdForestError
 from ..library import template_path
 from ..placement import Placement, place
+from ..seeds import stream
 from ..species import Grown, Species, grow
 from .layers import (
     T,
@@ -40,14 +40,6 @@ from .layers import (
 from .template import TemplateInfo, read_template
 
 BOX_CORNERS = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dtype=float)
-
-
-def stream(seed: int, *key: str | int) -> np.random.Generator:
-    """A generator seeded from ``seed`` and a stable key (names hashed with CRC-32)."""
-    words = [int(seed) & 0xFFFFFFFF] + [
-        zlib.crc32(k.encode()) if isinstance(k, str) else int(k) & 0xFFFFFFFF for k in key
-    ]
-    return np.random.default_rng(words)
 
 
 def resolve_template(name: str, base: Path | None = None) -> Path:

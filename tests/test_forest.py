@@ -1,0 +1,289 @@
+"""The forest: build, compose, ground truth, layering into another stage, bad recipes."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pxr import Gf, Sdf, Usd, UsdGeom
+
+from usdforest.cli import app
+from usdforest.recipe import default_recipe_path, read_recipe
+from usdforest.usd.forest import write_forest
+from usdforest.usd.stats import stage_info
+from usdforest.validate import validate
+
+PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
+
+
+@pytest.fixture(scope="module")
+def default_forest(tmp_path_factory):
+    out = tmp_path_factory.mktemp("forest") / "forest.usda"
+    build = write_forest(read_recipe(default_recipe_path()), out)
+    return out, build
+
+
+def test_default_forest_validates_and_composes(default_forest):
+    out, build = default_forest
+    assert validate(out) == []
+    stage = Usd.Stage.Open(str(out))
+    forest = stage.GetDefaultPrim()
+    assert forest.GetPath() == "/Forest" and Usd.ModelAPI(forest).GetKind() == "assembly"
+    trees = stage.GetPrimAtPath("/Forest/Trees")
+    assert Usd.ModelAPI(trees).GetKind() == "group" and trees.IsModel()
+    pi = UsdGeom.PointInstancer(trees)
+    protos = pi.GetPrototypesRel().GetTargets()
+    assert len(protos) == 6  # pine and broadleaf, 3 variants each
+    for path in protos:
+        proto = stage.GetPrimAtPath(path)
+        assert proto.IsModel() and Usd.ModelAPI(proto).GetKind() == "component"
+        meshes = [
+            p for p in Usd.PrimRange(proto, Usd.TraverseInstanceProxies()) if p.IsA(UsdGeom.Mesh)
+        ]
+        assert len(meshes) > 50
+    idx = np.asarray(pi.GetProtoIndicesAttr().Get())
+    assert len(idx) == build.n_trees > 50 and idx.min() >= 0 and idx.max() < len(protos)
+    assert np.unique(idx).size == len(protos)  # every variant is used
+    ids = np.asarray(pi.GetIdsAttr().Get())
+    assert ids.dtype == np.int64 and np.array_equal(ids, np.arange(build.n_trees))
+    assert pi.GetOrientationsAttr().GetTypeName() == "quath[]"
+    info = stage_info(out)
+    assert info["trees"] == build.n_trees
+    per_proto = {k: tb.placement.n_leaves for k, tb in build.trees.items()}
+    expected = sum(per_proto[build.prototypes[i]] for i in idx)
+    assert info["leaves"] == expected  # nested instancing expanded
+
+
+def test_layout_and_ground_truth(default_forest):
+    out, build = default_forest
+    assets = out.parent / "forest_assets"
+    assert sorted(p.name for p in assets.iterdir()) == [
+        "instances.usdc",
+        "pipeline.toml",
+        "templates",
+        "trees",
+        "trees.csv",
+    ]
+    assert len(list((assets / "trees").glob("*.usdc"))) == 6
+    forest_layer = Sdf.Layer.FindOrOpen(str(out))
+    assert list(forest_layer.subLayerPaths) == ["./forest_assets/instances.usdc"]
+    with (assets / "trees.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == build.n_trees
+    assert list(rows[0]) == ["id", "x", "y", "z", "species", "variant", "yaw", "scale", "height"]
+    stage = Usd.Stage.Open(str(out))
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+    pos = np.asarray(pi.GetPositionsAttr().Get())
+    xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
+    np.testing.assert_allclose(xy, pos[:, :2], atol=1e-3)
+    assert {r["species"] for r in rows} == {"pine", "broadleaf"}
+    # the mix varies with y: pines are commoner in the north
+    y = xy[:, 1]
+    pine = np.array([r["species"] == "pine" for r in rows])
+    assert pine[y > 60].mean() > pine[y < 40].mean()
+
+
+def test_layered_into_a_simulation_stage_under_a_translated_prim(default_forest, tmp_path):
+    out, build = default_forest
+    sim = Usd.Stage.CreateNew(str(tmp_path / "sim.usda"))
+    UsdGeom.SetStageUpAxis(sim, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(sim, 1.0)
+    world = UsdGeom.Xform.Define(sim, "/World")
+    plot = UsdGeom.Xform.Define(sim, "/World/Plot")
+    plot.AddTranslateOp().Set(Gf.Vec3d(1000.0, -250.0, 3.0))
+    plot.GetPrim().GetReferences().AddReference(str(out))
+    sim.SetDefaultPrim(world.GetPrim())
+    sim.Save()
+    pi = UsdGeom.PointInstancer(sim.GetPrimAtPath("/World/Plot/Trees"))
+    xf = pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
+    parent = UsdGeom.XformCache().GetLocalToWorldTransform(pi.GetPrim())
+    world_xf = np.array([np.array(m * parent) for m in xf])
+    s, yaw, xy = build.sites.scale, np.radians(build.sites.yaw), build.sites.xy
+    np.testing.assert_allclose(
+        world_xf[:, 3, :3],
+        np.column_stack([xy[:, 0] + 1000, xy[:, 1] - 250, np.full(len(s), 3.0)]),
+        atol=2e-3,
+    )
+    # rotation and scale: the instance's local +X lands at (cos yaw, sin yaw) * scale
+    np.testing.assert_allclose(world_xf[:, 0, 0], np.cos(yaw) * s, atol=2e-3)
+    np.testing.assert_allclose(world_xf[:, 0, 1], np.sin(yaw) * s, atol=2e-3)
+    np.testing.assert_allclose(world_xf[:, 2, 2], s, atol=2e-3)
+    # the trees' world bounds sit inside the translated plot
+    box = (
+        UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"])
+        .ComputeWorldBound(sim.GetPrimAtPath("/World/Plot"))
+        .ComputeAlignedRange()
+    )
+    assert box.GetMin()[0] > 1000 - 10 and box.GetMax()[0] < 1100 + 10
+    assert box.GetMin()[2] == pytest.approx(3.0, abs=0.01)
+    assert validate(tmp_path / "sim.usda") == []
+
+
+def test_same_seed_same_bytes_and_pipeline_rebuild(default_forest, tmp_path):
+    out, _ = default_forest
+    again = write_forest(read_recipe(default_recipe_path()), tmp_path / "a" / "forest.usda")
+    files = sorted(p.relative_to(out.parent) for p in out.parent.rglob("*") if p.is_file())
+    for rel in files:
+        assert (out.parent / rel).read_bytes() == (tmp_path / "a" / rel).read_bytes(), rel
+    # the resolved recipe rebuilds the same forest
+    resolved = out.parent / "forest_assets" / "pipeline.toml"
+    write_forest(read_recipe(resolved), tmp_path / "b" / "forest.usda")
+    for name in ("instances.usdc", "trees.csv"):
+        assert (out.parent / "forest_assets" / name).read_bytes() == (
+            tmp_path / "b" / "forest_assets" / name
+        ).read_bytes()
+    other = write_forest(read_recipe(default_recipe_path(), seed=2), tmp_path / "c" / "f.usda")
+    assert len(other.sites) != len(again.sites) or not np.array_equal(
+        other.sites.xy, again.sites.xy
+    )
+
+
+def test_build_cli_refuses_overwrite_and_reports(tmp_path, runner):
+    out = tmp_path / "f.usda"
+    p = PIPELINES / "paper-two-tree-stand.toml"
+    r = runner.invoke(app, ["build", str(out), "-p", str(p), "--json"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.stdout)
+    assert summary["trees"] == 2
+    assert summary["trees_by_species"] == {"paper-rule-2": 1, "paper-rule-3": 1}
+    before = out.read_bytes()
+    r = runner.invoke(app, ["build", str(out), "-p", str(p)])
+    assert r.exit_code == 2 and "exists; pass --force" in r.stderr
+    assert out.read_bytes() == before
+    r = runner.invoke(app, ["build", str(out), "-p", str(p), "--force", "--seed", "9", "-q"])
+    assert r.exit_code == 0 and r.stdout == ""
+    assert not [x for x in tmp_path.iterdir() if x.name.startswith(".")]
+
+
+@pytest.mark.parametrize(
+    "name",
+    sorted(
+        p.stem
+        for p in PIPELINES.glob("*.toml")
+        if p.stem not in ("templates", "stress-1m", "stand-1km2")
+    ),
+)
+def test_every_shipped_recipe_builds_clean(tmp_path, name):
+    out = tmp_path / f"{name}.usda"
+    b = write_forest(read_recipe(PIPELINES / f"{name}.toml"), out)
+    assert b.n_trees > 0
+    assert validate(out) == []
+
+
+def test_paper_branches_scenario(tmp_path):
+    b = write_forest(read_recipe(PIPELINES / "paper-branches.toml"), tmp_path / "p.usda")
+    firsts = sorted(tb.grown.skeleton.branch_counts()[1] for tb in b.trees.values())
+    assert firsts == [8, 12, 16]
+
+
+def test_recipes_at_scale_are_within_limits():
+    km = read_recipe(PIPELINES / "stand-1km2.toml")
+    assert 45_000 < km.expected_trees() < 60_000
+    stress = read_recipe(PIPELINES / "stress-1m.toml")
+    assert stress.expected_trees() == pytest.approx(1_000_000)
+    assert stress.variants == {"pine": 2, "broadleaf": 2}  # a handful of prototypes
+
+
+def test_sample_cli_replicates(tmp_path, runner):
+    out = tmp_path / "s.csv"
+    p = tmp_path / "p.toml"
+    p.write_text(BASE)  # pure Poisson: no hard core
+    r = runner.invoke(
+        app,
+        [
+            "sample",
+            str(out),
+            "-p",
+            str(p),
+            "--intensity",
+            "0.01 + 0.02 * x / 100",
+            "--region",
+            "0,0,100,50",
+            "--replicates",
+            "200",
+            "--seed",
+            "4",
+            "--json",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    data = json.loads(r.stdout)
+    assert data["expected_per_replicate"] == pytest.approx(100.0, rel=1e-3)
+    c = np.array(data["counts"])
+    assert abs(c.mean() - 100) < 4 * math.sqrt(100 / 200)
+    with out.open() as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == ["replicate", "x", "y", "species", "variant", "yaw", "scale"]
+    assert len(rows) == c.sum() and {int(x["replicate"]) for x in rows} == set(range(200))
+    x = np.array([float(row["x"]) for row in rows])
+    assert abs(np.mean(x) - 100 * (0.5 * 0.01 + 0.02 / 3) / 0.02) < 1.5  # E[x] under lambda
+    y = np.array([float(row["y"]) for row in rows])
+    assert y.max() <= 50
+    r = runner.invoke(app, ["sample", str(out), "--region", "0,0,1"])
+    assert r.exit_code == 2 and "expected 4 numbers" in r.stderr
+
+
+BASE = """
+seed = 1
+[region]
+bounds = [0, 0, 100, 100]
+[intensity]
+kind = "constant"
+value = 0.01
+[species.pine]
+"""
+
+
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [
+        (BASE + "colour = 1\n", "species.pine: unknown key 'colour'"),
+        (BASE.replace("seed = 1", "sede = 1"), "pipeline: unknown key 'sede'"),
+        (BASE.replace("value = 0.01", "value = -0.01"), "intensity.value: must be >= 0"),
+        (BASE.replace("value = 0.01", "value = nan"), "intensity.value: expected a finite number"),
+        (BASE.replace("value = 0.01", "value = 'lots'"), "intensity.value: expected a number"),
+        (
+            BASE.replace(
+                'kind = "constant"\nvalue = 0.01', 'kind = "expression"\nexpr = "0.01 - x/1000"'
+            ),
+            "is negative somewhere",
+        ),
+        (BASE.replace('kind = "constant"', 'kind = "poisson"'), "intensity.kind: 'poisson'"),
+        (BASE.replace("bounds = [0, 0, 100, 100]", "bounds = [0, 0, 0, 100]"), "are empty"),
+        (
+            BASE.replace("bounds = [0, 0, 100, 100]", 'kind = "polygon"\nvertices = []'),
+            "at least 3",
+        ),
+        (
+            BASE.replace(
+                "bounds = [0, 0, 100, 100]",
+                'kind = "polygon"\nvertices = [[0,0],[10,10],[10,0],[0,10]]',
+            ),
+            "intersects itself",
+        ),
+        (
+            BASE.replace("value = 0.01", "value = 10.0").replace("100, 100", "1000, 1000"),
+            "expects 10,000,000 trees, more than forest.max_trees = 2,000,000",
+        ),
+        (BASE + "[mix]\noak = 1\n", "mix.oak: no [species.oak] table"),
+        (BASE + "[forest]\nvariants = 0\n", "forest.variants: pine has 0"),
+        (BASE + "[forest]\nhard_core = -1\n", "forest.hard_core: must be >= 0"),
+        (BASE + "[forest]\nscale = {kind = 'weird'}\n", "forest.scale.kind: 'weird'"),
+        (BASE.replace("seed = 1", "seed = 'x'"), "seed: expected a whole number"),
+        ("[region]\nbounds=[0,0,1,1]\n[species.pine]\n", "intensity: missing"),
+        ("seed = [", "not valid TOML"),
+    ],
+)
+def test_bad_pipelines_exit_2_name_the_key_and_write_nothing(tmp_path, runner, text, fragment):
+    p = tmp_path / "bad.toml"
+    p.write_text(text)
+    out = tmp_path / "out" / "f.usda"
+    r = runner.invoke(app, ["build", str(out), "-p", str(p)])
+    assert r.exit_code == 2, r.output
+    assert fragment in r.stderr and str(p) in r.stderr
+    assert "Traceback" not in r.stderr + r.stdout
+    assert not out.parent.exists() or not any(out.parent.iterdir())

@@ -1,0 +1,540 @@
+"""Inhomogeneous Poisson processes on planar regions: intensities, Lewis-Shedler thinning, marks.
+
+Intensities are in trees per square metre. Thinning (Lewis and Shedler, 1979): draw a
+homogeneous Poisson process of rate lambda* on the region's bounding box, keep the points
+inside the region, and keep each point s with probability lambda(s) / lambda*. The result is a
+Poisson process of intensity lambda exactly when lambda(s) <= lambda* everywhere; every kept
+candidate is checked, and a point where lambda(s) > lambda* is an error, never a silent bias.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from matplotlib.path import Path as MplPath
+from scipy.special import erf
+
+from .errors import RecipeError, UsdForestError
+from .expr import Expression, compile_expression
+
+MAX_CANDIDATES = 50_000_000  # thinning candidates drawn at most (memory: ~16 bytes each)
+CHUNK = 4_000_000
+GRID = 512  # quadrature grid per axis for integrals and bounds
+
+
+# --------------------------------------------------------------------------- regions
+
+
+@dataclass(frozen=True)
+class Rectangle:
+    """An axis-aligned rectangle ``[x0, x1] x [y0, y1]`` in metres."""
+
+    x0: float
+    y0: float
+    x1: float
+    y1: float
+
+    def __post_init__(self) -> None:
+        vals = (self.x0, self.y0, self.x1, self.y1)
+        if not all(math.isfinite(v) for v in vals):
+            raise RecipeError(f"region: bounds must be finite numbers, got {list(vals)}")
+        if not (self.x1 > self.x0 and self.y1 > self.y0):
+            raise RecipeError(
+                f"region: bounds [x0, y0, x1, y1] = {list(vals)} are empty (need x1 > x0, y1 > y0)"
+            )
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        return (self.x0, self.y0, self.x1, self.y1)
+
+    @property
+    def area(self) -> float:
+        return (self.x1 - self.x0) * (self.y1 - self.y0)
+
+    def contains(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return (x >= self.x0) & (x <= self.x1) & (y >= self.y0) & (y <= self.y1)
+
+    def describe(self) -> dict:
+        return {"kind": "rectangle", "bounds": list(self.bounds)}
+
+
+@dataclass(frozen=True)
+class Polygon:
+    """A simple polygon (no self-intersections), vertices in order, metres."""
+
+    vertices: tuple[tuple[float, float], ...]
+    _path: MplPath = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        v = np.asarray(self.vertices, dtype=float)
+        if v.ndim != 2 or v.shape[1] != 2 or len(v) < 3:
+            raise RecipeError("region.vertices: a polygon needs at least 3 [x, y] vertices")
+        if not np.all(np.isfinite(v)):
+            raise RecipeError("region.vertices: vertices must be finite numbers")
+        if np.allclose(v[0], v[-1]) and len(v) > 3:
+            v = v[:-1]
+        crossing = _self_intersection(v)
+        if crossing is not None:
+            i, j = crossing
+            raise RecipeError(
+                f"region.vertices: the polygon intersects itself (edge {i} crosses edge {j})"
+            )
+        if abs(_shoelace(v)) <= 1e-12:
+            raise RecipeError("region.vertices: the polygon has zero area")
+        object.__setattr__(self, "vertices", tuple(map(tuple, v.tolist())))
+        object.__setattr__(self, "_path", MplPath(np.vstack([v, v[:1]]), closed=True))
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        v = np.asarray(self.vertices)
+        return (
+            float(v[:, 0].min()),
+            float(v[:, 1].min()),
+            float(v[:, 0].max()),
+            float(v[:, 1].max()),
+        )
+
+    @property
+    def area(self) -> float:
+        return abs(_shoelace(np.asarray(self.vertices)))
+
+    def contains(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        pts = np.column_stack([np.ravel(x), np.ravel(y)])
+        if len(pts) == 0:
+            return np.zeros(0, dtype=bool)
+        return self._path.contains_points(pts).reshape(np.shape(x))
+
+    def describe(self) -> dict:
+        return {"kind": "polygon", "vertices": [list(p) for p in self.vertices]}
+
+
+Region = Rectangle | Polygon
+
+
+def _shoelace(v: np.ndarray) -> float:
+    x, y = v[:, 0], v[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+
+def _self_intersection(v: np.ndarray) -> tuple[int, int] | None:
+    """First pair of non-adjacent edges that intersect, or None (O(n^2), vectorised)."""
+    n = len(v)
+    a, b = v, np.roll(v, -1, axis=0)
+    i, j = np.triu_indices(n, k=2)
+    keep = ~((i == 0) & (j == n - 1))  # first and last edges share a vertex
+    i, j = i[keep], j[keep]
+    if i.size == 0:
+        return None
+    p, r = a[i], b[i] - a[i]
+    q, s = a[j], b[j] - a[j]
+
+    def cross(u: np.ndarray, w: np.ndarray) -> np.ndarray:
+        return u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]
+
+    rxs = cross(r, s)
+    qp = q - p
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = cross(qp, s) / rxs
+        u = cross(qp, r) / rxs
+    hit = (np.abs(rxs) > 1e-12) & (t >= 0) & (t <= 1) & (u >= 0) & (u <= 1)
+    # collinear overlapping edges
+    col = (np.abs(rxs) <= 1e-12) & (np.abs(cross(qp, r)) <= 1e-12)
+    if col.any():
+        rr = np.sum(r * r, axis=1)
+        t0 = np.sum(qp * r, axis=1) / np.where(rr > 0, rr, 1)
+        t1 = t0 + np.sum(s * r, axis=1) / np.where(rr > 0, rr, 1)
+        lo, hi = np.minimum(t0, t1), np.maximum(t0, t1)
+        hit |= col & (hi >= 0) & (lo <= 1)
+    k = np.flatnonzero(hit)
+    return (int(i[k[0]]), int(j[k[0]])) if k.size else None
+
+
+# --------------------------------------------------------------------------- intensities
+
+
+def _grid(region: Region, n: int = GRID) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Midpoints of an n x n grid over the region's bounds, the inside mask and cell area."""
+    x0, y0, x1, y1 = region.bounds
+    xs = x0 + (np.arange(n) + 0.5) * (x1 - x0) / n
+    ys = y0 + (np.arange(n) + 0.5) * (y1 - y0) / n
+    gx, gy = np.meshgrid(xs, ys)
+    inside = region.contains(gx, gy)
+    return gx, gy, inside, (x1 - x0) * (y1 - y0) / n**2
+
+
+@dataclass(frozen=True)
+class Constant:
+    """lambda(s) = value."""
+
+    value: float
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.value) or self.value < 0:
+            raise RecipeError(f"intensity.value: must be a finite number >= 0, got {self.value}")
+
+    def evaluate(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.full(np.shape(x), self.value)
+
+    def bound(self, region: Region) -> float:
+        return self.value
+
+    def integral(self, region: Region) -> float:
+        return self.value * region.area
+
+    def describe(self) -> dict:
+        return {"kind": "constant", "value": self.value}
+
+
+@dataclass(frozen=True)
+class Bump:
+    x: float
+    y: float
+    sigma: float
+    peak: float  # added intensity at the centre (trees/m^2); negative carves a clearing
+
+
+@dataclass(frozen=True)
+class GaussianMixture:
+    """lambda(s) = base + sum_k peak_k exp(-|s - c_k|^2 / (2 sigma_k^2)), clipped at 0."""
+
+    base: float
+    bumps: tuple[Bump, ...]
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.base) or self.base < 0:
+            raise RecipeError(f"intensity.base: must be a finite number >= 0, got {self.base}")
+        for i, b in enumerate(self.bumps):
+            for k in ("x", "y", "sigma", "peak"):
+                if not math.isfinite(getattr(b, k)):
+                    raise RecipeError(f"intensity.bumps[{i}].{k}: must be a finite number")
+            if b.sigma <= 0:
+                raise RecipeError(f"intensity.bumps[{i}].sigma: must be > 0, got {b.sigma}")
+
+    def evaluate(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        out = np.full(np.shape(x), self.base, dtype=float)
+        for b in self.bumps:
+            out += b.peak * np.exp(-((x - b.x) ** 2 + (y - b.y) ** 2) / (2 * b.sigma**2))
+        return np.maximum(out, 0.0)
+
+    def bound(self, region: Region) -> float:
+        return self.base + sum(max(b.peak, 0.0) for b in self.bumps)
+
+    def integral(self, region: Region) -> float:
+        if isinstance(region, Rectangle) and self._never_negative():
+            total = self.base * region.area
+            for b in self.bumps:
+                s = b.sigma * math.sqrt(2)
+                fx = 0.5 * (erf((region.x1 - b.x) / s) - erf((region.x0 - b.x) / s))
+                fy = 0.5 * (erf((region.y1 - b.y) / s) - erf((region.y0 - b.y) / s))
+                total += b.peak * 2 * math.pi * b.sigma**2 * fx * fy
+            return total
+        return _grid_integral(self, region)
+
+    def _never_negative(self) -> bool:
+        return self.base >= sum(-min(b.peak, 0.0) for b in self.bumps)
+
+    def describe(self) -> dict:
+        return {
+            "kind": "gaussian-mixture",
+            "base": self.base,
+            "bumps": [{"x": b.x, "y": b.y, "sigma": b.sigma, "peak": b.peak} for b in self.bumps],
+        }
+
+
+@dataclass(frozen=True)
+class ExpressionIntensity:
+    """lambda(x, y) given as a safe arithmetic expression (never Python eval)."""
+
+    source: str
+    declared_bound: float | None = None
+    _expr: Expression = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        from .errors import ExpressionError
+
+        try:
+            e = compile_expression(self.source, ("x", "y"), what="intensity.expr")
+        except ExpressionError as exc:
+            raise RecipeError(str(exc)) from None
+        object.__setattr__(self, "_expr", e)
+        if self.declared_bound is not None and (
+            not math.isfinite(self.declared_bound) or self.declared_bound <= 0
+        ):
+            raise RecipeError(
+                f"intensity.bound: must be a finite number > 0, got {self.declared_bound}"
+            )
+
+    def evaluate(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        v = np.broadcast_to(
+            np.asarray(self._expr.evaluate({"x": x, "y": y}), dtype=float), np.shape(x)
+        )
+        return v
+
+    def bound(self, region: Region) -> float:
+        if self.declared_bound is not None:
+            return self.declared_bound
+        return self._grid_stats(region)[0]
+
+    def integral(self, region: Region) -> float:
+        return self._grid_stats(region)[1]
+
+    @functools.lru_cache(maxsize=8)  # noqa: B019 - instances are immutable and few
+    def _grid_stats(self, region: Region) -> tuple[float, float]:
+        """(bound, integral) from one quadrature grid: the grid's maximum plus a 10% margin
+        (every kept site is checked against it) and the midpoint-rule integral."""
+        gx, gy, inside, cell = _grid(region)
+        v = self.evaluate(gx[inside], gy[inside])
+        _check_values(v, self.source)
+        return (float(v.max()) * 1.1 if v.size else 0.0, float(v.sum() * cell))
+
+    def describe(self) -> dict:
+        d = {"kind": "expression", "expr": self.source}
+        if self.declared_bound is not None:
+            d["bound"] = self.declared_bound
+        return d
+
+
+@dataclass(frozen=True, eq=False)
+class Raster:
+    """lambda from a grid of cells over the region's bounds (row 0 = north, i.e. max y).
+
+    Each cell's value is the intensity anywhere inside it (piecewise constant).
+    """
+
+    values: np.ndarray
+    bounds: tuple[float, float, float, float]
+    source: str = "array"
+
+    def __post_init__(self) -> None:
+        v = np.asarray(self.values, dtype=float)
+        if v.ndim != 2 or v.size == 0:
+            raise RecipeError(f"intensity.file: {self.source} must be a non-empty 2D grid")
+        _check_values(v, self.source)
+        v = v.copy()
+        v.setflags(write=False)
+        object.__setattr__(self, "values", v)
+
+    def evaluate(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        x0, y0, x1, y1 = self.bounds
+        rows, cols = self.values.shape
+        c = np.clip(((np.asarray(x) - x0) / (x1 - x0) * cols).astype(np.int64), 0, cols - 1)
+        r = np.clip(((y1 - np.asarray(y)) / (y1 - y0) * rows).astype(np.int64), 0, rows - 1)
+        return self.values[r, c]
+
+    def bound(self, region: Region) -> float:
+        return float(self.values.max())
+
+    def integral(self, region: Region) -> float:
+        if isinstance(region, Rectangle) and region.bounds == self.bounds:
+            return float(self.values.mean() * region.area)
+        return _grid_integral(self, region, n=max(GRID, 2 * max(self.values.shape)))
+
+    def describe(self) -> dict:
+        return {"kind": "raster", "file": self.source}
+
+
+Intensity = Constant | GaussianMixture | ExpressionIntensity | Raster
+
+
+def _check_values(v: np.ndarray, what: str) -> None:
+    if not np.all(np.isfinite(v)):
+        raise RecipeError(f"intensity {what!r} is not finite somewhere in the region")
+    if np.any(v < 0):
+        raise RecipeError(
+            f"intensity {what!r} is negative somewhere in the region (min {float(v.min()):.4g})"
+        )
+
+
+def _grid_integral(intensity: Intensity, region: Region, n: int = GRID) -> float:
+    gx, gy, inside, cell = _grid(region, n)
+    v = intensity.evaluate(gx[inside], gy[inside])
+    _check_values(v, getattr(intensity, "source", type(intensity).__name__))
+    return float(v.sum() * cell)
+
+
+def load_raster(
+    path: Path, bounds: tuple[float, float, float, float], peak: float | None
+) -> Raster:
+    """A raster intensity from ``.npy`` (trees/m^2) or an image (grey 0..1 scaled by ``peak``)."""
+    if not path.is_file():
+        raise RecipeError(f"intensity.file: no such file {path}")
+    if path.suffix.lower() == ".npy":
+        try:
+            values = np.load(path, allow_pickle=False)
+        except Exception as exc:
+            raise RecipeError(f"intensity.file: cannot read {path.name}: {exc}") from None
+        if peak is not None:
+            values = values * peak
+    else:
+        import matplotlib.image as mpimg
+
+        if peak is None:
+            raise RecipeError("intensity.max: an image raster needs 'max' (trees/m² for white)")
+        try:
+            img = mpimg.imread(path)
+        except Exception as exc:
+            raise RecipeError(f"intensity.file: cannot read {path.name}: {exc}") from None
+        img = np.asarray(img, dtype=float)
+        if img.ndim == 3:
+            img = img[..., :3].mean(axis=2)
+        if img.max() > 1.0:
+            img = img / 255.0
+        values = img * peak
+    return Raster(values, bounds, path.name)
+
+
+# --------------------------------------------------------------------------- sampling
+
+
+def thin(
+    region: Region,
+    intensity: Intensity,
+    rng: np.random.Generator,
+    *,
+    bound: float | None = None,
+    max_candidates: int = MAX_CANDIDATES,
+) -> np.ndarray:
+    """Sample an inhomogeneous Poisson process by Lewis-Shedler thinning.
+
+    Parameters
+    ----------
+    region, intensity
+        Where, and how many trees per square metre.
+    rng
+        Seeded generator.
+    bound
+        lambda*; by default ``intensity.bound(region)``.
+    max_candidates
+        Refuse (before drawing) when lambda* x bounding-box area would exceed this.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``float64[n, 2]`` sites (x, y).
+
+    Raises
+    ------
+    UsdForestError
+        If lambda exceeds lambda* at a candidate, or the candidates would not fit in memory.
+    """
+    lam_star = intensity.bound(region) if bound is None else bound
+    if not math.isfinite(lam_star) or lam_star < 0:
+        raise RecipeError(f"intensity bound lambda* = {lam_star} is not a finite number >= 0")
+    x0, y0, x1, y1 = region.bounds
+    box = (x1 - x0) * (y1 - y0)
+    mean = lam_star * box
+    if mean > max_candidates:
+        raise UsdForestError(
+            f"thinning would draw about {mean:,.0f} candidates (lambda* {lam_star:.4g} x "
+            f"{box:,.0f} m²), more than {max_candidates:,}; lower the intensity or region"
+        )
+    n = int(rng.poisson(mean)) if mean > 0 else 0
+    out = []
+    for start in range(0, n, CHUNK):
+        m = min(CHUNK, n - start)
+        x = rng.uniform(x0, x1, m)
+        y = rng.uniform(y0, y1, m)
+        u = rng.uniform(0.0, 1.0, m)
+        inside = region.contains(x, y)
+        x, y, u = x[inside], y[inside], u[inside]
+        lam = intensity.evaluate(x, y)
+        if not np.all(np.isfinite(lam)) or np.any(lam < 0):
+            raise RecipeError("intensity is negative or not finite at a sampled site")
+        over = lam > lam_star * (1 + 1e-9)
+        if over.any():
+            k = int(np.argmax(over))
+            raise UsdForestError(
+                f"intensity {float(lam[k]):.6g} at ({x[k]:.2f}, {y[k]:.2f}) exceeds the bound "
+                f"lambda* = {lam_star:.6g}; thinning would be biased. Give a larger "
+                "'bound' in [intensity]"
+            )
+        keep = u * lam_star < lam
+        out.append(np.column_stack([x[keep], y[keep]]))
+    return np.concatenate(out) if out else np.zeros((0, 2))
+
+
+def matern_ii(sites: np.ndarray, radius: float, rng: np.random.Generator) -> np.ndarray:
+    """Matérn type II hard-core thinning: ``bool[n]`` of sites kept.
+
+    Every site gets a uniform random birth time; a site is removed if another site within
+    ``radius`` was born earlier. The result keeps a minimum spacing and is no longer Poisson:
+    its intensity is lower than lambda, most where lambda is high.
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(sites)
+    if radius <= 0 or n < 2:
+        return np.ones(n, dtype=bool)
+    birth = rng.uniform(size=n)
+    pairs = cKDTree(sites).query_pairs(radius, output_type="ndarray")
+    keep = np.ones(n, dtype=bool)
+    if len(pairs):
+        a, b = pairs[:, 0], pairs[:, 1]
+        younger = np.where(birth[a] > birth[b], a, b)
+        keep[younger] = False
+    return keep
+
+
+@dataclass(frozen=True)
+class Marks:
+    """Per-site marks: species index, variant, yaw (degrees) and scale."""
+
+    species: np.ndarray
+    variant: np.ndarray
+    yaw: np.ndarray
+    scale: np.ndarray
+
+
+def species_weights(
+    weights: Sequence[float | Expression], x: np.ndarray, y: np.ndarray
+) -> np.ndarray:
+    """``(n, k)`` non-negative species weights at each site (numbers or expressions in x, y)."""
+    cols = []
+    for w in weights:
+        if isinstance(w, Expression):
+            v = np.broadcast_to(np.asarray(w.evaluate({"x": x, "y": y}), float), np.shape(x))
+        else:
+            v = np.full(np.shape(x), float(w))
+        cols.append(v)
+    out = np.stack(cols, axis=1) if cols else np.zeros((len(x), 0))
+    if not np.all(np.isfinite(out)) or np.any(out < 0):
+        raise RecipeError("mix: a species weight is negative or not finite at a site")
+    return out
+
+
+def draw_marks(
+    sites: np.ndarray,
+    weights: Sequence[float | Expression],
+    variants: Sequence[int],
+    scale: tuple[str, float, float],
+    rng: np.random.Generator,
+) -> Marks:
+    """Species (from the mixture at each site), variant, yaw in [0, 360) and scale."""
+    n = len(sites)
+    w = species_weights(weights, sites[:, 0], sites[:, 1])
+    total = w.sum(axis=1)
+    if n and np.any(total <= 0):
+        k = int(np.argmax(total <= 0))
+        raise RecipeError(
+            f"mix: all species weights are 0 at ({sites[k, 0]:.2f}, {sites[k, 1]:.2f})"
+        )
+    cdf = np.cumsum(w, axis=1) / np.where(total > 0, total, 1)[:, None]
+    u = rng.uniform(size=n)
+    species = np.minimum((u[:, None] > cdf).sum(axis=1), len(weights) - 1).astype(np.int32)
+    nvar = np.asarray(variants, dtype=np.int64)[species] if n else np.zeros(0, np.int64)
+    variant = np.floor(rng.uniform(size=n) * nvar).astype(np.int32)
+    yaw = rng.uniform(0.0, 360.0, n)
+    kind, a, b = scale
+    if kind == "uniform":
+        s = rng.uniform(a, b, n)
+    elif kind == "lognormal":
+        sigma = math.sqrt(math.log(1 + (b / a) ** 2))
+        s = rng.lognormal(math.log(a) - sigma**2 / 2, sigma, n)
+    else:
+        s = np.full(n, a)
+    return Marks(species, variant, yaw, s)

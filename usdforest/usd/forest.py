@@ -1,0 +1,278 @@
+"""The forest: an interface layer, a PointInstancer layer, tree assets and ground truth.
+
+::
+
+    forest.usda                 /Forest  Xform, kind assembly, defaultPrim; sublayers instances
+    forest_assets/
+      instances.usdc            /Forest/Trees  PointInstancer (kind group) with positions,
+                                orientations (quath), scales, protoIndices, ids (int64), extent
+                                /Forest/Trees/Prototypes (Scope, kind group)/<Species>_<k>
+                                    -> trees/<species>_<k>.usdc
+      trees/<species>_<k>.usdc  tree assets (/Tree, kind component)
+      templates/<name>.usdc     the CAD templates the trees reference
+      trees.csv                 ground truth, one row per instance
+      pipeline.toml             the resolved recipe (seed included)
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import tomli_w
+from pxr import Sdf, Vt
+
+from ..errors import UsdForestError
+from ..forest import Sites, sample_sites
+from ..recipe import Recipe, resolved_toml
+from .layers import T, attr, new_layer, prim, save_layer, vec3f
+from .tree import TreeBuild, build_tree, tree_layer
+
+Progress = Callable[[str, int, int], None]
+
+
+def prototype_name(species: str, variant: int) -> str:
+    """A valid prim name: ``paper-rule-1``, 2 -> ``Paper_rule_1_2``."""
+    base = re.sub(r"[^A-Za-z0-9_]", "_", species) or "Tree"
+    if base[0].isdigit():
+        base = "T_" + base
+    return f"{base[0].upper()}{base[1:]}_{variant}"
+
+
+@dataclass(frozen=True, eq=False)
+class ForestBuild:
+    """What a build produced (numbers for the CLI, tests and benchmarks)."""
+
+    sites: Sites
+    prototypes: tuple[tuple[str, int], ...]  # (species, variant) per prototype index
+    proto_index: np.ndarray
+    trees: dict[tuple[str, int], TreeBuild]
+    extent: np.ndarray
+    out: Path
+    assets: Path
+
+    @property
+    def n_trees(self) -> int:
+        return len(self.sites)
+
+
+def instancer_extent(sites: Sites, proto_index: np.ndarray, proto_extent: np.ndarray) -> np.ndarray:
+    """Exact extent of yawed, uniformly scaled instances of boxes ``proto_extent (p, 2, 3)``."""
+    if len(sites) == 0:
+        return np.zeros((2, 3))
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for start in range(0, len(sites), 1_000_000):
+        sl = slice(start, start + 1_000_000)
+        ext = proto_extent[proto_index[sl]]  # (n, 2, 3)
+        s = sites.scale[sl][:, None]
+        a = np.radians(sites.yaw[sl])
+        c, sn = np.cos(a)[:, None], np.sin(a)[:, None]
+        cx = np.stack([ext[:, 0, 0], ext[:, 1, 0], ext[:, 1, 0], ext[:, 0, 0]], axis=1)
+        cy = np.stack([ext[:, 0, 1], ext[:, 0, 1], ext[:, 1, 1], ext[:, 1, 1]], axis=1)
+        x = (c * cx - sn * cy) * s + sites.xy[sl, 0:1]
+        y = (sn * cx + c * cy) * s + sites.xy[sl, 1:2]
+        z = ext[:, :, 2] * s
+        lo = np.minimum(lo, [x.min(), y.min(), z.min()])
+        hi = np.maximum(hi, [x.max(), y.max(), z.max()])
+    return np.stack([lo, hi])
+
+
+def yaw_quaternions(yaw_deg: np.ndarray) -> np.ndarray:
+    """``(n, 4)`` quaternions (x, y, z, w) for rotations by ``yaw`` degrees about +Z."""
+    half = np.radians(yaw_deg) / 2
+    q = np.zeros((len(yaw_deg), 4))
+    q[:, 2] = np.sin(half)
+    q[:, 3] = np.cos(half)
+    return q
+
+
+def instancer_layer(sites: Sites, build: ForestBuild, tree_assets: list[str]) -> Sdf.Layer:
+    """``/Forest/Trees`` PointInstancer over the sites, one prototype per tree asset."""
+    layer = new_layer("Forest", comment="usdforest forest instances")
+    n = len(sites)
+    with Sdf.ChangeBlock():
+        forest = prim(layer, "Forest", "Xform")
+        forest.kind = "assembly"
+        trees = prim(forest, "Trees", "PointInstancer")
+        trees.kind = "group"
+        protos = prim(trees, "Prototypes", "Scope")
+        protos.kind = "group"
+        targets = []
+        for (species, variant), asset in zip(build.prototypes, tree_assets, strict=True):
+            p = prim(protos, prototype_name(species, variant), "Xform")
+            p.referenceList.prependedItems = [Sdf.Reference(asset)]
+            targets.append(p.path)
+        r = Sdf.RelationshipSpec(trees, "prototypes", custom=False)
+        r.targetPathList.explicitItems = targets
+        pos = np.zeros((n, 3), dtype=np.float32)
+        pos[:, :2] = sites.xy
+        attr(trees, "positions", T.Point3fArray, vec3f(pos))
+        attr(
+            trees,
+            "orientations",
+            T.QuathArray,
+            Vt.QuathArray.FromNumpy(yaw_quaternions(sites.yaw).astype(np.float16)),
+        )
+        attr(trees, "scales", T.Float3Array, vec3f(np.repeat(sites.scale[:, None], 3, axis=1)))
+        attr(
+            trees,
+            "protoIndices",
+            T.IntArray,
+            Vt.IntArray.FromNumpy(build.proto_index.astype(np.int32)),
+        )
+        attr(trees, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(np.arange(n, dtype=np.int64)))
+        attr(trees, "extent", T.Float3Array, vec3f(build.extent))
+    return layer
+
+
+def interface_layer(build: ForestBuild, recipe: Recipe, instances: str) -> Sdf.Layer:
+    layer = new_layer("Forest", comment="usdforest forest")
+    layer.subLayerPaths.append(instances)
+    with Sdf.ChangeBlock():
+        forest = prim(layer, "Forest", "Xform")
+        forest.kind = "assembly"
+        counts = np.bincount(build.sites.species, minlength=len(build.sites.names))
+        forest.customData = {
+            "usdforest": {
+                "seed": recipe.seed,
+                "trees": build.n_trees,
+                "treesBySpecies": {
+                    n: int(c) for n, c in zip(build.sites.names, counts, strict=True)
+                },
+                "prototypes": len(build.prototypes),
+                "regionBounds": Vt.DoubleArray([float(b) for b in recipe.region.bounds]),
+                "pipeline": "./" + f"{build.assets.name}/pipeline.toml",
+            }
+        }
+        attr(forest, "extentsHint", T.Float3Array, vec3f(build.extent))
+    return layer
+
+
+def _write_csv(path: Path, sites: Sites, heights: np.ndarray, proto_index: np.ndarray) -> None:
+    names = np.asarray(sites.names, dtype=object)[sites.species].tolist()
+    h = (heights[proto_index] * sites.scale).tolist()
+    rows = zip(
+        range(len(sites)),
+        sites.xy[:, 0].tolist(),
+        sites.xy[:, 1].tolist(),
+        names,
+        sites.variant.tolist(),
+        sites.yaw.tolist(),
+        sites.scale.tolist(),
+        h,
+        strict=True,
+    )
+    with path.open("w", newline="") as f:
+        f.write("id,x,y,z,species,variant,yaw,scale,height\n")
+        f.writelines(
+            f"{i},{x:.4f},{y:.4f},0,{sp},{v},{yaw:.3f},{s:.4f},{hh:.3f}\n"
+            for i, x, y, sp, v, yaw, s, hh in rows
+        )
+
+
+def write_forest(
+    recipe: Recipe,
+    out: str | Path,
+    *,
+    force: bool = False,
+    progress: Progress | None = None,
+) -> ForestBuild:
+    """Build the forest of ``recipe`` at ``out`` (see the module docstring for the layout).
+
+    Everything is written into a temporary folder beside ``out`` and moved into place at the
+    end; a failure leaves nothing behind. Refuses to overwrite without ``force``.
+    """
+    out = Path(out)
+    if out.suffix != ".usda":
+        raise UsdForestError(f"{out}: the forest's interface layer must end in .usda")
+    assets = out.parent / f"{out.stem}_assets"
+    if not force:
+        for p in (out, assets):
+            if p.exists():
+                raise UsdForestError(f"{p} exists; pass --force to overwrite it")
+    tick = progress or (lambda stage, done, total: None)
+
+    tick("sampling sites", 0, 1)
+    sites = sample_sites(recipe, 0)
+    tick("sampling sites", 1, 1)
+
+    prototypes = [(n, v) for n in recipe.species_names for v in range(recipe.variants[n])]
+    proto_of = {p: i for i, p in enumerate(prototypes)}
+    lookup = np.array(
+        [
+            [proto_of.get((n, v), -1) for v in range(max(recipe.variants.values()))]
+            for n in recipe.species_names
+        ]
+    )
+    proto_index = lookup[sites.species, sites.variant].astype(np.int32)
+
+    trees: dict[tuple[str, int], TreeBuild] = {}
+    for k, (name, variant) in enumerate(prototypes):
+        tick("growing trees", k, len(prototypes))
+        entry = recipe.species[name]
+        trees[(name, variant)] = build_tree(
+            entry.species, recipe.seed, variant, template_base=entry.template_base
+        )
+    tick("growing trees", len(prototypes), len(prototypes))
+
+    proto_extent = np.stack([trees[p].extent for p in prototypes])
+    heights = proto_extent[:, 1, 2] - proto_extent[:, 0, 2]
+    build = ForestBuild(
+        sites,
+        tuple(prototypes),
+        proto_index,
+        trees,
+        instancer_extent(sites, proto_index, proto_extent),
+        out,
+        assets,
+    )
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.stem}.build-", dir=out.parent))
+    try:
+        staged = tmp / assets.name
+        (staged / "trees").mkdir(parents=True)
+        (staged / "templates").mkdir()
+        tree_assets = []
+        for k, key in enumerate(prototypes):
+            tick("writing trees", k, len(prototypes))
+            tb = trees[key]
+            used = {tb.placement.templates[i] for i in np.unique(tb.placement.template)}
+            used.add(tb.leaf_template)
+            refs = {}
+            for tname in used:
+                info = tb.templates[tname]
+                dest = staged / "templates" / info.path.name
+                if not dest.exists():
+                    shutil.copyfile(info.path, dest)
+                refs[tname] = f"../templates/{info.path.name}"
+            stem = f"{re.sub(r'[^A-Za-z0-9_.-]', '_', key[0])}_{key[1]}"
+            layer = tree_layer(tb, refs, asset_name=stem, identifier=f"./{stem}.usdc")
+            save_layer(layer, staged / "trees" / f"{stem}.usdc")
+            tree_assets.append(f"./trees/{stem}.usdc")
+        tick("writing trees", len(prototypes), len(prototypes))
+        tick("writing instances", 0, 1)
+        save_layer(instancer_layer(sites, build, tree_assets), staged / "instances.usdc")
+        _write_csv(staged / "trees.csv", sites, heights, proto_index)
+        (staged / "pipeline.toml").write_text(
+            "# The resolved recipe of this forest: usdforest build OUT.usda --pipeline this\n"
+            + tomli_w.dumps(resolved_toml(recipe, assets))
+        )
+        save_layer(
+            interface_layer(build, recipe, f"./{assets.name}/instances.usdc"), tmp / out.name
+        )
+        tick("writing instances", 1, 1)
+        if assets.exists():
+            shutil.rmtree(assets)
+        os.replace(staged, assets)
+        os.replace(tmp / out.name, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return build
