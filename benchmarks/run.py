@@ -19,29 +19,32 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 
-def registry() -> dict[str, Callable[[], tuple[int, str]]]:
+def registry() -> dict[str, Callable[[], tuple]]:
+    from bench_forest import BENCHMARKS as FOREST
     from bench_lsystem import BENCHMARKS as LSYSTEM
     from bench_tree import BENCHMARKS as TREE
 
-    return {**LSYSTEM, **TREE}
+    return {**LSYSTEM, **TREE, **FOREST}
 
 
 def run_one(name: str) -> dict:
     fn = registry()[name]
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     best = float("inf")
-    units, label = 0, ""
+    result: tuple = ()
     for _ in range(3):
         t = time.perf_counter()
-        units, label = fn()
+        result = fn()
         best = min(best, time.perf_counter() - t)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return {"seconds": best, "units": units, "label": label, "peak_mib": (peak - base) / 1024}
+    units, label, *note = result
+    return {"seconds": best, "units": units, "label": label, "peak_mib": (peak - base) / 1024,
+            "note": note[0] if note else ""}
 
 
 def main(filters: list[str]) -> None:
-    print("| benchmark | size | time | throughput | peak memory |")
-    print("| --- | --- | --- | --- | --- |")
+    print("| benchmark | size | time | throughput | peak memory | notes |")
+    print("| --- | --- | --- | --- | --- | --- |")
     for name in registry():
         if filters and not any(f in name for f in filters):
             continue
@@ -52,7 +55,7 @@ def main(filters: list[str]) -> None:
         print(
             f"| {name} | {d['units']:,} {d['label']} | {d['seconds'] * 1000:,.0f} ms | "
             f"{d['units'] / d['seconds'] / 1e6:,.2f} M {d['label']}/s | "
-            f"{d['peak_mib']:,.0f} MiB |",
+            f"{d['peak_mib']:,.0f} MiB | {d['note']} |",
             flush=True,
         )
 
