@@ -21,11 +21,14 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)
-	$(BIN)/ruff check usdforest tests benchmarks templates
+	$(BIN)/ruff check usdforest tests benchmarks templates docs
 
 templates: $(STAMP)
 	$(BIN)/python templates/make_cad.py
 	$(BIN)/usdforest template build pipelines/templates.toml
+
+figures: $(STAMP)
+	$(BIN)/python docs/make_figures.py docs/figures
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run.py

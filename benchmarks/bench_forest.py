@@ -32,8 +32,10 @@ def _build(name: str) -> tuple[int, str, str]:
         assets = out.parent / "forest_assets"
         inst = (assets / "instances.usdc").stat().st_size
         total = sum(p.stat().st_size for p in assets.rglob("*") if p.is_file())
-        note = (f"instances.usdc {inst / 2**20:,.1f} MiB ({inst / b.n_trees:.1f} B/tree), "
-                f"folder {total / 2**20:,.1f} MiB")
+        note = (
+            f"instances.usdc {inst / 2**20:,.1f} MiB ({inst / b.n_trees:.1f} B/tree), "
+            f"folder {total / 2**20:,.1f} MiB"
+        )
         return b.n_trees, "trees", note
     finally:
         shutil.rmtree(out.parent, ignore_errors=True)
@@ -61,8 +63,14 @@ def open_stress() -> tuple[int, str, str]:
     n = len(pi.GetPositionsAttr().Get())
     t2 = time.perf_counter()
     rss = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024
-    return n, "positions", (f"open {1000 * (t1 - t0):.0f} ms, read {1000 * (t2 - t1):.1f} ms, "
-                            f"+{rss:.0f} MiB resident")
+    return (
+        n,
+        "positions",
+        (
+            f"open {1000 * (t1 - t0):.0f} ms, read {1000 * (t2 - t1):.1f} ms, "
+            f"+{rss:.0f} MiB resident"
+        ),
+    )
 
 
 BENCHMARKS = {

@@ -38,8 +38,13 @@ def run_one(name: str) -> dict:
         best = min(best, time.perf_counter() - t)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     units, label, *note = result
-    return {"seconds": best, "units": units, "label": label, "peak_mib": (peak - base) / 1024,
-            "note": note[0] if note else ""}
+    return {
+        "seconds": best,
+        "units": units,
+        "label": label,
+        "peak_mib": (peak - base) / 1024,
+        "note": note[0] if note else "",
+    }
 
 
 def main(filters: list[str]) -> None:

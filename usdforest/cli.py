@@ -293,6 +293,9 @@ def build_cmd(
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing output.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
+    no_thumbnail: Annotated[
+        bool, typer.Option("--no-thumbnail", help="Do not render OUTPUT.png beside it.")
+    ] = False,
 ) -> None:
     """Build a forest: sample tree sites, grow tree variants, write the USD layers."""
     import time
@@ -320,7 +323,7 @@ def build_cmd(
                 tasks[stage] = bar.add_task(stage, total=total)
             bar.update(tasks[stage], completed=done, total=total)
 
-        b = write_forest(recipe, output, force=force, progress=tick)
+        b = write_forest(recipe, output, force=force, progress=tick, thumbnail=not no_thumbnail)
     secs = time.perf_counter() - t0
     counts = np.bincount(b.sites.species, minlength=len(b.sites.names))
     summary = {
@@ -403,6 +406,67 @@ def sample_cmd(
             f"{np.mean(counts):,.1f} (expected {recipe.expected_trees():,.1f}{note})",
             highlight=False,
         )
+
+
+def _parse_size(size: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in size.lower().split("x"))
+    except ValueError:
+        raise UsdForestError(f"--size: expected WIDTHxHEIGHT like 800x600, got {size!r}") from None
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise UsdForestError(f"--size: {w}x{h} is outside 16..8192 pixels")
+    return w, h
+
+
+@app.command("preview")
+@handles_errors
+def preview_cmd(
+    stage: Annotated[Path, typer.Argument(help="A usdforest stage (tree or forest).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="PNG to write.")],
+    view: Annotated[str, typer.Option(help="side, top or iso.")] = "iso",
+    size: Annotated[str, typer.Option(help="Image size WIDTHxHEIGHT.")] = "800x800",
+    plain: Annotated[bool, typer.Option("--plain", help="No caption or scale bar.")] = False,
+) -> None:
+    """Render a stage headlessly to a PNG (what composes is what is drawn)."""
+    import time
+
+    from .preview import VIEWS, preview
+
+    if view not in VIEWS:
+        raise UsdForestError(f"--view: {view!r} is not one of {', '.join(VIEWS)}")
+    t0 = time.perf_counter()
+    info = preview(stage, output, view=view, size=_parse_size(size), annotate=not plain)
+    out.print(
+        f"{output}: {info.kind}, {view} view, {info.size[0]}x{info.size[1]} "
+        f"({time.perf_counter() - t0:.1f} s)",
+        highlight=False,
+    )
+
+
+@app.command("plot-sites")
+@handles_errors
+def plot_sites_cmd(
+    output: Annotated[Path, typer.Argument(help="PNG to write.")],
+    pipeline: Annotated[
+        Path | None, typer.Option("--pipeline", "-p", help="Recipe (default: embedded).")
+    ] = None,
+    sites_csv: Annotated[
+        Path | None, typer.Option("--sites", help="Sites CSV from 'usdforest sample'.")
+    ] = None,
+    replicate: Annotated[int, typer.Option(min=0, help="Replicate to plot.")] = 0,
+    seed: Annotated[int | None, typer.Option(help="Override the recipe's seed.")] = None,
+) -> None:
+    """Plot the intensity map with sampled sites over it (the paper's IPP figure)."""
+    from .forest import read_sites_csv, sample_sites
+    from .plots import plot_sites
+
+    recipe = _load_recipe(pipeline, seed)
+    if sites_csv is not None:
+        sites = read_sites_csv(sites_csv, recipe.species_names, replicate)
+    else:
+        sites = sample_sites(recipe, replicate)
+    plot_sites(output, recipe, sites)
+    out.print(f"{output}: {len(sites):,} sites", highlight=False)
 
 
 template_app = typer.Typer(

@@ -81,3 +81,46 @@ def write_sites_csv(path: str | Path, replicates: list[Sites]) -> None:
                 f"{r},{x:.4f},{y:.4f},{sp},{v},{yaw:.3f},{sc:.4f}\n"
                 for x, y, sp, v, yaw, sc in rows
             )
+
+
+def read_sites_csv(path: str | Path, names: tuple[str, ...], replicate: int = 0) -> Sites:
+    """One replicate of a sites CSV written by :func:`write_sites_csv`."""
+    import csv
+
+    from .errors import UsdForestError
+
+    path = Path(path)
+    if not path.is_file():
+        raise UsdForestError(f"{path}: no such file")
+    rows = []
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        need = {"replicate", "x", "y"}
+        if not reader.fieldnames or not need <= set(reader.fieldnames):
+            raise UsdForestError(f"{path}: expected columns replicate,x,y (and marks)")
+        for lineno, row in enumerate(reader, 2):
+            try:
+                if int(row["replicate"]) != replicate:
+                    continue
+                rows.append(
+                    (
+                        float(row["x"]),
+                        float(row["y"]),
+                        row.get("species") or names[0],
+                        int(row.get("variant") or 0),
+                        float(row.get("yaw") or 0.0),
+                        float(row.get("scale") or 1.0),
+                    )
+                )
+            except ValueError as exc:
+                raise UsdForestError(f"{path}: line {lineno}: {exc}") from None
+    all_names = tuple(dict.fromkeys([*names, *(r[2] for r in rows)]))
+    xy = np.array([[r[0], r[1]] for r in rows], dtype=float).reshape(-1, 2)
+    return Sites(
+        all_names,
+        xy,
+        np.array([all_names.index(r[2]) for r in rows], dtype=np.int32),
+        np.array([r[3] for r in rows], dtype=np.int32),
+        np.array([r[4] for r in rows]),
+        np.array([r[5] for r in rows]),
+    )

@@ -12,6 +12,7 @@
       templates/<name>.usdc     the CAD templates the trees reference
       trees.csv                 ground truth, one row per instance
       pipeline.toml             the resolved recipe (seed included)
+    forest.png                  a 256x256 thumbnail (customLayerData.thumbnail)
 """
 
 from __future__ import annotations
@@ -132,9 +133,13 @@ def instancer_layer(sites: Sites, build: ForestBuild, tree_assets: list[str]) ->
     return layer
 
 
-def interface_layer(build: ForestBuild, recipe: Recipe, instances: str) -> Sdf.Layer:
+def interface_layer(
+    build: ForestBuild, recipe: Recipe, instances: str, thumbnail: str | None = None
+) -> Sdf.Layer:
     layer = new_layer("Forest", comment="usdforest forest")
     layer.subLayerPaths.append(instances)
+    if thumbnail:
+        layer.customLayerData = {"thumbnail": Sdf.AssetPath(thumbnail)}
     with Sdf.ChangeBlock():
         forest = prim(layer, "Forest", "Xform")
         forest.kind = "assembly"
@@ -183,6 +188,7 @@ def write_forest(
     *,
     force: bool = False,
     progress: Progress | None = None,
+    thumbnail: bool = True,
 ) -> ForestBuild:
     """Build the forest of ``recipe`` at ``out`` (see the module docstring for the layout).
 
@@ -193,8 +199,9 @@ def write_forest(
     if out.suffix != ".usda":
         raise UsdForestError(f"{out}: the forest's interface layer must end in .usda")
     assets = out.parent / f"{out.stem}_assets"
+    thumb = out.with_suffix(".png")
     if not force:
-        for p in (out, assets):
+        for p in (out, assets, *([thumb] if thumbnail else [])):
             if p.exists():
                 raise UsdForestError(f"{p} exists; pass --force to overwrite it")
     tick = progress or (lambda stage, done, total: None)
@@ -266,12 +273,26 @@ def write_forest(
             + tomli_w.dumps(resolved_toml(recipe, assets))
         )
         save_layer(
-            interface_layer(build, recipe, f"./{assets.name}/instances.usdc"), tmp / out.name
+            interface_layer(
+                build,
+                recipe,
+                f"./{assets.name}/instances.usdc",
+                f"./{thumb.name}" if thumbnail else None,
+            ),
+            tmp / out.name,
         )
         tick("writing instances", 1, 1)
+        if thumbnail:
+            from ..preview import preview
+
+            tick("thumbnail", 0, 1)
+            preview(tmp / out.name, tmp / thumb.name, view="iso", size=(256, 256), annotate=False)
+            tick("thumbnail", 1, 1)
         if assets.exists():
             shutil.rmtree(assets)
         os.replace(staged, assets)
+        if thumbnail:
+            os.replace(tmp / thumb.name, thumb)
         os.replace(tmp / out.name, out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

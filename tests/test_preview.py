@@ -1,0 +1,116 @@
+"""Pictures: stage renders, thumbnails, site plots."""
+
+from __future__ import annotations
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+from pxr import Sdf
+
+from usdforest.cli import app
+from usdforest.preview import render_stage
+from usdforest.recipe import default_recipe_path, read_recipe
+from usdforest.species import get_species
+from usdforest.usd.forest import write_forest
+from usdforest.usd.tree import write_tree
+
+
+@pytest.fixture(scope="module")
+def pine(tmp_path_factory):
+    out = tmp_path_factory.mktemp("pv") / "pine.usda"
+    write_tree(get_species("pine"), out, seed=2)
+    return out
+
+
+def classify(img: np.ndarray) -> dict[str, np.ndarray]:
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    sky = np.abs(img - [0.93, 0.95, 0.98]).sum(axis=2) < 0.02
+    green = (g > r + 0.03) & (g > b + 0.03) & ~sky
+    bark = (r > g + 0.03) & (g > b) & ~sky
+    return {"sky": sky, "green": green, "bark": bark}
+
+
+def test_tree_render_reads_as_a_tree(pine):
+    img, _, kind = render_stage(pine, view="side", size=(300, 400))
+    assert kind == "tree" and img.shape == (400, 300, 3)
+    c = classify(img)
+    assert 0.3 < c["sky"].mean() < 0.95
+    assert c["green"].mean() > 0.02  # needles
+    # the trunk: bark pixels in the bottom fifth, around the central column
+    bottom = c["bark"][int(400 * 0.8) :, 130:170]
+    assert bottom.mean() > 0.2
+    assert c["green"][int(400 * 0.8) :].mean() < 0.01  # no foliage at the foot of the trunk
+    # deterministic
+    again, _, _ = render_stage(pine, view="side", size=(300, 400))
+    assert np.array_equal(img, again)
+
+
+def test_views_differ_and_top_view_is_round(pine):
+    top, _, _ = render_stage(pine, view="top", size=(200, 200))
+    side, _, _ = render_stage(pine, view="side", size=(200, 200))
+    assert not np.array_equal(top, side)
+    c = classify(top)
+    occupied = ~c["sky"]
+    ys, xs = np.nonzero(occupied)
+    # a whorled conifer seen from above is about as wide as it is deep
+    assert 0.7 < np.ptp(xs) / max(np.ptp(ys), 1) < 1.4
+
+
+def test_forest_render_has_ground_and_trees(tmp_path):
+    out = tmp_path / "f.usda"
+    write_forest(read_recipe(default_recipe_path()), out, thumbnail=False)
+    img, _, kind = render_stage(out, view="top", size=(200, 200))
+    assert kind == "forest"
+    ground = np.abs(img - np.array([0.55, 0.5, 0.4]) * 1.04).sum(axis=2) < 0.05  # lit ground
+    c = classify(img)
+    assert ground.mean() > 0.2 and c["green"].mean() > 0.05
+
+
+def test_build_writes_a_thumbnail_and_records_it(tmp_path, runner):
+    out = tmp_path / "f.usda"
+    p = str(default_recipe_path().parent / "paper-two-tree-stand.toml")
+    r = runner.invoke(app, ["build", str(out), "-p", p, "-q"])
+    assert r.exit_code == 0, r.output
+    thumb = mpimg.imread(tmp_path / "f.png")
+    assert thumb.shape[:2] == (256, 256)
+    assert Sdf.Layer.FindOrOpen(str(out)).customLayerData["thumbnail"].path == "./f.png"
+    r = runner.invoke(app, ["build", str(tmp_path / "g.usda"), "-p", p, "-q", "--no-thumbnail"])
+    assert r.exit_code == 0 and not (tmp_path / "g.png").exists()
+    assert "thumbnail" not in Sdf.Layer.FindOrOpen(str(tmp_path / "g.usda")).customLayerData
+
+
+def test_preview_cli(pine, tmp_path, runner):
+    out = tmp_path / "p.png"
+    r = runner.invoke(
+        app, ["preview", str(pine), "-o", str(out), "--view", "side", "--size", "320x240"]
+    )
+    assert r.exit_code == 0, r.output
+    assert mpimg.imread(out).shape[:2] == (240, 320)
+    for args, fragment in [
+        (["--view", "front"], "'front' is not one of side, top, iso"),
+        (["--size", "big"], "expected WIDTHxHEIGHT"),
+        (["--size", "10x99999"], "outside 16..8192"),
+    ]:
+        r = runner.invoke(app, ["preview", str(pine), "-o", str(tmp_path / "x.png"), *args])
+        assert r.exit_code == 2 and fragment in r.stderr
+    r = runner.invoke(app, ["preview", str(tmp_path / "none.usda"), "-o", str(tmp_path / "x.png")])
+    assert r.exit_code == 2 and "no such file" in r.stderr
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_site_plots_from_pipeline_and_csv(tmp_path, runner):
+    r = runner.invoke(app, ["plot-sites", str(tmp_path / "a.png")])
+    assert r.exit_code == 0, r.output
+    img = mpimg.imread(tmp_path / "a.png")
+    assert img.shape[0] > 300 and img.shape[1] > 300
+    csv = tmp_path / "s.csv"
+    assert runner.invoke(app, ["sample", str(csv), "--replicates", "2"]).exit_code == 0
+    r = runner.invoke(
+        app, ["plot-sites", str(tmp_path / "b.png"), "--sites", str(csv), "--replicate", "1"]
+    )
+    assert r.exit_code == 0, r.output
+    n = sum(1 for line in csv.read_text().splitlines()[1:] if line.startswith("1,"))
+    assert f"{n:,} sites" in r.stdout
+    csv.write_text("a,b\n1,2\n")
+    r = runner.invoke(app, ["plot-sites", str(tmp_path / "c.png"), "--sites", str(csv)])
+    assert r.exit_code == 2 and "expected columns replicate,x,y" in r.stderr
