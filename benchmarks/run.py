@@ -22,9 +22,10 @@ sys.path.insert(0, str(HERE))
 def registry() -> dict[str, Callable[[], tuple]]:
     from bench_forest import BENCHMARKS as FOREST
     from bench_lsystem import BENCHMARKS as LSYSTEM
+    from bench_sensors import BENCHMARKS as SENSORS
     from bench_tree import BENCHMARKS as TREE
 
-    return {**LSYSTEM, **TREE, **FOREST}
+    return {**LSYSTEM, **TREE, **FOREST, **SENSORS}
 
 
 def run_one(name: str) -> dict:

@@ -106,6 +106,37 @@ def gallery(out: Path, work: Path) -> None:
     save_figure(fig, out / "templates.png")
 
 
+def sensors(out: Path, work: Path) -> None:
+    """A lidar scan of the two-tree stand by class, and a sonar echo of a broadleaf."""
+    from usdforest.sensors.lidar import PRESETS as LIDARS
+    from usdforest.sensors.lidar import scan
+    from usdforest.sensors.pose import Pose
+    from usdforest.sensors.scene import CLASSES, extract_scene
+    from usdforest.sensors.sonar import SonarConfig, sonar_scan, write_echo
+
+    stand = work / "paper-two-tree-stand.usda"
+    scene = extract_scene(stand)
+    r = scan(scene, LIDARS["os1-64"], Pose(5.25, -6.0, 1.5, yaw=90))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5), dpi=100)
+    colors = {"trunk": "#5b3a1e", "branch": "#c08040", "leaf": "#2e8b2e", "unknown": "#999999"}
+    for ax, (a, b, name) in zip(axes, ((0, 2, "side (x, z)"), (0, 1, "top (x, y)")), strict=True):
+        for k, cls in enumerate(CLASSES):
+            sel = r.cls == k
+            if sel.any():
+                ax.scatter(r.points[sel, a], r.points[sel, b], s=0.5, color=colors[cls],
+                           label=f"{cls} ({sel.sum():,})")
+        ax.set_aspect("equal")
+        ax.set_title(f"os1-64 lidar returns, {name}", fontsize=10)
+    axes[0].legend(markerscale=10, fontsize=8)
+    save_figure(fig, out / "lidar-scan.png")
+    tree = work / "broadleaf.usda"
+    e = sonar_scan(extract_scene(tree), Pose(-6.0, 0.0, 5.5), SonarConfig(max_range=12))
+    write_echo(e, work / "echo.npz")
+    fig, ax = plt.subplots(figsize=(8, 6), dpi=100)
+    image_panel(ax, work / "echo.png", "")
+    save_figure(fig, out / "sonar-echo.png")
+
+
 def main(out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
@@ -114,6 +145,7 @@ def main(out: Path) -> None:
         ipp_levels(out)
         stands(out, work)
         gallery(out, work)
+        sensors(out, work)
     for p in sorted(out.glob("*.png")):
         print(f"wrote {p}")
 

@@ -139,7 +139,7 @@ def needle_fascicle() -> trimesh.Trimesh:
     parts = [tube(np.array([[0, 0, 0], [0, 0, 0.005]], float), np.array([0.0012, 0.001]), 6)]
     for sign in (-1.0, 1.0):
         a = math.radians(5.0) * sign
-        s = np.linspace(0.0, 1.0, 8)
+        s = np.linspace(0.0, 1.0, 3)
         centre = np.stack(
             [
                 np.sin(a) * 0.07 * s + 0.004 * sign * s**2,
@@ -148,7 +148,7 @@ def needle_fascicle() -> trimesh.Trimesh:
             ],
             axis=1,
         )
-        parts.append(tube(centre, 0.0007 * (1 - s) + 0.0001, sections=4))
+        parts.append(tube(centre, 0.0007 * (1 - s) + 0.0001, sections=3))
     return trimesh.util.concatenate(parts)
 
 

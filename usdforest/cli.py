@@ -469,6 +469,122 @@ def plot_sites_cmd(
     out.print(f"{output}: {len(sites):,} sites", highlight=False)
 
 
+@app.command("scan")
+@handles_errors
+def scan_cmd(
+    stage: Annotated[Path, typer.Argument(help="Any stage that composes trees or forests.")],
+    sensor: Annotated[str, typer.Option(help="lidar or sonar.")],
+    pose: Annotated[str, typer.Option(help="x,y,z[,yaw,pitch,roll] (m, degrees).")],
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="lidar: .ply or .npz; sonar: .npz")
+    ],
+    preset: Annotated[
+        str | None,
+        typer.Option(
+            help="lidar: vlp-16, hdl-32, os1-64, depth-camera; sonar: bat-fm, narrow, wide."
+        ),
+    ] = None,
+    config: Annotated[
+        Path | None, typer.Option(help="TOML with a [lidar] or [sonar] table of settings.")
+    ] = None,
+    occlusion: Annotated[
+        bool, typer.Option("--occlusion", help="sonar: drop leaves hidden by wood or leaves.")
+    ] = False,
+    seed: Annotated[int, typer.Option(help="Seed for range noise.")] = 0,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
+) -> None:
+    """Scan a stage with a lidar (ray casting) or a bat-like sonar (foliage echoes)."""
+    import dataclasses
+    import time
+
+    from .recipe import check_keys, load_toml, override
+    from .sensors import lidar, sonar
+    from .sensors.checks import check_not_inside_wood, pose_warnings
+    from .sensors.pose import parse_pose
+    from .sensors.scene import extract_scene
+
+    if sensor not in ("lidar", "sonar"):
+        raise UsdForestError(f"--sensor: {sensor!r} is not lidar or sonar")
+    if output.exists() and not force:
+        raise UsdForestError(f"{output} exists; pass --force to overwrite it")
+    p = parse_pose(pose)
+    presets = lidar.PRESETS if sensor == "lidar" else sonar.PRESETS
+    name = preset or ("vlp-16" if sensor == "lidar" else "bat-fm")
+    if name not in presets:
+        raise UsdForestError(
+            f"--preset: unknown {sensor} preset {name!r}; known: " + ", ".join(presets)
+        )
+    settings = presets[name]
+    if config is not None:
+        data = load_toml(config)
+        check_keys(data, {sensor}, str(config))
+        table = dict(data.get(sensor, {}))
+        if sensor == "lidar" and table.get("kind") not in (None, settings.kind):
+            kinds = {"spinning": lidar.SpinningLidar(), "depth-camera": lidar.DepthCamera()}
+            if table["kind"] not in kinds:
+                raise UsdForestError(
+                    f"{config}: lidar.kind: {table['kind']!r} is not spinning or depth-camera"
+                )
+            settings = kinds[table["kind"]]
+        settings = override(settings, table, f"{config}: {sensor}")
+    if occlusion and sensor == "sonar":
+        settings = dataclasses.replace(settings, occlusion=True)
+    settings.check()
+    t0 = time.perf_counter()
+    scene = extract_scene(stage, centre=p.position, radius=settings.max_range)
+    for w in pose_warnings(scene, p, settings.max_range):
+        err.print(f"warning: {w}", highlight=False)
+    check_not_inside_wood(scene, p)
+    if sensor == "lidar":
+        r = lidar.scan(scene, settings, p, seed=seed)
+        lidar.write_returns(r, output)
+        counts = np.bincount(r.cls, minlength=4)
+        summary = {
+            "output": str(output),
+            "rays": r.n_rays,
+            "returns": len(r),
+            "returns_by_class": {
+                c: int(n)
+                for c, n in zip(("unknown", "trunk", "branch", "leaf"), counts, strict=True)
+            },
+            "trees_hit": int(np.unique(r.tree[r.tree >= 0]).size),
+            "triangles": len(scene),
+            "seconds": round(time.perf_counter() - t0, 3),
+        }
+        text = (
+            f"{output}: {len(r):,} returns from {r.n_rays:,} rays ("
+            + ", ".join(f"{k} {v:,}" for k, v in summary["returns_by_class"].items() if v)
+            + f"), {summary['trees_hit']} trees, {len(scene):,} triangles in range"
+        )
+    else:
+        e = sonar.sonar_scan(scene, p, settings)
+        if e.leaves_used == 0:
+            err.print(
+                "warning: no leaves within range of the sonar: the echo is silent", highlight=False
+            )
+        files = sonar.write_echo(e, output)
+        c = settings.speed_of_sound
+        env = np.abs(e.impulse)
+        first = float(e.t[np.argmax(env > 0.1 * env.max())]) * c / 2 if env.max() > 0 else None
+        summary = {
+            "output": [str(f) for f in files],
+            "leaves_in_range": e.leaves_in_range,
+            "leaves_used": e.leaves_used,
+            "first_echo_range_m": first,
+            "seconds": round(time.perf_counter() - t0, 3),
+        }
+        text = (
+            f"{', '.join(map(str, files))}: echo of {e.leaves_used:,} leaves "
+            f"(of {e.leaves_in_range:,} within {settings.max_range:g} m)"
+            + (f", first echo at {first:.2f} m" if first is not None else "")
+        )
+    if as_json:
+        sys.stdout.write(json.dumps(summary) + "\n")
+    else:
+        out.print(text, highlight=False)
+
+
 template_app = typer.Typer(
     help="CAD templates: import parts, decompose whole-tree models, build the library.",
     no_args_is_help=True,

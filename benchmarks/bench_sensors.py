@@ -1,0 +1,65 @@
+"""Lidar rays per second on a ~1M-triangle tree; sonar echo time for ~100k leaves."""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from usdforest.sensors.lidar import SpinningLidar, scan
+from usdforest.sensors.pose import Pose
+from usdforest.sensors.raycast import RayCaster
+from usdforest.sensors.scene import extract_scene
+from usdforest.sensors.sonar import SonarConfig, echo_from_leaves
+from usdforest.species import get_species
+from usdforest.usd.tree import write_tree
+
+WORK = Path(tempfile.mkdtemp(prefix="usdforest-bench-"))
+_CACHE: dict = {}
+
+
+def _lidar_setup():
+    if "lidar" not in _CACHE:
+        write_tree(get_species("pine"), WORK / "pine.usdc", seed=1)
+        t0 = time.perf_counter()
+        scene = extract_scene(WORK / "pine.usdc")
+        t1 = time.perf_counter()
+        caster = RayCaster(scene.triangles)
+        caster.first_hit(scene.triangles[:1, 0] * 0, scene.triangles[:1, 0] * 0 + [[1, 0, 0]])
+        t2 = time.perf_counter()
+        _CACHE["lidar"] = (scene, caster, t1 - t0, t2 - t1)
+    return _CACHE["lidar"]
+
+
+def lidar_1m_rays() -> tuple[int, str, str]:
+    scene, caster, t_scene, t_bvh = _lidar_setup()
+    sensor = SpinningLidar(
+        channels=64, vfov_min=-30, vfov_max=30, azimuth_step=360 / 15625, max_range=50
+    )
+    r = scan(scene, sensor, Pose(-4.0, 0.0, 4.0), caster=caster)
+    return (
+        r.n_rays,
+        "rays",
+        (
+            f"{len(scene):,} triangles ({t_scene:.1f} s to extract, "
+            f"{t_bvh:.1f} s Embree build), {len(r):,} returns"
+        ),
+    )
+
+
+def sonar_100k_leaves() -> tuple[int, str, str]:
+    if "sonar" not in _CACHE:
+        sp = get_species("broadleaf")
+        sp = replace(sp, geometry=replace(sp.geometry, leaves_per_site=285.0))
+        write_tree(sp, WORK / "broadleaf.usdc", seed=1)
+        _CACHE["sonar"] = extract_scene(WORK / "broadleaf.usdc")
+    scene = _CACHE["sonar"]
+    e = echo_from_leaves(scene.leaves, Pose(-6.0, 0.0, 5.5), SonarConfig(max_range=15))
+    return e.leaves_used, "leaves", "32 bands, 20-100 kHz, 400 kHz output, 15 m window"
+
+
+BENCHMARKS = {
+    "lidar: 1M rays, pine tree": lidar_1m_rays,
+    "sonar: echo of ~100k leaves": sonar_100k_leaves,
+}

@@ -1,0 +1,359 @@
+"""Sensors: lidar against analytic scenes, labels and tree ids, sonar against the formulas."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pxr import Usd, UsdGeom, Vt
+
+from usdforest.cli import app
+from usdforest.recipe import read_recipe
+from usdforest.sensors.lidar import DepthCamera, SpinningLidar, scan
+from usdforest.sensors.pose import Pose
+from usdforest.sensors.scene import CLASS_ID, Leaves, extract_scene
+from usdforest.sensors.sonar import (
+    SonarConfig,
+    absorption_db_per_m,
+    beam_amplitude,
+    disk_backscatter,
+    echo_from_leaves,
+)
+from usdforest.species import get_species
+from usdforest.usd.forest import write_forest
+from usdforest.usd.tree import write_tree
+
+PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
+
+
+def wall_stage(path: Path, d: float) -> Path:
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    m = UsdGeom.Mesh.Define(stage, "/Wall")
+    pts = [(d, -100, -100), (d, 100, -100), (d, 100, 100), (d, -100, 100)]
+    m.CreatePointsAttr(pts)
+    m.CreateFaceVertexCountsAttr([4])
+    m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    m.CreateExtentAttr(Vt.Vec3fArray([(d, -100, -100), (d, 100, 100)]))
+    stage.SetDefaultPrim(m.GetPrim())
+    stage.Save()
+    return path
+
+
+def test_spinning_lidar_on_a_wall(tmp_path):
+    d = 7.5
+    scene = extract_scene(wall_stage(tmp_path / "wall.usda", d))
+    assert len(scene) == 2
+    sensor = SpinningLidar(channels=8, vfov_min=-10, vfov_max=10, azimuth_step=1.0, max_range=200)
+    r = scan(scene, sensor, Pose(0, 0, 0))
+    assert r.n_rays == 8 * 360
+    az, el = sensor.angles()
+    np.testing.assert_allclose(np.unique(el), np.linspace(-10, 10, 8))
+    assert np.allclose(np.diff(np.unique(az)), 1.0)
+    a, e = np.radians(az[r.ray]), np.radians(el[r.ray])
+    np.testing.assert_allclose(r.range, d / (np.cos(a) * np.cos(e)), rtol=1e-5)
+    # every ray that meets the (200 m x 200 m) wall within range returns, and no other
+    ca, ce = np.cos(np.radians(az)), np.cos(np.radians(el))
+    with np.errstate(divide="ignore"):
+        y_hit = d * np.tan(np.radians(az))
+        z_hit = d * np.tan(np.radians(el)) / ca
+        meets = (ca > 0) & (np.abs(y_hit) <= 100) & (np.abs(z_hit) <= 100) & (d / (ca * ce) <= 200)
+    assert len(r) == int(meets.sum())
+    np.testing.assert_allclose(r.points[:, 0], d, atol=1e-4)
+
+
+def test_depth_camera_and_pose(tmp_path):
+    d = 4.0
+    scene = extract_scene(wall_stage(tmp_path / "wall.usda", d))
+    cam = DepthCamera(width=64, height=48, hfov=90, max_range=50)
+    r = scan(scene, cam, Pose(0, 0, 1.0))
+    assert len(r) == r.n_rays == 64 * 48
+    dirs = cam.directions()[r.ray]
+    np.testing.assert_allclose(r.range * dirs[:, 0], d, rtol=1e-5)  # depth = distance to wall
+    # yaw 180 looks away from the wall: nothing; pitch +90 looks up: nothing
+    assert len(scan(scene, cam, Pose(0, 0, 0, yaw=180))) == 0
+    np.testing.assert_allclose(Pose(0, 0, 0, pitch=90).forward, [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(Pose(0, 0, 0, yaw=90).forward, [0, 1, 0], atol=1e-12)
+
+
+def test_range_noise_is_seeded(tmp_path):
+    scene = extract_scene(wall_stage(tmp_path / "wall.usda", 5.0))
+    s = SpinningLidar(channels=16, azimuth_step=0.5, max_range=100, range_noise=0.02)
+    a, b, c = (scan(scene, s, Pose(0, 0, 0), seed=k) for k in (1, 1, 2))
+    assert np.array_equal(a.range, b.range) and not np.array_equal(a.range, c.range)
+    clean = scan(scene, SpinningLidar(channels=16, azimuth_step=0.5, max_range=100), Pose(0, 0, 0))
+    assert np.std(a.range - clean.range) == pytest.approx(0.02, rel=0.1)
+
+
+@pytest.fixture(scope="module")
+def stand(tmp_path_factory):
+    out = tmp_path_factory.mktemp("stand") / "stand.usda"
+    b = write_forest(read_recipe(PIPELINES / "paper-two-tree-stand.toml"), out, thumbnail=False)
+    return out, b
+
+
+def test_lidar_labels_and_tree_ids_agree_with_the_stage(stand):
+    out, b = stand
+    scene = extract_scene(out)
+    assert set(np.unique(scene.tree)) == {0, 1}
+    assert len(scene.leaves) == sum(t.placement.n_leaves for t in b.trees.values())
+    r = scan(
+        scene,
+        SpinningLidar(channels=32, vfov_min=-30, vfov_max=60, azimuth_step=0.5, max_range=30),
+        Pose(5.25, 5.25, 2.0),
+    )
+    assert len(r) > 1000
+    sites = b.sites.xy
+    nearest = np.argmin(np.linalg.norm(r.points[:, None, :2] - sites[None], axis=2), axis=1)
+    assert np.mean(nearest == r.tree) > 0.97  # returns belong to the tree they are next to
+    trunk = r.cls == CLASS_ID["trunk"]
+    assert trunk.any()
+    gap = np.linalg.norm(r.points[trunk, :2] - sites[r.tree[trunk]], axis=1)
+    assert gap.max() < 0.5  # trunk returns lie on a trunk
+    leaf = r.cls == CLASS_ID["leaf"]
+    assert leaf.any()
+    from scipy.spatial import cKDTree
+
+    dist, _ = cKDTree(scene.leaves.centre).query(r.points[leaf])
+    assert dist.max() < 0.2  # leaf returns lie on a leaf
+    paths = np.array(r.paths)[r.path]
+    assert all("/Leaves/" in p for p in paths[leaf])
+    assert all("/Branches/" in p for p in paths[r.cls == CLASS_ID["branch"]])
+
+
+def test_culling_expands_only_trees_in_range(tmp_path):
+    out = tmp_path / "f.usda"
+    write_forest(read_recipe(PIPELINES / "paper-ipp-medium.toml"), out, thumbnail=False)
+    whole = extract_scene(out)
+    corner = extract_scene(out, centre=np.array([2.0, 2.0, 1.5]), radius=15.0)
+    assert 0 < len(np.unique(corner.tree)) < len(np.unique(whole.tree))
+    assert len(corner) < len(whole) / 3
+
+
+# --------------------------------------------------------------------------- sonar
+
+
+def disk(x: float, y: float = 0.0, z: float = 0.0, a: float = 0.03, normal=(-1.0, 0, 0)):
+    return Leaves(
+        np.array([[x, y, z]]), np.array([normal], float), np.array([math.pi * a * a]), np.array([0])
+    )
+
+
+def test_absorption_iso_9613_1():
+    a = absorption_db_per_m(np.array([20e3, 40e3, 60e3, 80e3, 100e3]))
+    assert np.all(np.diff(a) > 0)
+    assert 1.8 < a[2] < 2.2  # about 2 dB/m at 60 kHz, 20 °C, 50 % RH
+    assert absorption_db_per_m(np.array([60e3]), humidity=10)[0] != pytest.approx(a[2], rel=0.05)
+
+
+def test_single_disk_at_normal_incidence():
+    cfg = SonarConfig()
+    c = cfg.speed_of_sound
+    r = 2.0
+    e = echo_from_leaves(disk(r), Pose(0, 0, 0), cfg)
+    env = np.abs(e.impulse)
+    assert e.t[np.argmax(env)] == pytest.approx(2 * r / c, abs=1.5 / cfg.sample_rate)
+    f = e.freqs[:: max(1, len(e.freqs) // 20)]
+    h = e.transfer[:: max(1, len(e.freqs) // 20)]
+    k = 2 * math.pi * f / c
+    expected = k * 0.03**2 / 2 * 10 ** (-absorption_db_per_m(f) * 2 * r / 20) / r**2
+    np.testing.assert_allclose(np.abs(h), expected, rtol=0.01)
+    # phase: a pure delay of 2r/c
+    residual = np.angle(h * np.exp(2j * math.pi * f * 2 * r / c))
+    assert np.abs(residual).max() < 0.05
+
+
+def test_disk_outside_the_beam_contributes_almost_nothing():
+    cfg = SonarConfig()
+    on = echo_from_leaves(disk(2.0), Pose(0, 0, 0), cfg)
+    behind = echo_from_leaves(disk(-2.0, normal=(1, 0, 0)), Pose(0, 0, 0), cfg)
+    assert np.abs(behind.transfer).max() / np.abs(on.transfer).max() < 1e-3
+    # to the side: the beam narrows with frequency (its width scales as 1 / f)
+    side = echo_from_leaves(disk(0.0, 2.0, normal=(0, -1, 0)), Pose(0, 0, 0), cfg)
+    high = on.freqs >= 50e3
+    assert (np.abs(side.transfer[high]) / np.abs(on.transfer[high])).max() < 1e-3
+    half = math.radians(cfg.beam_width) / 2
+    assert beam_amplitude(np.array([half]), np.array([cfg.f_ref]), cfg)[0] ** 2 == pytest.approx(
+        0.5, rel=1e-9
+    )  # half power (-3 dB) at the half width
+
+
+def test_doubling_the_distance():
+    cfg = SonarConfig()
+    near = echo_from_leaves(disk(1.5), Pose(0, 0, 0), cfg)
+    far = echo_from_leaves(disk(3.0), Pose(0, 0, 0), cfg)
+    f = near.freqs
+    expected = 0.25 * 10 ** (-absorption_db_per_m(f) * 2 * 1.5 / 20)
+    np.testing.assert_allclose(np.abs(far.transfer) / np.abs(near.transfer), expected, rtol=0.01)
+
+
+def test_disk_backscatter_directivity():
+    c = 343.0
+    a = np.array([0.03])
+    on = disk_backscatter(np.array([60e3]), np.array([0.0]), a, c)
+    tilted = disk_backscatter(np.array([60e3]), np.array([math.radians(30)]), a, c)
+    x = 2 * 2 * math.pi * 60e3 / c * 0.03 * math.sin(math.radians(30))
+    from scipy.special import j1
+
+    assert tilted[0] / on[0] == pytest.approx(abs(2 * j1(x) / x) * math.cos(math.radians(30)))
+
+
+def test_echo_from_a_tree_starts_at_the_nearest_leaf(tmp_path):
+    out = tmp_path / "t.usda"
+    write_tree(get_species("broadleaf"), out, seed=4)
+    scene = extract_scene(out)
+    cfg = SonarConfig(max_range=12)
+    pose = Pose(-6.0, 0.0, 5.5)
+    e = echo_from_leaves(scene.leaves, pose, cfg)
+    c = cfg.speed_of_sound
+    d = scene.leaves.centre - pose.position
+    r = np.linalg.norm(d, axis=1)
+    theta = np.degrees(np.arccos(d @ pose.forward / r))
+    in_beam = theta < cfg.beam_width / 2
+    r_first = r[in_beam].min()
+    env = np.abs(e.impulse)
+    rng = e.t * c / 2
+    window = np.abs(rng - r_first) < 0.01
+    assert env[window].max() > 0.01 * env.max()
+    # before the nearest leaf only the band-limited pulse's precursor (< -40 dB)
+    assert env[rng < r.min() - 0.05].max() < 1e-2 * env.max()
+    # deterministic
+    again = echo_from_leaves(scene.leaves, pose, cfg)
+    assert np.array_equal(e.echo, again.echo)
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def test_scan_cli_outputs(stand, tmp_path, runner):
+    out, _ = stand
+    r = runner.invoke(
+        app,
+        [
+            "scan",
+            str(out),
+            "--sensor",
+            "lidar",
+            "--pose",
+            "5,1,2,90",
+            "-o",
+            str(tmp_path / "s.ply"),
+            "--json",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    data = json.loads(r.stdout)
+    assert data["returns"] > 100 and data["trees_hit"] == 2
+    head = (tmp_path / "s.ply").read_bytes()[:400]
+    assert head.startswith(b"ply\nformat binary_little_endian 1.0")
+    assert f"element vertex {data['returns']}".encode() in head
+    r = runner.invoke(
+        app,
+        [
+            "scan",
+            str(out),
+            "--sensor",
+            "lidar",
+            "--pose",
+            "5,1,2,90",
+            "-o",
+            str(tmp_path / "s.npz"),
+            "--preset",
+            "depth-camera",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    npz = np.load(tmp_path / "s.npz")
+    assert set(npz.files) >= {"points", "range", "cls", "tree", "path", "paths", "ray"}
+    r = runner.invoke(
+        app,
+        [
+            "scan",
+            str(out),
+            "--sensor",
+            "sonar",
+            "--pose",
+            "5,1,3,90",
+            "-o",
+            str(tmp_path / "e.npz"),
+            "--occlusion",
+            "--json",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    data = json.loads(r.stdout)
+    assert 0 < data["leaves_used"] <= data["leaves_in_range"]
+    for suffix in (".npz", ".wav", ".png"):
+        assert (tmp_path / f"e{suffix}").is_file()
+    from scipy.io import wavfile
+
+    rate, wav = wavfile.read(tmp_path / "e.wav")
+    assert rate == 400_000 and wav.dtype == np.int16 and np.abs(wav).max() > 1000
+
+
+@pytest.mark.parametrize(
+    ("args", "config", "fragment"),
+    [
+        (["--sensor", "radar"], None, "'radar' is not lidar or sonar"),
+        (["--sensor", "lidar", "--preset", "vlp-99"], None, "unknown lidar preset 'vlp-99'"),
+        (["--sensor", "sonar"], "[sonar]\nf_min = 0.0\n", "frequencies must be > 0"),
+        (["--sensor", "sonar"], "[sonar]\nf_min = -5.0\n", "frequencies must be > 0"),
+        (["--sensor", "sonar"], "[sonar]\nbeam_width = 0.0\n", "an empty beam"),
+        (["--sensor", "lidar"], "[lidar]\nchannels = 0\n", "at least 1 channel"),
+        (["--sensor", "lidar"], "[lidar]\nchanels = 4\n", "unknown key 'chanels'"),
+        (["--sensor", "lidar"], "[sonar]\nbeam = 'x'\n", "unknown key 'sonar'"),
+    ],
+)
+def test_scan_bad_input(stand, tmp_path, runner, args, config, fragment):
+    out, _ = stand
+    extra = []
+    if config is not None:
+        (tmp_path / "c.toml").write_text(config)
+        extra = ["--config", str(tmp_path / "c.toml")]
+    r = runner.invoke(
+        app, ["scan", str(out), "--pose", "5,1,2", "-o", str(tmp_path / "x.npz"), *args, *extra]
+    )
+    assert r.exit_code == 2, r.output
+    assert fragment in r.stderr
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_scan_pose_checks(stand, tmp_path, runner):
+    out, b = stand
+    x, y = b.sites.xy[0]
+    r = runner.invoke(
+        app,
+        [
+            "scan",
+            str(out),
+            "--sensor",
+            "lidar",
+            "--pose",
+            f"{x},{y},1.0",
+            "-o",
+            str(tmp_path / "x.npz"),
+        ],
+    )
+    assert r.exit_code == 2 and "inside a trunk" in r.stderr
+    r = runner.invoke(
+        app,
+        [
+            "scan",
+            str(out),
+            "--sensor",
+            "lidar",
+            "--pose",
+            "500,500,2",
+            "-o",
+            str(tmp_path / "y.npz"),
+        ],
+    )
+    assert r.exit_code == 0 and "warning:" in r.stderr and "beyond the sensor's range" in r.stderr
+    r = runner.invoke(
+        app, ["scan", str(out), "--sensor", "lidar", "--pose", "1,2", "-o", str(tmp_path / "z.npz")]
+    )
+    assert r.exit_code == 2 and "expected 3 to 6 numbers" in r.stderr

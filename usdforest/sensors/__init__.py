@@ -1,0 +1,1 @@
+"""Sensors on composed stages: scene extraction, lidar ray casting, sonar foliage echoes."""

@@ -1,0 +1,58 @@
+"""Sanity checks of a sensor pose against the scene: outside the stage, inside a trunk."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import UsdForestError
+from .pose import Pose
+from .raycast import RayCaster
+from .scene import CLASS_ID, Scene
+
+AXES = np.array([[1.0, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+
+
+def pose_warnings(scene: Scene, pose: Pose, max_range: float) -> list[str]:
+    """Warnings (the scan still runs): the stage is out of range, or the pose is outside a
+    forest's bounds or below its ground."""
+    lo, hi = scene.bounds
+    p = pose.position
+    gap = float(np.linalg.norm(np.maximum(np.maximum(lo - p, p - hi), 0.0)))
+    if gap > max_range:
+        return [
+            f"the stage's geometry is {gap:.1f} m away, beyond the sensor's range "
+            f"({max_range:g} m): nothing will be seen"
+        ]
+    forest = np.unique(scene.tree[scene.tree >= 0]).size > 1
+    if forest and (np.any(p[:2] < lo[:2]) or np.any(p[:2] > hi[:2])):
+        return [
+            f"pose ({p[0]:g}, {p[1]:g}, {p[2]:g}) is outside the forest's bounds "
+            f"x {lo[0]:.1f}..{hi[0]:.1f}, y {lo[1]:.1f}..{hi[1]:.1f}"
+        ]
+    if p[2] < lo[2]:
+        return [f"pose z = {p[2]:g} is below the ground of the stage (z = {lo[2]:.2f})"]
+    return []
+
+
+def check_not_inside_wood(scene: Scene, pose: Pose) -> None:
+    """Refuse a pose inside a trunk: (almost) every axis ray first meets a trunk from inside."""
+    near = np.flatnonzero(
+        np.linalg.norm(scene.triangles.mean(axis=1) - pose.position, axis=1) < 5.0
+    )
+    if near.size == 0:
+        return
+    _, hit_near = RayCaster(scene.triangles[near]).first_hit(
+        np.broadcast_to(pose.position, AXES.shape), AXES, 5.0
+    )
+    prim = np.where(hit_near >= 0, near[np.maximum(hit_near, 0)], -1)
+    hit = prim >= 0
+    if hit.sum() < len(AXES) - 1:
+        return
+    tri = scene.triangles[prim[hit]].astype(float)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    backface = np.sum(normal * AXES[hit], axis=1) > 0
+    trunk = scene.cls[prim[hit]] == CLASS_ID["trunk"]
+    if np.count_nonzero(backface & trunk) >= len(AXES) - 1:
+        raise UsdForestError(
+            f"pose ({pose.x:g}, {pose.y:g}, {pose.z:g}) is inside a trunk; move the sensor out"
+        )

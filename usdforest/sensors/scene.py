@@ -1,0 +1,352 @@
+"""World-space geometry of any stage for sensors: triangles with semantic class, tree id and
+prim path, and leaves as disk reflectors.
+
+Every PointInstancer level is expanded with ``ComputeInstanceTransformsAtTime``. Instances of
+a tree prototype (a prim labelled ``tree``) carry the instancer's ``ids`` as tree ids. Culling
+comes before expansion: only tree instances whose bounds come within ``radius`` of ``centre``
+are placed, and of their leaves (kept as transforms until the end) only those within reach
+are turned into triangles, so a scan near one corner of a 1 km² forest does not expand the
+whole forest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UsdForestError
+
+CLASSES = ("unknown", "trunk", "branch", "leaf")
+CLASS_ID = {name: i for i, name in enumerate(CLASSES)}
+
+
+@dataclass(frozen=True, eq=False)
+class Leaves:
+    """Leaves as reflectors: centre, unit normal, one-sided area (m²), tree id."""
+
+    centre: np.ndarray
+    normal: np.ndarray
+    area: np.ndarray
+    tree: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.centre.shape[0])
+
+    @property
+    def radius(self) -> np.ndarray:
+        """Equivalent disk radius sqrt(area / pi)."""
+        return np.sqrt(self.area / np.pi)
+
+    @staticmethod
+    def concat(parts: list[Leaves]) -> Leaves:
+        if not parts:
+            return Leaves(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
+        return Leaves(
+            *(
+                np.concatenate([getattr(p, f) for p in parts])
+                for f in ("centre", "normal", "area", "tree")
+            )
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """Triangles (m, 3, 3) in world space with per-triangle class, tree id and path index."""
+
+    triangles: np.ndarray
+    cls: np.ndarray
+    tree: np.ndarray
+    path: np.ndarray
+    paths: tuple[str, ...]
+    leaves: Leaves
+    bounds: np.ndarray  # (2, 3) of the whole stage (not only what was expanded)
+
+    def __len__(self) -> int:
+        return int(self.triangles.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class _LeafBatch:
+    """Instances of one leaf prototype, still as transforms (row-vector 4x4, leaf -> here)."""
+
+    tri: np.ndarray  # (t, 3, 3) in the leaf prototype's space
+    cls: np.ndarray
+    path: np.ndarray
+    xf: np.ndarray  # (n, 4, 4)
+    unit_area: float
+    centre: np.ndarray  # (3,) leaf centre in its own space
+    size: float  # leaf extent in its own space
+    tree: int = -1
+
+
+@dataclass(frozen=True, eq=False)
+class _Part:
+    tri: np.ndarray
+    cls: np.ndarray
+    tree: np.ndarray
+    path: np.ndarray
+    batches: tuple[_LeafBatch, ...] = field(default=())
+
+    def transformed(self, m: np.ndarray, tree: int | None = None) -> _Part:
+        rot, t = m[:3, :3].astype(np.float32), m[3, :3].astype(np.float32)
+        tri = (self.tri.reshape(-1, 3) @ rot + t).reshape(-1, 3, 3)
+        trees = self.tree if tree is None else np.full_like(self.tree, tree)
+        batches = tuple(
+            replace(b, xf=b.xf @ m, tree=b.tree if tree is None else tree) for b in self.batches
+        )
+        return _Part(tri, self.cls, trees, self.path, batches)
+
+    @staticmethod
+    def concat(parts: list[_Part]) -> _Part:
+        parts = [p for p in parts if len(p.tri) or p.batches]
+        if not parts:
+            return _Part(
+                np.zeros((0, 3, 3), np.float32),
+                np.zeros(0, np.uint8),
+                np.zeros(0, np.int32),
+                np.zeros(0, np.int32),
+            )
+        return _Part(
+            np.concatenate([p.tri for p in parts]),
+            np.concatenate([p.cls for p in parts]),
+            np.concatenate([p.tree for p in parts]),
+            np.concatenate([p.path for p in parts]),
+            tuple(b for p in parts for b in p.batches),
+        )
+
+
+def _m(x) -> np.ndarray:
+    return np.array(x, dtype=float).reshape(4, 4)
+
+
+def _labels(prim) -> list[str]:
+    a = prim.GetAttribute("semantics:labels:class")
+    v = a.Get() if a and a.HasValue() else None
+    return list(v) if v else []
+
+
+def _class_of(prim, stop) -> int:
+    p = prim
+    while p and p != stop.GetParent():
+        for label in _labels(p):
+            if label in CLASS_ID:
+                return CLASS_ID[label]
+        p = p.GetParent()
+    return 0
+
+
+def _triangles(mesh_prim, to_root: np.ndarray) -> np.ndarray:
+    from pxr import UsdGeom
+
+    mesh = UsdGeom.Mesh(mesh_prim)
+    pts, counts, idx = (
+        mesh.GetPointsAttr().Get(),
+        mesh.GetFaceVertexCountsAttr().Get(),
+        mesh.GetFaceVertexIndicesAttr().Get(),
+    )
+    if pts is None or counts is None or idx is None or len(counts) == 0:
+        return np.zeros((0, 3, 3), np.float32)
+    v = np.asarray(pts, dtype=float) @ to_root[:3, :3] + to_root[3, :3]
+    counts, idx = np.asarray(counts), np.asarray(idx)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    tri = []
+    for k in range(1, int(counts.max()) - 1):
+        s = starts[counts > k + 1]
+        tri.append(np.stack([idx[s], idx[s + k], idx[s + k + 1]], axis=1))
+    return v[np.concatenate(tri)].astype(np.float32) if tri else np.zeros((0, 3, 3), np.float32)
+
+
+def _leaf_area_unit(proto, tri: np.ndarray) -> float:
+    """One-sided area of a leaf prototype in its own space."""
+    data = proto.GetCustomDataByKey("usdforest")
+    if data and "measurements" in data and data["measurements"].get("length"):
+        m = data["measurements"]
+        if m.get("leaf_area"):
+            return float(m["leaf_area"]) / float(m["length"]) ** 2
+    t = tri.astype(float)
+    return float(0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum())
+
+
+def _realise(b: _LeafBatch, centre: np.ndarray | None, radius: float | None):
+    """Leaf reflectors and triangles of a batch, keeping leaves within reach of the sensor."""
+    rot = b.xf[:, :3, :3]
+    c = np.einsum("j,njk->nk", b.centre, rot) + b.xf[:, 3, :3]
+    scale = np.cbrt(np.abs(np.linalg.det(rot)))
+    keep = np.ones(len(c), dtype=bool)
+    if centre is not None and radius is not None:
+        keep = np.linalg.norm(c - centre, axis=1) <= radius + b.size * scale
+    rot, c, scale, xf = rot[keep], c[keep], scale[keep], b.xf[keep]
+    normal = np.einsum(
+        "j,njk->nk", np.array([0.0, 0.0, 1.0]), np.linalg.inv(rot).transpose(0, 2, 1)
+    )
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    n, t = len(xf), len(b.tri)
+    leaves = Leaves(c, normal, b.unit_area * scale**2, np.full(n, b.tree, np.int64))
+    tri = (
+        np.einsum("tvj,njk->ntvk", b.tri, rot.astype(np.float32))
+        + xf[:, None, None, 3, :3].astype(np.float32)
+    ).reshape(-1, 3, 3)
+    part = _Part(
+        tri.astype(np.float32),
+        np.tile(b.cls, n),
+        np.full(n * t, b.tree, np.int32),
+        np.tile(b.path, n),
+    )
+    return leaves, part
+
+
+def extract_scene(
+    stage_path: str | Path,
+    *,
+    centre: np.ndarray | None = None,
+    radius: float | None = None,
+) -> Scene:
+    """Triangles and leaf reflectors of a stage, culled to a sphere around ``centre``.
+
+    Parameters
+    ----------
+    stage_path
+        Any USD stage: a tree, a forest, a simulation stage that references them.
+    centre, radius
+        Keep only tree instances and leaves within ``radius`` of ``centre`` (all when omitted).
+    """
+    from pxr import Usd, UsdGeom
+
+    path = Path(stage_path)
+    if not path.is_file():
+        raise UsdForestError(f"{path}: no such file")
+    stage = Usd.Stage.Open(str(path))
+    if stage is None:
+        raise UsdForestError(f"{path}: cannot open as a USD stage")
+    cache = UsdGeom.XformCache()
+    bbox = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"], True)
+    paths: list[str] = []
+    path_index: dict[str, int] = {}
+    memo: dict = {}
+
+    def pid(p: str) -> int:
+        if p not in path_index:
+            path_index[p] = len(paths)
+            paths.append(p)
+        return path_index[p]
+
+    def subtree(prim) -> _Part:
+        """Everything under ``prim`` in ``prim``'s own space (memoised: prototypes)."""
+        key = prim.GetPath()
+        if key in memo:
+            return memo[key]
+        inv = np.linalg.inv(_m(cache.GetLocalToWorldTransform(prim)))
+        parts = []
+        it = iter(Usd.PrimRange(prim, Usd.TraverseInstanceProxies()))
+        for p in it:
+            if p.IsA(UsdGeom.Imageable) and UsdGeom.Imageable(p).ComputeVisibility() == "invisible":
+                it.PruneChildren()
+                continue
+            if p.IsA(UsdGeom.Mesh):
+                tri = _triangles(p, _m(cache.GetLocalToWorldTransform(p)) @ inv)
+                n = len(tri)
+                parts.append(
+                    _Part(
+                        tri,
+                        np.full(n, _class_of(p, prim), np.uint8),
+                        np.full(n, -1, np.int32),
+                        np.full(n, pid(str(p.GetPath())), np.int32),
+                    )
+                )
+            elif p.IsA(UsdGeom.PointInstancer):
+                it.PruneChildren()
+                parts.append(instances(p, _m(cache.GetLocalToWorldTransform(p)) @ inv))
+        out = _Part.concat(parts)
+        memo[key] = out
+        return out
+
+    def instances(p, to_root: np.ndarray) -> _Part:
+        """A PointInstancer's instances, in the space of the subtree being gathered."""
+        pi = UsdGeom.PointInstancer(p)
+        xf = pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
+        idx = pi.GetProtoIndicesAttr().Get()
+        if xf is None or idx is None or len(idx) == 0:
+            return _Part.concat([])
+        xf = np.asarray(xf, dtype=float).reshape(-1, 4, 4)
+        idx = np.asarray(idx)
+        ids_attr = pi.GetIdsAttr().Get()
+        ids = (
+            np.asarray(ids_attr, dtype=np.int64)
+            if ids_attr is not None and len(ids_attr)
+            else np.arange(len(idx), dtype=np.int64)
+        )
+        to_world = _m(cache.GetLocalToWorldTransform(p))
+        out = []
+        for k, target in enumerate(pi.GetPrototypesRel().GetTargets()):
+            sel = np.flatnonzero(idx == k)
+            proto = stage.GetPrimAtPath(target)
+            if sel.size == 0 or not proto:
+                continue
+            own = _m(cache.GetLocalTransformation(proto)[0])
+            if "leaf" in _labels(p):
+                local = subtree(proto)
+                pts = local.tri.reshape(-1, 3).astype(float)
+                lo, hi = (pts.min(axis=0), pts.max(axis=0)) if len(pts) else (np.zeros(3),) * 2
+                out.append(
+                    _Part(
+                        np.zeros((0, 3, 3), np.float32),
+                        np.zeros(0, np.uint8),
+                        np.zeros(0, np.int32),
+                        np.zeros(0, np.int32),
+                        (
+                            _LeafBatch(
+                                local.tri,
+                                local.cls,
+                                local.path,
+                                np.einsum("ij,njk->nik", own, xf[sel]) @ to_root,
+                                _leaf_area_unit(proto, local.tri),
+                                (lo + hi) / 2,
+                                float(np.linalg.norm(hi - lo)),
+                            ),
+                        ),
+                    )
+                )
+                continue
+            is_tree = "tree" in _labels(proto)
+            if is_tree and centre is not None and radius is not None:
+                ext = bbox.ComputeUntransformedBound(proto).ComputeAlignedRange()
+                r_proto = float(np.linalg.norm(np.array(ext.GetMax()) - np.array(ext.GetMin())))
+                world_pos = xf[sel, 3, :3] @ to_world[:3, :3] + to_world[3, :3]
+                scale = np.cbrt(np.abs(np.linalg.det(xf[sel, :3, :3])))
+                sel = sel[np.linalg.norm(world_pos - centre, axis=1) <= radius + r_proto * scale]
+                if sel.size == 0:
+                    continue
+            local = subtree(proto)
+            for i in sel:
+                out.append(
+                    local.transformed(own @ xf[i] @ to_root, int(ids[i]) if is_tree else None)
+                )
+        return _Part.concat(out)
+
+    root = stage.GetPseudoRoot()
+    world_box = bbox.ComputeWorldBound(root).ComputeAlignedRange()
+    bounds = (
+        np.array([world_box.GetMin(), world_box.GetMax()])
+        if not world_box.IsEmpty()
+        else np.zeros((2, 3))
+    )
+    part = subtree(root)
+    realised = [_realise(b, centre, radius) for b in part.batches]
+    whole = _Part.concat([part, *(r[1] for r in realised)])
+    leaves = Leaves.concat([r[0] for r in realised])
+    tree, leaf_tree = whole.tree, leaves.tree
+    # a stage holding one tree that is not instanced: tree id 0
+    if not (tree >= 0).any() and any("tree" in _labels(p) for p in stage.Traverse()):
+        tree = np.zeros_like(tree)
+        leaf_tree = np.zeros_like(leaf_tree)
+    return Scene(
+        whole.tri,
+        whole.cls,
+        tree,
+        whole.path,
+        tuple(paths),
+        Leaves(leaves.centre, leaves.normal, leaves.area, leaf_tree),
+        bounds,
+    )
