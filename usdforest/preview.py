@@ -312,12 +312,10 @@ def render_stage(
     """Render a stage to an RGB array; returns (image, window, kind)."""
     from pxr import Usd, UsdGeom
 
+    from .usd.layers import open_stage
+
     path = Path(path)
-    if not path.is_file():
-        raise UsdForestError(f"{path}: no such file")
-    stage = Usd.Stage.Open(str(path))
-    if stage is None:
-        raise UsdForestError(f"{path}: cannot open as a USD stage")
+    stage = open_stage(path)
     basis = view_basis(view)
     root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
     box = (

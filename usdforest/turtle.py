@@ -235,50 +235,18 @@ def interpret(word: Word, config: TurtleConfig | None = None) -> Skeleton:
                     uz * c + lz * s,
                 )
         elif op == _PUSH:
-            stack.append(
-                (
-                    px,
-                    py,
-                    pz,
-                    hx,
-                    hy,
-                    hz,
-                    lx,
-                    ly,
-                    lz,
-                    ux,
-                    uy,
-                    uz,
-                    radius,
-                    parent,
-                    order,
-                    axis,
-                    new_axis,
-                )
-            )
+            # fmt: off
+            stack.append((px, py, pz, hx, hy, hz, lx, ly, lz, ux, uy, uz,
+                          radius, parent, order, axis, new_axis))
+            # fmt: on
             new_axis = True
         elif op == _POP:
             if not stack:
                 raise LSystemError("turtle: ']' without a matching '['")
-            (
-                px,
-                py,
-                pz,
-                hx,
-                hy,
-                hz,
-                lx,
-                ly,
-                lz,
-                ux,
-                uy,
-                uz,
-                radius,
-                parent,
-                order,
-                axis,
-                new_axis,
-            ) = stack.pop()
+            # fmt: off
+            (px, py, pz, hx, hy, hz, lx, ly, lz, ux, uy, uz,
+             radius, parent, order, axis, new_axis) = stack.pop()
+            # fmt: on
         elif op == _AROUND:
             hx, hy, hz, lx, ly, lz = -hx, -hy, -hz, -lx, -ly, -lz
         elif op == _WIDTH:

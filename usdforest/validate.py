@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom, UsdValidation
 
-from .errors import UsdForestError
+from .usd.layers import open_stage
 
 
 @dataclass(frozen=True)
@@ -101,11 +101,7 @@ def project_findings(stage: Usd.Stage) -> list[Finding]:
 def validate(path: str | Path) -> list[Finding]:
     """All findings for the stage at ``path`` (pxr validators and project rules)."""
     path = Path(path)
-    if not path.is_file():
-        raise UsdForestError(f"{path}: no such file")
-    stage = Usd.Stage.Open(str(path))
-    if stage is None:
-        raise UsdForestError(f"{path}: cannot open as a USD stage")
+    stage = open_stage(path)
     return pxr_findings(stage) + project_findings(stage)
 
 

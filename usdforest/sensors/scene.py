@@ -16,8 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import UsdForestError
-
 CLASSES = ("unknown", "trunk", "branch", "leaf")
 CLASS_ID = {name: i for i, name in enumerate(CLASSES)}
 
@@ -214,12 +212,10 @@ def extract_scene(
     """
     from pxr import Usd, UsdGeom
 
+    from ..usd.layers import open_stage
+
     path = Path(stage_path)
-    if not path.is_file():
-        raise UsdForestError(f"{path}: no such file")
-    stage = Usd.Stage.Open(str(path))
-    if stage is None:
-        raise UsdForestError(f"{path}: cannot open as a USD stage")
+    stage = open_stage(path)
     cache = UsdGeom.XformCache()
     bbox = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"], True)
     paths: list[str] = []

@@ -6,7 +6,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
-from pxr import Sdf, Vt
+from pxr import Sdf, Usd, Vt
 
 from ..atomic import atomic_path
 from ..errors import UsdForestError
@@ -28,6 +28,17 @@ def new_layer(default_prim: str, *, comment: str = "") -> Sdf.Layer:
     if comment:
         layer.comment = comment
     return layer
+
+
+def open_stage(path: str | Path) -> Usd.Stage:
+    """Open the stage at ``path``, with a clear error if it is missing or not USD."""
+    path = Path(path)
+    if not path.is_file():
+        raise UsdForestError(f"{path}: no such file")
+    stage = Usd.Stage.Open(str(path))
+    if stage is None:
+        raise UsdForestError(f"{path}: cannot open as a USD stage")
+    return stage
 
 
 def save_layer(layer: Sdf.Layer, path: str | Path) -> Path:

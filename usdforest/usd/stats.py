@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom
 
-from ..errors import UsdForestError
+from .layers import open_stage
 
 
 @dataclass
@@ -89,11 +89,7 @@ def stage_info(path: str | Path) -> dict:
     500,000 leaves.
     """
     path = Path(path)
-    if not path.is_file():
-        raise UsdForestError(f"{path}: no such file")
-    stage = Usd.Stage.Open(str(path))
-    if stage is None:
-        raise UsdForestError(f"{path}: cannot open as a USD stage")
+    stage = open_stage(path)
     root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
     prims = 0
     by_order: Counter = Counter()
