@@ -24,7 +24,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import tomllib
-import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -101,8 +100,6 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
         return tuple(
             _coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True))
         )
-    if origin in (typing.Union, types.UnionType):
-        raise RecipeError(f"{where}: unsupported field type")  # pragma: no cover
     return value
 
 
