@@ -368,8 +368,9 @@ def sample_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
 ) -> None:
     """Sample tree sites (and marks) from the recipe's point process into a CSV."""
+    from .config import load_toml
     from .forest import sample_sites, write_sites_csv
-    from .recipe import default_recipe_path, load_toml, parse_recipe
+    from .recipe import default_recipe_path, parse_recipe
 
     path = pipeline or default_recipe_path()
     data = load_toml(path)
@@ -498,7 +499,7 @@ def scan_cmd(
     import dataclasses
     import time
 
-    from .recipe import check_keys, load_toml, override
+    from .config import check_keys, load_toml, override
     from .sensors import lidar, sonar
     from .sensors.checks import check_not_inside_wood, pose_warnings
     from .sensors.pose import parse_pose

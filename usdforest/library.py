@@ -15,12 +15,12 @@ A manifest (``pipelines/templates.toml``) lists CAD sources and how to import ea
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
 from .cad import PARTS, UNITS, import_part
+from .config import check_keys, load_toml
 from .errors import RecipeError
 
 MANIFEST_KEYS = {"output", "template"}
@@ -61,17 +61,8 @@ class Manifest:
 def read_manifest(path: str | Path) -> Manifest:
     """Parse and check a template manifest; every problem names the file and key."""
     path = Path(path)
-    if not path.is_file():
-        raise RecipeError(f"{path}: no such file")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise RecipeError(f"{path}: not valid TOML: {exc}") from None
-    unknown = set(data) - MANIFEST_KEYS
-    if unknown:
-        raise RecipeError(
-            f"{path}: unknown key {sorted(unknown)[0]!r} (expected: output, template)"
-        )
+    data = load_toml(path)
+    check_keys(data, MANIFEST_KEYS, str(path))
     base = path.parent
     output = base / str(data.get("output", "."))
     entries = data.get("template", [])
@@ -82,12 +73,7 @@ def read_manifest(path: str | Path) -> Manifest:
         where = f"{path}: template[{i}]"
         if not isinstance(e, dict):
             raise RecipeError(f"{where} must be a table")
-        unknown = set(e) - TEMPLATE_KEYS
-        if unknown:
-            raise RecipeError(
-                f"{where}: unknown key {sorted(unknown)[0]!r} "
-                f"(expected: {', '.join(sorted(TEMPLATE_KEYS))})"
-            )
+        check_keys(e, TEMPLATE_KEYS, where)
         for key in ("name", "source", "part"):
             if not isinstance(e.get(key), str) or not e[key]:
                 raise RecipeError(f"{where}.{key}: expected a non-empty string")

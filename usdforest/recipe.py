@@ -21,10 +21,6 @@ This module reads the species part of a recipe::
 
 from __future__ import annotations
 
-import dataclasses
-import math
-import tomllib
-import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -32,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from .config import check_keys, coerce, load_toml, override
 from .errors import RecipeError, UsdForestError
 from .species import Geometry, Species, get_species, species_from_profile
 from .turtle import TurtleConfig
@@ -46,72 +43,6 @@ SPECIES_KEYS = {
     "geometry",
     "description",
 }
-
-
-def load_toml(path: str | Path) -> dict[str, Any]:
-    path = Path(path)
-    if not path.is_file():
-        raise RecipeError(f"{path}: no such file")
-    try:
-        return tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise RecipeError(f"{path}: not valid TOML: {exc}") from None
-    except UnicodeDecodeError:
-        raise RecipeError(f"{path}: not a text file") from None
-
-
-def check_keys(table: Mapping[str, Any], allowed: set[str], where: str) -> None:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise RecipeError(
-            f"{where}: unknown key {unknown[0]!r} (expected one of: {', '.join(sorted(allowed))})"
-        )
-
-
-def _coerce(value: Any, tp: Any, where: str) -> Any:
-    """Check ``value`` against a dataclass field type (float, int, str, bool, tuples)."""
-    origin = typing.get_origin(tp)
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise RecipeError(f"{where}: expected a number, got {value!r}")
-        if not math.isfinite(value):
-            raise RecipeError(f"{where}: expected a finite number, got {value!r}")
-        return float(value)
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise RecipeError(f"{where}: expected a whole number, got {value!r}")
-        return value
-    if tp is str:
-        if not isinstance(value, str):
-            raise RecipeError(f"{where}: expected a string, got {value!r}")
-        return value
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise RecipeError(f"{where}: expected true or false, got {value!r}")
-        return value
-    if origin is tuple:
-        args = typing.get_args(tp)
-        if not isinstance(value, list):
-            raise RecipeError(f"{where}: expected an array, got {value!r}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
-        if len(value) != len(args):
-            raise RecipeError(f"{where}: expected {len(args)} values, got {len(value)}")
-        return tuple(
-            _coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True))
-        )
-    return value
-
-
-def override(obj: Any, table: Mapping[str, Any], where: str) -> Any:
-    """``dataclasses.replace`` with values from a TOML table, checked against field types."""
-    if not isinstance(table, Mapping):
-        raise RecipeError(f"{where}: expected a table")
-    hints = typing.get_type_hints(type(obj))
-    fields = {f.name for f in dataclasses.fields(obj)}
-    check_keys(table, fields, where)
-    values = {k: _coerce(v, hints[k], f"{where}.{k}") for k, v in table.items()}
-    return replace(obj, **values)
 
 
 @dataclass(frozen=True)
@@ -131,7 +62,7 @@ def parse_species(name: str, table: Mapping[str, Any], base: Path, where: str) -
     if "profile" in table:
         if "preset" in table or "rules" in table:
             raise RecipeError(f"{where}: give either profile, preset or axiom/rules, not several")
-        ppath = base / _coerce(table["profile"], str, f"{where}.profile")
+        ppath = base / coerce(table["profile"], str, f"{where}.profile")
         profile = load_toml(ppath)
         try:
             sp = species_from_profile(profile, name)
@@ -157,27 +88,27 @@ def parse_species(name: str, table: Mapping[str, Any], base: Path, where: str) -
             raise RecipeError(f"{where}: give either preset or axiom/rules, not both")
         if "axiom" not in table or "rules" not in table:
             raise RecipeError(f"{where}: a grammar needs both 'axiom' and 'rules'")
-        rules = _coerce(table["rules"], tuple[str, ...], f"{where}.rules")
+        rules = coerce(table["rules"], tuple[str, ...], f"{where}.rules")
         sp = Species(
             name=name,
             description=str(table.get("description", "")),
-            axiom=_coerce(table["axiom"], str, f"{where}.axiom"),
+            axiom=coerce(table["axiom"], str, f"{where}.axiom"),
             rules=rules,
-            iterations=_coerce(table.get("iterations", 1), int, f"{where}.iterations"),
+            iterations=coerce(table.get("iterations", 1), int, f"{where}.iterations"),
         )
     else:
-        preset = _coerce(table.get("preset", name), str, f"{where}.preset")
+        preset = coerce(table.get("preset", name), str, f"{where}.preset")
         try:
             sp = replace(get_species(preset), name=name)
         except UsdForestError as exc:
             raise RecipeError(f"{where}.preset: {exc}") from None
     if "iterations" in table:
-        n = _coerce(table["iterations"], int, f"{where}.iterations")
+        n = coerce(table["iterations"], int, f"{where}.iterations")
         if not 0 <= n <= 100:
             raise RecipeError(f"{where}.iterations: {n} is not between 0 and 100")
         sp = replace(sp, iterations=n)
     if "description" in table:
-        sp = replace(sp, description=_coerce(table["description"], str, f"{where}.description"))
+        sp = replace(sp, description=coerce(table["description"], str, f"{where}.description"))
     if "turtle" in table:
         sp = replace(sp, turtle=override(sp.turtle, table["turtle"], f"{where}.turtle"))
     if "geometry" in table:
@@ -277,7 +208,7 @@ class Recipe:
 
 
 def _num(v: Any, where: str, *, lo: float | None = None, positive: bool = False) -> float:
-    x = _coerce(v, float, where)
+    x = coerce(v, float, where)
     if positive and x <= 0:
         raise RecipeError(f"{where}: must be > 0, got {x:g}")
     if lo is not None and x < lo:
@@ -295,7 +226,7 @@ def parse_region(t: Any, where: str) -> Any:
         check_keys(t, {"kind", "bounds"}, where)
         if "bounds" not in t:
             raise RecipeError(f"{where}.bounds: missing [x0, y0, x1, y1]")
-        b = _coerce(t["bounds"], tuple[float, float, float, float], f"{where}.bounds")
+        b = coerce(t["bounds"], tuple[float, float, float, float], f"{where}.bounds")
         try:
             return Rectangle(*b)
         except RecipeError as exc:
@@ -306,7 +237,7 @@ def parse_region(t: Any, where: str) -> Any:
         if not isinstance(v, list):
             raise RecipeError(f"{where}.vertices: expected an array of [x, y]")
         pts = tuple(
-            _coerce(p, tuple[float, float], f"{where}.vertices[{i}]") for i, p in enumerate(v)
+            coerce(p, tuple[float, float], f"{where}.vertices[{i}]") for i, p in enumerate(v)
         )
         try:
             return Polygon(pts)
@@ -348,14 +279,14 @@ def parse_intensity(t: Any, region: Any, base: Path, where: str) -> Any:
             check_keys(t, {"kind", "expr", "bound"}, where)
             bound = t.get("bound")
             return ExpressionIntensity(
-                _coerce(t.get("expr"), str, f"{where}.expr"),
+                coerce(t.get("expr"), str, f"{where}.expr"),
                 None if bound is None else _num(bound, f"{where}.bound", positive=True),
             )
         if kind == "raster":
             check_keys(t, {"kind", "file", "max"}, where)
             peak = t.get("max")
             return load_raster(
-                base / _coerce(t.get("file"), str, f"{where}.file"),
+                base / coerce(t.get("file"), str, f"{where}.file"),
                 region.bounds,
                 None if peak is None else _num(peak, f"{where}.max", lo=0),
             )
@@ -404,7 +335,7 @@ def parse_recipe(
     try:
         check_keys(data, TOP_KEYS, "pipeline")
         s = seed if seed is not None else data.get("seed", 0)
-        s = _coerce(s, int, "seed")
+        s = coerce(s, int, "seed")
         if s < 0:
             raise RecipeError(f"seed: must be >= 0, got {s}")
         if "region" not in data:
@@ -437,16 +368,16 @@ def parse_recipe(
         v = forest.get("variants", 3)
         if isinstance(v, Mapping):
             check_keys(v, set(species), "forest.variants")
-            variants = {n: _coerce(v.get(n, 3), int, f"forest.variants.{n}") for n, _ in mix}
+            variants = {n: coerce(v.get(n, 3), int, f"forest.variants.{n}") for n, _ in mix}
         else:
-            variants = {n: _coerce(v, int, "forest.variants") for n, _ in mix}
+            variants = {n: coerce(v, int, "forest.variants") for n, _ in mix}
         for n, k in variants.items():
             if not 1 <= k <= 64:
                 raise RecipeError(f"forest.variants: {n} has {k}; use 1 to 64 variants")
         hard_core = _num(forest.get("hard_core", 0.0), "forest.hard_core", lo=0)
         st = forest.get("scale", {"kind": "uniform", "low": 0.85, "high": 1.15})
         scale = _parse_scale(st)
-        max_trees = _coerce(forest.get("max_trees", DEFAULT_MAX_TREES), int, "forest.max_trees")
+        max_trees = coerce(forest.get("max_trees", DEFAULT_MAX_TREES), int, "forest.max_trees")
         if max_trees < 1:
             raise RecipeError("forest.max_trees: must be >= 1")
         names = tuple(n for n, _ in mix)
