@@ -9,7 +9,7 @@ from pathlib import Path
 
 from usdforest.sensors.lidar import SpinningLidar, scan
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.raycast import RayCaster
+from usdforest.sensors.raycast import SceneCaster
 from usdforest.sensors.scene import extract_scene
 from usdforest.sensors.sonar import SonarConfig, echo_from_leaves
 from usdforest.species import get_species
@@ -25,8 +25,7 @@ def _lidar_setup():
         t0 = time.perf_counter()
         scene = extract_scene(WORK / "pine.usdc")
         t1 = time.perf_counter()
-        caster = RayCaster(scene.triangles)
-        caster.first_hit(scene.triangles[:1, 0] * 0, scene.triangles[:1, 0] * 0 + [[1, 0, 0]])
+        caster = SceneCaster(scene)
         t2 = time.perf_counter()
         _CACHE["lidar"] = (scene, caster, t1 - t0, t2 - t1)
     return _CACHE["lidar"]
@@ -59,7 +58,25 @@ def sonar_100k_leaves() -> tuple[int, str, str]:
     return e.leaves_used, "leaves", "32 bands, 20-100 kHz, 400 kHz output, 15 m window"
 
 
+def lidar_forest_scan() -> tuple[int, str, str]:
+    """End to end in the default forest: extract (culled), build, cast a VLP-16 at 30 m."""
+    from usdforest.recipe import default_recipe_path, read_recipe
+    from usdforest.sensors.lidar import PRESETS
+    from usdforest.usd.forest import write_forest
+
+    if "forest" not in _CACHE:
+        write_forest(read_recipe(default_recipe_path()), WORK / "forest.usda", thumbnail=False)
+        _CACHE["forest"] = WORK / "forest.usda"
+    sensor = replace(PRESETS["vlp-16"], max_range=30.0)
+    pose = Pose(30.0, 70.0, 1.5)
+    scene = extract_scene(_CACHE["forest"], centre=pose.position, radius=sensor.max_range)
+    r = scan(scene, sensor, pose)
+    return r.n_rays, "rays", (f"{len(scene.instances)} trees, {len(scene):,} triangles in range "
+                              f"({len(scene.protos)} prototypes), {len(r):,} returns")
+
+
 BENCHMARKS = {
     "lidar: 1M rays, pine tree": lidar_1m_rays,
     "sonar: echo of ~100k leaves": sonar_100k_leaves,
+    "lidar: default forest, VLP-16 at 30 m, end to end": lidar_forest_scan,
 }

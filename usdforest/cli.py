@@ -503,6 +503,7 @@ def scan_cmd(
     from .sensors import lidar, sonar
     from .sensors.checks import check_not_inside_wood, pose_warnings
     from .sensors.pose import parse_pose
+    from .sensors.raycast import SceneCaster
     from .sensors.scene import extract_scene
 
     if sensor not in ("lidar", "sonar"):
@@ -536,9 +537,10 @@ def scan_cmd(
     scene = extract_scene(stage, centre=p.position, radius=settings.max_range)
     for w in pose_warnings(scene, p, settings.max_range):
         err.print(f"warning: {w}", highlight=False)
-    check_not_inside_wood(scene, p)
+    caster = SceneCaster(scene)
+    check_not_inside_wood(scene, p, caster)
     if sensor == "lidar":
-        r = lidar.scan(scene, settings, p, seed=seed)
+        r = lidar.scan(scene, settings, p, seed=seed, caster=caster)
         lidar.write_returns(r, output)
         counts = np.bincount(r.cls, minlength=4)
         summary = {
@@ -559,7 +561,7 @@ def scan_cmd(
             + f"), {summary['trees_hit']} trees, {len(scene):,} triangles in range"
         )
     else:
-        e = sonar.sonar_scan(scene, p, settings)
+        e = sonar.sonar_scan(scene, p, settings, caster)
         if e.leaves_used == 0:
             err.print(
                 "warning: no leaves within range of the sonar: the echo is silent", highlight=False
@@ -567,18 +569,18 @@ def scan_cmd(
         files = sonar.write_echo(e, output)
         c = settings.speed_of_sound
         env = np.abs(e.impulse)
-        first = float(e.t[np.argmax(env > 0.1 * env.max())]) * c / 2 if env.max() > 0 else None
+        peak = float(e.t[np.argmax(env)]) * c / 2 if env.max() > 0 else None
         summary = {
             "output": [str(f) for f in files],
             "leaves_in_range": e.leaves_in_range,
             "leaves_used": e.leaves_used,
-            "first_echo_range_m": first,
+            "strongest_echo_range_m": peak,
             "seconds": round(time.perf_counter() - t0, 3),
         }
         text = (
             f"{', '.join(map(str, files))}: echo of {e.leaves_used:,} leaves "
             f"(of {e.leaves_in_range:,} within {settings.max_range:g} m)"
-            + (f", first echo at {first:.2f} m" if first is not None else "")
+            + (f", strongest at {peak:.2f} m" if peak is not None else "")
         )
     if as_json:
         sys.stdout.write(json.dumps(summary) + "\n")

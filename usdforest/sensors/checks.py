@@ -6,7 +6,7 @@ import numpy as np
 
 from ..errors import UsdForestError
 from .pose import Pose
-from .raycast import RayCaster
+from .raycast import SceneCaster
 from .scene import CLASS_ID, Scene
 
 AXES = np.array([[1.0, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
@@ -34,25 +34,13 @@ def pose_warnings(scene: Scene, pose: Pose, max_range: float) -> list[str]:
     return []
 
 
-def check_not_inside_wood(scene: Scene, pose: Pose) -> None:
+def check_not_inside_wood(scene: Scene, pose: Pose, caster: SceneCaster | None = None) -> None:
     """Refuse a pose inside a trunk: (almost) every axis ray first meets a trunk from inside."""
-    near = np.flatnonzero(
-        np.linalg.norm(scene.triangles.mean(axis=1) - pose.position, axis=1) < 5.0
-    )
-    if near.size == 0:
-        return
-    _, hit_near = RayCaster(scene.triangles[near]).first_hit(
-        np.broadcast_to(pose.position, AXES.shape), AXES, 5.0
-    )
-    prim = np.where(hit_near >= 0, near[np.maximum(hit_near, 0)], -1)
-    hit = prim >= 0
-    if hit.sum() < len(AXES) - 1:
-        return
-    tri = scene.triangles[prim[hit]].astype(float)
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    backface = np.sum(normal * AXES[hit], axis=1) > 0
-    trunk = scene.cls[prim[hit]] == CLASS_ID["trunk"]
-    if np.count_nonzero(backface & trunk) >= len(AXES) - 1:
+    caster = caster or SceneCaster(scene)
+    h = caster.first_hit(np.broadcast_to(pose.position, AXES.shape), AXES, 5.0)
+    backface = np.sum(h.normal * AXES, axis=1) > 0
+    inside = h.hit & backface & (h.cls == CLASS_ID["trunk"])
+    if np.count_nonzero(inside) >= len(AXES) - 1:
         raise UsdForestError(
             f"pose ({pose.x:g}, {pose.y:g}, {pose.z:g}) is inside a trunk; move the sensor out"
         )

@@ -16,7 +16,7 @@ from ..atomic import atomic_path
 from ..errors import UsdForestError
 from ..seeds import stream
 from .pose import Pose
-from .raycast import RayCaster
+from .raycast import SceneCaster
 from .scene import CLASSES, Scene
 
 
@@ -123,27 +123,26 @@ def scan(
     pose: Pose,
     *,
     seed: int = 0,
-    caster: RayCaster | None = None,
+    caster: SceneCaster | None = None,
 ) -> Returns:
     """Cast every ray of ``sensor`` at ``pose`` into ``scene``; first returns only."""
     sensor.check()
     dirs = sensor.directions() @ pose.rotation().T
     origins = np.broadcast_to(pose.position, dirs.shape)
-    caster = caster or RayCaster(scene.triangles)
-    t, prim = caster.first_hit(origins, dirs, sensor.max_range)
-    hit = np.flatnonzero(prim >= 0)
-    rng_ = t[hit]
+    caster = caster or SceneCaster(scene)
+    h = caster.first_hit(origins, dirs, sensor.max_range)
+    hit = np.flatnonzero(h.hit)
+    rng_ = h.t[hit]
     if sensor.range_noise > 0:
         rng_ = rng_ + stream(seed, "lidar-noise").normal(0.0, sensor.range_noise, hit.size)
     pts = pose.position + dirs[hit] * rng_[:, None]
-    p = prim[hit]
     return Returns(
         pts,
         rng_,
         hit.astype(np.int64),
-        scene.cls[p],
-        scene.tree[p],
-        scene.path[p],
+        h.cls[hit],
+        h.tree[hit],
+        h.path[hit],
         scene.paths,
         len(dirs),
         {**asdict(sensor), "pose": asdict(pose)},

@@ -4,9 +4,12 @@ prim path, and leaves as disk reflectors.
 Every PointInstancer level is expanded with ``ComputeInstanceTransformsAtTime``. Instances of
 a tree prototype (a prim labelled ``tree``) carry the instancer's ``ids`` as tree ids. Culling
 comes before expansion: only tree instances whose bounds come within ``radius`` of ``centre``
-are placed, and of their leaves (kept as transforms until the end) only those within reach
-are turned into triangles, so a scan near one corner of a 1 km² forest does not expand the
-whole forest.
+are kept, so a scan near one corner of a 1 km² forest does not expand the whole forest.
+
+Tree instances stay instances: each tree prototype's triangles (its leaves expanded) are
+gathered once in the prototype's own space, and every instance is a transform to it
+(:class:`Instances`), which ray casting follows (:class:`~usdforest.sensors.raycast.SceneCaster`)
+instead of copying a million triangles per tree. ``instancing=False`` copies them instead.
 """
 
 from __future__ import annotations
@@ -50,8 +53,33 @@ class Leaves:
 
 
 @dataclass(frozen=True, eq=False)
+class Prototype:
+    """A tree prototype in its own space: triangles with class and path, leaves, bounds."""
+
+    triangles: np.ndarray
+    cls: np.ndarray
+    path: np.ndarray
+    leaves: Leaves
+    centre: np.ndarray  # bounding sphere
+    radius: float
+
+
+@dataclass(frozen=True, eq=False)
+class Instances:
+    """Placed prototypes: index, row-vector 4x4 prototype-to-world transform, tree id."""
+
+    proto: np.ndarray
+    matrix: np.ndarray
+    tree: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.proto.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
 class Scene:
-    """Triangles (m, 3, 3) in world space with per-triangle class, tree id and path index."""
+    """World-space triangles (m, 3, 3) with class, tree id and path index, plus instances of
+    tree prototypes, and every leaf in reach as a reflector."""
 
     triangles: np.ndarray
     cls: np.ndarray
@@ -60,9 +88,17 @@ class Scene:
     paths: tuple[str, ...]
     leaves: Leaves
     bounds: np.ndarray  # (2, 3) of the whole stage (not only what was expanded)
+    protos: tuple[Prototype, ...] = ()
+    instances: Instances = field(
+        default_factory=lambda: Instances(
+            np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros(0, np.int64)
+        )
+    )
 
     def __len__(self) -> int:
-        return int(self.triangles.shape[0])
+        """Triangles in the scene, every instance counted."""
+        per = np.array([len(p.triangles) for p in self.protos], dtype=np.int64)
+        return int(self.triangles.shape[0] + (per[self.instances.proto].sum() if len(per) else 0))
 
 
 @dataclass(frozen=True, eq=False)
@@ -195,11 +231,28 @@ def _realise(b: _LeafBatch, centre: np.ndarray | None, radius: float | None):
     return leaves, part
 
 
+def _placed_leaves(
+    proto: Prototype, m: np.ndarray, tree: int, centre: np.ndarray | None, radius: float | None
+) -> Leaves:
+    """A prototype's leaves placed by ``m`` (row-vector 4x4), those within reach only."""
+    lv = proto.leaves
+    rot = m[:3, :3]
+    c = lv.centre @ rot + m[3, :3]
+    keep = np.ones(len(c), dtype=bool)
+    if centre is not None and radius is not None:
+        keep = np.linalg.norm(c - centre, axis=1) <= radius + 2 * np.sqrt(lv.area) + 1e-6
+    n = lv.normal[keep] @ np.linalg.inv(rot).T
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    s2 = abs(np.linalg.det(rot)) ** (2 / 3)
+    return Leaves(c[keep], n, lv.area[keep] * s2, np.full(int(keep.sum()), tree, np.int64))
+
+
 def extract_scene(
     stage_path: str | Path,
     *,
     centre: np.ndarray | None = None,
     radius: float | None = None,
+    instancing: bool = True,
 ) -> Scene:
     """Triangles and leaf reflectors of a stage, culled to a sphere around ``centre``.
 
@@ -209,6 +262,8 @@ def extract_scene(
         Any USD stage: a tree, a forest, a simulation stage that references them.
     centre, radius
         Keep only tree instances and leaves within ``radius`` of ``centre`` (all when omitted).
+    instancing
+        Keep tree instances as transforms of their prototypes (default) or copy triangles.
     """
     from pxr import Usd, UsdGeom
 
@@ -221,6 +276,31 @@ def extract_scene(
     paths: list[str] = []
     path_index: dict[str, int] = {}
     memo: dict = {}
+    protos: list[Prototype] = []
+    proto_of: dict = {}
+    placed: list[tuple[int, np.ndarray, int]] = []
+
+    def prototype(prim) -> int:
+        """Index of the (tree) prototype ``prim``, gathered once with its leaves expanded."""
+        key = prim.GetPath()
+        if key not in proto_of:
+            part = subtree(prim)
+            realised = [_realise(b, None, None) for b in part.batches]
+            whole = _Part.concat([replace(part, batches=()), *(r[1] for r in realised)])
+            pts = whole.tri.reshape(-1, 3).astype(float)
+            lo, hi = (pts.min(axis=0), pts.max(axis=0)) if len(pts) else (np.zeros(3),) * 2
+            proto_of[key] = len(protos)
+            protos.append(
+                Prototype(
+                    whole.tri,
+                    whole.cls,
+                    whole.path,
+                    Leaves.concat([r[0] for r in realised]),
+                    (lo + hi) / 2,
+                    float(np.linalg.norm(hi - lo) / 2),
+                )
+            )
+        return proto_of[key]
 
     def pid(p: str) -> int:
         if p not in path_index:
@@ -228,7 +308,7 @@ def extract_scene(
             paths.append(p)
         return path_index[p]
 
-    def subtree(prim) -> _Part:
+    def subtree(prim, top: bool = False) -> _Part:
         """Everything under ``prim`` in ``prim``'s own space (memoised: prototypes)."""
         key = prim.GetPath()
         if key in memo:
@@ -253,12 +333,12 @@ def extract_scene(
                 )
             elif p.IsA(UsdGeom.PointInstancer):
                 it.PruneChildren()
-                parts.append(instances(p, _m(cache.GetLocalToWorldTransform(p)) @ inv))
+                parts.append(instances(p, _m(cache.GetLocalToWorldTransform(p)) @ inv, top))
         out = _Part.concat(parts)
         memo[key] = out
         return out
 
-    def instances(p, to_root: np.ndarray) -> _Part:
+    def instances(p, to_root: np.ndarray, top: bool = False) -> _Part:
         """A PointInstancer's instances, in the space of the subtree being gathered."""
         pi = UsdGeom.PointInstancer(p)
         xf = pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
@@ -314,6 +394,11 @@ def extract_scene(
                 sel = sel[np.linalg.norm(world_pos - centre, axis=1) <= radius + r_proto * scale]
                 if sel.size == 0:
                     continue
+            if is_tree and top and instancing:
+                k_proto = prototype(proto)
+                for i in sel:
+                    placed.append((k_proto, own @ xf[i] @ to_root, int(ids[i])))
+                continue
             local = subtree(proto)
             for i in sel:
                 out.append(
@@ -328,13 +413,21 @@ def extract_scene(
         if not world_box.IsEmpty()
         else np.zeros((2, 3))
     )
-    part = subtree(root)
+    part = subtree(root, top=True)
     realised = [_realise(b, centre, radius) for b in part.batches]
     whole = _Part.concat([part, *(r[1] for r in realised)])
-    leaves = Leaves.concat([r[0] for r in realised])
+    inst = Instances(
+        np.array([k for k, _, _ in placed], dtype=np.int64),
+        np.array([m for _, m, _ in placed]).reshape(-1, 4, 4),
+        np.array([t for _, _, t in placed], dtype=np.int64),
+    )
+    leaves = Leaves.concat(
+        [r[0] for r in realised]
+        + [_placed_leaves(protos[k], m, t, centre, radius) for k, m, t in placed]
+    )
     tree, leaf_tree = whole.tree, leaves.tree
     # a stage holding one tree that is not instanced: tree id 0
-    if not (tree >= 0).any() and any("tree" in _labels(p) for p in stage.Traverse()):
+    if not placed and not (tree >= 0).any() and any("tree" in _labels(p) for p in stage.Traverse()):
         tree = np.zeros_like(tree)
         leaf_tree = np.zeros_like(leaf_tree)
     return Scene(
@@ -345,4 +438,6 @@ def extract_scene(
         tuple(paths),
         Leaves(leaves.centre, leaves.normal, leaves.area, leaf_tree),
         bounds,
+        tuple(protos),
+        inst,
     )

@@ -269,9 +269,9 @@ def echo_from_leaves(leaves: Leaves, pose: Pose, cfg: SonarConfig) -> Echo:
     )
 
 
-def visible_leaves(scene: Scene, pose: Pose, cfg: SonarConfig) -> np.ndarray:
+def visible_leaves(scene: Scene, pose: Pose, cfg: SonarConfig, caster=None) -> np.ndarray:
     """``bool[L]``: leaves whose centre the sonar sees (no wood or other leaf in between)."""
-    from .raycast import RayCaster
+    from .raycast import SceneCaster
 
     lv = scene.leaves
     d = lv.centre - pose.position
@@ -280,22 +280,21 @@ def visible_leaves(scene: Scene, pose: Pose, cfg: SonarConfig) -> np.ndarray:
     out = np.zeros(len(lv), dtype=bool)
     if near.size == 0:
         return out
-    t, _ = RayCaster(scene.triangles).first_hit(
-        np.broadcast_to(pose.position, (near.size, 3)), d[near] / r[near, None]
-    )
+    caster = caster or SceneCaster(scene)
+    h = caster.first_hit(np.broadcast_to(pose.position, (near.size, 3)), d[near] / r[near, None])
     tolerance = 1.5 * lv.radius[near] + 1e-3
-    out[near] = t >= r[near] - tolerance
+    out[near] = h.t >= r[near] - tolerance
     return out
 
 
-def sonar_scan(scene: Scene, pose: Pose, cfg: SonarConfig) -> Echo:
+def sonar_scan(scene: Scene, pose: Pose, cfg: SonarConfig, caster=None) -> Echo:
     """The echo of the stage's leaves (occluded ones dropped when ``cfg.occlusion``)."""
     lv = scene.leaves
     in_range = int(
         np.count_nonzero(np.linalg.norm(lv.centre - pose.position, axis=1) <= cfg.max_range)
     )
     if cfg.occlusion and len(lv):
-        keep = visible_leaves(scene, pose, cfg)
+        keep = visible_leaves(scene, pose, cfg, caster)
         lv = Leaves(lv.centre[keep], lv.normal[keep], lv.area[keep], lv.tree[keep])
     e = echo_from_leaves(lv, pose, cfg)
     return Echo(
