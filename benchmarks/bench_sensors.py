@@ -71,8 +71,14 @@ def lidar_forest_scan() -> tuple[int, str, str]:
     pose = Pose(30.0, 70.0, 1.5)
     scene = extract_scene(_CACHE["forest"], centre=pose.position, radius=sensor.max_range)
     r = scan(scene, sensor, pose)
-    return r.n_rays, "rays", (f"{len(scene.instances)} trees, {len(scene):,} triangles in range "
-                              f"({len(scene.protos)} prototypes), {len(r):,} returns")
+    return (
+        r.n_rays,
+        "rays",
+        (
+            f"{len(scene.instances)} trees, {len(scene):,} triangles in range "
+            f"({len(scene.protos)} prototypes), {len(r):,} returns"
+        ),
+    )
 
 
 BENCHMARKS = {

@@ -123,8 +123,13 @@ def sensors(out: Path, work: Path) -> None:
         for k, cls in enumerate(CLASSES):
             sel = r.cls == k
             if sel.any():
-                ax.scatter(r.points[sel, a], r.points[sel, b], s=0.5, color=colors[cls],
-                           label=f"{cls} ({sel.sum():,})")
+                ax.scatter(
+                    r.points[sel, a],
+                    r.points[sel, b],
+                    s=0.5,
+                    color=colors[cls],
+                    label=f"{cls} ({sel.sum():,})",
+                )
         ax.set_aspect("equal")
         ax.set_title(f"os1-64 lidar returns, {name}", fontsize=10)
     axes[0].legend(markerscale=10, fontsize=8)

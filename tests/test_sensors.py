@@ -137,8 +137,7 @@ def test_culling_expands_only_trees_in_range(tmp_path):
 
 def test_instanced_and_copied_scenes_return_the_same_hits(stand):
     out, _ = stand
-    sensor = SpinningLidar(channels=16, vfov_min=-20, vfov_max=40, azimuth_step=1.0,
-                           max_range=30)
+    sensor = SpinningLidar(channels=16, vfov_min=-20, vfov_max=40, azimuth_step=1.0, max_range=30)
     pose = Pose(5.25, 1.0, 2.0, yaw=90)
     inst = extract_scene(out)
     copy = extract_scene(out, instancing=False)
