@@ -120,7 +120,7 @@ def test_template_build_cli(tmp_path, runner):
         ),
         ('[[template]]\nname="a"\nsource="a.stl"\npart="leaf"\nunits="yd"\n', "units: 'yd'"),
         ("template = [", "not valid TOML"),
-        ('output="."\n', "'template' must be a non-empty array"),
+        ('output="."\n', "template: expected a non-empty array of tables"),
     ],
 )
 def test_manifest_errors_name_the_key(tmp_path, text, fragment):

@@ -82,3 +82,28 @@ def override(obj: Any, table: Mapping[str, Any], where: str) -> Any:
     check_keys(table, fields, where)
     values = {k: coerce(v, hints[k], f"{where}.{k}") for k, v in table.items()}
     return replace(obj, **values)
+
+
+def table_array(
+    value: Any,
+    allowed: set[str],
+    where: str,
+    *,
+    required: set[str] = frozenset(),
+    empty_ok: bool = False,
+) -> list[tuple[str, Mapping[str, Any]]]:
+    """Check an array of tables (``[[template]]``, ``bumps = [{...}]``): each a table with only
+    ``allowed`` keys and all ``required`` ones; returns ``(where[i], table)`` pairs."""
+    if not isinstance(value, list) or (not value and not empty_ok):
+        raise RecipeError(f"{where}: expected a non-empty array of tables")
+    out = []
+    for i, t in enumerate(value):
+        w = f"{where}[{i}]"
+        if not isinstance(t, Mapping):
+            raise RecipeError(f"{w}: expected a table with keys {', '.join(sorted(allowed))}")
+        check_keys(t, allowed, w)
+        missing = sorted(required - set(t))
+        if missing:
+            raise RecipeError(f"{w}: missing {missing[0]!r}")
+        out.append((w, t))
+    return out

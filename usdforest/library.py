@@ -20,7 +20,7 @@ from importlib import resources
 from pathlib import Path
 
 from .cad import PARTS, UNITS, import_part
-from .config import check_keys, load_toml
+from .config import check_keys, load_toml, table_array
 from .errors import RecipeError
 
 MANIFEST_KEYS = {"output", "template"}
@@ -65,15 +65,8 @@ def read_manifest(path: str | Path) -> Manifest:
     check_keys(data, MANIFEST_KEYS, str(path))
     base = path.parent
     output = base / str(data.get("output", "."))
-    entries = data.get("template", [])
-    if not isinstance(entries, list) or not entries:
-        raise RecipeError(f"{path}: 'template' must be a non-empty array of tables")
     specs = []
-    for i, e in enumerate(entries):
-        where = f"{path}: template[{i}]"
-        if not isinstance(e, dict):
-            raise RecipeError(f"{where} must be a table")
-        check_keys(e, TEMPLATE_KEYS, where)
+    for where, e in table_array(data.get("template"), TEMPLATE_KEYS, f"{path}: template"):
         for key in ("name", "source", "part"):
             if not isinstance(e.get(key), str) or not e[key]:
                 raise RecipeError(f"{where}.{key}: expected a non-empty string")

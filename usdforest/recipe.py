@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .config import check_keys, coerce, load_toml, override
+from .config import check_keys, coerce, load_toml, override, table_array
 from .errors import RecipeError, UsdForestError
 from .species import Geometry, Species, get_species, species_from_profile
 from .turtle import TurtleConfig
@@ -265,14 +265,10 @@ def parse_intensity(t: Any, region: Any, base: Path, where: str) -> Any:
         if kind == "gaussian-mixture":
             check_keys(t, {"kind", "base", "bumps"}, where)
             bumps = []
-            for i, b in enumerate(t.get("bumps", [])):
-                w = f"{where}.bumps[{i}]"
-                if not isinstance(b, Mapping):
-                    raise RecipeError(f"{w}: expected a table {{x, y, sigma, peak}}")
-                check_keys(b, {"x", "y", "sigma", "peak"}, w)
-                missing = {"x", "y", "sigma", "peak"} - set(b)
-                if missing:
-                    raise RecipeError(f"{w}: missing {sorted(missing)[0]!r}")
+            keys = {"x", "y", "sigma", "peak"}
+            for w, b in table_array(
+                t.get("bumps", []), keys, f"{where}.bumps", required=keys, empty_ok=True
+            ):
                 bumps.append(Bump(*(_num(b[k], f"{w}.{k}") for k in ("x", "y", "sigma", "peak"))))
             return GaussianMixture(_num(t.get("base", 0.0), f"{where}.base", lo=0), tuple(bumps))
         if kind == "expression":
@@ -299,14 +295,8 @@ def parse_intensity(t: Any, region: Any, base: Path, where: str) -> Any:
 
 
 def _parse_sites(v: Any, names: tuple[str, ...], region: Any, where: str) -> tuple[dict, ...]:
-    if not isinstance(v, list) or not v:
-        raise RecipeError(f"{where}: expected a non-empty array of {{x, y, species}} tables")
     out = []
-    for i, s in enumerate(v):
-        w = f"{where}[{i}]"
-        if not isinstance(s, Mapping):
-            raise RecipeError(f"{w}: expected a table {{x, y, species, yaw, scale}}")
-        check_keys(s, {"x", "y", "species", "yaw", "scale"}, w)
+    for w, s in table_array(v, {"x", "y", "species", "yaw", "scale"}, where, required={"x", "y"}):
         site = {"x": _num(s.get("x"), f"{w}.x"), "y": _num(s.get("y"), f"{w}.y")}
         if "species" in s:
             if s["species"] not in names:
