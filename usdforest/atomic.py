@@ -32,3 +32,15 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def refuse_overwrite(*paths: str | Path, force: bool) -> None:
+    """Raise a :class:`UsdForestError` naming the first of ``paths`` that exists, unless
+    ``force``."""
+    from .errors import UsdForestError
+
+    if force:
+        return
+    for p in paths:
+        if Path(p).exists():
+            raise UsdForestError(f"{p} exists; pass --force to overwrite it")

@@ -19,6 +19,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from . import __version__
+from .atomic import refuse_overwrite
 from .errors import UsdForestError
 
 app = typer.Typer(
@@ -386,8 +387,7 @@ def sample_cmd(
             raise UsdForestError(f"--region: expected 4 numbers x0,y0,x1,y1, got {len(b)}")
         data["region"] = {"kind": "rectangle", "bounds": b}
     recipe = parse_recipe(data, path.parent, str(path), seed=seed)
-    if output.exists() and not force:
-        raise UsdForestError(f"{output} exists; pass --force to overwrite it")
+    refuse_overwrite(output, force=force)
     reps = [sample_sites(recipe, r) for r in range(replicates)]
     write_sites_csv(output, reps)
     counts = [len(r) for r in reps]
@@ -508,8 +508,7 @@ def scan_cmd(
 
     if sensor not in ("lidar", "sonar"):
         raise UsdForestError(f"--sensor: {sensor!r} is not lidar or sonar")
-    if output.exists() and not force:
-        raise UsdForestError(f"{output} exists; pass --force to overwrite it")
+    refuse_overwrite(output, force=force)
     p = parse_pose(pose)
     presets = lidar.PRESETS if sensor == "lidar" else sonar.PRESETS
     name = preset or ("vlp-16" if sensor == "lidar" else "bat-fm")
@@ -595,11 +594,6 @@ template_app = typer.Typer(
 app.add_typer(template_app, name="template")
 
 
-def _refuse_overwrite(path: Path, force: bool) -> None:
-    if path.exists() and not force:
-        raise UsdForestError(f"{path} exists; pass --force to overwrite it")
-
-
 @template_app.command("import")
 @handles_errors
 def template_import_cmd(
@@ -618,7 +612,7 @@ def template_import_cmd(
     from .cad import import_part
     from .usd.template import write_template
 
-    _refuse_overwrite(output, force)
+    refuse_overwrite(output, force=force)
     t = import_part(file, part, units=units, up=up, name=name or part)
     write_template(t, output)
     info = {
@@ -660,7 +654,7 @@ def template_extract_cmd(
     from .extract import extract_tree
     from .usd.template import write_template
 
-    _refuse_overwrite(output, force)
+    refuse_overwrite(output, force=force)
     ex = extract_tree(file, units=units, up=up)
     output.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.", dir=output.parent))

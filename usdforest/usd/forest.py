@@ -29,6 +29,7 @@ import numpy as np
 import tomli_w
 from pxr import Sdf, Vt
 
+from ..atomic import refuse_overwrite
 from ..errors import UsdForestError
 from ..forest import Sites, sample_sites
 from ..recipe import Recipe, resolved_toml
@@ -200,10 +201,7 @@ def write_forest(
         raise UsdForestError(f"{out}: the forest's interface layer must end in .usda")
     assets = out.parent / f"{out.stem}_assets"
     thumb = out.with_suffix(".png")
-    if not force:
-        for p in (out, assets, *([thumb] if thumbnail else [])):
-            if p.exists():
-                raise UsdForestError(f"{p} exists; pass --force to overwrite it")
+    refuse_overwrite(out, assets, *([thumb] if thumbnail else []), force=force)
     tick = progress or (lambda stage, done, total: None)
 
     tick("sampling sites", 0, 1)

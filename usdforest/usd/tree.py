@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Vt
 
+from ..atomic import refuse_overwrite
 from ..errors import UsdForestError
 from ..library import template_path
 from ..placement import Placement, place
@@ -272,10 +273,7 @@ def write_tree(
     if out.suffix not in (".usda", ".usdc", ".usd"):
         raise UsdForestError(f"{out}: the tree layer must end in .usda, .usdc or .usd")
     assets = out.parent / f"{out.stem}_assets"
-    if not force:
-        for p in (out, assets):
-            if p.exists():
-                raise UsdForestError(f"{p} exists; pass --force to overwrite it")
+    refuse_overwrite(out, assets, force=force)
     build = build_tree(species, seed, variant, template_base=template_base)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.stem}.", dir=out.parent))
