@@ -37,6 +37,14 @@ err = Console(stderr=True, soft_wrap=True, markup=False)
 F = TypeVar("F", bound=Callable[..., Any])
 
 
+# options shared by the commands that read a forest recipe
+RecipeOption = Annotated[
+    Path | None,
+    typer.Option("--pipeline", "-p", help="Recipe (TOML); default: the embedded one."),
+]
+SeedOverride = Annotated[int | None, typer.Option(help="Override the recipe's seed.")]
+
+
 def handles_errors(fn: F) -> F:
     """Print a :class:`UsdForestError` as one line on stderr and exit with code 2."""
 
@@ -286,11 +294,8 @@ def _load_recipe(pipeline: Path | None, seed: int | None):
 @handles_errors
 def build_cmd(
     output: Annotated[Path, typer.Argument(help="Forest interface layer to write (.usda).")],
-    pipeline: Annotated[
-        Path | None,
-        typer.Option("--pipeline", "-p", help="Recipe (TOML); default: the embedded one."),
-    ] = None,
-    seed: Annotated[int | None, typer.Option(help="Override the recipe's seed.")] = None,
+    pipeline: RecipeOption = None,
+    seed: SeedOverride = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing output.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
@@ -354,16 +359,14 @@ def build_cmd(
 @handles_errors
 def sample_cmd(
     output: Annotated[Path, typer.Argument(help="CSV to write: replicate,x,y and the marks.")],
-    pipeline: Annotated[
-        Path | None, typer.Option("--pipeline", "-p", help="Recipe (default: embedded).")
-    ] = None,
+    pipeline: RecipeOption = None,
     intensity: Annotated[
         str | None, typer.Option(help="Override the intensity: an expression in x, y.")
     ] = None,
     region: Annotated[
         str | None, typer.Option(help="Override the region: x0,y0,x1,y1 (metres).")
     ] = None,
-    seed: Annotated[int | None, typer.Option(help="Override the recipe's seed.")] = None,
+    seed: SeedOverride = None,
     replicates: Annotated[int, typer.Option(min=1, max=100_000, help="Independent draws.")] = 1,
     force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
@@ -448,14 +451,12 @@ def preview_cmd(
 @handles_errors
 def plot_sites_cmd(
     output: Annotated[Path, typer.Argument(help="PNG to write.")],
-    pipeline: Annotated[
-        Path | None, typer.Option("--pipeline", "-p", help="Recipe (default: embedded).")
-    ] = None,
+    pipeline: RecipeOption = None,
     sites_csv: Annotated[
         Path | None, typer.Option("--sites", help="Sites CSV from 'usdforest sample'.")
     ] = None,
     replicate: Annotated[int, typer.Option(min=0, help="Replicate to plot.")] = 0,
-    seed: Annotated[int | None, typer.Option(help="Override the recipe's seed.")] = None,
+    seed: SeedOverride = None,
 ) -> None:
     """Plot the intensity map with sampled sites over it (the paper's IPP figure)."""
     from .forest import read_sites_csv, sample_sites
