@@ -84,27 +84,11 @@ def _mesh_color(prim) -> np.ndarray:
 
 
 def _sample_mesh(prim, to_root: np.ndarray, spacing: float, rng: np.random.Generator) -> Cloud:
-    from pxr import UsdGeom
+    from .usd.layers import mesh_triangles
 
-    mesh = UsdGeom.Mesh(prim)
-    pts = mesh.GetPointsAttr().Get()
-    counts = mesh.GetFaceVertexCountsAttr().Get()
-    idx = mesh.GetFaceVertexIndicesAttr().Get()
-    if pts is None or counts is None or idx is None or len(pts) == 0:
+    t = mesh_triangles(prim, to_root)
+    if len(t) == 0:
         return Cloud.concat([])
-    v = np.asarray(pts, dtype=float) @ to_root[:3, :3] + to_root[3, :3]
-    counts = np.asarray(counts)
-    idx = np.asarray(idx)
-    # fan-triangulate polygons
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    tri = []
-    for k in range(1, int(counts.max()) - 1 if len(counts) else 0):
-        sel = counts > k + 1
-        s = starts[sel]
-        tri.append(np.stack([idx[s], idx[s + k], idx[s + k + 1]], axis=1))
-    if not tri:
-        return Cloud.concat([])
-    t = v[np.concatenate(tri)]
     e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
     fn = np.cross(e1, e2)
     area = 0.5 * np.linalg.norm(fn, axis=1)

@@ -172,24 +172,9 @@ def _class_of(prim, stop) -> int:
 
 
 def _triangles(mesh_prim, to_root: np.ndarray) -> np.ndarray:
-    from pxr import UsdGeom
+    from ..usd.layers import mesh_triangles
 
-    mesh = UsdGeom.Mesh(mesh_prim)
-    pts, counts, idx = (
-        mesh.GetPointsAttr().Get(),
-        mesh.GetFaceVertexCountsAttr().Get(),
-        mesh.GetFaceVertexIndicesAttr().Get(),
-    )
-    if pts is None or counts is None or idx is None or len(counts) == 0:
-        return np.zeros((0, 3, 3), np.float32)
-    v = np.asarray(pts, dtype=float) @ to_root[:3, :3] + to_root[3, :3]
-    counts, idx = np.asarray(counts), np.asarray(idx)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    tri = []
-    for k in range(1, int(counts.max()) - 1):
-        s = starts[counts > k + 1]
-        tri.append(np.stack([idx[s], idx[s + k], idx[s + k + 1]], axis=1))
-    return v[np.concatenate(tri)].astype(np.float32) if tri else np.zeros((0, 3, 3), np.float32)
+    return mesh_triangles(mesh_prim, to_root).astype(np.float32)
 
 
 def _leaf_area_unit(proto, tri: np.ndarray) -> float:

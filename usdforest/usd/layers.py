@@ -6,7 +6,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
-from pxr import Sdf, Usd, Vt
+from pxr import Sdf, Usd, UsdGeom, Vt
 
 from ..atomic import atomic_path
 from ..errors import UsdForestError
@@ -39,6 +39,25 @@ def open_stage(path: str | Path) -> Usd.Stage:
     if stage is None:
         raise UsdForestError(f"{path}: cannot open as a USD stage")
     return stage
+
+
+def mesh_triangles(prim: Usd.Prim, to_root: np.ndarray) -> np.ndarray:
+    """A Mesh prim's faces, fan-triangulated, as ``float64[m, 3, 3]`` transformed by the
+    row-vector 4x4 ``to_root`` (empty when the mesh has no faces)."""
+    mesh = UsdGeom.Mesh(prim)
+    pts = mesh.GetPointsAttr().Get()
+    counts = mesh.GetFaceVertexCountsAttr().Get()
+    idx = mesh.GetFaceVertexIndicesAttr().Get()
+    if pts is None or counts is None or idx is None or len(pts) == 0 or len(counts) == 0:
+        return np.zeros((0, 3, 3))
+    v = np.asarray(pts, dtype=float) @ to_root[:3, :3] + to_root[3, :3]
+    counts, idx = np.asarray(counts), np.asarray(idx)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    tri = []
+    for k in range(1, int(counts.max()) - 1):
+        s = starts[counts > k + 1]
+        tri.append(np.stack([idx[s], idx[s + k], idx[s + k + 1]], axis=1))
+    return v[np.concatenate(tri)] if tri else np.zeros((0, 3, 3))
 
 
 def save_layer(layer: Sdf.Layer, path: str | Path) -> Path:
