@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..usd.layers import class_labels, mesh_triangles, open_stage
+
 CLASSES = ("unknown", "trunk", "branch", "leaf")
 CLASS_ID = {name: i for i, name in enumerate(CLASSES)}
 
@@ -155,16 +157,10 @@ def _m(x) -> np.ndarray:
     return np.array(x, dtype=float).reshape(4, 4)
 
 
-def _labels(prim) -> list[str]:
-    a = prim.GetAttribute("semantics:labels:class")
-    v = a.Get() if a and a.HasValue() else None
-    return list(v) if v else []
-
-
 def _class_of(prim, stop) -> int:
     p = prim
     while p and p != stop.GetParent():
-        for label in _labels(p):
+        for label in class_labels(p):
             if label in CLASS_ID:
                 return CLASS_ID[label]
         p = p.GetParent()
@@ -172,8 +168,6 @@ def _class_of(prim, stop) -> int:
 
 
 def _triangles(mesh_prim, to_root: np.ndarray) -> np.ndarray:
-    from ..usd.layers import mesh_triangles
-
     return mesh_triangles(mesh_prim, to_root).astype(np.float32)
 
 
@@ -251,8 +245,6 @@ def extract_scene(
         Keep tree instances as transforms of their prototypes (default) or copy triangles.
     """
     from pxr import Usd, UsdGeom
-
-    from ..usd.layers import open_stage
 
     path = Path(stage_path)
     stage = open_stage(path)
@@ -346,7 +338,7 @@ def extract_scene(
             if sel.size == 0 or not proto:
                 continue
             own = _m(cache.GetLocalTransformation(proto)[0])
-            if "leaf" in _labels(p):
+            if "leaf" in class_labels(p):
                 local = subtree(proto)
                 pts = local.tri.reshape(-1, 3).astype(float)
                 lo, hi = (pts.min(axis=0), pts.max(axis=0)) if len(pts) else (np.zeros(3),) * 2
@@ -370,7 +362,7 @@ def extract_scene(
                     )
                 )
                 continue
-            is_tree = "tree" in _labels(proto)
+            is_tree = "tree" in class_labels(proto)
             if is_tree and centre is not None and radius is not None:
                 ext = bbox.ComputeUntransformedBound(proto).ComputeAlignedRange()
                 r_proto = float(np.linalg.norm(np.array(ext.GetMax()) - np.array(ext.GetMin())))
@@ -412,7 +404,11 @@ def extract_scene(
     )
     tree, leaf_tree = whole.tree, leaves.tree
     # a stage holding one tree that is not instanced: tree id 0
-    if not placed and not (tree >= 0).any() and any("tree" in _labels(p) for p in stage.Traverse()):
+    if (
+        not placed
+        and not (tree >= 0).any()
+        and any("tree" in class_labels(p) for p in stage.Traverse())
+    ):
         tree = np.zeros_like(tree)
         leaf_tree = np.zeros_like(leaf_tree)
     return Scene(

@@ -142,6 +142,13 @@ def semantic_label(spec: Sdf.PrimSpec, label: str | Sequence[str]) -> None:
     attr(spec, "semantics:labels:class", T.TokenArray, Vt.TokenArray(labels), uniform=True)
 
 
+def class_labels(prim: Usd.Prim) -> list[str]:
+    """The prim's ``semantics:labels:class`` labels (empty when it has none)."""
+    a = prim.GetAttribute("semantics:labels:class")
+    v = a.Get() if a and a.HasValue() else None
+    return list(v) if v else []
+
+
 def preview_material(
     parent: Sdf.PrimSpec,
     name: str,

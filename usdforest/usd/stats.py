@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom
 
-from .layers import open_stage
+from .layers import class_labels, open_stage
 
 
 @dataclass
@@ -55,7 +55,7 @@ def _expand(prim: Usd.Prim, cache: dict) -> _Tally:
             else np.zeros(0, dtype=np.int64)
         )
         protos = pi.GetPrototypesRel().GetTargets()
-        is_leafy = "leaf" in _labels(prim)
+        is_leafy = "leaf" in class_labels(prim)
         for k, path in enumerate(protos):
             n = int(counts[k]) if k < len(counts) else 0
             proto = prim.GetStage().GetPrimAtPath(path)
@@ -68,18 +68,12 @@ def _expand(prim: Usd.Prim, cache: dict) -> _Tally:
                 t.leaves += n
         cache[key] = t
         return t
-    if "tree" in _labels(prim):
+    if "tree" in class_labels(prim):
         t.trees += 1
     for child in prim.GetFilteredChildren(Usd.TraverseInstanceProxies()):
         t.add(_expand(child, cache))
     cache[key] = t
     return t
-
-
-def _labels(prim: Usd.Prim) -> list[str]:
-    a = prim.GetAttribute("semantics:labels:class")
-    v = a.Get() if a else None
-    return list(v) if v else []
 
 
 def stage_info(path: str | Path) -> dict:
