@@ -34,7 +34,7 @@ from ..errors import UsdForestError
 from ..forest import Sites, sample_sites
 from ..recipe import Recipe, resolved_toml
 from .layers import T, attr, new_layer, prim, save_layer, vec3f
-from .tree import TreeBuild, build_tree, tree_layer
+from .tree import TreeBuild, build_tree, copy_templates, tree_layer
 
 Progress = Callable[[str, int, int], None]
 
@@ -249,15 +249,7 @@ def write_forest(
         for k, key in enumerate(prototypes):
             tick("writing trees", k, len(prototypes))
             tb = trees[key]
-            used = {tb.placement.templates[i] for i in np.unique(tb.placement.template)}
-            used.add(tb.leaf_template)
-            refs = {}
-            for tname in used:
-                info = tb.templates[tname]
-                dest = staged / "templates" / info.path.name
-                if not dest.exists():
-                    shutil.copyfile(info.path, dest)
-                refs[tname] = f"../templates/{info.path.name}"
+            refs = copy_templates(tb, staged / "templates", "../templates/")
             stem = f"{re.sub(r'[^A-Za-z0-9_.-]', '_', key[0])}_{key[1]}"
             layer = tree_layer(tb, refs, asset_name=stem, identifier=f"./{stem}.usdc")
             save_layer(layer, staged / "trees" / f"{stem}.usdc")

@@ -66,6 +66,25 @@ class TreeBuild:
     variant: int
     extent: np.ndarray  # (2, 3)
 
+    def used_templates(self) -> dict[str, TemplateInfo]:
+        """The templates the placed wood and leaves reference, by name."""
+        used = {self.placement.templates[i] for i in np.unique(self.placement.template)}
+        used.add(self.leaf_template)
+        return {n: info for n, info in self.templates.items() if n in used}
+
+
+def copy_templates(build: TreeBuild, folder: Path, prefix: str) -> dict[str, str]:
+    """Copy the templates ``build`` uses into ``folder`` (once each) and return the asset
+    path of each, ``prefix + file name``, by template name."""
+    folder.mkdir(parents=True, exist_ok=True)
+    refs = {}
+    for name, info in build.used_templates().items():
+        dest = folder / info.path.name
+        if not dest.exists():
+            shutil.copyfile(info.path, dest)
+        refs[name] = prefix + info.path.name
+    return refs
+
 
 def build_tree(
     species: Species, seed: int = 0, variant: int = 0, *, template_base: Path | None = None
@@ -278,16 +297,7 @@ def write_tree(
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.stem}.", dir=out.parent))
     try:
-        refs = {}
-        used = {build.placement.templates[i] for i in np.unique(build.placement.template)}
-        used.add(build.leaf_template)
-        for name, info in build.templates.items():
-            if name not in used:
-                continue
-            dest = tmp / "assets" / "templates" / info.path.name
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(info.path, dest)
-            refs[name] = f"./{assets.name}/templates/{info.path.name}"
+        refs = copy_templates(build, tmp / "assets" / "templates", f"./{assets.name}/templates/")
         layer = tree_layer(build, refs, asset_name=out.stem, identifier=f"./{out.name}")
         save_layer(layer, tmp / out.name)
         if assets.exists():
