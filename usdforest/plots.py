@@ -14,7 +14,7 @@ from matplotlib.collections import LineCollection
 
 from .atomic import atomic_path
 from .forest import Sites
-from .pointprocess import _grid
+from .pointprocess import region_grid
 from .recipe import Recipe
 from .skeleton import Skeleton
 
@@ -27,7 +27,7 @@ def draw_sites(
     """The intensity map (trees/m²) with the region outline and the sites, by species."""
     x0, y0, x1, y1 = recipe.region.bounds
     if recipe.intensity is not None:
-        gx, gy, inside, _ = _grid(recipe.region, 256)
+        gx, gy, inside, _ = region_grid(recipe.region, 256)
         lam = np.where(inside, recipe.intensity.evaluate(gx, gy), np.nan)
         im = ax.imshow(
             lam,

@@ -157,7 +157,7 @@ def _self_intersection(v: np.ndarray) -> tuple[int, int] | None:
 # --------------------------------------------------------------------------- intensities
 
 
-def _grid(region: Region, n: int = GRID) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+def region_grid(region: Region, n: int = GRID) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Midpoints of an n x n grid over the region's bounds, the inside mask and cell area."""
     x0, y0, x1, y1 = region.bounds
     xs = x0 + (np.arange(n) + 0.5) * (x1 - x0) / n
@@ -287,7 +287,7 @@ class ExpressionIntensity:
     def _grid_stats(self, region: Region) -> tuple[float, float]:
         """(bound, integral) from one quadrature grid: the grid's maximum plus a 10% margin
         (every kept site is checked against it) and the midpoint-rule integral."""
-        gx, gy, inside, cell = _grid(region)
+        gx, gy, inside, cell = region_grid(region)
         v = self.evaluate(gx[inside], gy[inside])
         _check_values(v, self.source)
         return (float(v.max()) * 1.1 if v.size else 0.0, float(v.sum() * cell))
@@ -351,7 +351,7 @@ def _check_values(v: np.ndarray, what: str) -> None:
 
 
 def _grid_integral(intensity: Intensity, region: Region, n: int = GRID) -> float:
-    gx, gy, inside, cell = _grid(region, n)
+    gx, gy, inside, cell = region_grid(region, n)
     v = intensity.evaluate(gx[inside], gy[inside])
     _check_values(v, getattr(intensity, "source", type(intensity).__name__))
     return float(v.sum() * cell)
