@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import platform
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -89,6 +93,38 @@ def test_manifest_rebuild_is_byte_identical(tmp_path):
         assert pa.read_bytes() == pb.read_bytes()
         shipped = template_dir() / pa.name
         assert pa.read_bytes() == shipped.read_bytes(), f"{shipped} is out of date"
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="OpenBLAS x86 kernels")
+@pytest.mark.parametrize("kernel", ["Prescott", "Haswell", "SkylakeX"])
+def test_rebuild_is_byte_identical_with_other_blas_kernels(tmp_path, kernel):
+    """Different OpenBLAS kernels change eigenvectors and sums in their last bits; the stored
+    (rounded) templates must not change."""
+    env = {**os.environ, "OPENBLAS_CORETYPE": kernel}
+    env.pop("OPENBLAS_L2_SIZE", None)
+    out = tmp_path / kernel
+    r = subprocess.run(
+        [sys.executable, "-m", "usdforest.cli", "template", "build", str(MANIFEST), "-o", str(out)],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert r.returncode == 0, r.stderr
+    built = sorted(out.glob("*.usdc"))
+    assert len(built) == 7
+    for p in built:
+        assert p.read_bytes() == (template_dir() / p.name).read_bytes(), f"{p.name} ({kernel})"
+
+
+def test_stored_measurements_are_rounded():
+    for p in SHIPPED:
+        layer = Sdf.Layer.FindOrOpen(str(p))
+        data = layer.GetPrimAtPath("/Template").customData["usdforest"]
+        for k, v in data["measurements"].items():
+            if isinstance(v, float):
+                assert float(f"{v:.7g}") == v, (p.name, k, v)
+        assert float(f"{data['normalisedBaseRadius']:.7g}") == data["normalisedBaseRadius"]
 
 
 def test_template_build_cli(tmp_path, runner):

@@ -26,6 +26,23 @@ from .layers import (
 
 SEMANTIC_CLASS = {"trunk": "trunk", "branch": "branch", "twig": "branch", "leaf": "leaf"}
 
+# Stored precision. Eigen-decompositions and sums differ in their last bits between BLAS
+# kernels and library versions; rounding before storing keeps the bytes identical everywhere.
+POINT_DECIMALS = 6  # template frame is unit length: 1e-6 of the part's length
+SIGNIFICANT_DIGITS = 7  # measurements and normalised radii
+
+
+def significant(x: float, digits: int = SIGNIFICANT_DIGITS) -> float:
+    """``x`` rounded to ``digits`` significant digits (ints pass through)."""
+    if isinstance(x, bool | int):
+        return x
+    return float(f"{float(x):.{digits}g}")
+
+
+def stable_points(a: np.ndarray, decimals: int = POINT_DECIMALS) -> np.ndarray:
+    """Coordinates rounded to ``decimals`` (``-0`` folded into ``0``) before float32 storage."""
+    return np.round(np.asarray(a, dtype=np.float64), decimals) + 0.0
+
 
 def template_layer(part: TemplatePart) -> Sdf.Layer:
     """Author a template layer for ``part`` (in memory).
@@ -45,13 +62,14 @@ def template_layer(part: TemplatePart) -> Sdf.Layer:
                 "part": part.part,
                 "name": part.name,
                 "frame": _frame_doc(part.part),
-                "normalisedBaseRadius": part.normalised_base_radius,
-                "normalisedTipRadius": part.normalised_tip_radius,
-                "measurements": {k: v for k, v in m.as_dict().items()},
+                "normalisedBaseRadius": significant(part.normalised_base_radius),
+                "normalisedTipRadius": significant(part.normalised_tip_radius),
+                "measurements": {k: significant(v) for k, v in m.as_dict().items()},
                 "provenance": _plain(part.provenance),
             }
         }
-        extent = extent_of(part.vertices)
+        points = stable_points(part.vertices)
+        extent = extent_of(points)
         attr(root, "extentsHint", T.Float3Array, extent)
         looks = prim(root, "Looks", "Scope")
         material = preview_material(
@@ -61,10 +79,16 @@ def template_layer(part: TemplatePart) -> Sdf.Layer:
             roughness=0.6 if part.part == "leaf" else 0.9,
         )
         mesh = prim(root, "Mesh", "Mesh")
-        attr(mesh, "points", T.Point3fArray, vec3f(part.vertices))
+        attr(mesh, "points", T.Point3fArray, vec3f(points))
         attr(mesh, "faceVertexCounts", T.IntArray, ints(np.full(len(part.faces), 3)))
         attr(mesh, "faceVertexIndices", T.IntArray, ints(part.faces.ravel()))
-        attr(mesh, "normals", T.Normal3fArray, vec3f(part.normals), interpolation="vertex")
+        attr(
+            mesh,
+            "normals",
+            T.Normal3fArray,
+            vec3f(stable_points(part.normals)),
+            interpolation="vertex",
+        )
         attr(mesh, "extent", T.Float3Array, extent)
         attr(mesh, "subdivisionScheme", T.Token, "none", uniform=True)
         attr(mesh, "doubleSided", T.Bool, part.part == "leaf", uniform=True)
