@@ -14,11 +14,11 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from usdforest.forest import sample_sites
 from usdforest.library import template_dir
 from usdforest.plots import draw_sites, draw_skeleton, image_panel, save_figure
 from usdforest.preview import preview
 from usdforest.recipe import read_recipe
+from usdforest.sites import sample_sites
 from usdforest.species import get_species
 from usdforest.usd.forest import write_forest
 from usdforest.usd.tree import write_tree

@@ -227,6 +227,91 @@ def test_sample_cli_replicates(tmp_path, runner):
     assert r.exit_code == 2 and "expected 4 numbers" in r.stderr
 
 
+def _sample_counts(runner, out, *args):
+    r = runner.invoke(app, ["sample", str(out), "--force", "--json", *args])
+    assert r.exit_code == 0, r.output
+    return json.loads(r.stdout), np.array(json.loads(r.stdout)["counts"])
+
+
+def test_default_sample_with_an_intensity_is_a_pure_ipp(tmp_path, runner):
+    """``sample --intensity`` on the embedded default: counts are Poisson(∫λ) - mean and
+    variance both equal the integral (index-of-dispersion test) - and no two sites are
+    forbidden from being close."""
+    from scipy import integrate, stats
+
+    expr = "0.02 * (1 + sin(x / 10))"
+    reps = 400
+    data, c = _sample_counts(
+        runner,
+        tmp_path / "s.csv",
+        "--intensity",
+        expr,
+        "--region",
+        "0,0,100,50",
+        "--replicates",
+        str(reps),
+        "--seed",
+        "9",
+    )
+    # the integral, computed independently of usdforest
+    lam, _ = integrate.dblquad(lambda y, x: 0.02 * (1 + math.sin(x / 10)), 0, 100, 0, 50)
+    assert lam == pytest.approx(50 * 0.02 * (100 + 10 * (1 - math.cos(10))))
+    assert data["hard_core"] == 0
+    assert data["expected_per_replicate"] == pytest.approx(lam, rel=2e-3)
+    assert abs(c.mean() - lam) < 4 * math.sqrt(lam / reps)
+    dispersion = (reps - 1) * c.var(ddof=1) / lam  # chi2(reps - 1) for a Poisson count
+    p = stats.chi2.cdf(dispersion, reps - 1)
+    assert 0.001 < p < 0.999, (c.var(ddof=1), lam)
+    # Poisson sites come arbitrarily close: pairs nearer than 0.5 m exist (E ~ dozens)
+    with (tmp_path / "s.csv").open() as f:
+        rows = [r for r in csv.DictReader(f) if r["replicate"] in {"0", "1", "2", "3"}]
+    from scipy.spatial import cKDTree
+
+    close = 0
+    for rep in {r["replicate"] for r in rows}:
+        xy = np.array([[float(r["x"]), float(r["y"])] for r in rows if r["replicate"] == rep])
+        close += len(cKDTree(xy).query_pairs(0.5))
+    assert close > 0
+
+
+def test_default_pipeline_is_poisson_and_hard_core_is_opt_in(tmp_path, runner):
+    recipe = read_recipe(default_recipe_path())
+    assert recipe.hard_core == 0
+    lam = recipe.expected_trees()
+    _, pure = _sample_counts(runner, tmp_path / "a.csv", "--replicates", "100")
+    assert abs(pure.mean() - lam) < 4 * math.sqrt(lam / 100)
+    data, hc = _sample_counts(runner, tmp_path / "b.csv", "--replicates", "100", "--hard-core", "2")
+    assert data["hard_core"] == 2.0
+    assert hc.mean() < pure.mean() - 10  # Matérn II removes sites where λ is high
+    with (tmp_path / "b.csv").open() as f:
+        xy = np.array(
+            [[float(r["x"]), float(r["y"])] for r in csv.DictReader(f) if r["replicate"] == "0"]
+        )
+    from scipy.spatial import cKDTree
+
+    assert cKDTree(xy).query_pairs(2.0) == set()
+    # a shipped recipe shows the hard-core variant
+    assert read_recipe(PIPELINES / "stand-1ha.toml").hard_core > 0
+    r = runner.invoke(app, ["sample", str(tmp_path / "c.csv"), "--hard-core", "-1"])
+    assert r.exit_code == 2
+
+
+def test_build_hard_core_override_is_recorded(tmp_path, runner):
+    p = tmp_path / "p.toml"
+    p.write_text(BASE)
+    out = tmp_path / "f.usda"
+    r = runner.invoke(
+        app, ["build", str(out), "-p", str(p), "--hard-core", "3", "--no-thumbnail", "--json"]
+    )
+    assert r.exit_code == 0, r.output
+    resolved = read_recipe(tmp_path / "f_assets" / "pipeline.toml")
+    assert resolved.hard_core == 3.0
+    gt = np.loadtxt(tmp_path / "f_assets" / "trees.csv", delimiter=",", skiprows=1, usecols=(1, 2))
+    from scipy.spatial import cKDTree
+
+    assert cKDTree(gt).query_pairs(3.0) == set()
+
+
 BASE = """
 seed = 1
 [region]

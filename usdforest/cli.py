@@ -43,6 +43,15 @@ RecipeOption = Annotated[
     typer.Option("--pipeline", "-p", help="Recipe (TOML); default: the embedded one."),
 ]
 SeedOverride = Annotated[int | None, typer.Option(help="Override the recipe's seed.")]
+HardCoreOverride = Annotated[
+    float | None,
+    typer.Option(
+        "--hard-core",
+        min=0.0,
+        help="Matérn II minimum spacing in metres (overrides [forest] hard_core; "
+        "0 = a pure inhomogeneous Poisson process).",
+    ),
+]
 
 
 def handles_errors(fn: F) -> F:
@@ -284,10 +293,10 @@ def info_cmd(
     out.print(table)
 
 
-def _load_recipe(pipeline: Path | None, seed: int | None):
+def _load_recipe(pipeline: Path | None, seed: int | None, hard_core: float | None = None):
     from .recipe import default_recipe_path, read_recipe
 
-    return read_recipe(pipeline or default_recipe_path(), seed=seed)
+    return read_recipe(pipeline or default_recipe_path(), seed=seed, hard_core=hard_core)
 
 
 @app.command("build")
@@ -296,6 +305,7 @@ def build_cmd(
     output: Annotated[Path, typer.Argument(help="Forest interface layer to write (.usda).")],
     pipeline: RecipeOption = None,
     seed: SeedOverride = None,
+    hard_core: HardCoreOverride = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing output.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
@@ -311,7 +321,7 @@ def build_cmd(
     from .usd.forest import write_forest
 
     t0 = time.perf_counter()
-    recipe = _load_recipe(pipeline, seed)
+    recipe = _load_recipe(pipeline, seed, hard_core)
     show = not (quiet or as_json)
     with Progress(
         TextColumn("{task.description:<18}"),
@@ -367,14 +377,15 @@ def sample_cmd(
         str | None, typer.Option(help="Override the region: x0,y0,x1,y1 (metres).")
     ] = None,
     seed: SeedOverride = None,
+    hard_core: HardCoreOverride = None,
     replicates: Annotated[int, typer.Option(min=1, max=100_000, help="Independent draws.")] = 1,
     force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
 ) -> None:
     """Sample tree sites (and marks) from the recipe's point process into a CSV."""
     from .config import load_toml
-    from .forest import sample_sites, write_sites_csv
     from .recipe import default_recipe_path, parse_recipe
+    from .sites import sample_sites, write_sites_csv
 
     path = pipeline or default_recipe_path()
     data = load_toml(path)
@@ -389,7 +400,7 @@ def sample_cmd(
         if len(b) != 4:
             raise UsdForestError(f"--region: expected 4 numbers x0,y0,x1,y1, got {len(b)}")
         data["region"] = {"kind": "rectangle", "bounds": b}
-    recipe = parse_recipe(data, path.parent, str(path), seed=seed)
+    recipe = parse_recipe(data, path.parent, str(path), seed=seed, hard_core=hard_core)
     refuse_overwrite(output, force=force)
     reps = [sample_sites(recipe, r) for r in range(replicates)]
     write_sites_csv(output, reps)
@@ -457,12 +468,13 @@ def plot_sites_cmd(
     ] = None,
     replicate: Annotated[int, typer.Option(min=0, help="Replicate to plot.")] = 0,
     seed: SeedOverride = None,
+    hard_core: HardCoreOverride = None,
 ) -> None:
     """Plot the intensity map with sampled sites over it (the paper's IPP figure)."""
-    from .forest import read_sites_csv, sample_sites
     from .plots import plot_sites
+    from .sites import read_sites_csv, sample_sites
 
-    recipe = _load_recipe(pipeline, seed)
+    recipe = _load_recipe(pipeline, seed, hard_core)
     if sites_csv is not None:
         sites = read_sites_csv(sites_csv, recipe.species_names, replicate)
     else:

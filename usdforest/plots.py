@@ -13,9 +13,9 @@ import numpy as np
 from matplotlib.collections import LineCollection
 
 from .atomic import atomic_path
-from .forest import Sites
 from .pointprocess import region_grid
 from .recipe import Recipe
+from .sites import Sites
 from .skeleton import Skeleton
 
 SPECIES_COLORS = ("#2166ac", "#d95f02", "#7b3294", "#e7298a", "#666666", "#000000")

@@ -313,10 +313,24 @@ def _parse_sites(v: Any, names: tuple[str, ...], region: Any, where: str) -> tup
 
 
 def parse_recipe(
-    data: Mapping[str, Any], base: Path, source: str, *, seed: int | None = None
+    data: Mapping[str, Any],
+    base: Path,
+    source: str,
+    *,
+    seed: int | None = None,
+    hard_core: float | None = None,
 ) -> Recipe:
-    """Check and convert a pipeline's TOML data; every error names ``source`` and the key."""
+    """Check and convert a pipeline's TOML data; every error names ``source`` and the key.
+
+    ``seed`` and ``hard_core`` override the recipe's ``seed`` and ``[forest] hard_core``
+    (the overrides are part of the recipe's data, so a resolved recipe records them).
+    """
     from .expr import compile_expression
+
+    if hard_core is not None:
+        forest_t = data.get("forest", {})
+        data = {**data, "forest": {**(forest_t if isinstance(forest_t, Mapping) else {})}}
+        data["forest"]["hard_core"] = hard_core
 
     def fail(exc: RecipeError) -> RecipeError:
         msg = str(exc)
@@ -437,10 +451,12 @@ def _parse_scale(t: Any) -> ScaleSpec:
     raise RecipeError(f"forest.scale.kind: {kind!r} is not one of fixed, uniform, lognormal")
 
 
-def read_recipe(path: str | Path, *, seed: int | None = None) -> Recipe:
-    """Read and check a pipeline recipe file."""
+def read_recipe(
+    path: str | Path, *, seed: int | None = None, hard_core: float | None = None
+) -> Recipe:
+    """Read and check a pipeline recipe file (``seed``, ``hard_core``: overrides)."""
     path = Path(path)
-    return parse_recipe(load_toml(path), path.parent, str(path), seed=seed)
+    return parse_recipe(load_toml(path), path.parent, str(path), seed=seed, hard_core=hard_core)
 
 
 def default_recipe_path() -> Path:

@@ -31,8 +31,8 @@ from pxr import Sdf, Vt
 
 from ..atomic import refuse_overwrite
 from ..errors import UsdForestError
-from ..forest import Sites, sample_sites
 from ..recipe import Recipe, resolved_toml
+from ..sites import Sites, sample_sites
 from .layers import T, attr, new_layer, prim, save_layer, vec3f
 from .tree import TreeBuild, build_tree, copy_templates, tree_layer
 
