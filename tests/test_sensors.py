@@ -143,7 +143,7 @@ def test_instanced_and_copied_scenes_return_the_same_hits(stand):
     copy = extract_scene(out, instancing=False)
     assert len(copy.protos) == 0 and len(copy) == len(inst) == len(copy.triangles)
     a, b = scan(inst, sensor, pose), scan(copy, sensor, pose)
-    assert np.array_equal(a.ray, b.ray) and len(a) > 200
+    assert np.array_equal(a.ray, b.ray) and len(a) > 100
     # float32 geometry in two frames: a ray grazing a triangle's edge may pick its neighbour
     same = np.abs(a.range - b.range) < 1e-4
     assert same.mean() > 0.99 and np.abs(a.range - b.range).max() < 0.05

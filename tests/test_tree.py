@@ -7,9 +7,11 @@ import shutil
 from dataclasses import replace
 from pathlib import Path
 
+import measure
 import numpy as np
 import pytest
-from pxr import Gf, Usd, UsdGeom, UsdShade
+import trimesh
+from pxr import Usd, UsdGeom, UsdShade
 
 from usdforest.cli import app
 from usdforest.species import PRESETS, get_species
@@ -117,34 +119,88 @@ def test_extents_hint_contains_composed_geometry(built, name):
 
 
 @pytest.mark.parametrize("name", TREES)
-def test_branches_start_on_their_parent_and_leaves_on_young_wood(built, name):
-    _, b = built[name]
-    p, sk = b.placement, b.grown.skeleton
-    child = np.flatnonzero(p.parent >= 0)
-    par = p.parent[child]
-    base, pbase = p.translate[child], p.translate[par]
-    rot = np.array(
-        [Gf.Matrix3d(Gf.Rotation(Gf.Quatd(q[3], *q[:3]))).GetTranspose() for q in p.orient[par]]
+def test_joints_measured_on_the_composed_stage(built, name):
+    """Every branch's base lies on or inside its parent's composed mesh (gap <= 2 cm), curved
+    templates included; every wood prim's mesh ends where its skeleton axis ends (no hook);
+    leaves sit on the wood; radii never grow from parent to child."""
+    path, _ = built[name]
+    stage = Usd.Stage.Open(str(path))
+    gaps = measure.joint_gaps(stage)
+    assert len(gaps) > 10
+    assert gaps.max() <= 0.02, f"{name}: worst joint gap {gaps.max():.3f} m"
+    tips = measure.tip_errors(stage)
+    assert tips.max() <= 0.02, f"{name}: a mesh tip is {tips.max():.3f} m off its axis end"
+    prims = measure.wood_prims(stage)
+    for p in prims.values():
+        parent = p.GetAttribute("usdforest:parent").Get()
+        if parent >= 0:
+            r = p.GetAttribute("usdforest:radius").Get()
+            assert r <= prims[parent].GetAttribute("usdforest:radius").Get() + 1e-6
+    # leaves: attachment points within 2 cm of the composed wood surface
+    wood = trimesh.util.concatenate([measure.world_mesh(p) for p in prims.values()])
+    leaves = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Tree/Leaves"))
+    pos = np.asarray(leaves.GetPositionsAttr().Get(), dtype=np.float64)
+    sample = pos[np.random.default_rng(0).choice(len(pos), min(len(pos), 400), replace=False)]
+    _, dist, _ = trimesh.proximity.closest_point(wood, sample)
+    assert np.quantile(dist, 0.99) <= 0.02 and dist.max() <= 0.05, dist.max()
+
+
+def _order1_branches(stage):
+    """First-order branch prims grown from the trunk: (base, tip, length, radius) each, sorted
+    by base height, read from the composed stage."""
+    prims = measure.wood_prims(stage)
+    trunk = next(i for i, p in prims.items() if p.GetName() == "Trunk")
+    rows = []
+    for p in prims.values():
+        if p.GetAttribute("usdforest:parent").Get() == trunk:
+            rows.append(
+                (
+                    measure.base_point(p),
+                    np.array(p.GetAttribute("usdforest:tip").Get(), dtype=float),
+                    p.GetAttribute("usdforest:length").Get(),
+                    p.GetAttribute("usdforest:radius").Get(),
+                )
+            )
+    return sorted(rows, key=lambda r: r[0][2])
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+@pytest.mark.parametrize("seed", [3, 8])
+def test_paper_presets_follow_gmt3_numbers(tmp_path, k, seed):
+    """The group's GMT3 turtle numbers, read back from the composed USD: branches at 50 deg
+    to the trunk, 0.62 x their internode long, internodes x 0.826, pairs 43.75 deg apart
+    (the right branch opposite the left and lifted 0.2-0.7 m), radius 0.7 x the trunk's."""
+    out = tmp_path / "t.usda"
+    write_tree(get_species(f"paper-rule-{k}"), out, seed=seed)
+    stage = Usd.Stage.Open(str(out))
+    rows = _order1_branches(stage)
+    assert len(rows) == 4 * (k + 1)
+    base = np.array([r[0] for r in rows])
+    tip = np.array([r[1] for r in rows])
+    d = tip - base
+    angle = np.degrees(np.arccos(d[:, 2] / np.linalg.norm(d, axis=1)))
+    assert np.all(np.abs(angle - 50.0) <= 2.0 + 1e-3), angle
+    azimuth = np.degrees(np.arctan2(d[:, 1], d[:, 0]))
+    left, right = slice(0, None, 2), slice(1, None, 2)
+    lift = base[right, 2] - base[left, 2]
+    internode = np.diff(base[left, 2])
+    assert np.all(lift >= 0.2 - 1e-6) and np.all(
+        lift <= np.minimum(0.7, 0.8 * np.append(internode, np.inf)) + 1e-6
     )
-    paxis = rot[:, :, 2]  # parent's +Z (growth axis) in tree space
-    t = np.clip(np.sum((base - pbase) * paxis, axis=1), 0, p.length[par])
-    dist = np.linalg.norm(base - (pbase + paxis * t[:, None]), axis=1)
-    # within the parent's radius of its axis (wood runs are straight chords of the skeleton)
-    assert np.all(dist <= np.maximum(p.radius[par], 0.05 * p.length[par]) + 1e-6)
-    assert np.all(p.radius[child] <= p.radius[par] + 1e-9)
-    # leaves: within the twig's radius of a terminal segment (or its base node)
-    seg = p.leaf_segment
-    terminal = sk.is_terminal()
-    a, e = sk.start[seg], sk.end[seg]
-    d = e - a
-    u = np.clip(np.sum((p.leaf_position - a) * d, axis=1) / np.sum(d * d, axis=1), 0, 1)
-    gap = np.linalg.norm(p.leaf_position - (a + d * u[:, None]), axis=1)
-    assert np.all(gap <= sk.radius[seg] + 1e-6)
-    node_of_terminal = np.zeros(sk.n_segments, dtype=bool)
-    kids = np.flatnonzero(terminal & (sk.parent >= 0))
-    node_of_terminal[sk.parent[kids]] = True
-    at_node = np.isclose(u, 1.0)
-    assert np.all(terminal[seg] | (node_of_terminal[seg] & at_node))
+    # successive internodes within a whorl shrink by 0.826 (the whorls' internodes too)
+    assert internode[1:] / internode[:-1] == pytest.approx(0.826, rel=1e-4)
+    # branch length = 0.62 x the internode above its pair
+    lengths = np.array([r[2] for r in rows])
+    assert lengths[left][:-1] / internode == pytest.approx(0.62, rel=1e-4)
+    assert lengths[right] == pytest.approx(lengths[left], rel=1e-6)
+    opposite = (azimuth[right] - azimuth[left]) % 360
+    assert np.all(np.abs(opposite - 180.0) <= 1e-2), opposite
+    divergence = np.diff(azimuth[left]) % 360
+    assert np.all(np.abs(divergence - 43.75) <= 2.0 + 1e-3), divergence
+    # radius 0.7 x the trunk's where the branch grows, the trunk tapering 0.9 per pair
+    radii = np.array([r[3] for r in rows])
+    trunk_r = 0.14 * 0.9 ** np.arange(2 * (k + 1))
+    assert radii[left] == pytest.approx(0.7 * trunk_r, rel=1e-5)
 
 
 def test_composed_leaf_count_equals_leaf_sites_with_one_leaf_per_site(tmp_path):

@@ -8,6 +8,11 @@ Pure numpy (no pxr): the USD writer (:mod:`usdforest.usd.tree`) only copies thes
   its normalised base radius to the run's base radius. The first run of the trunk uses the
   trunk template; axes thinner than ``twig_radius`` the twig template; other axes a branch
   variant drawn per axis, with a random roll about the axis.
+* Joints: a curved template's centreline leaves the straight skeleton axis. Branch templates
+  are sheared (cross-sections kept horizontal) so that their tip lands on the axis's tip (no
+  hook), and every child - branch or leaf - is moved onto its parent's *bent* centreline at
+  the height where it grows, its whole subtree with it. The trunk keeps its shape (a measured
+  trunk keeps its lean) and its children follow it.
 * Leaves: each leaf site of the skeleton carries ``1 + Poisson(leaves_per_site - 1)`` leaves.
   On a terminal segment they spread back from the tip over ``leaf_spread`` of its length; their
   azimuths around the twig follow the phyllotaxis angle; the blade leaves the twig at
@@ -26,14 +31,62 @@ from scipy.spatial.transform import Rotation
 from .skeleton import Skeleton
 from .species import Geometry
 
+CENTRELINE_SAMPLES = 33
+
+
+@dataclass(frozen=True, eq=False)
+class WoodShape:
+    """What placement needs to know about a wood template.
+
+    ``base_radius`` and ``tip_radius`` are the normalised radii (unit length); ``centreline``
+    ``(K, 2)`` the x, y of the template's centreline at ``K`` equally spaced heights z = 0..1
+    (its frame: base centre at the origin, growth axis +Z, unit length).
+    """
+
+    base_radius: float
+    centreline: np.ndarray
+    tip_radius: float | None = None  # normalised; None: as the base
+
+    @classmethod
+    def straight(cls, base_radius: float, tip_radius: float | None = None) -> WoodShape:
+        return cls(base_radius, np.zeros((CENTRELINE_SAMPLES, 2)), tip_radius)
+
+
+def centreline_of(points: np.ndarray, samples: int = CENTRELINE_SAMPLES) -> np.ndarray:
+    """Centreline of a tube-like template: the middle of the x, y bounds of its vertices in
+    ``samples - 1`` height bins of z in [0, 1], linearly interpolated over empty bins and
+    pinned to (0, 0) at the base (the frame's origin is the base centre)."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(p) == 0:
+        return np.zeros((samples, 2))
+    nbin = samples - 1
+    b = np.clip((p[:, 2] * nbin).astype(np.int64), 0, nbin - 1)
+    lo = np.full((nbin, 2), np.inf)
+    hi = np.full((nbin, 2), -np.inf)
+    zsum = np.bincount(b, weights=p[:, 2], minlength=nbin)
+    cnt = np.bincount(b, minlength=nbin)
+    for k in range(2):
+        np.minimum.at(lo[:, k], b, p[:, k])
+        np.maximum.at(hi[:, k], b, p[:, k])
+    ok = cnt > 0
+    z = np.concatenate([[0.0], zsum[ok] / cnt[ok]])
+    mid = np.concatenate([[[0.0, 0.0]], 0.5 * (lo[ok] + hi[ok])])
+    # the last bin's centre stands for the tip
+    z = np.append(z, 1.0)
+    mid = np.vstack([mid, mid[-1]])
+    u = np.linspace(0.0, 1.0, samples)
+    return np.stack([np.interp(u, z, mid[:, 0]), np.interp(u, z, mid[:, 1])], axis=1)
+
 
 @dataclass(frozen=True, eq=False)
 class Placement:
     """Transforms of a tree's wood prims and leaf instances.
 
     Wood arrays have one row per prim: ``translate (w,3)``, ``orient (w,4)`` quaternions
-    (x, y, z, w: real part last), ``scale (w,3)``, ``template (w,)`` index into
-    ``templates``, ``order``, ``axis``, ``length``, ``radius``, ``parent`` (prim index, -1).
+    (x, y, z, w: real part last), ``scale (w,3)``, ``shear (w,2)`` (template x, y per unit
+    z subtracted before scaling: a template point p becomes p - shear * p.z), ``template (w,)``
+    index into ``templates``, ``order``, ``axis``, ``length``, ``radius``, ``parent`` (prim
+    index, -1) and ``tip (w,3)``, where the prim's axis ends.
     Leaf arrays: ``leaf_position (m,3)``, ``leaf_orient (m,4)``, ``leaf_scale (m,)``,
     ``leaf_segment (m,)``.
     """
@@ -42,12 +95,14 @@ class Placement:
     translate: np.ndarray
     orient: np.ndarray
     scale: np.ndarray
+    shear: np.ndarray
     template: np.ndarray
     order: np.ndarray
     axis: np.ndarray
     length: np.ndarray
     radius: np.ndarray
     parent: np.ndarray
+    tip: np.ndarray
     leaf_position: np.ndarray
     leaf_orient: np.ndarray
     leaf_scale: np.ndarray
@@ -65,10 +120,19 @@ class Placement:
         """``(w, 4, 4)`` row-vector transforms (USD convention: p' = p @ M)."""
         rot = Rotation.from_quat(self.orient).as_matrix()  # column-vector rotations
         m = np.zeros((self.n_wood, 4, 4))
-        m[:, :3, :3] = np.transpose(rot, (0, 2, 1)) * self.scale[:, :, None]
+        m[:, :3, :3] = shear_matrices(self.shear) @ (
+            np.transpose(rot, (0, 2, 1)) * self.scale[:, :, None]
+        )
         m[:, 3, :3] = self.translate
         m[:, 3, 3] = 1.0
         return m
+
+
+def shear_matrices(shear: np.ndarray) -> np.ndarray:
+    """``(w, 3, 3)`` row-vector shears: x -= sx * z, y -= sy * z."""
+    m = np.repeat(np.eye(3)[None], len(shear), axis=0)
+    m[:, 2, :2] = -np.asarray(shear)
+    return m
 
 
 def frames_from_directions(d: np.ndarray, roll: np.ndarray) -> np.ndarray:
@@ -111,7 +175,7 @@ def _runs(sk: Skeleton, bend_split_deg: float) -> tuple[list[list[int]], np.ndar
 def place(
     sk: Skeleton,
     geometry: Geometry,
-    base_radius: Mapping[str, float],
+    shapes: Mapping[str, WoodShape],
     rng: np.random.Generator,
 ) -> Placement:
     """Compute wood and leaf transforms for ``sk``.
@@ -122,9 +186,9 @@ def place(
         The tree's skeleton.
     geometry
         The species' template choices and leaf settings.
-    base_radius
-        Normalised base radius of each template named in ``geometry`` (template radius at unit
-        length, from the template layer's customData).
+    shapes
+        Normalised base radius and centreline of each wood template named in ``geometry``
+        (from the template layers).
     rng
         Seeded generator for template variants, rolls and leaf scatter.
     """
@@ -157,25 +221,117 @@ def place(
     is_trunk = (order == 0) & (parent < 0)
     template = np.where(is_trunk, index[geometry.trunk], template).astype(np.int32)
 
-    rn = np.array([base_radius[t] for t in templates])[template]
+    rn = np.array([shapes[t].base_radius for t in templates])[template]
     scale = np.stack([radius / rn, radius / rn, length], axis=1)
     rot = frames_from_directions(vec / length[:, None], roll)
     orient = Rotation.from_matrix(rot).as_quat()  # x, y, z, w
 
+    # joints: shear branch templates so their tips land on the axis; move children onto
+    # their parent's bent centreline
+    centre = np.stack([shapes[t].centreline for t in templates])  # (t, K, 2)
+    shear = np.where(is_trunk[:, None], 0.0, centre[template, -1])
+    run_base = base.copy()
+    parent_c = np.maximum(parent, 0)
+    same_axis = (parent >= 0) & (axis[parent_c] == axis)
+    u_attach = np.where(
+        same_axis,
+        1.0,
+        np.clip(
+            np.einsum("ij,ij->i", base - base[parent_c], vec[parent_c]) / length[parent_c] ** 2,
+            0.0,
+            1.0,
+        ),
+    )
+    offset = np.zeros_like(base)
+    todo = parent >= 0
+    done = ~todo
+    while todo.any():
+        ready = todo & done[parent_c]
+        if not ready.any():  # parents always precede children; guard against a cycle
+            raise ValueError("skeleton runs form a cycle")
+        r = np.flatnonzero(ready)
+        pr, u = parent[r], u_attach[r]
+        # the point of the parent's placed centreline at u (a skeleton node off the parent's
+        # straight chord - a run bent below bend_split - snaps onto it too)
+        attach = (
+            run_base[pr]
+            + offset[pr]
+            + u[:, None] * vec[pr]
+            + _lateral(centre, template, shear, scale, rot, pr, u)
+        )
+        offset[r] = attach - run_base[r]
+        done[r] = True
+        todo[r] = False
+    translate = run_base + offset
+    tip = (
+        translate
+        + vec
+        + _lateral(centre, template, shear, scale, rot, np.arange(len(base)), np.ones(len(base)))
+    )
+
     leaves = _leaves(sk, geometry, rng)
+    out = leaves.pop("leaf_out")
+    seg = leaves["leaf_segment"]
+    if seg.size:
+        on = seg >= 0
+        r = run_of[seg[on]]
+        u = np.clip(
+            np.einsum("ij,ij->i", leaves["leaf_position"][on] - base[r], vec[r]) / length[r] ** 2,
+            0.0,
+            1.0,
+        )
+        # onto the placed template's surface: its bent centreline, its tapered radius
+        rb = np.array([shapes[t].base_radius for t in templates])
+        rt = np.array(
+            [
+                shapes[t].base_radius if shapes[t].tip_radius is None else shapes[t].tip_radius
+                for t in templates
+            ]
+        )
+        t = template[r]
+        surface = scale[r, 0] * (rb[t] + u * (rt[t] - rb[t]))
+        leaves["leaf_position"][on] = (
+            translate[r]
+            + u[:, None] * vec[r]
+            + _lateral(centre, template, shear, scale, rot, r, u)
+            + out[on] * surface[:, None]
+        )
     return Placement(
         templates=templates,
-        translate=base,
+        translate=translate,
         orient=orient,
         scale=scale,
+        shear=shear,
         template=template,
         order=order,
         axis=axis,
         length=length,
         radius=radius,
         parent=parent,
+        tip=tip,
         **leaves,
     )
+
+
+def _lateral(
+    centre: np.ndarray,
+    template: np.ndarray,
+    shear: np.ndarray,
+    scale: np.ndarray,
+    rot: np.ndarray,
+    run: np.ndarray,
+    u: np.ndarray,
+) -> np.ndarray:
+    """World offset of run ``run``'s placed centreline from its straight axis at fraction u."""
+    k = centre.shape[1] - 1
+    x = np.clip(u, 0.0, 1.0) * k
+    i0 = np.minimum(x.astype(np.int64), k - 1)
+    w = (x - i0)[:, None]
+    t = template[run]
+    c = centre[t, i0] * (1.0 - w) + centre[t, i0 + 1] * w - shear[run] * u[:, None]
+    local = np.zeros((len(run), 3))
+    local[:, :2] = c * scale[run, :2]
+    return np.einsum("nij,nj->ni", rot[run], local)
 
 
 def _leaves(sk: Skeleton, g: Geometry, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -187,6 +343,7 @@ def _leaves(sk: Skeleton, g: Geometry, rng: np.random.Generator) -> dict[str, np
             "leaf_orient": np.zeros((0, 4)),
             "leaf_scale": np.zeros(0),
             "leaf_segment": np.zeros(0, dtype=np.int32),
+            "leaf_out": empty,
         }
     extra = rng.poisson(max(g.leaves_per_site - 1.0, 0.0), size=sites)
     count = 1 + extra
@@ -245,4 +402,5 @@ def _leaves(sk: Skeleton, g: Geometry, rng: np.random.Generator) -> dict[str, np
         "leaf_orient": Rotation.from_matrix(rot).as_quat(),
         "leaf_scale": size,
         "leaf_segment": seg.astype(np.int32),
+        "leaf_out": out,  # unit direction from the twig's axis to the leaf's attachment
     }

@@ -5,17 +5,16 @@ trees by integrating L-system and 3D CAD files"). Their axiom is ``g`` and rule 
 k+1 groups ``d(d)+d)`` separated by ``[``. The paper's parentheses do not balance, so we read
 each group as one trunk internode ``d`` carrying a pair of branches ``(d)`` and ``+d)``, the
 ``+`` rotating the second branch around the trunk; ``[`` starts the next group higher up.
-In ABOP syntax one group becomes::
+Rule k applied over two whorls (``g -> groups h``, ``h -> groups a``) gives 2 x 2(k+1) = 8,
+12, 16 first-order branches for k = 1, 2, 3, as in the paper's figures. Then each branch
+``b`` grows sub-branches ``c`` and each sub-branch grows leaves ``L``.
 
-    d(0.5) [&(45) b(l,r)] /(180) [&(45) b(l,r)] /(90)
-
-(``&`` pitches a branch away from the trunk, ``/(180)`` rolls around the trunk to the opposite
-side, ``/(90)`` turns the next pair a quarter turn). Rule k applied over two whorls
-(``g -> groups h``, ``h -> groups a``) gives 2 x 2(k+1) = 8, 12, 16 first-order branches for
-k = 1, 2, 3, as in the paper's figures. Then each branch ``b`` grows sub-branches ``c`` and each
-sub-branch grows leaves ``L``. Angles and lengths vary by seed through ``uniform(a, b)``.
-Parameters follow the research group's MATLAB pine model (branch angle 45 degrees, length
-ratios 0.9/0.7, radius ratio 0.7).
+The numbers are those of the research group's public MATLAB code, which reads the paper's
+strings with its "GMT3" turtle (``code/ginkgo/ginkgoLsys/GMT3.m`` in ``cfpss/cfpss.github.io``,
+read for its numbers only: it has no licence): branch angle 50 degrees, branch length 0.62 x
+the internode, each internode 0.826 x the previous one, 43.75 degrees between successive
+pairs, branch radius 0.7 x the trunk's, the right branch of a pair lifted 0.2-0.7 m. See
+:func:`_paper_rule` for the ABOP form.
 """
 
 from __future__ import annotations
@@ -115,26 +114,68 @@ def grow(
     return Grown(species, seed, d, interpret(d.word, species.turtle))
 
 
+# The paper's numbers, as the research group's public MATLAB code reads the paper's strings
+# with its "GMT3" turtle (code/ginkgo/ginkgoLsys/GMT3.m in cfpss/cfpss.github.io; read for its
+# numbers only, the code has no licence).
+GMT3_BRANCH_ANGLE = 50.0  # degrees between a branch and the trunk
+GMT3_BRANCH_RATIO = 0.62  # branch length / the internode it grows from
+GMT3_INTERNODE_RATIO = 0.826  # each trunk internode / the previous one
+GMT3_DIVERGENCE = 43.75  # rotation about the trunk between successive branch pairs, degrees
+GMT3_RADIUS_RATIO = 0.7  # branch radius / the trunk's radius where it grows
+GMT3_LIFT = (0.2, 0.7)  # the right branch of a pair sits this much above the left one, metres
+
+
 def _paper_rule(k: int) -> Species:
-    pair = "[&(uniform(40,50)) b({l},{r})] /(uniform(170,190)) [&(uniform(40,50)) b({l},{r})]"
-    group = "d(uniform(0.45,0.55)) " + pair + " /(uniform(80,100))"
+    """The paper's rule ``k`` (k+1 branch pairs per whorl, two whorls) with GMT3's numbers.
 
-    def groups(length: float, radius: float, trunk: float) -> str:
-        one = group.format(l=length, r=radius)
-        return " ".join(f"!({trunk}) {one}" for _ in range(k + 1))
+    A pair: the left branch at the node, the right one lifted 0.2-0.7 m up the trunk and
+    rolled to the opposite side, both at 50 degrees to the trunk and 0.62 x the internode
+    long; the next pair is rolled 43.75 degrees further and its internode is 0.826 x this one.
+    Random variation on top: +-2 degrees on angles, the first internode 1.9-2.1 m. A lift never
+    exceeds 0.8 x its internode (rule 3's top internodes are shorter than 0.7 m).
+    """
+    jitter = 2.0
+    angle = f"uniform({GMT3_BRANCH_ANGLE - jitter:g},{GMT3_BRANCH_ANGLE + jitter:g})"
+    # after the right branch (rolled 180) roll on to the next pair's left side
+    roll_on = 180.0 + GMT3_DIVERGENCE
+    turn = f"uniform({roll_on - jitter:g},{roll_on + jitter:g})"
+    n = k + 1  # pairs per whorl
+    # each pair's lift is drawn once in the axiom and passed down as a parameter, because the
+    # trunk uses it twice (below and above the right branch)
+    lifts = [f"h{i}" for i in range(2 * n)]
+    lift_draws = ",".join([f"uniform({GMT3_LIFT[0]:g},{GMT3_LIFT[1]:g})"] * (2 * n))
 
+    def whorl(lift_names: list[str], successor: str) -> str:
+        """n pairs up the trunk; internode j is l * 0.826**j (l: the whorl's first internode),
+        the trunk radius r * 0.9**j."""
+        parts = []
+        for j, h in enumerate(lift_names):
+            ln = f"l*{GMT3_INTERNODE_RATIO**j:.9g}"
+            rt = f"r*{0.9**j:.9g}"
+            branch = f"b({ln}*{GMT3_BRANCH_RATIO:g},{rt}*{GMT3_RADIUS_RATIO:g})"
+            parts.append(
+                f"!({rt}) [&({angle}) {branch}] d(min({h},{ln}*0.8)) /(180)"
+                f" [&({angle}) {branch}] d({ln}-min({h},{ln}*0.8)) /({turn})"
+            )
+        return " ".join(parts) + f" {successor}"
+
+    nxt_l = f"l*{GMT3_INTERNODE_RATIO**n:.9g}"
+    nxt_r = f"r*{0.9**n:.9g}"
+    g_params = ",".join(["l", "r", *lifts])
+    h_params = ",".join(["l", "r", *lifts[:n]])
     twig = "[&(uniform(35,55)) L(uniform(0.8,1.2))] [^(uniform(35,55)) L(uniform(0.8,1.2))]"
     return Species(
         name=f"paper-rule-{k}",
         description=(
             f"The paper's rule {k}: {k + 1} branch pairs per whorl, two whorls, "
-            f"{4 * (k + 1)} first-order branches, sub-branches and leaves."
+            f"{4 * (k + 1)} first-order branches, sub-branches and leaves (GMT3 numbers: "
+            "50 deg branches, 0.62 x internode, internodes x 0.826, pairs 43.75 deg apart)."
         ),
-        axiom="!(0.14) d(1.5) g",
+        axiom=f"!(0.16) d(1.5) g(uniform(1.9,2.1),0.14,{lift_draws})",
         rules=(
-            f"g -> {groups(2.2, 0.05, 0.12)} h",
-            f"h -> {groups(1.6, 0.04, 0.09)} a",
-            "a -> !(0.05) d(0.6) !(0.03) c(0.5,0.03)",
+            f"g({g_params}) -> " + whorl(lifts[:n], f"h({nxt_l},{nxt_r},{','.join(lifts[n:])})"),
+            f"h({h_params}) -> " + whorl(lifts[:n], f"a({nxt_l},{nxt_r})"),
+            "a(l,r) -> !(r) d(l*0.6) !(r*0.5) c(l*0.4,r*0.5)",
             # a first-order branch: two pairs of sub-branches, then a leafy tip
             "b(l,r) -> !(r) d(l*0.35) [+(uniform(35,50)) c(l*0.45,r*0.7)]"
             " [-(uniform(35,50)) c(l*0.45,r*0.7)] !(r*0.85) d(l*0.35)"
@@ -144,7 +185,7 @@ def _paper_rule(k: int) -> Species:
             f"c(l,r) -> !(r) d(l*0.5) {twig} !(r*0.8) d(l*0.5) {twig} L(uniform(0.8,1.2))",
         ),
         iterations=4,
-        turtle=TurtleConfig(angle=45.0, step=0.5, radius=0.14, draw="dbc"),
+        turtle=TurtleConfig(angle=45.0, step=0.5, radius=0.16, draw="dbc"),
         geometry=Geometry(leaves_per_site=6.0, leaf_size=0.13),
     )
 

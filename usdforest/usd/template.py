@@ -10,6 +10,7 @@ from pxr import Sdf, Usd, UsdGeom, Vt
 
 from ..cad import TemplatePart
 from ..errors import UsdForestError
+from ..placement import WoodShape, centreline_of
 from .layers import (
     T,
     attr,
@@ -139,6 +140,11 @@ class TemplateInfo:
     tip_radius: float
     extent: np.ndarray  # (2, 3)
     measurements: dict
+    centreline: np.ndarray  # (K, 2): x, y of the centreline at K heights z = 0..1
+
+    def wood_shape(self) -> WoodShape:
+        """Normalised base radius and centreline, for placement."""
+        return WoodShape(max(self.base_radius, 1e-6), self.centreline, max(self.tip_radius, 0.0))
 
 
 def read_template(path: str | Path) -> TemplateInfo:
@@ -157,6 +163,9 @@ def read_template(path: str | Path) -> TemplateInfo:
         .ComputeUntransformedBound(stage.GetPrimAtPath("/Template"))
         .ComputeAlignedRange()
     )
+    meshes = [UsdGeom.Mesh(p) for p in Usd.PrimRange(stage.GetPrimAtPath("/Template"))]
+    pts = [np.asarray(m.GetPointsAttr().Get() or [], dtype=np.float64) for m in meshes if m]
+    points = np.concatenate(pts).reshape(-1, 3) if pts else np.zeros((0, 3))
     return TemplateInfo(
         path=path,
         part=str(data["part"]),
@@ -165,4 +174,5 @@ def read_template(path: str | Path) -> TemplateInfo:
         tip_radius=float(data["normalisedTipRadius"]),
         extent=np.array([list(box.GetMin()), list(box.GetMax())]),
         measurements=dict(data["measurements"]),
+        centreline=centreline_of(points),
     )

@@ -105,7 +105,7 @@ def build_tree(
     placement = place(
         grown.skeleton,
         g,
-        {n: max(infos[n].base_radius, 1e-6) for n in names if infos[n].part != "leaf"},
+        {n: infos[n].wood_shape() for n in names if infos[n].part != "leaf"},
         stream(seed, species.name, variant, "place"),
     )
     extent = _extent(placement, infos, g.leaf)
@@ -123,15 +123,29 @@ def _wood_extent(p: Placement, infos: Mapping[str, TemplateInfo]) -> np.ndarray:
     return np.stack([pts.reshape(-1, 3).min(axis=0), pts.reshape(-1, 3).max(axis=0)])
 
 
+def gf_rotation_rows(q: np.ndarray) -> np.ndarray:
+    """``(m, 3, 3)`` row-vector rotation matrices of quaternions (x, y, z, w) exactly as
+    ``GfMatrix4d.SetRotate`` builds them: no normalisation, so a stored half-precision
+    quaternion gives the matrix a reader computes."""
+    i, j, k, r = (q[:, n] for n in range(4))
+    m = np.empty((len(q), 3, 3))
+    m[:, 0] = np.stack([1 - 2 * (j * j + k * k), 2 * (i * j + k * r), 2 * (i * k - j * r)], 1)
+    m[:, 1] = np.stack([2 * (i * j - k * r), 1 - 2 * (k * k + i * i), 2 * (j * k + i * r)], 1)
+    m[:, 2] = np.stack([2 * (i * k + j * r), 2 * (j * k - i * r), 1 - 2 * (j * j + i * i)], 1)
+    return m
+
+
 def leaf_instance_extent(p: Placement, info: TemplateInfo) -> np.ndarray:
     """Extent of the leaf PointInstancer in the tree's space."""
-    from scipy.spatial.transform import Rotation
-
     if p.n_leaves == 0:
         return np.zeros((2, 3))
-    rot = Rotation.from_quat(p.leaf_orient).as_matrix()  # (m, 3, 3) column vectors
+    # from the values as stored (quath orientations, float3 positions and scales), so the
+    # extent contains what a reader computes from them
+    rows = gf_rotation_rows(p.leaf_orient.astype(np.float16).astype(np.float64))
     c = _corners(info.extent)
-    pts = np.einsum("mij,cj->mci", rot, c) * p.leaf_scale[:, None, None] + p.leaf_position[:, None]
+    scale = p.leaf_scale.astype(np.float32).astype(np.float64)
+    pos = p.leaf_position.astype(np.float32).astype(np.float64)
+    pts = np.einsum("cj,mjk->mck", c, rows) * scale[:, None, None] + pos[:, None]
     flat = pts.reshape(-1, 3)
     return np.stack([flat.min(axis=0), flat.max(axis=0)])
 
@@ -144,7 +158,16 @@ def _extent(p: Placement, infos: Mapping[str, TemplateInfo], leaf: str) -> np.nd
     return np.stack([b[:, 0].min(axis=0), b[:, 1].max(axis=0)])
 
 
-def _xform_ops(spec: Sdf.PrimSpec, t: np.ndarray, q: np.ndarray, s: np.ndarray) -> None:
+def _xform_ops(
+    spec: Sdf.PrimSpec, t: np.ndarray, q: np.ndarray, s: np.ndarray, shear: np.ndarray
+) -> None:
+    """translate, orient, scale and (for a sheared template) a shear applied first."""
+    ops = ["xformOp:translate", "xformOp:orient", "xformOp:scale"]
+    if shear[0] != 0.0 or shear[1] != 0.0:
+        m = Gf.Matrix4d(1.0)
+        m.SetRow(2, Gf.Vec4d(-float(shear[0]), -float(shear[1]), 1.0, 0.0))
+        attr(spec, "xformOp:transform:shear", T.Matrix4d, m)
+        ops.append("xformOp:transform:shear")
     attr(spec, "xformOp:translate", T.Double3, Gf.Vec3d(*map(float, t)))
     attr(
         spec,
@@ -157,7 +180,7 @@ def _xform_ops(spec: Sdf.PrimSpec, t: np.ndarray, q: np.ndarray, s: np.ndarray) 
         spec,
         "xformOpOrder",
         T.TokenArray,
-        Vt.TokenArray(["xformOp:translate", "xformOp:orient", "xformOp:scale"]),
+        Vt.TokenArray(ops),
         uniform=True,
     )
 
@@ -231,12 +254,13 @@ def tree_layer(
                 semantic_label(spec, "branch")
             _reference(spec, template_assets[p.templates[p.template[i]]])
             spec.SetInfo("instanceable", True)
-            _xform_ops(spec, p.translate[i], p.orient[i], p.scale[i])
+            _xform_ops(spec, p.translate[i], p.orient[i], p.scale[i], p.shear[i])
             attr(spec, "usdforest:order", T.Int, int(p.order[i]))
             attr(spec, "usdforest:axis", T.Int, int(p.axis[i]))
             attr(spec, "usdforest:length", T.Float, float(p.length[i]))
             attr(spec, "usdforest:radius", T.Float, float(p.radius[i]))
             attr(spec, "usdforest:parent", T.Int, int(p.parent[i]))
+            attr(spec, "usdforest:tip", T.Point3f, Gf.Vec3f(*map(float, p.tip[i])))
             attr(spec, "usdforest:template", T.String, p.templates[p.template[i]])
 
         leaves = prim(root, "Leaves", "PointInstancer")
