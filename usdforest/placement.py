@@ -29,7 +29,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .skeleton import Skeleton
-from .species import Geometry
+from .species import Clumps, Geometry
 
 CENTRELINE_SAMPLES = 33
 
@@ -87,8 +87,9 @@ class Placement:
     z subtracted before scaling: a template point p becomes p - shear * p.z), ``template (w,)``
     index into ``templates``, ``order``, ``axis``, ``length``, ``radius``, ``parent`` (prim
     index, -1) and ``tip (w,3)``, where the prim's axis ends.
-    Leaf arrays: ``leaf_position (m,3)``, ``leaf_orient (m,4)``, ``leaf_scale (m,)``,
-    ``leaf_segment (m,)``.
+    Leaf arrays: ``leaf_position (m,3)``, ``leaf_orient (m,4)``, ``leaf_scale (m,3)``,
+    ``leaf_segment (m,)`` (-1: not on a segment) and ``leaf_proto (m,)``, the index into
+    ``leaf_templates`` (the leaf template, or a measured tree's foliage clump templates).
     """
 
     templates: tuple[str, ...]
@@ -107,6 +108,8 @@ class Placement:
     leaf_orient: np.ndarray
     leaf_scale: np.ndarray
     leaf_segment: np.ndarray
+    leaf_templates: tuple[str, ...]
+    leaf_proto: np.ndarray
 
     @property
     def n_wood(self) -> int:
@@ -177,6 +180,7 @@ def place(
     geometry: Geometry,
     shapes: Mapping[str, WoodShape],
     rng: np.random.Generator,
+    clumps: Clumps | None = None,
 ) -> Placement:
     """Compute wood and leaf transforms for ``sk``.
 
@@ -191,6 +195,8 @@ def place(
         (from the template layers).
     rng
         Seeded generator for template variants, rolls and leaf scatter.
+    clumps
+        Measured foliage clumps to place (with jitter) instead of leaves at the leaf sites.
     """
     names = [geometry.trunk, *geometry.branches, geometry.twig]
     templates = tuple(dict.fromkeys(names))
@@ -220,6 +226,8 @@ def place(
     template = np.where(radius < geometry.twig_radius, index[geometry.twig], template)
     is_trunk = (order == 0) & (parent < 0)
     template = np.where(is_trunk, index[geometry.trunk], template).astype(np.int32)
+    if geometry.trunk_roll is not None:
+        roll = np.where(is_trunk, math.radians(geometry.trunk_roll), roll)
 
     rn = np.array([shapes[t].base_radius for t in templates])[template]
     scale = np.stack([radius / rn, radius / rn, length], axis=1)
@@ -269,9 +277,16 @@ def place(
         + _lateral(centre, template, shear, scale, rot, np.arange(len(base)), np.ones(len(base)))
     )
 
-    leaves = _leaves(sk, geometry, rng)
+    if clumps is not None:
+        leaves = _clump_instances(clumps, rng)
+        seg = leaves["leaf_segment"][:0]
+    else:
+        leaves = _leaves(sk, geometry, rng)
+        seg = leaves["leaf_segment"]
+        leaves["leaf_templates"] = (geometry.leaf,)
+        leaves["leaf_proto"] = np.zeros(len(seg), dtype=np.int32)
+        leaves["leaf_scale"] = np.repeat(leaves["leaf_scale"][:, None], 3, axis=1)
     out = leaves.pop("leaf_out")
-    seg = leaves["leaf_segment"]
     if seg.size:
         on = seg >= 0
         r = run_of[seg[on]]
@@ -332,6 +347,22 @@ def _lateral(
     local = np.zeros((len(run), 3))
     local[:, :2] = c * scale[run, :2]
     return np.einsum("nij,nj->ni", rot[run], local)
+
+
+def _clump_instances(c: Clumps, rng: np.random.Generator) -> dict:
+    n = len(c)
+    size = c.scale.max(axis=1)
+    shift = rng.uniform(-c.jitter, c.jitter, size=(n, 3)) * size[:, None]
+    grow = rng.uniform(1.0 - c.jitter, 1.0 + c.jitter, size=n)
+    return {
+        "leaf_position": c.position + shift,
+        "leaf_orient": np.array(c.orient, dtype=np.float64),
+        "leaf_scale": c.scale * grow[:, None],
+        "leaf_segment": np.full(n, -1, dtype=np.int32),
+        "leaf_templates": c.templates,
+        "leaf_proto": c.proto.astype(np.int32),
+        "leaf_out": np.zeros((n, 3)),
+    }
 
 
 def _leaves(sk: Skeleton, g: Geometry, rng: np.random.Generator) -> dict[str, np.ndarray]:

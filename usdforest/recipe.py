@@ -69,20 +69,6 @@ def parse_species(name: str, table: Mapping[str, Any], base: Path, where: str) -
         except UsdForestError as exc:
             raise RecipeError(f"{where}.profile: {exc}") from None
         template_base = ppath.parent
-        extracted = {
-            k: f"{k}.usdc" for k in ("trunk", "branch") if (ppath.parent / f"{k}.usdc").is_file()
-        }
-        if extracted:
-            g = sp.geometry
-            sp = replace(
-                sp,
-                geometry=replace(
-                    g,
-                    trunk=extracted.get("trunk", g.trunk),
-                    branches=(extracted["branch"],) if "branch" in extracted else g.branches,
-                    branch_weights=(1.0,) if "branch" in extracted else g.branch_weights,
-                ),
-            )
     elif "rules" in table or "axiom" in table:
         if "preset" in table:
             raise RecipeError(f"{where}: give either preset or axiom/rules, not both")

@@ -19,6 +19,7 @@ pairs, branch radius 0.7 x the trunk's, the right branch of a pair lifted 0.2-0.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -54,6 +55,9 @@ class Geometry:
         Divergence angle between successive leaves of a site around the twig (137.5: golden).
     bend_split
         An axis that turns by more than this is split into straight runs (one prim each).
+    trunk_roll
+        Roll of the trunk template about its axis in degrees (the azimuth its +X points to);
+        ``None`` draws one at random. A measured trunk keeps the roll it had in its model.
     """
 
     trunk: str = "trunk"
@@ -70,13 +74,43 @@ class Geometry:
     leaf_angle_jitter: float = 15.0
     phyllotaxis: float = 137.5
     bend_split: float = 12.0
+    trunk_roll: float | None = None
     bark_color: tuple[float, float, float] = (0.33, 0.24, 0.17)
     leaf_color: tuple[float, float, float] = (0.23, 0.48, 0.17)
 
 
+@dataclass(frozen=True, eq=False)
+class Clumps:
+    """Foliage clumps measured on a whole-tree model, placed as they were (plus jitter).
+
+    ``templates`` are leaf templates (names or paths); per clump: ``position (n,3)``,
+    ``orient (n,4)`` quaternions (x, y, z, w), per-axis ``scale (n,3)`` and ``proto (n,)``
+    (index into ``templates``). ``jitter`` is the variants' random shift of each clump, as a
+    fraction of its size (also their relative change of size).
+    """
+
+    templates: tuple[str, ...]
+    position: np.ndarray
+    orient: np.ndarray
+    scale: np.ndarray
+    proto: np.ndarray
+    jitter: float = 0.03
+
+    def __post_init__(self) -> None:
+        for a in (self.position, self.orient, self.scale, self.proto):
+            a.setflags(write=False)
+
+    def __len__(self) -> int:
+        return int(self.position.shape[0])
+
+
 @dataclass(frozen=True)
 class Species:
-    """A tree species: grammar, turtle settings, derivation steps and geometry."""
+    """A tree species: grammar, turtle settings, derivation steps and geometry.
+
+    ``clumps``: measured foliage placed as is (profile species); ``None`` puts leaves at the
+    L-system's leaf sites.
+    """
 
     name: str
     description: str
@@ -86,6 +120,7 @@ class Species:
     turtle: TurtleConfig = field(default_factory=TurtleConfig)
     kind: str = "tree"
     geometry: Geometry = field(default_factory=Geometry)
+    clumps: Clumps | None = None
 
     def lsystem(self) -> LSystem:
         return make_lsystem(self.axiom, self.rules)
@@ -320,67 +355,109 @@ def get_species(name: str) -> Species:
         ) from None
 
 
-def species_from_profile(profile: dict, name: str = "profile") -> Species:
-    """A species that carries the measured dimensions of a whole-tree CAD model.
+PROFILE_ANGLE_JITTER = 3.0  # degrees: variants turn each measured branch by up to this
+PROFILE_LENGTH_JITTER = 0.05  # relative: and lengthen or shorten it by up to this
 
-    ``profile`` is the data of a ``profile.toml`` written by ``usdforest template extract``.
-    The trunk has the measured length and base radius; first-order branches sit at the
-    measured insertion heights with the measured lengths, base radii and angles to the trunk
-    (rolled by the golden angle around it). A model without separate branches (foliage clumps
-    on the trunk) gets one branch per clump, at the clump's height and as long as its radius.
-    Each branch then grows sub-branches and leaves like the paper presets.
+
+def species_from_profile(profile: dict, name: str = "profile") -> Species:
+    """A species that regrows a measured whole-tree CAD model (``usdforest template extract``).
+
+    ``profile`` is the data of its ``profile.toml``. The trunk is the model's own trunk
+    template, upright with its lean and its roll (``trunk.roll_deg``); every measured branch
+    grows from its parent at the measured height (the fraction of its parent's length for
+    higher orders) in its measured direction (turtle ``@(x,y,z)``) with its measured length
+    and base radius, dressed with the extracted branch template; the foliage is the extracted
+    clump templates placed at the measured clump sites. Variants turn each branch by up to
+    3 degrees, change its length by up to 5 % and shift each clump by up to 3 % of its size.
     """
     try:
         trunk = profile["trunk"]
         b = profile["branches"]
         f = profile["foliage"]
         height, r0 = float(trunk["length"]), float(trunk["base_radius"])
-        if b["count"]:
-            rows = zip(
-                b["insertion_heights"],
-                b["lengths"],
-                b["base_radii"],
-                b["angles_to_trunk_deg"],
-                strict=True,
-            )
-            branches = [(float(h), float(ln), float(r), float(a)) for h, ln, r, a in rows]
-        else:
-            branches = [
-                (float(h), float(r), 0.3 * r0, 75.0)
-                for h, r in zip(f["clump_heights"], f["clump_radii"], strict=True)
-            ]
+        roll = float(trunk.get("roll_deg", 0.0))
+        n = int(b["count"])
+        bases = np.asarray(b["bases"], dtype=float).reshape(n, 3)
+        tips = np.asarray(b["tips"], dtype=float).reshape(n, 3)
+        radii = np.asarray(b["base_radii"], dtype=float).reshape(n)
+        parents = np.asarray(b["parents"], dtype=np.int64).reshape(n)
+        k = int(f["clumps"])
+        clump_templates = tuple(f"{t}.usdc" for t in f["templates"])
+        centres = np.asarray(f["clump_centres"], dtype=float).reshape(k, 3)
+        orients = np.asarray(f["clump_orientations"], dtype=float).reshape(k, 4)
+        scales = np.asarray(f["clump_scales"], dtype=float).reshape(k, 3)
+        protos = np.asarray(f["clump_templates"], dtype=np.int64).reshape(k)
     except (KeyError, TypeError, ValueError) as exc:
-        raise UsdForestError(f"profile {name!r}: missing or malformed entry ({exc})") from None
+        raise UsdForestError(
+            f"profile {name!r}: missing or malformed entry ({exc}); profiles written by an "
+            "older usdforest need `usdforest template extract` again"
+        ) from None
     if height <= 0 or r0 <= 0:
         raise UsdForestError(f"profile {name!r}: trunk length and base radius must be > 0")
-    branches = sorted((h, ln, r, a) for h, ln, r, a in branches if 0 < h < height and ln > 0)
+    if np.any((parents < -1) | (parents >= np.arange(n))):
+        raise UsdForestError(f"profile {name!r}: branches.parents must name earlier branches")
+    if k and (np.any(protos < 0) or np.any(protos >= len(clump_templates))):
+        raise UsdForestError(f"profile {name!r}: foliage.clump_templates out of range")
+    for arr, key in ((bases, "bases"), (tips, "tips"), (centres, "clump_centres")):
+        if not np.all(np.isfinite(arr)):
+            raise UsdForestError(f"profile {name!r}: {key} is not finite")
+
+    children: dict[int, list[int]] = {i: [] for i in range(-1, n)}
+    for i, p in enumerate(parents.tolist()):
+        children[p].append(i)
+    aj = math.tan(math.radians(PROFILE_ANGLE_JITTER)) / math.sqrt(3.0)
+    lj = PROFILE_LENGTH_JITTER
+
+    def jittered(x: float) -> str:
+        return f"{x:.6g}*uniform({1 - lj:g},{1 + lj:g})"
+
+    def branch(i: int, parent_radius: float) -> str:
+        d = tips[i] - bases[i]
+        length = float(np.linalg.norm(d))
+        u = d / max(length, 1e-9)
+        r = min(float(radii[i]), 0.9 * parent_radius)
+        head = ",".join(f"{c:.6g}+uniform({-aj:.4g},{aj:.4g})" for c in u)
+        parts = [f"[@({head}) !({r:.6g})"]
+        at = 0.0
+        kids = sorted(
+            children[i], key=lambda c: float((bases[c] - bases[i]) @ u) / max(length, 1e-9)
+        )
+        for c in kids:
+            frac = float(np.clip((bases[c] - bases[i]) @ u / max(length, 1e-9), 0.02, 0.98))
+            if frac > at:
+                parts.append(f"F({jittered((frac - at) * length)})")
+                at = frac
+            parts.append(branch(c, r))
+        parts.append(f"F({jittered(max(1.0 - at, 0.02) * length)})]")
+        return " ".join(parts)
+
     parts = [f"!({r0:.6g})"]
     z = 0.0
-    for h, ln, r, a in branches:
-        angle = min(max(a, 20.0), 100.0)
-        radius = min(r, 0.8 * r0 * (1 - h / height) + 0.01)
+    for i in sorted(children[-1], key=lambda c: bases[c][2]):
+        h = float(np.clip(bases[i][2], 0.0, height))
         if h > z:
             parts.append(f"F({h - z:.6g})")
             z = h
-        parts.append(
-            f"[&(uniform({angle - 5:.4g},{angle + 5:.4g})) b({ln:.6g},{radius:.6g})]"
-            " /(uniform(130,145))"
-        )
-    parts.append(f"!({0.3 * r0:.6g}) F({max(height - z, 0.05):.6g}) L(1)")
-    twig = "[&(uniform(35,55)) L(uniform(0.8,1.2))] [^(uniform(35,55)) L(uniform(0.8,1.2))]"
+        parts.append(branch(i, r0))
+    parts.append(f"F({max(height - z, 1e-3):.6g})")
+    geometry = Geometry(
+        trunk="trunk.usdc",
+        branches=("branch.usdc",) if n else Geometry().branches,
+        branch_weights=(1.0,) if n else Geometry().branch_weights,
+        twig_radius=0.0,
+        leaf=clump_templates[0] if k else Geometry().leaf,
+        trunk_roll=roll,
+        bend_split=180.0,
+    )
+    clumps = Clumps(clump_templates, centres, orients, scales, protos) if k else None
     return Species(
         name=name,
-        description=f"Grown from a measured profile: height {height:.3g} m, "
-        f"{len(branches)} first-order branches.",
+        description=f"Grown from a measured profile: height {height:.3g} m, {n} branches, "
+        f"{k} foliage clumps.",
         axiom=" ".join(parts),
-        rules=(
-            "b(l,r) -> !(r) d(l*0.4) [+(uniform(35,50)) c(l*0.4,r*0.6)]"
-            " [-(uniform(35,50)) c(l*0.4,r*0.6)] !(r*0.8) d(l*0.3)"
-            " [+(uniform(35,50)) c(l*0.3,r*0.6)] [-(uniform(35,50)) c(l*0.3,r*0.6)]"
-            " !(r*0.6) c(l*0.3,r*0.5)",
-            f"c(l,r) -> !(r) d(l*0.5) {twig} !(r*0.8) d(l*0.5) {twig} L(uniform(0.8,1.2))",
-        ),
-        iterations=2,
-        turtle=TurtleConfig(angle=45.0, step=0.5, radius=r0, draw="Fdbc"),
-        geometry=Geometry(leaves_per_site=6.0),
+        rules=(),
+        iterations=0,
+        turtle=TurtleConfig(angle=45.0, step=0.5, radius=r0, draw="F"),
+        geometry=geometry,
+        clumps=clumps,
     )

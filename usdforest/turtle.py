@@ -21,6 +21,8 @@ symbol        meaning (angle ``a`` in degrees; default ``TurtleConfig.angle``)
 ``[`` ``]``   push / pop the turtle state (a new branch starts after ``[``)
 ``!(r)``      set the segment radius to r; ``!`` alone multiplies it by ``width_ratio``
 ``L(s)``      a leaf site of size s (default 1); also ``leaf`` symbols
+``@(x,y,z)``  turn the heading to the direction (x, y, z) by the smallest rotation
+              (usdforest's extension, like L-Py's ``SetHead``; measured trees use it)
 ============  ================================================================
 
 These are ABOP's rotation matrices R_U, R_L and R_H applied as in its text, with ``\\`` rolling
@@ -58,7 +60,8 @@ from .skeleton import Skeleton
     _WIDTH,
     _LEVEL,
     _LEAF,
-) = range(15)
+    _HEAD,
+) = range(16)
 
 _FIXED_OPS = {
     "+": _LEFT,
@@ -72,6 +75,7 @@ _FIXED_OPS = {
     "]": _POP,
     "!": _WIDTH,
     "$": _LEVEL,
+    "@": _HEAD,
 }
 
 
@@ -153,6 +157,16 @@ def interpret(word: Word, config: TurtleConfig | None = None) -> Skeleton:
     if not np.all(np.isfinite(first) | np.isnan(first)):
         raise LSystemError("turtle: a module parameter is infinite")
     args = first.tolist()
+    head_at = np.flatnonzero(ops_all[active] == _HEAD)
+    heading: dict[int, tuple[float, float, float]] = {}
+    if head_at.size:
+        m = active[head_at]
+        if np.any(word.arity[m] != 3):
+            raise LSystemError("turtle: '@' needs three parameters, a direction @(x,y,z)")
+        xyz = word.params[m, :3]
+        if not np.all(np.isfinite(xyz)) or np.any(np.linalg.norm(xyz, axis=1) == 0):
+            raise LSystemError("turtle: '@' needs a finite, non-zero direction")
+        heading = {int(i): tuple(map(float, v)) for i, v in zip(head_at, xyz, strict=True)}
 
     d2r = math.pi / 180.0
     ca0, sa0 = math.cos(cfg.angle * d2r), math.sin(cfg.angle * d2r)
@@ -174,7 +188,7 @@ def interpret(word: Word, config: TurtleConfig | None = None) -> Skeleton:
     leaf: list[float] = []  # x y z, H, L, U, size
     leaf_seg: list[int] = []
 
-    for op, a in zip(ops, args, strict=True):
+    for i_op, (op, a) in enumerate(zip(ops, args, strict=True)):
         if op == _DRAW or op == _MOVE:
             length = step if a != a else a
             nx, ny, nz = px + hx * length, py + hy * length, pz + hz * length
@@ -258,6 +272,22 @@ def interpret(word: Word, config: TurtleConfig | None = None) -> Skeleton:
             if norm > 1e-12:
                 lx, ly, lz = vx / norm, vy / norm, 0.0
                 ux, uy, uz = hy * lz - hz * ly, hz * lx - hx * lz, hx * ly - hy * lx
+        elif op == _HEAD:
+            dx, dy, dz = heading[i_op]
+            norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+            dx, dy, dz = dx / norm, dy / norm, dz / norm
+            cx, cy, cz = hy * dz - hz * dy, hz * dx - hx * dz, hx * dy - hy * dx
+            sn = math.sqrt(cx * cx + cy * cy + cz * cz)
+            c = hx * dx + hy * dy + hz * dz
+            if sn > 1e-12:
+                kx, ky, kz = cx / sn, cy / sn, cz / sn
+            elif c < 0:  # opposite: half a turn about L
+                kx, ky, kz, sn = lx, ly, lz, 0.0
+            else:
+                continue
+            hx, hy, hz = _rodrigues(hx, hy, hz, kx, ky, kz, c, sn)
+            lx, ly, lz = _rodrigues(lx, ly, lz, kx, ky, kz, c, sn)
+            ux, uy, uz = _rodrigues(ux, uy, uz, kx, ky, kz, c, sn)
         elif op == _LEAF:
             leaf += (px, py, pz, hx, hy, hz, lx, ly, lz, ux, uy, uz, 1.0 if a != a else a)
             leaf_seg.append(parent)

@@ -62,14 +62,13 @@ class TreeBuild:
     grown: Grown
     placement: Placement
     templates: Mapping[str, TemplateInfo]  # by template name (wood and leaf)
-    leaf_template: str
     variant: int
     extent: np.ndarray  # (2, 3)
 
     def used_templates(self) -> dict[str, TemplateInfo]:
         """The templates the placed wood and leaves reference, by name."""
         used = {self.placement.templates[i] for i in np.unique(self.placement.template)}
-        used.add(self.leaf_template)
+        used.update(self.placement.leaf_templates)
         return {n: info for n, info in self.templates.items() if n in used}
 
 
@@ -92,24 +91,28 @@ def build_tree(
     """Grow a tree and place its templates (no files written)."""
     g = species.geometry
     grown = grow(species, seed=int(stream(seed, species.name, variant, "lsystem").integers(2**63)))
-    names = dict.fromkeys([g.trunk, *g.branches, g.twig, g.leaf])
+    leaf_names = species.clumps.templates if species.clumps is not None else (g.leaf,)
+    wood_names = dict.fromkeys([g.trunk, *g.branches, g.twig])
+    names = dict.fromkeys([*wood_names, *leaf_names])
     infos = {n: read_template(resolve_template(n, template_base)) for n in names}
-    for n in (g.trunk, *g.branches, g.twig):
+    for n in wood_names:
         if infos[n].part == "leaf":
             raise UsdForestError(
                 f"template {n!r} is a leaf; the {species.name} wood needs "
                 "a trunk, branch or twig template"
             )
-    if infos[g.leaf].part != "leaf":
-        raise UsdForestError(f"template {g.leaf!r} is a {infos[g.leaf].part}, not a leaf")
+    for n in leaf_names:
+        if infos[n].part != "leaf":
+            raise UsdForestError(f"template {n!r} is a {infos[n].part}, not a leaf")
     placement = place(
         grown.skeleton,
         g,
-        {n: infos[n].wood_shape() for n in names if infos[n].part != "leaf"},
+        {n: infos[n].wood_shape() for n in wood_names},
         stream(seed, species.name, variant, "place"),
+        clumps=species.clumps,
     )
-    extent = _extent(placement, infos, g.leaf)
-    return TreeBuild(grown, placement, infos, g.leaf, variant, extent)
+    extent = _extent(placement, infos)
+    return TreeBuild(grown, placement, infos, variant, extent)
 
 
 def _corners(ext: np.ndarray) -> np.ndarray:
@@ -135,25 +138,25 @@ def gf_rotation_rows(q: np.ndarray) -> np.ndarray:
     return m
 
 
-def leaf_instance_extent(p: Placement, info: TemplateInfo) -> np.ndarray:
+def leaf_instance_extent(p: Placement, infos: Mapping[str, TemplateInfo]) -> np.ndarray:
     """Extent of the leaf PointInstancer in the tree's space."""
     if p.n_leaves == 0:
         return np.zeros((2, 3))
     # from the values as stored (quath orientations, float3 positions and scales), so the
     # extent contains what a reader computes from them
     rows = gf_rotation_rows(p.leaf_orient.astype(np.float16).astype(np.float64))
-    c = _corners(info.extent)
+    corners = np.stack([_corners(infos[t].extent) for t in p.leaf_templates])[p.leaf_proto]
     scale = p.leaf_scale.astype(np.float32).astype(np.float64)
     pos = p.leaf_position.astype(np.float32).astype(np.float64)
-    pts = np.einsum("cj,mjk->mck", c, rows) * scale[:, None, None] + pos[:, None]
+    pts = np.einsum("mcj,mjk->mck", corners * scale[:, None, :], rows) + pos[:, None]
     flat = pts.reshape(-1, 3)
     return np.stack([flat.min(axis=0), flat.max(axis=0)])
 
 
-def _extent(p: Placement, infos: Mapping[str, TemplateInfo], leaf: str) -> np.ndarray:
+def _extent(p: Placement, infos: Mapping[str, TemplateInfo]) -> np.ndarray:
     boxes = [_wood_extent(p, infos)]
     if p.n_leaves:
-        boxes.append(leaf_instance_extent(p, infos[leaf]))
+        boxes.append(leaf_instance_extent(p, infos))
     b = np.stack(boxes)
     return np.stack([b[:, 0].min(axis=0), b[:, 1].max(axis=0)])
 
@@ -267,10 +270,13 @@ def tree_layer(
         bind_material(leaves, leaf_mat, stronger=True)
         semantic_label(leaves, "leaf")
         protos = prim(leaves, "Prototypes", "Scope")
-        proto = prim(protos, "Leaf", "Xform")
-        _reference(proto, template_assets[build.leaf_template])
+        targets = []
+        for k, name in enumerate(p.leaf_templates):
+            proto = prim(protos, "Leaf" if k == 0 else f"Leaf_{k}", "Xform")
+            _reference(proto, template_assets[name])
+            targets.append(proto.path)
         r = Sdf.RelationshipSpec(leaves, "prototypes", custom=False)
-        r.targetPathList.explicitItems = [proto.path]
+        r.targetPathList.explicitItems = targets
         n = p.n_leaves
         attr(leaves, "positions", T.Point3fArray, vec3f(p.leaf_position))
         attr(
@@ -279,14 +285,16 @@ def tree_layer(
             T.QuathArray,
             Vt.QuathArray.FromNumpy(np.ascontiguousarray(p.leaf_orient, dtype=np.float16)),
         )
-        attr(leaves, "scales", T.Float3Array, vec3f(np.repeat(p.leaf_scale[:, None], 3, axis=1)))
-        attr(leaves, "protoIndices", T.IntArray, Vt.IntArray.FromNumpy(np.zeros(n, np.int32)))
+        attr(leaves, "scales", T.Float3Array, vec3f(p.leaf_scale))
+        attr(
+            leaves, "protoIndices", T.IntArray, Vt.IntArray.FromNumpy(p.leaf_proto.astype(np.int32))
+        )
         attr(leaves, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(np.arange(n, dtype=np.int64)))
         attr(
             leaves,
             "extent",
             T.Float3Array,
-            vec3f(leaf_instance_extent(p, build.templates[build.leaf_template])),
+            vec3f(leaf_instance_extent(p, build.templates)),
         )
     return layer
 
