@@ -56,6 +56,94 @@ def paper_stages(out: Path, work: Path) -> None:
         save_figure(fig, out / f"paper-rule-{k}-stages.png")
 
 
+def paper_views(out: Path, work: Path) -> None:
+    """The paper's top views (its Fig. 3d) and its CAD model without sub-branches."""
+    from dataclasses import replace
+
+    fig, axes = plt.subplots(2, 3, figsize=(13, 9.6), dpi=100)
+    for j, k in enumerate((1, 2, 3)):
+        sp = get_species(f"paper-rule-{k}")
+        top = work / f"paper{k}.usda"
+        if not top.exists():
+            write_tree(sp, top, seed=3)
+        preview(top, work / f"paper{k}-top.png", view="top", size=(500, 500), annotate=False)
+        image_panel(axes[0, j], work / f"paper{k}-top.png", f"rule {k}: top view")
+        bare = work / f"paper{k}-bare.usda"
+        b = write_tree(replace(sp, iterations=2), bare, seed=3)
+        preview(bare, work / f"paper{k}-bare.png", view="side", size=(500, 620), annotate=False)
+        image_panel(
+            axes[1, j],
+            work / f"paper{k}-bare.png",
+            f"rule {k}: {b.grown.skeleton.branch_counts()[1]} first-order branches, CAD",
+        )
+    fig.suptitle(
+        "The paper's trees from above, and as CAD models without sub-branches", fontsize=11
+    )
+    save_figure(fig, out / "paper-top-and-bare.png")
+
+
+def source_stage(model: Path, path: Path) -> Path:
+    """A stage holding a whole-tree OBJ as it is (Y up turned Z up), coloured by part."""
+    import numpy as np
+    import trimesh
+    from pxr import Sdf, Vt
+
+    from usdforest.extract import FOLIAGE_NAMES
+    from usdforest.usd.layers import T, attr, ints, new_layer, prim, save_layer, vec3f
+
+    layer = new_layer("Source")
+    root = prim(layer, "Source", "Xform")
+    scene = trimesh.load(str(model), force="scene")
+    with Sdf.ChangeBlock():
+        for i, g in enumerate(scene.dump()):
+            name = str((getattr(g.visual, "material", None) and g.visual.material.name) or "")
+            leaf = bool(FOLIAGE_NAMES.search(name))
+            v = np.stack([g.vertices[:, 0], -g.vertices[:, 2], g.vertices[:, 1]], axis=1)
+            m = prim(root, f"Part_{i}", "Mesh")
+            attr(m, "points", T.Point3fArray, vec3f(v))
+            attr(m, "faceVertexCounts", T.IntArray, ints(np.full(len(g.faces), 3)))
+            attr(m, "faceVertexIndices", T.IntArray, ints(g.faces.ravel()))
+            color = (0.23, 0.48, 0.17) if leaf else (0.33, 0.24, 0.17)
+            attr(
+                m,
+                "primvars:displayColor",
+                T.Color3fArray,
+                Vt.Vec3fArray([color]),
+                interpolation="constant",
+            )
+    return save_layer(layer, path)
+
+
+def profile_trees(out: Path, work: Path) -> None:
+    """Whole-tree CAD samples beside the trees regrown from their extracted profiles."""
+    from typer.testing import CliRunner
+
+    from usdforest.cli import app
+
+    samples = ROOT.parent / "shared" / "cad-samples"
+    names = [n for n in ("Tree_2", "Pine_1") if (samples / f"{n}.obj").is_file()]
+    if not names:
+        print("skipped profile-trees.png: ../shared/cad-samples is not here")
+        return
+    runner = CliRunner()
+    fig, axes = plt.subplots(len(names), 3, figsize=(12, 4.6 * len(names)), dpi=100)
+    for row, name in zip(axes.reshape(len(names), 3), names, strict=True):
+        folder = work / f"{name}-extracted"
+        runner.invoke(app, ["template", "extract", str(samples / f"{name}.obj"), "-o", str(folder)])
+        recipe = work / f"{name}.toml"
+        recipe.write_text(f'[species.{name}]\nprofile = "{folder.name}/profile.toml"\n')
+        src = source_stage(samples / f"{name}.obj", work / f"{name}-source.usda")
+        preview(src, work / f"{name}-source.png", view="side", size=(500, 560), annotate=False)
+        image_panel(row[0], work / f"{name}-source.png", f"{name}.obj (source)")
+        for k in (0, 1):
+            t = work / f"{name}-v{k}.usda"
+            runner.invoke(app, ["tree", str(t), "-p", str(recipe), "--variant", str(k)])
+            preview(t, work / f"{name}-v{k}.png", view="side", size=(500, 560), annotate=False)
+            image_panel(row[1 + k], work / f"{name}-v{k}.png", f"regrown, variant {k}")
+    fig.suptitle("template extract + profile species: the source model and two variants")
+    save_figure(fig, out / "profile-trees.png")
+
+
 def ipp_levels(out: Path) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.6), dpi=100)
     for ax, level in zip(axes, ("sparse", "medium", "dense"), strict=True):
@@ -147,6 +235,8 @@ def main(out: Path) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         paper_stages(out, work)
+        paper_views(out, work)
+        profile_trees(out, work)
         ipp_levels(out)
         stands(out, work)
         gallery(out, work)

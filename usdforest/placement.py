@@ -7,7 +7,9 @@ Pure numpy (no pxr): the USD writer (:mod:`usdforest.usd.tree`) only copies thes
   from the run's base to its tip: the template's unit length is scaled to the run's length and
   its normalised base radius to the run's base radius. The first run of the trunk uses the
   trunk template; axes thinner than ``twig_radius`` the twig template; other axes a branch
-  variant drawn per axis, with a random roll about the axis.
+  variant drawn per axis, with a random roll about the axis. A run more than 1.5 times as
+  stout (radius / length) as a curved template would exaggerate its bend by that ratio, so it
+  takes the straightest branch template instead.
 * Joints: a curved template's centreline leaves the straight skeleton axis. Branch templates
   are sheared (cross-sections kept horizontal) so that their tip lands on the axis's tip (no
   hook), and every child - branch or leaf - is moved onto its parent's *bent* centreline at
@@ -32,6 +34,7 @@ from .skeleton import Skeleton
 from .species import Clumps, Geometry
 
 CENTRELINE_SAMPLES = 33
+MAX_BEND_EXAGGERATION = 1.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -229,7 +232,17 @@ def place(
     if geometry.trunk_roll is not None:
         roll = np.where(is_trunk, math.radians(geometry.trunk_roll), roll)
 
-    rn = np.array([shapes[t].base_radius for t in templates])[template]
+    # a template is scaled across by radius / its normalised radius and along by length, so
+    # a run stouter than the template exaggerates its bend by that ratio: such runs take the
+    # straightest branch template instead of a curved one
+    rn_t = np.array([shapes[t].base_radius for t in templates])
+    bend_t = np.array([float(np.abs(shapes[t].centreline).max()) for t in templates])
+    branch_ids = np.array([index[b] for b in geometry.branches])
+    straightest = int(branch_ids[np.argmin(bend_t[branch_ids])])
+    stout = (radius / rn_t[template]) / length > MAX_BEND_EXAGGERATION
+    swap = stout & ~is_trunk & np.isin(template, branch_ids) & (bend_t[template] > 1e-3)
+    template = np.where(swap, straightest, template).astype(np.int32)
+    rn = rn_t[template]
     scale = np.stack([radius / rn, radius / rn, length], axis=1)
     rot = frames_from_directions(vec / length[:, None], roll)
     orient = Rotation.from_matrix(rot).as_quat()  # x, y, z, w

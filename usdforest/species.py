@@ -187,7 +187,8 @@ def _paper_rule(k: int) -> Species:
         for j, h in enumerate(lift_names):
             ln = f"l*{GMT3_INTERNODE_RATIO**j:.9g}"
             rt = f"r*{0.9**j:.9g}"
-            branch = f"b({ln}*{GMT3_BRANCH_RATIO:g},{rt}*{GMT3_RADIUS_RATIO:g})"
+            rb = f"{rt}*{GMT3_RADIUS_RATIO:g}"
+            branch = f"!({rb}) b({ln}*{GMT3_BRANCH_RATIO:g},{rb})"
             parts.append(
                 f"!({rt}) [&({angle}) {branch}] d(min({h},{ln}*0.8)) /(180)"
                 f" [&({angle}) {branch}] d({ln}-min({h},{ln}*0.8)) /({turn})"
