@@ -22,10 +22,11 @@ sys.path.insert(0, str(HERE))
 def registry() -> dict[str, Callable[[], tuple]]:
     from bench_forest import BENCHMARKS as FOREST
     from bench_lsystem import BENCHMARKS as LSYSTEM
+    from bench_profile import BENCHMARKS as PROFILE
     from bench_sensors import BENCHMARKS as SENSORS
     from bench_tree import BENCHMARKS as TREE
 
-    return {**LSYSTEM, **TREE, **FOREST, **SENSORS}
+    return {**LSYSTEM, **TREE, **PROFILE, **FOREST, **SENSORS}
 
 
 def run_one(name: str) -> dict:
