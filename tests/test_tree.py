@@ -145,6 +145,15 @@ def test_joints_measured_on_the_composed_stage(built, name):
     assert np.quantile(dist, 0.99) <= 0.02 and dist.max() <= 0.05, dist.max()
 
 
+@pytest.mark.parametrize("name", [n for n, s in PRESETS.items() if s.kind == "abop"])
+def test_abop_presets_joints_on_the_composed_stage(tmp_path, name):
+    """The ABOP plants grow wood too: every branch base on or inside its parent's mesh."""
+    out = tmp_path / "t.usda"
+    write_tree(get_species(name), out, seed=3)
+    gaps = measure.joint_gaps(Usd.Stage.Open(str(out)))
+    assert len(gaps) > 100 and gaps.max() <= 0.02, gaps.max()
+
+
 def _order1_branches(stage):
     """First-order branch prims grown from the trunk: (base, tip, length, radius) each, sorted
     by base height, read from the composed stage."""
