@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from .errors import UsdForestError
 from .skeleton import Skeleton
 from .species import Clumps, Geometry
 
@@ -251,44 +252,13 @@ def place(
     # their parent's bent centreline
     centre = np.stack([shapes[t].centreline for t in templates])  # (t, K, 2)
     shear = np.where(is_trunk[:, None], 0.0, centre[template, -1])
-    run_base = base.copy()
-    parent_c = np.maximum(parent, 0)
-    same_axis = (parent >= 0) & (axis[parent_c] == axis)
-    u_attach = np.where(
-        same_axis,
-        1.0,
-        np.clip(
-            np.einsum("ij,ij->i", base - base[parent_c], vec[parent_c]) / length[parent_c] ** 2,
-            0.0,
-            1.0,
-        ),
-    )
-    offset = np.zeros_like(base)
-    todo = parent >= 0
-    done = ~todo
-    while todo.any():
-        ready = todo & done[parent_c]
-        if not ready.any():  # parents always precede children; guard against a cycle
-            raise ValueError("skeleton runs form a cycle")
-        r = np.flatnonzero(ready)
-        pr, u = parent[r], u_attach[r]
-        # the point of the parent's placed centreline at u (a skeleton node off the parent's
-        # straight chord - a run bent below bend_split - snaps onto it too)
-        attach = (
-            run_base[pr]
-            + offset[pr]
-            + u[:, None] * vec[pr]
-            + _lateral(centre, template, shear, scale, rot, pr, u)
-        )
-        offset[r] = attach - run_base[r]
-        done[r] = True
-        todo[r] = False
-    translate = run_base + offset
-    tip = (
-        translate
-        + vec
-        + _lateral(centre, template, shear, scale, rot, np.arange(len(base)), np.ones(len(base)))
-    )
+
+    def lateral(run: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return _lateral(centre, template, shear, scale, rot, run, u)
+
+    translate = base + _joint_offsets(base, vec, length, axis, parent, lateral)
+    every = np.arange(len(base))
+    tip = translate + vec + lateral(every, np.ones(len(base)))
 
     if clumps is not None:
         leaves = _clump_instances(clumps, rng)
@@ -309,20 +279,16 @@ def place(
             1.0,
         )
         # onto the placed template's surface: its bent centreline, its tapered radius
-        rb = np.array([shapes[t].base_radius for t in templates])
         rt = np.array(
             [
-                shapes[t].base_radius if shapes[t].tip_radius is None else shapes[t].tip_radius
-                for t in templates
+                rn_t[i] if shapes[n].tip_radius is None else shapes[n].tip_radius
+                for i, n in enumerate(templates)
             ]
         )
         t = template[r]
-        surface = scale[r, 0] * (rb[t] + u * (rt[t] - rb[t]))
+        surface = scale[r, 0] * (rn_t[t] + u * (rt[t] - rn_t[t]))
         leaves["leaf_position"][on] = (
-            translate[r]
-            + u[:, None] * vec[r]
-            + _lateral(centre, template, shear, scale, rot, r, u)
-            + out[on] * surface[:, None]
+            translate[r] + u[:, None] * vec[r] + lateral(r, u) + out[on] * surface[:, None]
         )
     return Placement(
         templates=templates,
@@ -339,6 +305,40 @@ def place(
         tip=tip,
         **leaves,
     )
+
+
+def _joint_offsets(
+    base: np.ndarray,
+    vec: np.ndarray,
+    length: np.ndarray,
+    axis: np.ndarray,
+    parent: np.ndarray,
+    lateral,
+) -> np.ndarray:
+    """How far each run moves so that it starts on its parent's placed centreline.
+
+    A run grows from the point of its parent's straight chord nearest its base (the tip, for
+    the next run of the same axis); it moves, with everything it carries, to the parent's
+    placed (bent) centreline there. Runs are settled level by level, parents first.
+    """
+    parent_c = np.maximum(parent, 0)
+    same_axis = (parent >= 0) & (axis[parent_c] == axis)
+    along = np.einsum("ij,ij->i", base - base[parent_c], vec[parent_c]) / length[parent_c] ** 2
+    u_attach = np.where(same_axis, 1.0, np.clip(along, 0.0, 1.0))
+    offset = np.zeros_like(base)
+    todo = parent >= 0
+    done = ~todo
+    while todo.any():
+        ready = todo & done[parent_c]
+        if not ready.any():  # the turtle emits parents first; a cycle is a bug
+            raise UsdForestError("skeleton: branch runs form a cycle")
+        r = np.flatnonzero(ready)
+        pr, u = parent[r], u_attach[r]
+        attach = base[pr] + offset[pr] + u[:, None] * vec[pr] + lateral(pr, u)
+        offset[r] = attach - base[r]
+        done[r] = True
+        todo[r] = False
+    return offset
 
 
 def _lateral(
