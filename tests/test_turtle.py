@@ -134,3 +134,29 @@ def test_frame_stays_orthonormal_under_any_rotations(ops):
     np.testing.assert_allclose(frame @ frame.T, np.eye(3), atol=1e-9)
     assert np.linalg.det(frame) == pytest.approx(1.0, abs=1e-9)
     assert math.isclose(np.linalg.norm(sk.end[0] - sk.start[0]), 1.0)
+
+
+@pytest.mark.parametrize(
+    ("head", "want"),
+    [
+        ("@(1,0,0)", [1, 0, 0]),
+        ("@(0,3,4)", [0, 0.6, 0.8]),
+        ("@(0,0,-2)", [0, 0, -1]),  # opposite the heading: half a turn
+        ("+(30)&(20)@(-1,1,0)", [-math.sqrt(0.5), math.sqrt(0.5), 0]),
+    ],
+)
+def test_heading_symbol_turns_to_a_direction(head, want):
+    sk = draw(f"F{head}F(2)[+(90)F]")
+    d = sk.end[1] - sk.start[1]
+    np.testing.assert_allclose(d / 2, want, atol=1e-12)
+    # the frame stays orthonormal: a 90 degree turn after it is perpendicular to the heading
+    side = sk.end[2] - sk.start[2]
+    assert abs(side @ d) < 1e-9 and np.linalg.norm(side) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("text", ["F@(1,0)F", "F@(0,0,0)F", "F@F"])
+def test_heading_symbol_needs_a_direction(text):
+    from usdforest.errors import LSystemError
+
+    with pytest.raises(LSystemError, match="'@' needs"):
+        draw(text)
