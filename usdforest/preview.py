@@ -299,7 +299,7 @@ def render_stage(
     from .usd.layers import open_stage
 
     path = Path(path)
-    stage = open_stage(path)
+    stage = open_stage(path, sound=True)
     basis = view_basis(view)
     root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
     box = (

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom, UsdValidation
 
+from .usd.integrity import structural_problems
 from .usd.layers import open_stage
 
 
@@ -98,10 +99,28 @@ def project_findings(stage: Usd.Stage) -> list[Finding]:
     return out
 
 
+def structure_findings(stage: Usd.Stage) -> list[Finding]:
+    """Broken geometry (:mod:`usdforest.usd.integrity`), one finding per problem (NaN points
+    are left to the project's ``finite`` rule)."""
+    return [
+        Finding("usdforest:structure", "error", str(where), msg)
+        for where, msg in structural_problems(stage)
+        if "NaN" not in msg
+    ]
+
+
 def validate(path: str | Path) -> list[Finding]:
-    """All findings for the stage at ``path`` (pxr validators and project rules)."""
+    """All findings for the stage at ``path`` (pxr validators and project rules).
+
+    Broken indexing (faces or instances pointing outside their arrays, an instancer that
+    instances itself) is reported on its own: pxr's validators and the project rules would
+    index out of range or recurse, so they run only on a stage without it.
+    """
     path = Path(path)
     stage = open_stage(path)
+    broken = structure_findings(stage)
+    if broken:
+        return broken
     return pxr_findings(stage) + project_findings(stage)
 
 

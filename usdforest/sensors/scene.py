@@ -247,7 +247,7 @@ def extract_scene(
     from pxr import Usd, UsdGeom
 
     path = Path(stage_path)
-    stage = open_stage(path)
+    stage = open_stage(path, sound=True)
     cache = UsdGeom.XformCache()
     bbox = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"], True)
     paths: list[str] = []

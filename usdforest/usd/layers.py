@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+import os
+import re
+import sys
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-from pxr import Sdf, Usd, UsdGeom, Vt
+from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
 from ..atomic import atomic_path
 from ..errors import UsdForestError
+from ..paths import require_file, shown
 
 T = Sdf.ValueTypeNames
 
@@ -30,14 +35,56 @@ def new_layer(default_prim: str, *, comment: str = "") -> Sdf.Layer:
     return layer
 
 
-def open_stage(path: str | Path) -> Usd.Stage:
-    """Open the stage at ``path``, with a clear error if it is missing or not USD."""
-    path = Path(path)
-    if not path.is_file():
-        raise UsdForestError(f"{path}: no such file")
-    stage = Usd.Stage.Open(str(path))
+@contextmanager
+def quiet_stderr() -> Iterator[None]:
+    """Silence the process's stderr (file descriptor 2) for a while: USD prints its own
+    warnings there, and usdforest reports what matters itself, on one line."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        sys.stderr.flush()
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _reason(exc: Exception) -> str:
+    """The first message in a Tf error, without USD's file and line prefix."""
+    text = " ".join(str(exc).split())
+    quoted = re.findall(r" : '(.*?)'(?= Error in |$)", text)
+    return shown(quoted[0] if quoted else text)[:300]
+
+
+def open_stage(path: str | Path, *, sound: bool = False) -> Usd.Stage:
+    """Open the stage at ``path``, with a one-line error if it is missing, not a file, not
+    USD, corrupt, or composes with errors (a reference to a missing or corrupt layer).
+
+    ``sound``: also refuse structurally broken geometry (see :mod:`usdforest.usd.integrity`),
+    for commands that walk or draw it.
+    """
+    path = require_file(path, "stage")
+    with quiet_stderr():
+        try:
+            stage = Usd.Stage.Open(str(path))
+        except Tf.ErrorException as exc:
+            raise UsdForestError(
+                f"{shown(path)}: not a readable USD stage: {_reason(exc)}"
+            ) from None
     if stage is None:
-        raise UsdForestError(f"{path}: cannot open as a USD stage")
+        raise UsdForestError(f"{shown(path)}: cannot open as a USD stage")
+    errors = stage.GetCompositionErrors()
+    if errors:
+        more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+        raise UsdForestError(
+            f"{shown(path)}: does not compose: {_reason(Exception(str(errors[0])))}{more}"
+        )
+    if sound:
+        from .integrity import require_sound
+
+        require_sound(stage, path)
     return stage
 
 

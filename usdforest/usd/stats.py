@@ -83,7 +83,7 @@ def stage_info(path: str | Path) -> dict:
     500,000 leaves.
     """
     path = Path(path)
-    stage = open_stage(path)
+    stage = open_stage(path, sound=True)
     root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
     prims = 0
     by_order: Counter = Counter()

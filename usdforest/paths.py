@@ -1,0 +1,82 @@
+"""Input and output paths checked up front, with messages that say what is wrong.
+
+An input that is missing, a directory, a FIFO or a device is named as such; an output that is
+an existing directory, lies under a file, or sits in a folder that cannot be written is refused
+before any work starts. File names are shown with control characters escaped.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+import tempfile
+from pathlib import Path
+
+from .errors import UsdForestError
+
+
+def shown(path: str | Path) -> str:
+    """``path`` for a one-line message: control characters and newlines escaped."""
+    text = str(path)
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+def _kind(mode: int) -> str:
+    if stat.S_ISDIR(mode):
+        return "a directory"
+    if stat.S_ISFIFO(mode):
+        return "a FIFO (named pipe)"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    return "not a regular file"
+
+
+def require_file(path: str | Path, what: str = "file", error: type = UsdForestError) -> Path:
+    """``path`` if it is a readable regular file, else ``error`` saying what it is instead."""
+    path = Path(path)
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise error(f"{shown(path)}: no such file") from None
+    except NotADirectoryError:
+        raise error(f"{shown(path)}: no such file (a part of the path is a file)") from None
+    except OSError as exc:
+        raise error(f"{shown(path)}: cannot read the {what} ({exc.strerror})") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise error(f"{shown(path)}: is {_kind(st.st_mode)}, not a {what}")
+    if not os.access(path, os.R_OK):
+        raise error(f"{shown(path)}: the {what} is not readable (permission denied)")
+    return path
+
+
+def require_output(path: str | Path, what: str = "output") -> Path:
+    """Refuse an output path that cannot become a file: an existing directory, ``.``, a path
+    under a file, or a folder that cannot be written (checked before any work starts)."""
+    path = Path(path)
+    if str(path) in ("", ".", "..") or path.name in ("", ".", ".."):
+        raise UsdForestError(f"{shown(path)}: the {what} must be a file name, not a folder")
+    if path.is_dir():
+        raise UsdForestError(f"{shown(path)}: is a directory; the {what} must be a file")
+    if path.exists() and not path.is_file() and not path.is_symlink():
+        raise UsdForestError(f"{shown(path)}: is {_kind(path.stat().st_mode)}, not a file")
+    folder = path.parent
+    probe = folder
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if probe.exists() and not probe.is_dir():
+        raise UsdForestError(f"{shown(path)}: {shown(probe)} is a file, not a folder")
+    if probe.exists():
+        try:  # really try: permissions, read-only file systems and root all answer truly
+            with tempfile.TemporaryFile(dir=probe):
+                pass
+        except OSError as exc:
+            raise UsdForestError(
+                f"{shown(path)}: cannot write in {shown(probe)} ({exc.strerror})"
+            ) from None
+    return path
