@@ -67,6 +67,37 @@ def test_rejects_unsafe_or_malformed(source, fragment):
     assert "test expr" in str(exc.value) or source == ""
 
 
-def test_deep_nesting_is_refused():
-    with pytest.raises(ExpressionError, match="nested deeper"):
-        compile_expression("(" * 80 + "1" + ")" * 80 + "+" + "-" * 100 + "1")
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [
+        ("(" * 80 + "1" + ")" * 80, "parentheses nested 80 deep"),
+        ("1+" + "-" * 100 + "1", "nested deeper than 64"),
+        ("-" * 5000 + "1", "nested too deeply"),  # Python's own parser would recurse
+        ("(" * 4000 + "1" + ")" * 4000, "parentheses nested 4000 deep"),
+        ("sqrt(" * 70 + "1" + ")" * 70, "parentheses nested 70 deep"),
+    ],
+)
+def test_deep_nesting_is_refused(text, fragment):
+    with pytest.raises(ExpressionError, match=fragment):
+        compile_expression(text)
+
+
+def test_flat_chains_of_many_terms_are_fine():
+    e = compile_expression("+".join(["x"] * 500) + "-" + "*".join(["2"] * 100), ["x"])
+    assert e.evaluate({"x": 1.0}) == pytest.approx(500 - 2.0**100)
+
+
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [
+        ("uniform(5, 1)", r"needs a <= b, got uniform\(5, 1\)"),
+        ("normal(0, -1)", "needs sd >= 0"),
+        ("uniform(0, 1/0)", "must be finite"),
+    ],
+)
+def test_random_functions_refuse_impossible_arguments(text, fragment):
+    import numpy as np
+
+    e = compile_expression(text, allow_random=True)
+    with pytest.raises(ExpressionError, match=fragment):
+        e.evaluate(rng=np.random.default_rng(0), size=3)

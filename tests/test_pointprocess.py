@@ -96,9 +96,12 @@ def test_sites_lie_inside_the_region_polygons_included():
     assert np.all((s[:, 0] >= -5) & (s[:, 0] <= 5) & (s[:, 1] >= 10) & (s[:, 1] <= 12))
 
 
-def test_bound_too_low_is_an_error_not_a_bias():
-    low = ExpressionIntensity("0.05 * x / 100", declared_bound=0.01)
-    with pytest.raises(UsdForestError, match=r"exceeds the bound lambda\* = 0.01"):
+@pytest.mark.parametrize("bound", [0.01, 1e-9])
+def test_bound_too_low_is_an_error_not_a_bias(bound):
+    """Refused up front, also when the bound is so low that no candidate would ever be drawn
+    to be checked against it (0 sites where 25 are expected, before)."""
+    low = ExpressionIntensity("0.05 * x / 100", declared_bound=bound)
+    with pytest.raises(UsdForestError, match=r"intensity.bound: .* is below the intensity's max"):
         thin(SQUARE, low, np.random.default_rng(0))
 
 

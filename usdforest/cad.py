@@ -37,6 +37,7 @@ MAX_TRIANGLES = 20_000_000
 MAX_FILE_BYTES = 2 * 2**30
 
 # typical real size (m) of each part, for --units auto
+MAX_COORDINATE = 1e9  # beyond this no unit makes a tree (1e9 mm is 1,000 km)
 TYPICAL_SIZE = {"trunk": 5.0, "branch": 1.5, "twig": 0.3, "leaf": 0.08, "tree": 8.0}
 # default up axis by format when --up auto: glTF is Y-up by its spec; OBJ exporters
 # (Blender, Maya) write Y-up by default; STL and PLY come from CAD tools that use Z-up
@@ -134,6 +135,8 @@ def _check_obj(path: Path, data: bytes) -> None:
         s = line.lstrip()
         if s.startswith(b"v ") or s.startswith(b"v\t"):
             nv += 1
+            if len(s[1:].split()) < 3:
+                raise CADError(f"{path.name}: line {lineno}: a vertex needs x, y and z")
         elif s.startswith(b"f ") or s.startswith(b"f\t"):
             refs = s[1:].split()
             if len(refs) < 3:
@@ -161,11 +164,21 @@ def _check_ply(path: Path, data: bytes) -> None:
     end = data.find(b"end_header")
     if end < 0:
         raise CADError(f"{path.name}: PLY header has no end_header")
-    for name, count in re.findall(rb"element\s+(\w+)\s+(\d+)", data[:end]):
+    elements = re.findall(rb"element\s+(\w+)\s+(\d+)", data[:end])
+    for name, count in elements:
         if int(count) > MAX_TRIANGLES * 3:
             raise CADError(
                 f"{path.name}: PLY header claims {int(count):,} {name.decode()} elements, over "
                 "the limit"
+            )
+    if re.search(rb"format\s+ascii", data[:end]):
+        body = data[end + len(b"end_header") :].split(b"\n")
+        rows = sum(1 for line in body if line.strip())
+        need = sum(int(c) for _, c in elements)
+        if rows < need:
+            raise CADError(
+                f"{path.name}: truncated ASCII PLY: the header announces {need:,} element "
+                f"lines but the file has {rows:,}"
             )
 
 
@@ -243,9 +256,23 @@ def read_cad(path: str | Path) -> CADMesh:
         fgroup.append(np.full(len(g.faces), groups.index(name), dtype=np.int32))
         offset += len(g.vertices)
     v = np.concatenate(verts)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise CADError(f"{path.name}: vertices must have x, y and z")
     bad = ~np.all(np.isfinite(v), axis=1)
     if bad.any():
         raise CADError(f"{path.name}: {int(bad.sum())} vertices have NaN or infinite coordinates")
+    big = float(np.abs(v).max()) if v.size else 0.0
+    if big > MAX_COORDINATE:
+        raise CADError(
+            f"{path.name}: a coordinate of {big:.3g} is beyond {MAX_COORDINATE:.0e}: not a "
+            "tree in any unit (a corrupt file?)"
+        )
+    f_all = np.concatenate(faces)
+    if f_all.size and (f_all.min() < 0 or f_all.max() >= len(v)):
+        raise CADError(
+            f"{path.name}: faces refer to vertices that do not exist "
+            f"(indices {int(f_all.min())}..{int(f_all.max())}, {len(v)} vertices)"
+        )
     mesh = CADMesh(
         v,
         np.concatenate(faces),

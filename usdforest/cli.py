@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -42,7 +43,11 @@ RecipeOption = Annotated[
     Path | None,
     typer.Option("--pipeline", "-p", help="Recipe (TOML); default: the embedded one."),
 ]
-SeedOverride = Annotated[int | None, typer.Option(help="Override the recipe's seed.")]
+MAX_SEED = 2**64 - 1
+SeedOverride = Annotated[
+    int | None,
+    typer.Option(min=0, max=MAX_SEED, help="Override the recipe's seed (0 to 2**64-1)."),
+]
 HardCoreOverride = Annotated[
     float | None,
     typer.Option(
@@ -54,6 +59,12 @@ HardCoreOverride = Annotated[
 ]
 
 
+def _shown(text: str) -> str:
+    from .paths import shown
+
+    return " ".join(shown(line) for line in str(text).splitlines())
+
+
 def handles_errors(fn: F) -> F:
     """Print a :class:`UsdForestError` as one line on stderr and exit with code 2."""
 
@@ -62,7 +73,9 @@ def handles_errors(fn: F) -> F:
         try:
             return fn(*args, **kwargs)
         except UsdForestError as exc:
-            err.print(f"[bold red]error:[/] {escape(str(exc))}", markup=True, highlight=False)
+            err.print(
+                f"[bold red]error:[/] {escape(_shown(str(exc)))}", markup=True, highlight=False
+            )
             raise typer.Exit(2) from None
         except MemoryError:
             err.print("[bold red]error:[/] out of memory", markup=True)
@@ -112,7 +125,8 @@ def lsystem_cmd(
         typer.Option("--preset", "-p", help="Use a species preset's axiom and rules."),
     ] = None,
     seed: Annotated[
-        int, typer.Option(help="Seed for stochastic rules and uniform()/normal() parameters.")
+        int,
+        typer.Option(min=0, max=MAX_SEED, help="Seed for stochastic rules and uniform()/normal()."),
     ] = 0,
     max_modules: Annotated[
         int, typer.Option(min=1, help="Refuse words longer than this.")
@@ -192,7 +206,9 @@ def tree_cmd(
     pipeline: Annotated[
         Path | None, typer.Option("--pipeline", "-p", help="Recipe (TOML) defining species.")
     ] = None,
-    seed: Annotated[int, typer.Option(help="Seed for growth and placement.")] = 0,
+    seed: Annotated[
+        int, typer.Option(min=0, max=MAX_SEED, help="Seed for growth and placement.")
+    ] = 0,
     variant: Annotated[int, typer.Option(min=0, help="Variant number (another tree).")] = 0,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing output.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print statistics as JSON.")] = False,
@@ -400,7 +416,20 @@ def sample_cmd(
         if len(b) != 4:
             raise UsdForestError(f"--region: expected 4 numbers x0,y0,x1,y1, got {len(b)}")
         data["region"] = {"kind": "rectangle", "bounds": b}
-    recipe = parse_recipe(data, path.parent, str(path), seed=seed, hard_core=hard_core)
+    try:
+        recipe = parse_recipe(data, path.parent, str(path), seed=seed, hard_core=hard_core)
+    except UsdForestError as exc:
+        # a bad --intensity or --region is the option's fault, not the recipe's
+        msg = str(exc).removeprefix(f"{path}: ")
+        for option, given, key in (
+            ("--intensity", intensity, "intensity"),
+            ("--region", region, "region"),
+        ):
+            if given is not None and msg.startswith(key):
+                detail = msg.split(": ", 1)[1] if ": " in msg[: len(key) + 12] else msg
+                shown_given = given if len(given) <= 60 else given[:57] + "..."
+                raise UsdForestError(f"{option} {shown_given!r}: {detail}") from None
+        raise
     refuse_overwrite(output, force=force)
     reps = [sample_sites(recipe, r) for r in range(replicates)]
     write_sites_csv(output, reps)
@@ -504,7 +533,7 @@ def scan_cmd(
     occlusion: Annotated[
         bool, typer.Option("--occlusion", help="sonar: drop leaves hidden by wood or leaves.")
     ] = False,
-    seed: Annotated[int, typer.Option(help="Seed for range noise.")] = 0,
+    seed: Annotated[int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise.")] = 0,
     force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
 ) -> None:
@@ -747,9 +776,49 @@ def template_list_cmd(
     out.print(table)
 
 
+def _click_exceptions():
+    try:  # typer >= 0.20 carries its own copy of click
+        from typer._click import exceptions
+    except ImportError:  # pragma: no cover - older typer depends on click
+        from click import exceptions
+    return exceptions
+
+
 def main() -> None:
-    """Console-script entry point."""
-    app()
+    """Console-script entry point: usage errors, interrupts and warnings on one line each."""
+    import warnings
+
+    ce = _click_exceptions()
+    # numpy's RuntimeWarnings (overflow, invalid values) never reach a user: the code checks
+    # its results and reports what matters as an error
+    warnings.simplefilter("ignore", RuntimeWarning)
+    try:
+        code = app(standalone_mode=False)
+    except ce.UsageError as exc:
+        if type(exc).__name__.startswith("NoArgsIsHelp") and exc.ctx is not None:
+            out.print(exc.ctx.get_help(), highlight=False)  # a bare command shows its help
+        else:
+            command = exc.ctx.command_path if exc.ctx else "usdforest"
+            err.print(
+                f"error: {_shown(exc.format_message())} (see '{command} --help')",
+                highlight=False,
+            )
+        code = 2
+    except (typer.Abort, KeyboardInterrupt):
+        err.print("error: interrupted", highlight=False)
+        code = 130
+    except typer.Exit as exc:
+        code = exc.exit_code
+    except Exception as exc:  # a bug, not bad input: one line unless asked for the trace
+        if os.environ.get("USDFOREST_DEBUG"):
+            raise
+        err.print(
+            f"error: internal error ({type(exc).__name__}: {_shown(str(exc))[:300]}); "
+            "please report it - USDFOREST_DEBUG=1 shows the traceback",
+            highlight=False,
+        )
+        code = 3
+    sys.exit(code if isinstance(code, int) else 0)
 
 
 if __name__ == "__main__":

@@ -128,7 +128,10 @@ class Expression:
         if self.uses_random and rng is None:
             raise ExpressionError(f"expression {self.source!r} draws random numbers but no seed")
         with np.errstate(all="ignore"):
-            return self._root(_Ctx(env, rng, size))
+            try:
+                return self._root(_Ctx(env, rng, size))
+            except ExpressionError as exc:
+                raise ExpressionError(f"expression {_short(self.source)}: {exc}") from None
 
     @property
     def is_constant(self) -> bool:
@@ -171,14 +174,39 @@ def compile_expression(
     for old, new in _TOKEN_FIXES:
         text = text.replace(old, new)
     text = re.sub(r"(?<![<>=!])!(?!=)", " not ", text)
+    depth = _paren_depth(text)
+    if depth > MAX_DEPTH:
+        raise ExpressionError(
+            f"{what}: parentheses nested {depth} deep, more than {MAX_DEPTH}, in {_short(source)}"
+        )
     try:
         tree = ast.parse(text, mode="eval")
+        names = frozenset(variables)
+        compiler = _Compiler(source, names, allow_random, what)
+        root = compiler.compile(tree.body, 0)
     except SyntaxError as exc:
-        raise ExpressionError(f"{what}: cannot parse {source!r} ({exc.msg})") from None
-    names = frozenset(variables)
-    compiler = _Compiler(source, names, allow_random, what)
-    root = compiler.compile(tree.body, 0)
+        raise ExpressionError(f"{what}: cannot parse {_short(source)} ({exc.msg})") from None
+    except (RecursionError, MemoryError):
+        raise ExpressionError(
+            f"{what}: nested too deeply to parse (more than {MAX_DEPTH} levels) in {_short(source)}"
+        ) from None
     return Expression(source, frozenset(compiler.used), compiler.uses_random, root)
+
+
+def _paren_depth(text: str) -> int:
+    depth = deepest = 0
+    for c in text:
+        if c in "([":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif c in ")]":
+            depth -= 1
+    return deepest
+
+
+def _short(source: str, limit: int = 80) -> str:
+    """``source`` quoted, cut to ``limit`` characters for a one-line message."""
+    return repr(source if len(source) <= limit else source[: limit - 3] + "...")
 
 
 class _Compiler:
@@ -215,11 +243,7 @@ class _Compiler:
             allowed = sorted(self.names) + sorted(CONSTANTS)
             raise self.fail(node, f"unknown name {name!r} (allowed: {', '.join(allowed)})")
         if isinstance(node, ast.BinOp):
-            op = _BINOPS.get(type(node.op))
-            if op is None:
-                raise self.fail(node, f"operator {type(node.op).__name__} is not allowed")
-            left, right = self.compile(node.left, d), self.compile(node.right, d)
-            return lambda ctx: op(left(ctx), right(ctx))
+            return self._binop_chain(node, d)
         if isinstance(node, ast.UnaryOp):
             operand = self.compile(node.operand, d)
             if isinstance(node.op, ast.USub):
@@ -241,6 +265,27 @@ class _Compiler:
         if isinstance(node, ast.Call):
             return self._call(node, d)
         raise self.fail(node, f"{type(node).__name__} is not allowed in an expression")
+
+    def _binop_chain(self, node: ast.BinOp, depth: int) -> _Node:
+        """``a + b - c * d ...``: the left spine of a chain of binary operators is one level,
+        so a flat sum of many terms is not "deep" (and evaluates in a loop, not a recursion)."""
+        steps = []
+        while isinstance(node, ast.BinOp):
+            op = _BINOPS.get(type(node.op))
+            if op is None:
+                raise self.fail(node, f"operator {type(node.op).__name__} is not allowed")
+            steps.append((op, self.compile(node.right, depth)))
+            node = node.left
+        first = self.compile(node, depth)
+        steps.reverse()
+
+        def run(ctx: _Ctx) -> Value:
+            value = first(ctx)
+            for op, right in steps:
+                value = op(value, right(ctx))
+            return value
+
+        return run
 
     def _compare(self, node: ast.Compare, depth: int) -> _Node:
         operands = [self.compile(n, depth) for n in (node.left, *node.comparators)]
@@ -295,9 +340,21 @@ def _draw_shape(ctx: _Ctx, *values: Value) -> tuple[int, ...] | None:
 
 def _uniform(ctx: _Ctx, lo: Value, hi: Value) -> Value:
     assert ctx.rng is not None
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        raise ExpressionError("uniform(a, b): a and b must be finite")
+    if np.any(np.asarray(lo) > np.asarray(hi)):
+        a, b = np.broadcast_arrays(lo, hi)
+        k = int(np.argmax(a > b))
+        raise ExpressionError(
+            f"uniform(a, b) needs a <= b, got uniform({a.flat[k]:g}, {b.flat[k]:g})"
+        )
     return ctx.rng.uniform(lo, hi, size=_draw_shape(ctx, lo, hi))
 
 
 def _normal(ctx: _Ctx, mu: Value, sd: Value) -> Value:
     assert ctx.rng is not None
+    if not (np.all(np.isfinite(mu)) and np.all(np.isfinite(sd))):
+        raise ExpressionError("normal(mu, sd): mu and sd must be finite")
+    if np.any(np.asarray(sd) < 0):
+        raise ExpressionError(f"normal(mu, sd) needs sd >= 0, got sd = {float(np.min(sd)):g}")
     return ctx.rng.normal(mu, sd, size=_draw_shape(ctx, mu, sd))

@@ -34,6 +34,7 @@ MAX_ITERATIONS = 1_000
 PROBABILITY_TOLERANCE = 1e-6
 
 _RESERVED = set("(),")
+MAX_PARAMETERS = 255  # a module's parameter count is stored in one byte
 _IDENT = re.compile(r"^[A-Za-z_][A-Za-z_0-9]*$")
 _ARROW = re.compile(r"-\s*\((?P<p>[^()]*(?:\([^()]*\)[^()]*)*)\)\s*->|->|→")
 
@@ -162,6 +163,11 @@ def _scan_modules(
                 raise LSystemError(
                     f"{where}: empty parameter in {ch}(...) at column {col + 1} in {text!r}"
                 )
+            if len(args) > MAX_PARAMETERS:
+                raise LSystemError(
+                    f"{where}: {ch}(...) at column {col + 1} has {len(args)} parameters, "
+                    f"more than {MAX_PARAMETERS}"
+                )
             i = j + 1
         out.append((ch, args, col))
     if check_brackets:
@@ -226,6 +232,24 @@ class Rule:
         return f"rule {self.index + 1} ({self.text.strip()!r})"
 
 
+def _mask_parentheses(text: str) -> str:
+    """``text`` with everything inside parentheses blanked out (parameters, not modules)."""
+    out, depth = [], 0
+    for c in text:
+        if c == "(":
+            depth += 1
+        elif c == ")":
+            depth = max(depth - 1, 0)
+        out.append(c if depth == 0 or c in "()" else " ")
+    return "".join(out)
+
+
+def _outside_parentheses(text: str, chars: str) -> str | None:
+    """The first of ``chars`` found outside parentheses, or None."""
+    masked = _mask_parentheses(text)
+    return next((c for c in masked if c in chars), None)
+
+
 def parse_rule(text: str, index: int = 0) -> Rule:
     """Parse one production rule.
 
@@ -257,8 +281,16 @@ def parse_rule(text: str, index: int = 0) -> Rule:
         probability = float(p.evaluate())
         if not 0.0 < probability <= 1.0:
             raise LSystemError(f"{where}: probability {probability:g} is not in (0, 1]")
-    pred_text, _, cond_text = head.partition(":")
+    pred_text, colon, cond_text = head.partition(":")
     pred_text = pred_text.strip()
+    if colon and not cond_text.strip():
+        raise LSystemError(f"{where}: nothing after ':' (a condition such as 'x > 1' goes there)")
+    stray = _outside_parentheses(succ, "<>→")
+    if stray is not None or _ARROW.search(_mask_parentheses(succ)):
+        raise LSystemError(
+            f"{where}: one '->' per rule; the successor {succ!r} holds another arrow or a "
+            f"'<'/'>' outside a module's parameters"
+        )
     if "<" in pred_text or ">" in pred_text:
         raise LSystemError(f"{where}: context-sensitive rules (with '<' or '>') are not supported")
     pred = _scan_modules(pred_text, where, check_brackets=False)

@@ -276,7 +276,16 @@ class ExpressionIntensity:
         return v
 
     def bound(self, region: Region) -> float:
+        grid_max = self._grid_stats(region)[0] / 1.1
         if self.declared_bound is not None:
+            # a bound below the intensity thins with too few candidates: refuse it up front
+            # (where no candidate falls, no site could be checked against it)
+            if grid_max > self.declared_bound:
+                raise RecipeError(
+                    f"intensity.bound: {self.declared_bound:g} is below the intensity's "
+                    f"maximum over the region ({grid_max:.6g}); thinning would be biased. "
+                    "Give a bound at least that large, or leave it out"
+                )
             return self.declared_bound
         return self._grid_stats(region)[0]
 

@@ -310,6 +310,9 @@ def render_stage(
     if box.IsEmpty():
         raise UsdForestError(f"{path}: the stage has no geometry to draw")
     lo, hi = np.array(box.GetMin()), np.array(box.GetMax())
+    # a flat or empty stage (a forest with no trees) still gets a 1 m window
+    flat = (hi - lo) < 1e-6
+    lo, hi = np.where(flat, lo - 0.5, lo), np.where(flat, hi + 0.5, hi)
     corners = np.array(
         [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
     )

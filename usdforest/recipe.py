@@ -202,6 +202,12 @@ def _num(v: Any, where: str, *, lo: float | None = None, positive: bool = False)
     return x
 
 
+def _under(where: str, exc: Exception) -> RecipeError:
+    """``exc`` as a RecipeError naming ``where`` once (messages may name it already)."""
+    msg = str(exc)
+    return RecipeError(msg if msg.startswith(where) else f"{where}: {msg}")
+
+
 def parse_region(t: Any, where: str) -> Any:
     from .pointprocess import Polygon, Rectangle
 
@@ -216,7 +222,7 @@ def parse_region(t: Any, where: str) -> Any:
         try:
             return Rectangle(*b)
         except RecipeError as exc:
-            raise RecipeError(f"{where}: {exc}") from None
+            raise _under(where, exc) from None
     if kind == "polygon":
         check_keys(t, {"kind", "vertices"}, where)
         v = t.get("vertices")
@@ -228,7 +234,7 @@ def parse_region(t: Any, where: str) -> Any:
         try:
             return Polygon(pts)
         except RecipeError as exc:
-            raise RecipeError(f"{where}: {exc}") from None
+            raise _under(where, exc) from None
     raise RecipeError(f"{where}.kind: {kind!r} is not one of rectangle, polygon")
 
 
@@ -326,8 +332,8 @@ def parse_recipe(
         check_keys(data, TOP_KEYS, "pipeline")
         s = seed if seed is not None else data.get("seed", 0)
         s = coerce(s, int, "seed")
-        if s < 0:
-            raise RecipeError(f"seed: must be >= 0, got {s}")
+        if not 0 <= s < 2**64:
+            raise RecipeError(f"seed: must be an integer from 0 to 2**64-1, got {s}")
         if "region" not in data:
             raise RecipeError("region: missing (e.g. [region] bounds = [0, 0, 100, 100])")
         region = parse_region(data["region"], "region")
