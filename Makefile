@@ -34,4 +34,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/run.py
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache forest.usda forest_assets forest.png
+	rm -rf $(VENV) build *.egg-info .pytest_cache forest.usda forest_assets

@@ -65,9 +65,11 @@ def test_layout_and_ground_truth(default_forest):
         "instances.usdc",
         "pipeline.toml",
         "templates",
+        "thumbnail.png",
         "trees",
         "trees.csv",
     ]
+    assert sorted(p.name for p in out.parent.iterdir()) == ["forest.usda", "forest_assets"]
     assert len(list((assets / "trees").glob("*.usdc"))) == 6
     forest_layer = Sdf.Layer.FindOrOpen(str(out))
     assert list(forest_layer.subLayerPaths) == ["./forest_assets/instances.usdc"]

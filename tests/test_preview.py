@@ -71,11 +71,12 @@ def test_build_writes_a_thumbnail_and_records_it(tmp_path, runner):
     p = str(default_recipe_path().parent / "paper-two-tree-stand.toml")
     r = runner.invoke(app, ["build", str(out), "-p", p, "-q"])
     assert r.exit_code == 0, r.output
-    thumb = mpimg.imread(tmp_path / "f.png")
+    thumb = mpimg.imread(tmp_path / "f_assets" / "thumbnail.png")
     assert thumb.shape[:2] == (256, 256)
-    assert Sdf.Layer.FindOrOpen(str(out)).customLayerData["thumbnail"].path == "./f.png"
+    recorded = Sdf.Layer.FindOrOpen(str(out)).customLayerData["thumbnail"].path
+    assert recorded == "./f_assets/thumbnail.png"
     r = runner.invoke(app, ["build", str(tmp_path / "g.usda"), "-p", p, "-q", "--no-thumbnail"])
-    assert r.exit_code == 0 and not (tmp_path / "g.png").exists()
+    assert r.exit_code == 0 and not (tmp_path / "g_assets" / "thumbnail.png").exists()
     assert "thumbnail" not in Sdf.Layer.FindOrOpen(str(tmp_path / "g.usda")).customLayerData
 
 

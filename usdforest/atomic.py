@@ -44,3 +44,60 @@ def refuse_overwrite(*paths: str | Path, force: bool) -> None:
     for p in paths:
         if Path(p).exists():
             raise UsdForestError(f"{p} exists; pass --force to overwrite it")
+
+
+BUILD_MARK = ".build-"
+
+
+def staging_folder(out: Path) -> Path:
+    """A hidden folder beside ``out`` to build in (``.<stem>.build-XXXX``), holding a ``pid``
+    file; stale ones that a killed build left behind are removed first."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    sweep_stale_builds(out)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.stem}{BUILD_MARK}", dir=out.parent))
+    (tmp / "pid").write_text(str(os.getpid()))
+    return tmp
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
+def sweep_stale_builds(out: Path) -> list[Path]:
+    """Remove ``.<stem>.build-*`` folders beside ``out`` whose build process is gone (a build
+    killed with SIGKILL cannot clean up after itself); a running build's folder is kept."""
+    import shutil
+
+    removed = []
+    for d in out.parent.glob(f".{out.stem}{BUILD_MARK}*"):
+        if not d.is_dir() or d.is_symlink():
+            continue
+        try:
+            pid = int((d / "pid").read_text().strip())
+        except (OSError, ValueError):
+            pid = -1
+        if pid > 0 and pid != os.getpid() and _alive(pid):
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        removed.append(d)
+    return removed
+
+
+def publish(tmp: Path, out: Path, staged_out: Path, moves: list[tuple[Path, Path]]) -> None:
+    """Move a staged build into place so that ``out`` (the layer that references the rest) is
+    never paired with a mix of old and new files: the old ``out`` leaves first, the other
+    files are swapped, the new ``out`` arrives last. Whatever is replaced goes into ``tmp``
+    (removed by the caller); a kill half-way leaves no ``out`` rather than a wrong one."""
+    if out.exists() or out.is_symlink():
+        os.replace(out, tmp / f"old-{out.name}")
+    for src, dest in moves:
+        if dest.exists() or dest.is_symlink():
+            os.replace(dest, tmp / f"old-{dest.name}")
+        os.replace(src, dest)
+    os.replace(staged_out, out)

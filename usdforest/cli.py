@@ -22,6 +22,7 @@ from rich.table import Table
 from . import __version__
 from .atomic import refuse_overwrite
 from .errors import UsdForestError
+from .paths import require_output
 
 app = typer.Typer(
     name="usdforest",
@@ -44,6 +45,7 @@ RecipeOption = Annotated[
     typer.Option("--pipeline", "-p", help="Recipe (TOML); default: the embedded one."),
 ]
 MAX_SEED = 2**64 - 1
+PLAIN_PROGRESS_SECONDS = 5.0
 SeedOverride = Annotated[
     int | None,
     typer.Option(min=0, max=MAX_SEED, help="Override the recipe's seed (0 to 2**64-1)."),
@@ -214,6 +216,7 @@ def tree_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print statistics as JSON.")] = False,
 ) -> None:
     """Grow one tree and write it as a USD component with its templates beside it."""
+    require_output(output)
     from .usd.tree import write_tree
 
     template_base = None
@@ -326,10 +329,11 @@ def build_cmd(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
     no_thumbnail: Annotated[
-        bool, typer.Option("--no-thumbnail", help="Do not render OUTPUT.png beside it.")
+        bool, typer.Option("--no-thumbnail", help="Do not render OUT_assets/thumbnail.png.")
     ] = False,
 ) -> None:
     """Build a forest: sample tree sites, grow tree variants, write the USD layers."""
+    require_output(output)
     import time
 
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -349,11 +353,17 @@ def build_cmd(
         transient=True,
     ) as bar:
         tasks: dict[str, int] = {}
+        plain = show and not err.is_terminal  # a log file or CI: a short line now and then
+        last = [time.perf_counter()]
 
         def tick(stage: str, done: int, total: int) -> None:
             if stage not in tasks:
                 tasks[stage] = bar.add_task(stage, total=total)
             bar.update(tasks[stage], completed=done, total=total)
+            now = time.perf_counter()
+            if plain and (now - last[0] >= PLAIN_PROGRESS_SECONDS or done == total):
+                last[0] = now
+                err.print(f"{stage}: {done:,}/{total:,} ({now - t0:.0f} s)", highlight=False)
 
         b = write_forest(recipe, output, force=force, progress=tick, thumbnail=not no_thumbnail)
     secs = time.perf_counter() - t0
@@ -399,6 +409,7 @@ def sample_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
 ) -> None:
     """Sample tree sites (and marks) from the recipe's point process into a CSV."""
+    require_output(output)
     from .config import load_toml
     from .recipe import default_recipe_path, parse_recipe
     from .sites import sample_sites, write_sites_csv
@@ -431,6 +442,13 @@ def sample_cmd(
                 raise UsdForestError(f"{option} {shown_given!r}: {detail}") from None
         raise
     refuse_overwrite(output, force=force)
+    total = replicates * recipe.expected_trees()
+    if total > recipe.max_trees:
+        raise UsdForestError(
+            f"--replicates {replicates} x {recipe.expected_trees():,.0f} expected sites = "
+            f"{total:,.0f}, over [forest] max_trees = {recipe.max_trees:,}; raise max_trees in "
+            "the recipe to mean it"
+        )
     reps = [sample_sites(recipe, r) for r in range(replicates)]
     write_sites_csv(output, reps)
     counts = [len(r) for r in reps]
@@ -472,6 +490,7 @@ def preview_cmd(
     plain: Annotated[bool, typer.Option("--plain", help="No caption or scale bar.")] = False,
 ) -> None:
     """Render a stage headlessly to a PNG (what composes is what is drawn)."""
+    require_output(output)
     import time
 
     from .preview import VIEWS, preview
@@ -500,6 +519,7 @@ def plot_sites_cmd(
     hard_core: HardCoreOverride = None,
 ) -> None:
     """Plot the intensity map with sampled sites over it (the paper's IPP figure)."""
+    require_output(output)
     from .plots import plot_sites
     from .sites import read_sites_csv, sample_sites
 
@@ -538,6 +558,7 @@ def scan_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
 ) -> None:
     """Scan a stage with a lidar (ray casting) or a bat-like sonar (foliage echoes)."""
+    require_output(output)
     import dataclasses
     import time
 
@@ -651,6 +672,7 @@ def template_import_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print measurements as JSON.")] = False,
 ) -> None:
     """Import one CAD part, normalise its frame and write a template layer."""
+    require_output(output)
     from .cad import import_part
     from .usd.template import write_template
 

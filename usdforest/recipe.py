@@ -21,6 +21,7 @@ This module reads the species part of a recipe::
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -97,6 +98,7 @@ def parse_species(name: str, table: Mapping[str, Any], base: Path, where: str) -
         sp = replace(sp, description=coerce(table["description"], str, f"{where}.description"))
     if "turtle" in table:
         sp = replace(sp, turtle=override(sp.turtle, table["turtle"], f"{where}.turtle"))
+        _check_turtle(sp.turtle, f"{where}.turtle")
     if "geometry" in table:
         g = override(sp.geometry, table["geometry"], f"{where}.geometry")
         _check_geometry(g, f"{where}.geometry")
@@ -120,6 +122,24 @@ def _check_geometry(g: Geometry, where: str) -> None:
         raise RecipeError(f"{where}.leaves_per_site: must be between 0 and 1000")
     if not 0 <= g.leaf_spread <= 1:
         raise RecipeError(f"{where}.leaf_spread: must be between 0 and 1")
+    for key in ("bark_color", "leaf_color"):
+        c = getattr(g, key)
+        if not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in c):
+            raise RecipeError(f"{where}.{key}: {list(c)} is outside 0..1 (linear RGB)")
+
+
+def _check_turtle(t: TurtleConfig, where: str) -> None:
+    for key in ("step", "radius"):
+        v = getattr(t, key)
+        if not (math.isfinite(v) and v > 0):
+            raise RecipeError(f"{where}.{key}: must be a finite number > 0, got {v}")
+    for key in ("angle", "width_ratio", "elasticity"):
+        if not math.isfinite(getattr(t, key)):
+            raise RecipeError(f"{where}.{key}: must be finite")
+    if not 0 < t.width_ratio <= 1:
+        raise RecipeError(f"{where}.width_ratio: must be in (0, 1], got {t.width_ratio}")
+    if not all(math.isfinite(v) for v in t.tropism):
+        raise RecipeError(f"{where}.tropism: must be finite")
 
 
 def read_species(path: str | Path) -> dict[str, SpeciesEntry]:

@@ -12,15 +12,13 @@
       templates/<name>.usdc     the CAD templates the trees reference
       trees.csv                 ground truth, one row per instance
       pipeline.toml             the resolved recipe (seed included)
-    forest.png                  a 256x256 thumbnail (customLayerData.thumbnail)
+    forest_assets/thumbnail.png a 256x256 thumbnail (customLayerData.thumbnail)
 """
 
 from __future__ import annotations
 
-import os
 import re
 import shutil
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,12 +27,14 @@ import numpy as np
 import tomli_w
 from pxr import Sdf, Vt
 
-from ..atomic import refuse_overwrite
+from ..atomic import publish, refuse_overwrite, staging_folder
 from ..errors import UsdForestError
 from ..recipe import Recipe, resolved_toml
 from ..sites import Sites, sample_sites
 from .layers import T, attr, new_layer, prim, save_layer, vec3f
 from .tree import TreeBuild, build_tree, copy_templates, tree_layer
+
+THUMBNAIL = "thumbnail.png"  # inside the assets folder
 
 Progress = Callable[[str, int, int], None]
 
@@ -200,8 +200,7 @@ def write_forest(
     if out.suffix != ".usda":
         raise UsdForestError(f"{out}: the forest's interface layer must end in .usda")
     assets = out.parent / f"{out.stem}_assets"
-    thumb = out.with_suffix(".png")
-    refuse_overwrite(out, assets, *([thumb] if thumbnail else []), force=force)
+    refuse_overwrite(out, assets, force=force)
     tick = progress or (lambda stage, done, total: None)
 
     tick("sampling sites", 0, 1)
@@ -239,8 +238,7 @@ def write_forest(
         assets,
     )
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.stem}.build-", dir=out.parent))
+    tmp = staging_folder(out)
     try:
         staged = tmp / assets.name
         (staged / "trees").mkdir(parents=True)
@@ -267,7 +265,7 @@ def write_forest(
                 build,
                 recipe,
                 f"./{assets.name}/instances.usdc",
-                f"./{thumb.name}" if thumbnail else None,
+                f"./{assets.name}/{THUMBNAIL}" if thumbnail else None,
             ),
             tmp / out.name,
         )
@@ -276,14 +274,10 @@ def write_forest(
             from ..preview import preview
 
             tick("thumbnail", 0, 1)
-            preview(tmp / out.name, tmp / thumb.name, view="iso", size=(256, 256), annotate=False)
+            # the thumbnail lives in the assets folder, so it moves (and packs) with the forest
+            preview(tmp / out.name, staged / THUMBNAIL, view="iso", size=(256, 256), annotate=False)
             tick("thumbnail", 1, 1)
-        if assets.exists():
-            shutil.rmtree(assets)
-        os.replace(staged, assets)
-        if thumbnail:
-            os.replace(tmp / thumb.name, thumb)
-        os.replace(tmp / out.name, out)
+        publish(tmp, out, tmp / out.name, [(staged, assets)])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return build

@@ -11,9 +11,7 @@
 
 from __future__ import annotations
 
-import os
 import shutil
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Vt
 
-from ..atomic import refuse_overwrite
+from ..atomic import publish, refuse_overwrite, staging_folder
 from ..errors import UsdForestError
 from ..library import template_path
 from ..placement import Placement, place
@@ -326,16 +324,12 @@ def write_tree(
     assets = out.parent / f"{out.stem}_assets"
     refuse_overwrite(out, assets, force=force)
     build = build_tree(species, seed, variant, template_base=template_base)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.stem}.", dir=out.parent))
+    tmp = staging_folder(out)
     try:
         refs = copy_templates(build, tmp / "assets" / "templates", f"./{assets.name}/templates/")
         layer = tree_layer(build, refs, asset_name=out.stem, identifier=f"./{out.name}")
         save_layer(layer, tmp / out.name)
-        if assets.exists():
-            shutil.rmtree(assets)
-        os.replace(tmp / "assets", assets)
-        os.replace(tmp / out.name, out)
+        publish(tmp, out, tmp / out.name, [(tmp / "assets", assets)])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return build
