@@ -28,6 +28,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from .errors import CADError
+from .paths import require_file
 
 PARTS = ("trunk", "branch", "twig", "leaf")
 WOOD_PARTS = ("trunk", "branch", "twig")
@@ -218,8 +219,7 @@ def read_cad(path: str | Path) -> CADMesh:
         infinite coordinates, or no triangles at all.
     """
     path = Path(path)
-    if not path.is_file():
-        raise CADError(f"{path}: no such file")
+    require_file(path, "CAD file", CADError)
     suffix = path.suffix.lower()
     if suffix not in _FORMATS:
         raise CADError(

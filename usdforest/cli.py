@@ -548,7 +548,7 @@ def scan_cmd(
         ),
     ] = None,
     config: Annotated[
-        Path | None, typer.Option(help="TOML with a [lidar] or [sonar] table of settings.")
+        Path | None, typer.Option(help="TOML with a \\[lidar] or \\[sonar] table of settings.")
     ] = None,
     occlusion: Annotated[
         bool, typer.Option("--occlusion", help="sonar: drop leaves hidden by wood or leaves.")
@@ -571,6 +571,9 @@ def scan_cmd(
 
     if sensor not in ("lidar", "sonar"):
         raise UsdForestError(f"--sensor: {sensor!r} is not lidar or sonar")
+    suffixes = (".ply", ".npz") if sensor == "lidar" else (".npz",)
+    if output.suffix.lower() not in suffixes:
+        raise UsdForestError(f"{output}: a {sensor} scan is written as {' or '.join(suffixes)}")
     refuse_overwrite(output, force=force)
     p = parse_pose(pose)
     presets = lidar.PRESETS if sensor == "lidar" else sonar.PRESETS
@@ -594,7 +597,10 @@ def scan_cmd(
         settings = override(settings, table, f"{config}: {sensor}")
     if occlusion and sensor == "sonar":
         settings = dataclasses.replace(settings, occlusion=True)
-    settings.check()
+    try:
+        settings.check()
+    except UsdForestError as exc:
+        raise UsdForestError(f"{config}: {exc}" if config is not None else str(exc)) from None
     t0 = time.perf_counter()
     scene = extract_scene(stage, centre=p.position, radius=settings.max_range)
     for w in pose_warnings(scene, p, settings.max_range):

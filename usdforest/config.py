@@ -16,12 +16,12 @@ from pathlib import Path
 from typing import Any
 
 from .errors import RecipeError
+from .paths import require_file
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
-    if not path.is_file():
-        raise RecipeError(f"{path}: no such file")
+    require_file(path, "TOML file", RecipeError)
     try:
         return tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:

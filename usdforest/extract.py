@@ -466,6 +466,10 @@ def extract_tree(path: str | Path, *, units: str = "auto", up: str = "auto") -> 
     CADError
         If the model has no wood or no plausible trunk.
     """
+    if up.upper() not in ("AUTO", "Y", "Z"):
+        raise CADError(f"--up: unknown up axis {up!r}; use Y, Z or auto")
+    if units != "auto" and units not in UNITS:
+        raise CADError(f"--units: unknown units {units!r}; use one of {', '.join(UNITS)} or auto")
     raw = read_cad(path)
     is_wood, wood_by = _split_wood_foliage(raw)
     if not is_wood.any():

@@ -21,6 +21,7 @@ from scipy.special import erf
 
 from .errors import RecipeError, UsdForestError
 from .expr import Expression, compile_expression
+from .paths import require_file
 
 MAX_CANDIDATES = 50_000_000  # thinning candidates drawn at most (memory: ~16 bytes each)
 CHUNK = 4_000_000
@@ -363,8 +364,10 @@ def load_raster(
     path: Path, bounds: tuple[float, float, float, float], peak: float | None
 ) -> Raster:
     """A raster intensity from ``.npy`` (trees/m^2) or an image (grey 0..1 scaled by ``peak``)."""
-    if not path.is_file():
-        raise RecipeError(f"intensity.file: no such file {path}")
+    try:
+        require_file(path, "raster", RecipeError)
+    except RecipeError as exc:
+        raise RecipeError(f"intensity.file: {exc}") from None
     if path.suffix.lower() == ".npy":
         try:
             values = np.load(path, allow_pickle=False)

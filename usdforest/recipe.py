@@ -102,6 +102,7 @@ def parse_species(name: str, table: Mapping[str, Any], base: Path, where: str) -
     if "geometry" in table:
         g = override(sp.geometry, table["geometry"], f"{where}.geometry")
         _check_geometry(g, f"{where}.geometry")
+        _check_templates(g, template_base, f"{where}.geometry")
         sp = replace(sp, geometry=g)
     try:
         sp.lsystem()
@@ -126,6 +127,23 @@ def _check_geometry(g: Geometry, where: str) -> None:
         c = getattr(g, key)
         if not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in c):
             raise RecipeError(f"{where}.{key}: {list(c)} is outside 0..1 (linear RGB)")
+
+
+def _check_templates(g: Geometry, base: Path, where: str) -> None:
+    """Every template a geometry names exists: a shipped name or a layer file."""
+    from .library import template_dir
+
+    shipped = {p.stem for p in template_dir().glob("*.usdc")}
+    named = {"trunk": g.trunk, "twig": g.twig, "leaf": g.leaf}
+    named.update({f"branches[{i}]": b for i, b in enumerate(g.branches)})
+    for key, name in named.items():
+        if name.endswith((".usdc", ".usda", ".usd")):
+            if not (base / name).is_file():
+                raise RecipeError(f"{where}.{key}: no such template file {name!r}")
+        elif name not in shipped:
+            raise RecipeError(
+                f"{where}.{key}: unknown template {name!r}; shipped: {', '.join(sorted(shipped))}"
+            )
 
 
 def _check_turtle(t: TurtleConfig, where: str) -> None:

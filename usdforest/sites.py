@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_path
+from .paths import require_file
 from .pointprocess import draw_marks, matern_ii, thin
 from .recipe import Recipe
 from .seeds import stream
@@ -90,8 +91,7 @@ def read_sites_csv(path: str | Path, names: tuple[str, ...], replicate: int = 0)
     from .errors import UsdForestError
 
     path = Path(path)
-    if not path.is_file():
-        raise UsdForestError(f"{path}: no such file")
+    require_file(path, "CSV file")
     rows = []
     with path.open(newline="") as f:
         reader = csv.DictReader(f)
