@@ -56,6 +56,7 @@ def test_bad_input_gives_one_clean_line(case: Case, tmp_path, monkeypatch, capfd
         assert lines[0].startswith("error: ") and "internal error" not in lines[0], lines[0]
         assert case.mentions in lines[0], (case.mentions, lines[0])
         assert "Warning" not in err
+        assert "allow_pickle" not in lines[0]  # no advice to load files unsafely
     assert _snapshot(tmp_path) == before, "something was left behind"
     assert not (tmp_path / PAYLOAD).exists() and not Path(PAYLOAD).exists()
     assert os.getcwd() == str(tmp_path)

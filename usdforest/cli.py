@@ -822,6 +822,8 @@ def main() -> None:
     warnings.simplefilter("ignore", RuntimeWarning)
     try:
         code = app(standalone_mode=False)
+        if code == 130:  # typer turns a Ctrl-C inside a command into a silent exit 130
+            err.print("error: interrupted", highlight=False)
     except ce.UsageError as exc:
         if type(exc).__name__.startswith("NoArgsIsHelp") and exc.ctx is not None:
             out.print(exc.ctx.get_help(), highlight=False)  # a bare command shows its help

@@ -371,6 +371,13 @@ def load_raster(
     if path.suffix.lower() == ".npy":
         try:
             values = np.load(path, allow_pickle=False)
+        except ValueError as exc:
+            if "pickle" in str(exc):  # never suggest loading pickles: they run code
+                raise RecipeError(
+                    f"intensity.file: {path.name} holds Python objects, not numbers; save a "
+                    "plain numeric 2D array (numpy.save of a float array)"
+                ) from None
+            raise RecipeError(f"intensity.file: cannot read {path.name}: {exc}") from None
         except Exception as exc:
             raise RecipeError(f"intensity.file: cannot read {path.name}: {exc}") from None
         if peak is not None:

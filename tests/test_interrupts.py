@@ -1,0 +1,119 @@
+"""Interrupted builds, replaced forests and copied forests, as a user meets them."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from pxr import Sdf, Usd, UsdGeom, UsdUtils
+
+from usdforest import atomic
+from usdforest.recipe import default_recipe_path, read_recipe
+from usdforest.usd.forest import write_forest
+from usdforest.validate import validate
+
+TWO_TREES = default_recipe_path().parent / "paper-two-tree-stand.toml"
+SCRIPT = Path(sys.executable).parent / "usdforest"
+
+
+def _usdforest(*args: str, cwd: Path) -> subprocess.Popen:
+    command = [str(SCRIPT)] if SCRIPT.exists() else [sys.executable, "-m", "usdforest.entry"]
+    return subprocess.Popen(
+        [*command, *args], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+
+
+def test_a_killed_build_leaves_a_folder_the_next_build_removes(tmp_path):
+    p = _usdforest("build", "f.usda", "-p", str(TWO_TREES), cwd=tmp_path)
+    deadline = time.monotonic() + 60
+    while not list(tmp_path.glob(".f.build-*")) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    stale = list(tmp_path.glob(".f.build-*"))
+    assert stale, "the build was killed before it staged anything"
+    assert not (tmp_path / "f.usda").exists()
+    # a build into the same folder sweeps the dead build's folder away
+    write_forest(read_recipe(TWO_TREES), tmp_path / "f.usda", thumbnail=False)
+    assert not list(tmp_path.glob(".f.build-*"))
+    assert validate(tmp_path / "f.usda") == []
+
+
+def test_a_running_build_keeps_its_folder(tmp_path):
+    alive = tmp_path / ".f.build-running"
+    alive.mkdir()
+    (alive / "pid").write_text(str(os.getppid()))  # a process that is alive
+    dead = tmp_path / ".f.build-dead"
+    dead.mkdir()
+    gone = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    (dead / "pid").write_text(gone.stdout.strip())
+    assert atomic.sweep_stale_builds(tmp_path / "f.usda") == [dead]
+    assert alive.exists() and not dead.exists()
+
+
+@pytest.mark.parametrize("delay", [0.1, 0.3, 1.0])
+def test_ctrl_c_stops_a_build_with_one_line(tmp_path, delay):
+    p = _usdforest("build", "f.usda", "-p", str(TWO_TREES), cwd=tmp_path)
+    time.sleep(delay)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    if p.returncode == 0:  # finished before the signal arrived
+        return
+    assert p.returncode == 130, err
+    errors = [line for line in err.splitlines() if line.startswith("error")]
+    assert errors == ["error: interrupted"] and "Traceback" not in err, err
+    assert sorted(x.name for x in tmp_path.iterdir()) == []
+
+
+def test_replacing_a_forest_never_pairs_new_assets_with_the_old_layer(tmp_path, monkeypatch):
+    out = tmp_path / "f.usda"
+    write_forest(read_recipe(TWO_TREES), out, thumbnail=False)
+    real = os.replace
+    calls = []
+
+    def failing(src, dst):
+        dst = Path(dst)
+        if dst.parent == tmp_path or dst.name.startswith("old-"):  # the publishing moves
+            calls.append(dst.name)
+            if dst == out:  # the new layer's arrival fails
+                raise OSError("disk full")
+        return real(src, dst)
+
+    monkeypatch.setattr(atomic.os, "replace", failing)
+    with pytest.raises(OSError, match="disk full"):
+        write_forest(read_recipe(TWO_TREES, seed=9), out, force=True, thumbnail=False)
+    monkeypatch.setattr(atomic.os, "replace", real)
+    # the old layer left before the assets were swapped: no layer now, rather than a wrong one
+    assert calls == ["old-f.usda", "old-f_assets", "f_assets", "f.usda"]
+    assert not out.exists()
+    assert not list(tmp_path.glob(".f.build-*"))
+
+
+def test_a_copied_forest_validates_and_packs_into_usdz(tmp_path):
+    built = tmp_path / "a" / "forest.usda"
+    write_forest(read_recipe(TWO_TREES), built)
+    copy = tmp_path / "b"
+    copy.mkdir()
+    shutil.copy(built, copy / "forest.usda")
+    shutil.copytree(built.parent / "forest_assets", copy / "forest_assets")
+    shutil.rmtree(tmp_path / "a")
+    assert validate(copy / "forest.usda") == []
+    thumb = Sdf.Layer.FindOrOpen(str(copy / "forest.usda")).customLayerData["thumbnail"]
+    assert (copy / thumb.path).is_file()
+    usdz = tmp_path / "forest.usdz"
+    assert UsdUtils.CreateNewUsdzPackage(str(copy / "forest.usda"), str(usdz))
+    stage = Usd.Stage.Open(str(usdz))
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+    assert len(pi.GetPositionsAttr().Get()) == 2
+    assert not stage.GetCompositionErrors()
