@@ -792,6 +792,8 @@ BAD_OPTIONS = [
     (("template", "build", "none.toml"), "none.toml"),
     (("template", "build", "bad.toml"), "bad.toml"),
     (("nonsense",), "nonsense"),
+    (("info", "bad\nname\x1b[31m.usda"), "bad\\nname\\x1b[31m.usda"),
+    (("template", "import", "tab\there.obj", "--part", "leaf", "-o", "t.usdc"), "tab\\there"),
 ]
 
 
