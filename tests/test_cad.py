@@ -238,3 +238,13 @@ def test_missing_file_and_unknown_part(tmp_path, runner):
     )
     assert r.exit_code == 2 and "unknown units 'furlong'" in r.stderr
     assert not (tmp_path / "o.usdc").exists()
+
+
+def test_text_files_in_other_encodings_import(tmp_path):
+    """A Latin-1 comment in an OBJ (charset-normalizer is a dependency for this)."""
+    from usdforest.cad import read_cad
+
+    p = tmp_path / "latin.obj"
+    p.write_bytes(b"# caf\xe9 \xff\xfe comment\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    m = read_cad(p)
+    assert m.n_triangles == 1 and m.vertices.shape == (3, 3)
