@@ -4,6 +4,10 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+# the physics engine the collider tests drive (newton, CPU); its own venv because its USD
+# importer pins usd-core. Optional: without it those tests skip and say why.
+PHYS       ?= .venv-physics
+PHYS_STAMP := $(PHYS)/.installed
 
 .PHONY: forest test lint bench figures templates clean
 
@@ -17,8 +21,12 @@ $(STAMP): pyproject.toml
 forest: $(STAMP)
 	$(BIN)/usdforest build forest.usda --force
 
-test: $(STAMP)
-	$(BIN)/python -m pytest -q
+$(PHYS_STAMP):
+	-test -x $(PHYS)/bin/python || $(PYTHON) -m venv $(PHYS)
+	-$(PHYS)/bin/python -m pip install --quiet 'newton[importers]>=1.8' && touch $(PHYS_STAMP)
+
+test: $(STAMP) $(PHYS_STAMP)
+	USDFOREST_PHYSICS_PYTHON=$(abspath $(PHYS))/bin/python $(BIN)/python -m pytest -q
 
 lint: $(STAMP)
 	$(BIN)/ruff check usdforest tests benchmarks templates docs
@@ -34,4 +42,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/run.py
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache forest.usda forest_assets
+	rm -rf $(VENV) $(PHYS) build *.egg-info .pytest_cache forest.usda forest_assets

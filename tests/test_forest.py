@@ -62,6 +62,7 @@ def test_layout_and_ground_truth(default_forest):
     out, build = default_forest
     assets = out.parent / "forest_assets"
     assert sorted(p.name for p in assets.iterdir()) == [
+        "colliders.usdc",
         "instances.usdc",
         "pipeline.toml",
         "templates",
@@ -72,7 +73,10 @@ def test_layout_and_ground_truth(default_forest):
     assert sorted(p.name for p in out.parent.iterdir()) == ["forest.usda", "forest_assets"]
     assert len(list((assets / "trees").glob("*.usdc"))) == 6
     forest_layer = Sdf.Layer.FindOrOpen(str(out))
-    assert list(forest_layer.subLayerPaths) == ["./forest_assets/instances.usdc"]
+    assert list(forest_layer.subLayerPaths) == [
+        "./forest_assets/instances.usdc",
+        "./forest_assets/colliders.usdc",
+    ]
     with (assets / "trees.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == build.n_trees

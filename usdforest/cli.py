@@ -212,11 +212,20 @@ def tree_cmd(
         int, typer.Option(min=0, max=MAX_SEED, help="Seed for growth and placement.")
     ] = 0,
     variant: Annotated[int, typer.Option(min=0, help="Variant number (another tree).")] = 0,
+    colliders: Annotated[
+        str, typer.Option(help="UsdPhysics colliders: trunk, wood (thick branches too) or none.")
+    ] = "trunk",
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing output.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print statistics as JSON.")] = False,
 ) -> None:
     """Grow one tree and write it as a USD component with its templates beside it."""
     require_output(output)
+    from .colliders import COLLIDER_MODES
+
+    if colliders not in COLLIDER_MODES:
+        raise UsdForestError(
+            f"--colliders: {colliders!r} is not one of {', '.join(COLLIDER_MODES)}"
+        )
     from .usd.tree import write_tree
 
     template_base = None
@@ -234,7 +243,15 @@ def tree_cmd(
         from .species import get_species
 
         sp = get_species(species or "paper-rule-3")
-    b = write_tree(sp, output, seed=seed, variant=variant, force=force, template_base=template_base)
+    b = write_tree(
+        sp,
+        output,
+        seed=seed,
+        variant=variant,
+        force=force,
+        template_base=template_base,
+        colliders=colliders,
+    )
     stats = {
         "output": str(output),
         "species": sp.name,

@@ -187,7 +187,7 @@ __all__ = [
 # --------------------------------------------------------------------------- forest recipes
 
 TOP_KEYS = {"seed", "region", "intensity", "sites", "mix", "species", "forest"}
-FOREST_KEYS = {"variants", "hard_core", "scale", "max_trees"}
+FOREST_KEYS = {"variants", "hard_core", "scale", "max_trees", "colliders", "physics_scene"}
 DEFAULT_MAX_TREES = 2_000_000
 
 
@@ -220,6 +220,8 @@ class Recipe:
     scale: ScaleSpec
     max_trees: int
     data: dict
+    colliders: str = "trunk"
+    physics_scene: bool = False
 
     @property
     def species_names(self) -> tuple[str, ...]:
@@ -414,6 +416,14 @@ def parse_recipe(
         max_trees = coerce(forest.get("max_trees", DEFAULT_MAX_TREES), int, "forest.max_trees")
         if max_trees < 1:
             raise RecipeError("forest.max_trees: must be >= 1")
+        from .colliders import COLLIDER_MODES
+
+        colliders = coerce(forest.get("colliders", "trunk"), str, "forest.colliders")
+        if colliders not in COLLIDER_MODES:
+            raise RecipeError(
+                f"forest.colliders: {colliders!r} is not one of {', '.join(COLLIDER_MODES)}"
+            )
+        physics_scene = coerce(forest.get("physics_scene", False), bool, "forest.physics_scene")
         names = tuple(n for n, _ in mix)
         if "sites" in data:
             if "intensity" in data:
@@ -441,6 +451,8 @@ def parse_recipe(
         scale,
         max_trees,
         dict(data),
+        colliders,
+        physics_scene,
     )
     try:
         expected = recipe.expected_trees()

@@ -32,6 +32,7 @@ from ..errors import UsdForestError
 from ..recipe import Recipe, resolved_toml
 from ..sites import Sites, sample_sites
 from .layers import T, attr, new_layer, prim, save_layer, vec3f
+from .physics import add_physics_scene, collision_layer, instance_capsules
 from .tree import TreeBuild, build_tree, copy_templates, tree_layer
 
 THUMBNAIL = "thumbnail.png"  # inside the assets folder
@@ -135,10 +136,13 @@ def instancer_layer(sites: Sites, build: ForestBuild, tree_assets: list[str]) ->
 
 
 def interface_layer(
-    build: ForestBuild, recipe: Recipe, instances: str, thumbnail: str | None = None
+    build: ForestBuild, recipe: Recipe, sublayers: list[str], thumbnail: str | None = None
 ) -> Sdf.Layer:
+    """``forest.usda``: ``/Forest`` (assembly) over the instancer and collision sublayers,
+    with a physics scene only when the recipe asks for one."""
     layer = new_layer("Forest", comment="usdforest forest")
-    layer.subLayerPaths.append(instances)
+    for sub in sublayers:
+        layer.subLayerPaths.append(sub)
     if thumbnail:
         layer.customLayerData = {"thumbnail": Sdf.AssetPath(thumbnail)}
     with Sdf.ChangeBlock():
@@ -158,6 +162,8 @@ def interface_layer(
             }
         }
         attr(forest, "extentsHint", T.Float3Array, vec3f(build.extent))
+        if recipe.physics_scene:
+            add_physics_scene(forest)
     return layer
 
 
@@ -222,7 +228,11 @@ def write_forest(
         tick("growing trees", k, len(prototypes))
         entry = recipe.species[name]
         trees[(name, variant)] = build_tree(
-            entry.species, recipe.seed, variant, template_base=entry.template_base
+            entry.species,
+            recipe.seed,
+            variant,
+            template_base=entry.template_base,
+            colliders=recipe.colliders,
         )
     tick("growing trees", len(prototypes), len(prototypes))
 
@@ -255,6 +265,17 @@ def write_forest(
         tick("writing trees", len(prototypes), len(prototypes))
         tick("writing instances", 0, 1)
         save_layer(instancer_layer(sites, build, tree_assets), staged / "instances.usdc")
+        sublayers = [f"./{assets.name}/instances.usdc"]
+        if recipe.colliders != "none":
+            caps, names = instance_capsules(
+                [trees[key].colliders for key in prototypes],
+                proto_index,
+                sites.xy,
+                sites.yaw,
+                sites.scale,
+            )
+            save_layer(collision_layer(caps, names), staged / "colliders.usdc")
+            sublayers.append(f"./{assets.name}/colliders.usdc")
         _write_csv(staged / "trees.csv", sites, heights, proto_index)
         (staged / "pipeline.toml").write_text(
             "# The resolved recipe of this forest: usdforest build OUT.usda --pipeline this\n"
@@ -264,7 +285,7 @@ def write_forest(
             interface_layer(
                 build,
                 recipe,
-                f"./{assets.name}/instances.usdc",
+                sublayers,
                 f"./{assets.name}/{THUMBNAIL}" if thumbnail else None,
             ),
             tmp / out.name,

@@ -20,6 +20,7 @@ import numpy as np
 from pxr import Gf, Sdf, Vt
 
 from ..atomic import publish, refuse_overwrite, staging_folder
+from ..colliders import Capsules, tree_capsules
 from ..errors import UsdForestError
 from ..library import template_path
 from ..placement import Placement, place
@@ -36,6 +37,7 @@ from .layers import (
     semantic_label,
     vec3f,
 )
+from .physics import add_colliders
 from .template import TemplateInfo, read_template
 
 BOX_CORNERS = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dtype=float)
@@ -62,6 +64,7 @@ class TreeBuild:
     templates: Mapping[str, TemplateInfo]  # by template name (wood and leaf)
     variant: int
     extent: np.ndarray  # (2, 3)
+    colliders: Capsules | None = None  # the wood's collider capsules
 
     def used_templates(self) -> dict[str, TemplateInfo]:
         """The templates the placed wood and leaves reference, by name."""
@@ -84,9 +87,15 @@ def copy_templates(build: TreeBuild, folder: Path, prefix: str) -> dict[str, str
 
 
 def build_tree(
-    species: Species, seed: int = 0, variant: int = 0, *, template_base: Path | None = None
+    species: Species,
+    seed: int = 0,
+    variant: int = 0,
+    *,
+    template_base: Path | None = None,
+    colliders: str = "trunk",
 ) -> TreeBuild:
-    """Grow a tree and place its templates (no files written)."""
+    """Grow a tree and place its templates (no files written); ``colliders`` is ``trunk``,
+    ``wood`` or ``none`` (see :mod:`usdforest.colliders`)."""
     g = species.geometry
     grown = grow(species, seed=int(stream(seed, species.name, variant, "lsystem").integers(2**63)))
     leaf_names = species.clumps.templates if species.clumps is not None else (g.leaf,)
@@ -110,7 +119,7 @@ def build_tree(
         clumps=species.clumps,
     )
     extent = _extent(placement, infos)
-    return TreeBuild(grown, placement, infos, variant, extent)
+    return TreeBuild(grown, placement, infos, variant, extent, tree_capsules(placement, colliders))
 
 
 def _corners(ext: np.ndarray) -> np.ndarray:
@@ -264,6 +273,8 @@ def tree_layer(
             attr(spec, "usdforest:tip", T.Point3f, Gf.Vec3f(*map(float, p.tip[i])))
             attr(spec, "usdforest:template", T.String, p.templates[p.template[i]])
 
+        if build.colliders is not None:
+            add_colliders(root, build.colliders)
         leaves = prim(root, "Leaves", "PointInstancer")
         bind_material(leaves, leaf_mat, stronger=True)
         semantic_label(leaves, "leaf")
@@ -312,6 +323,7 @@ def write_tree(
     variant: int = 0,
     force: bool = False,
     template_base: Path | None = None,
+    colliders: str = "trunk",
 ) -> TreeBuild:
     """Build one tree and write ``out`` plus ``<stem>_assets/templates/`` beside it.
 
@@ -323,7 +335,7 @@ def write_tree(
         raise UsdForestError(f"{out}: the tree layer must end in .usda, .usdc or .usd")
     assets = out.parent / f"{out.stem}_assets"
     refuse_overwrite(out, assets, force=force)
-    build = build_tree(species, seed, variant, template_base=template_base)
+    build = build_tree(species, seed, variant, template_base=template_base, colliders=colliders)
     tmp = staging_folder(out)
     try:
         refs = copy_templates(build, tmp / "assets" / "templates", f"./{assets.name}/templates/")
