@@ -118,3 +118,44 @@ def test_newton_stops_a_ball_at_a_trunk_of_a_built_forest(tmp_path):
     assert hit["position"][0] < x0 - radius + 0.05, hit  # stopped at the trunk
     free = roll(y0 - 2.0)  # 2 m to the side of it, clear of both trees
     assert free["position"][0] == pytest.approx(x0 - 2.0 + 3 * 2, abs=0.05), free
+
+
+def test_default_forest_stands_on_a_labelled_ground_collider(tmp_path):
+    out = tmp_path / "f.usda"
+    recipe = read_recipe(default_recipe_path())
+    assert recipe.ground == {"kind": "plane", "margin": 5.0, "color": (0.36, 0.3, 0.22)}
+    write_forest(recipe, out, thumbnail=False)
+    stage = Usd.Stage.Open(str(out))
+    mesh = stage.GetPrimAtPath("/Forest/Ground/Mesh")
+    assert mesh.IsA(UsdGeom.Mesh) and mesh.HasAPI(UsdPhysics.CollisionAPI)
+    assert list(mesh.GetAttribute("semantics:labels:class").Get()) == ["ground"]
+    pts = np.asarray(UsdGeom.Mesh(mesh).GetPointsAttr().Get(), dtype=float)
+    # the plane covers the plot (100 m x 100 m) with its 5 m margin
+    assert pts[:, :2].min(axis=0) == pytest.approx([-5, -5]) and pts[:, 2].max() == 0
+    assert pts[:, :2].max(axis=0) == pytest.approx([105, 105])
+    # every tree stands on it: a ray down from above each trunk meets the ground at the
+    # tree's own z
+    import trimesh
+
+    tri = trimesh.Trimesh(pts, np.array([[0, 1, 2], [0, 2, 3]]))
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+    pos = np.asarray(pi.GetPositionsAttr().Get(), dtype=float)
+    origins = pos + np.array([0.0, 0.0, 50.0])
+    hits, rays, _ = tri.ray.intersects_location(origins, np.tile([0, 0, -1.0], (len(pos), 1)))
+    assert len(np.unique(rays)) == len(pos)
+    assert np.allclose(hits[np.argsort(rays)][:, 2], pos[:, 2], atol=1e-6)
+
+
+def test_ground_settings_are_checked(tmp_path):
+    from usdforest.errors import RecipeError
+    from usdforest.recipe import parse_recipe
+
+    base = read_recipe(PIPELINES / "paper-two-tree-stand.toml")
+    for ground, fragment in (
+        ({"kind": "hill"}, "ground.kind"),
+        ({"color": [2, 0, 0]}, "ground.color"),
+        ({"margin": -1}, "ground.margin"),
+        ({"height": 1}, "height"),
+    ):
+        with pytest.raises(RecipeError, match=fragment):
+            parse_recipe(dict(base.data, ground=ground), base.base, base.source)

@@ -186,7 +186,8 @@ __all__ = [
 
 # --------------------------------------------------------------------------- forest recipes
 
-TOP_KEYS = {"seed", "region", "intensity", "sites", "mix", "species", "forest"}
+TOP_KEYS = {"seed", "region", "intensity", "sites", "mix", "species", "forest", "ground"}
+GROUND_KEYS = {"kind", "margin", "color"}
 FOREST_KEYS = {"variants", "hard_core", "scale", "max_trees", "colliders", "physics_scene"}
 DEFAULT_MAX_TREES = 2_000_000
 
@@ -222,6 +223,7 @@ class Recipe:
     data: dict
     colliders: str = "trunk"
     physics_scene: bool = False
+    ground: dict | None = None  # {"kind": "plane", "margin": m, "color": (r, g, b)}
 
     @property
     def species_names(self) -> tuple[str, ...]:
@@ -424,6 +426,7 @@ def parse_recipe(
                 f"forest.colliders: {colliders!r} is not one of {', '.join(COLLIDER_MODES)}"
             )
         physics_scene = coerce(forest.get("physics_scene", False), bool, "forest.physics_scene")
+        ground = _parse_ground(data.get("ground"))
         names = tuple(n for n, _ in mix)
         if "sites" in data:
             if "intensity" in data:
@@ -453,6 +456,7 @@ def parse_recipe(
         dict(data),
         colliders,
         physics_scene,
+        ground,
     )
     try:
         expected = recipe.expected_trees()
@@ -466,6 +470,26 @@ def parse_recipe(
             "mean it"
         )
     return recipe
+
+
+def _parse_ground(t: Any) -> dict | None:
+    """``[ground]``: ``kind = "plane"`` (or ``"none"``), ``margin`` metres around the region,
+    ``color`` linear RGB in 0..1."""
+    if t is None:
+        return None
+    if not isinstance(t, Mapping):
+        raise RecipeError('ground: expected a table, e.g. [ground] kind = "plane"')
+    check_keys(t, GROUND_KEYS, "ground")
+    kind = coerce(t.get("kind", "plane"), str, "ground.kind")
+    if kind not in ("plane", "none"):
+        raise RecipeError(f"ground.kind: {kind!r} is not plane or none")
+    if kind == "none":
+        return None
+    margin = _num(t.get("margin", 0.0), "ground.margin", lo=0)
+    color = coerce(t.get("color", [0.36, 0.30, 0.22]), tuple[float, float, float], "ground.color")
+    if not all(math.isfinite(c) and 0 <= c <= 1 for c in color):
+        raise RecipeError(f"ground.color: {list(color)} is outside 0..1 (linear RGB)")
+    return {"kind": kind, "margin": margin, "color": color}
 
 
 def _parse_scale(t: Any) -> ScaleSpec:

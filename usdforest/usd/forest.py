@@ -31,6 +31,7 @@ from ..atomic import publish, refuse_overwrite, staging_folder
 from ..errors import UsdForestError
 from ..recipe import Recipe, resolved_toml
 from ..sites import Sites, sample_sites
+from .ground import add_ground
 from .layers import T, attr, new_layer, prim, save_layer, vec3f
 from .physics import add_physics_scene, collision_layer, instance_capsules
 from .tree import TreeBuild, build_tree, copy_templates, tree_layer
@@ -164,6 +165,13 @@ def interface_layer(
         attr(forest, "extentsHint", T.Float3Array, vec3f(build.extent))
         if recipe.physics_scene:
             add_physics_scene(forest)
+        if recipe.ground is not None:
+            add_ground(
+                forest,
+                recipe.region.bounds,
+                margin=recipe.ground["margin"],
+                color=recipe.ground["color"],
+            )
     return layer
 
 
