@@ -159,3 +159,43 @@ def test_ground_settings_are_checked(tmp_path):
     ):
         with pytest.raises(RecipeError, match=fragment):
             parse_recipe(dict(base.data, ground=ground), base.base, base.source)
+
+
+def test_centred_origin_and_asset_info(tmp_path):
+    from usdforest.recipe import parse_recipe
+
+    base = read_recipe(PIPELINES / "paper-two-tree-stand.toml")
+    centred = parse_recipe(
+        dict(base.data, forest={**base.data["forest"], "origin": "centre"}), base.base, base.source
+    )
+    write_forest(centred, tmp_path / "f.usda", thumbnail=False)
+    stage = Usd.Stage.Open(str(tmp_path / "f.usda"))
+    root = stage.GetPrimAtPath("/Forest")
+    assert Usd.ModelAPI(root).GetAssetName() == "f"
+    cache = UsdGeom.XformCache()
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+    world = (
+        np.asarray(pi.GetPositionsAttr().Get(), dtype=float)
+        + np.asarray(cache.GetLocalToWorldTransform(pi.GetPrim()))[3, :3]
+    )
+    # the 10 m x 10 m plot's centre is the stage origin: trees at (3, 5) and (7.5, 5.5)
+    assert world[:, :2] == pytest.approx(np.array([[-2.0, 0.0], [2.5, 0.5]]), abs=1e-6)
+
+
+def test_a_tree_written_as_usda_keeps_its_data_in_a_crate_file(tmp_path):
+    import shutil
+
+    from usdforest.validate import validate
+
+    out = tmp_path / "a" / "t.usda"
+    write_tree(get_species("broadleaf"), out, seed=1)
+    assert out.stat().st_size < 2000  # a thin interface
+    data = tmp_path / "a" / "t_assets" / "tree.usdc"
+    assert data.read_bytes()[:8] == b"PXR-USDC"
+    # self-contained: the folder moves and still validates and composes every leaf
+    shutil.move(str(tmp_path / "a"), str(tmp_path / "b"))
+    moved = tmp_path / "b" / "t.usda"
+    assert validate(moved) == []
+    stage = Usd.Stage.Open(str(moved))
+    leaves = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Tree/Leaves"))
+    assert len(leaves.GetPositionsAttr().Get()) > 1000

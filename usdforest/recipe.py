@@ -188,7 +188,15 @@ __all__ = [
 
 TOP_KEYS = {"seed", "region", "intensity", "sites", "mix", "species", "forest", "ground"}
 GROUND_KEYS = {"kind", "margin", "color"}
-FOREST_KEYS = {"variants", "hard_core", "scale", "max_trees", "colliders", "physics_scene"}
+FOREST_KEYS = {
+    "variants",
+    "hard_core",
+    "scale",
+    "max_trees",
+    "colliders",
+    "physics_scene",
+    "origin",
+}
 DEFAULT_MAX_TREES = 2_000_000
 
 
@@ -224,6 +232,7 @@ class Recipe:
     colliders: str = "trunk"
     physics_scene: bool = False
     ground: dict | None = None  # {"kind": "plane", "margin": m, "color": (r, g, b)}
+    origin: str = "corner"  # "corner": recipe coordinates; "centre": the plot's centre at 0, 0
 
     @property
     def species_names(self) -> tuple[str, ...]:
@@ -427,6 +436,9 @@ def parse_recipe(
             )
         physics_scene = coerce(forest.get("physics_scene", False), bool, "forest.physics_scene")
         ground = _parse_ground(data.get("ground"))
+        origin = coerce(forest.get("origin", "corner"), str, "forest.origin")
+        if origin not in ("corner", "centre"):
+            raise RecipeError(f"forest.origin: {origin!r} is not corner or centre")
         names = tuple(n for n, _ in mix)
         if "sites" in data:
             if "intensity" in data:
@@ -457,6 +469,7 @@ def parse_recipe(
         colliders,
         physics_scene,
         ground,
+        origin,
     )
     try:
         expected = recipe.expected_trees()

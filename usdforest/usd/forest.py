@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import tomli_w
-from pxr import Sdf, Vt
+from pxr import Gf, Sdf, Vt
 
 from ..atomic import publish, refuse_overwrite, staging_folder
 from ..errors import UsdForestError
@@ -149,6 +149,23 @@ def interface_layer(
     with Sdf.ChangeBlock():
         forest = prim(layer, "Forest", "Xform")
         forest.kind = "assembly"
+        forest.assetInfo = {
+            "name": build.out.stem,
+            "identifier": Sdf.AssetPath(f"./{build.out.name}"),
+        }
+        if recipe.origin == "centre":
+            # recipe coordinates stay in trees.csv; the stage puts the plot's centre at 0, 0
+            x0, y0, x1, y1 = recipe.region.bounds
+            attr(
+                forest, "xformOp:translate", T.Double3, Gf.Vec3d(-(x0 + x1) / 2, -(y0 + y1) / 2, 0)
+            )
+            attr(
+                forest,
+                "xformOpOrder",
+                T.TokenArray,
+                Vt.TokenArray(["xformOp:translate"]),
+                uniform=True,
+            )
         counts = np.bincount(build.sites.species, minlength=len(build.sites.names))
         forest.customData = {
             "usdforest": {

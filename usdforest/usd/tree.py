@@ -308,6 +308,25 @@ def tree_layer(
     return layer
 
 
+TREE_PAYLOAD = "tree.usdc"  # a tree written as OUT.usda keeps its data in OUT_assets/tree.usdc
+
+
+def interface_tree_layer(build: TreeBuild, data: str, out: Path) -> Sdf.Layer:
+    """A thin ``.usda`` for a tree: ``/Tree`` references the crate file that holds it."""
+    layer = new_layer(
+        "Tree",
+        comment=f"usdforest tree: {build.grown.species.name}, seed {build.grown.seed}, "
+        f"variant {build.variant}; data in {data}",
+    )
+    with Sdf.ChangeBlock():
+        root = prim(layer, "Tree", "Xform")
+        root.kind = "component"
+        root.assetInfo = {"name": out.stem, "identifier": Sdf.AssetPath(f"./{out.name}")}
+        root.referenceList.prependedItems = [Sdf.Reference(data)]
+        attr(root, "extentsHint", T.Float3Array, vec3f(build.extent))
+    return layer
+
+
 def _species_label(spec: Sdf.PrimSpec, species: str) -> None:
     items = list(spec.GetInfo("apiSchemas").prependedItems)
     items.append("SemanticsLabelsAPI:species")
@@ -338,9 +357,22 @@ def write_tree(
     build = build_tree(species, seed, variant, template_base=template_base, colliders=colliders)
     tmp = staging_folder(out)
     try:
-        refs = copy_templates(build, tmp / "assets" / "templates", f"./{assets.name}/templates/")
-        layer = tree_layer(build, refs, asset_name=out.stem, identifier=f"./{out.name}")
-        save_layer(layer, tmp / out.name)
+        if out.suffix == ".usdc":  # binary already: one layer
+            refs = copy_templates(
+                build, tmp / "assets" / "templates", f"./{assets.name}/templates/"
+            )
+            layer = tree_layer(build, refs, asset_name=out.stem, identifier=f"./{out.name}")
+            save_layer(layer, tmp / out.name)
+        else:
+            # the heavy arrays go into a crate file inside the assets folder (self-contained:
+            # its templates beside it); OUT.usda is a thin interface that references it
+            refs = copy_templates(build, tmp / "assets" / "templates", "./templates/")
+            layer = tree_layer(build, refs, asset_name=out.stem, identifier=f"./{out.name}")
+            save_layer(layer, tmp / "assets" / TREE_PAYLOAD)
+            save_layer(
+                interface_tree_layer(build, f"./{assets.name}/{TREE_PAYLOAD}", out),
+                tmp / out.name,
+            )
         publish(tmp, out, tmp / out.name, [(tmp / "assets", assets)])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
