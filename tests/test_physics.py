@@ -199,3 +199,63 @@ def test_a_tree_written_as_usda_keeps_its_data_in_a_crate_file(tmp_path):
     stage = Usd.Stage.Open(str(moved))
     leaves = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Tree/Leaves"))
     assert len(leaves.GetPositionsAttr().Get()) > 1000
+
+
+def _composed_counts(stage: Usd.Stage) -> tuple[int, int]:
+    """(triangles of every Mesh once, leaf instances) on the composed stage."""
+    tris = leaves = 0
+    for p in Usd.PrimRange(stage.GetPseudoRoot(), Usd.TraverseInstanceProxies()):
+        if p.IsA(UsdGeom.Mesh):
+            counts = UsdGeom.Mesh(p).GetFaceVertexCountsAttr().Get()
+            tris += int(np.sum(np.asarray(counts) - 2)) if counts is not None else 0
+        elif p.IsA(UsdGeom.PointInstancer) and p.GetName() in ("Leaves", "LeafClusters"):
+            leaves += len(UsdGeom.PointInstancer(p).GetProtoIndicesAttr().Get() or [])
+    return tris, leaves
+
+
+def test_lod_variants_switch_without_rebuilding(tmp_path):
+    out = tmp_path / "t.usda"
+    b = write_tree(get_species("broadleaf"), out, seed=1)
+    counts = {}
+    for level in ("full", "medium", "proxy"):
+        stage = Usd.Stage.Open(str(out))
+        tree = stage.GetPrimAtPath("/Tree")
+        assert tree.GetVariantSets().GetNames() == ["lod"]
+        assert tree.GetVariantSet("lod").GetVariantSelection() == "full"
+        stage.SetEditTarget(stage.GetSessionLayer())  # a viewer's switch, file untouched
+        tree.GetVariantSet("lod").SetVariantSelection(level)
+        assert not stage.GetCompositionErrors()
+        counts[level] = _composed_counts(stage)
+    assert counts["full"][1] == b.placement.n_leaves
+    assert counts["medium"][1] == (b.placement.n_leaves + 7) // 8  # clusters of 8
+    assert counts["proxy"][1] == 0
+    assert counts["proxy"][0] <= 1000  # the proxy's triangle budget: stem + crown hull
+    assert counts["full"][0] > counts["proxy"][0]
+    stage = Usd.Stage.Open(str(out))
+    stage.SetEditTarget(stage.GetSessionLayer())
+    stage.GetPrimAtPath("/Tree").GetVariantSet("lod").SetVariantSelection("proxy")
+    crown = UsdGeom.Mesh(stage.GetPrimAtPath("/Tree/Proxy/Crown"))
+    hull = np.asarray(crown.GetPointsAttr().Get(), dtype=float)
+    leaves = b.placement.leaf_position
+    # the crown hull wraps the leaves: their attachment points lie inside it
+    import trimesh
+
+    tri = np.asarray(crown.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+    mesh = trimesh.Trimesh(hull, tri)
+    assert mesh.is_watertight and mesh.volume > 0
+    assert mesh.contains(leaves[:: max(1, len(leaves) // 300)]).mean() >= 0.99
+
+
+def test_a_forest_selects_its_level_per_prototype(tmp_path):
+    from usdforest.recipe import parse_recipe
+
+    base = read_recipe(PIPELINES / "paper-two-tree-stand.toml")
+    proxy = parse_recipe(
+        dict(base.data, forest={**base.data["forest"], "lod": "proxy"}), base.base, base.source
+    )
+    write_forest(proxy, tmp_path / "f.usda", thumbnail=False)
+    stage = Usd.Stage.Open(str(tmp_path / "f.usda"))
+    protos = stage.GetPrimAtPath("/Forest/Trees/Prototypes").GetChildren()
+    assert protos and all(p.GetVariantSet("lod").GetVariantSelection() == "proxy" for p in protos)
+    tris, leaves = _composed_counts(stage)
+    assert leaves == 0 and tris <= 2 * 1000 + 2

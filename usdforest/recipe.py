@@ -196,6 +196,7 @@ FOREST_KEYS = {
     "colliders",
     "physics_scene",
     "origin",
+    "lod",
 }
 DEFAULT_MAX_TREES = 2_000_000
 
@@ -233,6 +234,7 @@ class Recipe:
     physics_scene: bool = False
     ground: dict | None = None  # {"kind": "plane", "margin": m, "color": (r, g, b)}
     origin: str = "corner"  # "corner": recipe coordinates; "centre": the plot's centre at 0, 0
+    lod: str = "full"  # the tree assets' lod variant the forest selects: full, medium, proxy
 
     @property
     def species_names(self) -> tuple[str, ...]:
@@ -439,6 +441,9 @@ def parse_recipe(
         origin = coerce(forest.get("origin", "corner"), str, "forest.origin")
         if origin not in ("corner", "centre"):
             raise RecipeError(f"forest.origin: {origin!r} is not corner or centre")
+        lod = coerce(forest.get("lod", "full"), str, "forest.lod")
+        if lod not in ("full", "medium", "proxy"):
+            raise RecipeError(f"forest.lod: {lod!r} is not one of full, medium, proxy")
         names = tuple(n for n, _ in mix)
         if "sites" in data:
             if "intensity" in data:
@@ -470,6 +475,7 @@ def parse_recipe(
         physics_scene,
         ground,
         origin,
+        lod,
     )
     try:
         expected = recipe.expected_trees()

@@ -97,8 +97,11 @@ def yaw_quaternions(yaw_deg: np.ndarray) -> np.ndarray:
     return q
 
 
-def instancer_layer(sites: Sites, build: ForestBuild, tree_assets: list[str]) -> Sdf.Layer:
-    """``/Forest/Trees`` PointInstancer over the sites, one prototype per tree asset."""
+def instancer_layer(
+    sites: Sites, build: ForestBuild, tree_assets: list[str], lod: str = "full"
+) -> Sdf.Layer:
+    """``/Forest/Trees`` PointInstancer over the sites, one prototype per tree asset, each
+    selecting the tree's ``lod`` variant (switch it on a prototype without rebuilding)."""
     layer = new_layer("Forest", comment="usdforest forest instances")
     n = len(sites)
     with Sdf.ChangeBlock():
@@ -112,6 +115,7 @@ def instancer_layer(sites: Sites, build: ForestBuild, tree_assets: list[str]) ->
         for (species, variant), asset in zip(build.prototypes, tree_assets, strict=True):
             p = prim(protos, prototype_name(species, variant), "Xform")
             p.referenceList.prependedItems = [Sdf.Reference(asset)]
+            p.variantSelections["lod"] = lod
             targets.append(p.path)
         r = Sdf.RelationshipSpec(trees, "prototypes", custom=False)
         r.targetPathList.explicitItems = targets
@@ -289,7 +293,9 @@ def write_forest(
             tree_assets.append(f"./trees/{stem}.usdc")
         tick("writing trees", len(prototypes), len(prototypes))
         tick("writing instances", 0, 1)
-        save_layer(instancer_layer(sites, build, tree_assets), staged / "instances.usdc")
+        save_layer(
+            instancer_layer(sites, build, tree_assets, recipe.lod), staged / "instances.usdc"
+        )
         sublayers = [f"./{assets.name}/instances.usdc"]
         if recipe.colliders != "none":
             caps, names = instance_capsules(

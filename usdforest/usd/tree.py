@@ -147,14 +147,28 @@ def gf_rotation_rows(q: np.ndarray) -> np.ndarray:
 
 def leaf_instance_extent(p: Placement, infos: Mapping[str, TemplateInfo]) -> np.ndarray:
     """Extent of the leaf PointInstancer in the tree's space."""
-    if p.n_leaves == 0:
+    return instances_extent(
+        p.leaf_position, p.leaf_orient, p.leaf_scale, p.leaf_proto, p.leaf_templates, infos
+    )
+
+
+def instances_extent(
+    position: np.ndarray,
+    orient: np.ndarray,
+    scale: np.ndarray,
+    proto: np.ndarray,
+    templates: tuple[str, ...],
+    infos: Mapping[str, TemplateInfo],
+) -> np.ndarray:
+    """Extent of instances of template boxes (orientations x, y, z, w; per-axis scales)."""
+    if len(position) == 0:
         return np.zeros((2, 3))
     # from the values as stored (quath orientations, float3 positions and scales), so the
     # extent contains what a reader computes from them
-    rows = gf_rotation_rows(p.leaf_orient.astype(np.float16).astype(np.float64))
-    corners = np.stack([_corners(infos[t].extent) for t in p.leaf_templates])[p.leaf_proto]
-    scale = p.leaf_scale.astype(np.float32).astype(np.float64)
-    pos = p.leaf_position.astype(np.float32).astype(np.float64)
+    rows = gf_rotation_rows(orient.astype(np.float16).astype(np.float64))
+    corners = np.stack([_corners(infos[t].extent) for t in templates])[proto]
+    scale = scale.astype(np.float32).astype(np.float64)
+    pos = position.astype(np.float32).astype(np.float64)
     pts = np.einsum("mcj,mjk->mck", corners * scale[:, None, :], rows) + pos[:, None]
     flat = pts.reshape(-1, 3)
     return np.stack([flat.min(axis=0), flat.max(axis=0)])
@@ -275,37 +289,125 @@ def tree_layer(
 
         if build.colliders is not None:
             add_colliders(root, build.colliders)
-        leaves = prim(root, "Leaves", "PointInstancer")
-        bind_material(leaves, leaf_mat, stronger=True)
-        semantic_label(leaves, "leaf")
-        protos = prim(leaves, "Prototypes", "Scope")
-        targets = []
-        for k, name in enumerate(p.leaf_templates):
-            proto = prim(protos, "Leaf" if k == 0 else f"Leaf_{k}", "Xform")
-            _reference(proto, template_assets[name])
-            targets.append(proto.path)
-        r = Sdf.RelationshipSpec(leaves, "prototypes", custom=False)
-        r.targetPathList.explicitItems = targets
-        n = p.n_leaves
-        attr(leaves, "positions", T.Point3fArray, vec3f(p.leaf_position))
-        attr(
-            leaves,
-            "orientations",
-            T.QuathArray,
-            Vt.QuathArray.FromNumpy(np.ascontiguousarray(p.leaf_orient, dtype=np.float16)),
+        leaves = _author_leaves(
+            root,
+            "Leaves",
+            (p.leaf_position, p.leaf_orient, p.leaf_scale, p.leaf_proto),
+            p.leaf_templates,
+            template_assets,
+            leaf_mat,
+            build.templates,
         )
-        attr(leaves, "scales", T.Float3Array, vec3f(p.leaf_scale))
-        attr(
-            leaves, "protoIndices", T.IntArray, Vt.IntArray.FromNumpy(p.leaf_proto.astype(np.int32))
-        )
-        attr(leaves, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(np.arange(n, dtype=np.int64)))
-        attr(
-            leaves,
-            "extent",
-            T.Float3Array,
-            vec3f(leaf_instance_extent(p, build.templates)),
-        )
+        _author_lod(root, build, template_assets, bark, leaf_mat, leaves is not None)
     return layer
+
+
+LOD_LEVELS = ("full", "medium", "proxy")
+
+
+def _author_leaves(
+    parent: Sdf.PrimSpec,
+    name: str,
+    arrays: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    templates: tuple[str, ...],
+    template_assets: Mapping[str, str],
+    material: Sdf.Path,
+    infos: Mapping[str, TemplateInfo],
+) -> Sdf.PrimSpec:
+    """A leaf PointInstancer (positions, quath orientations, scales, protoIndices, ids,
+    extent) with one prototype per leaf template, bound to ``material``."""
+    position, orient, scale, proto = arrays
+    leaves = prim(parent, name, "PointInstancer")
+    bind_material(leaves, material, stronger=True)
+    semantic_label(leaves, "leaf")
+    protos = prim(leaves, "Prototypes", "Scope")
+    targets = []
+    for k, t in enumerate(templates):
+        spec = prim(protos, "Leaf" if k == 0 else f"Leaf_{k}", "Xform")
+        _reference(spec, template_assets[t])
+        targets.append(spec.path.StripAllVariantSelections())
+    r = Sdf.RelationshipSpec(leaves, "prototypes", custom=False)
+    r.targetPathList.explicitItems = targets
+    n = len(position)
+    attr(leaves, "positions", T.Point3fArray, vec3f(position))
+    attr(
+        leaves,
+        "orientations",
+        T.QuathArray,
+        Vt.QuathArray.FromNumpy(np.ascontiguousarray(orient, dtype=np.float16)),
+    )
+    attr(leaves, "scales", T.Float3Array, vec3f(scale))
+    attr(leaves, "protoIndices", T.IntArray, Vt.IntArray.FromNumpy(proto.astype(np.int32)))
+    attr(leaves, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(np.arange(n, dtype=np.int64)))
+    attr(
+        leaves,
+        "extent",
+        T.Float3Array,
+        vec3f(instances_extent(position, orient, scale, proto, templates, infos)),
+    )
+    return leaves
+
+
+def _mesh(parent: Sdf.PrimSpec, name: str, v: np.ndarray, tri: np.ndarray, material, label):
+    from ..cad import vertex_normals
+
+    mesh = prim(parent, name, "Mesh")
+    attr(mesh, "points", T.Point3fArray, vec3f(v))
+    attr(
+        mesh, "faceVertexCounts", T.IntArray, Vt.IntArray.FromNumpy(np.full(len(tri), 3, np.int32))
+    )
+    attr(mesh, "faceVertexIndices", T.IntArray, Vt.IntArray.FromNumpy(tri.astype(np.int32).ravel()))
+    attr(mesh, "normals", T.Normal3fArray, vec3f(vertex_normals(v, tri)), interpolation="vertex")
+    attr(mesh, "extent", T.Float3Array, vec3f(np.stack([v.min(axis=0), v.max(axis=0)])))
+    attr(mesh, "subdivisionScheme", T.Token, "none", uniform=True)
+    bind_material(mesh, material)
+    semantic_label(mesh, label)
+    return mesh
+
+
+def _author_lod(
+    root: Sdf.PrimSpec,
+    build: TreeBuild,
+    template_assets: Mapping[str, str],
+    bark: Sdf.Path,
+    leaf_mat: Sdf.Path,
+    has_leaves: bool,
+) -> None:
+    """The ``lod`` variant set on ``/Tree``: ``full`` (as authored), ``medium`` (the leaves
+    merged into clusters of 8, same leaf area) and ``proxy`` (a stem prism and a crown hull,
+    a few hundred triangles). Selected ``full``; a forest picks its level per prototype."""
+    from ..proxy import crown_hull, leaf_clusters, proxy_points, stem_prism
+
+    p = build.placement
+    vset = Sdf.VariantSetSpec(root, "lod")
+    variants = {name: Sdf.VariantSpec(vset, name) for name in LOD_LEVELS}
+    root.variantSetNameList.prependedItems = ["lod"]
+    root.variantSelections["lod"] = "full"
+
+    medium = variants["medium"].primSpec
+    if has_leaves and p.n_leaves:
+        prim(medium, "Leaves", "", Sdf.SpecifierOver).active = False
+        c = leaf_clusters(p)
+        _author_leaves(
+            medium,
+            "LeafClusters",
+            (c["position"], c["orient"], c["scale"], c["proto"]),
+            p.leaf_templates,
+            template_assets,
+            leaf_mat,
+            build.templates,
+        )
+
+    proxy = variants["proxy"].primSpec
+    for name in ("Trunk", "Branches", "Leaves"):
+        prim(proxy, name, "", Sdf.SpecifierOver).active = False
+    shell = prim(proxy, "Proxy", "Xform")
+    trunk = int(np.flatnonzero((p.order == 0) & (p.parent < 0))[0])
+    v, tri = stem_prism(p.translate[trunk], p.tip[trunk], float(p.radius[trunk]))
+    _mesh(shell, "Stem", v, tri, bark, "trunk")
+    hull = crown_hull(proxy_points(p))
+    if hull is not None:
+        _mesh(shell, "Crown", hull[0], hull[1], leaf_mat, "leaf" if p.n_leaves else "branch")
 
 
 TREE_PAYLOAD = "tree.usdc"  # a tree written as OUT.usda keeps its data in OUT_assets/tree.usdc
