@@ -8,6 +8,9 @@ STAMP  := $(VENV)/.installed
 # importer pins usd-core. Optional: without it those tests skip and say why.
 PHYS       ?= .venv-physics
 PHYS_STAMP := $(PHYS)/.installed
+# NVIDIA's asset validator (usd-validation-nvidia), also in its own venv for the same reason
+CHECK       ?= .venv-validate
+CHECK_STAMP := $(CHECK)/.installed
 
 .PHONY: forest test lint bench figures templates clean
 
@@ -25,8 +28,14 @@ $(PHYS_STAMP):
 	-test -x $(PHYS)/bin/python || $(PYTHON) -m venv $(PHYS)
 	-$(PHYS)/bin/python -m pip install --quiet 'newton[importers]>=1.8' && touch $(PHYS_STAMP)
 
-test: $(STAMP) $(PHYS_STAMP)
-	USDFOREST_PHYSICS_PYTHON=$(abspath $(PHYS))/bin/python $(BIN)/python -m pytest -q
+$(CHECK_STAMP):
+	-test -x $(CHECK)/bin/python || $(PYTHON) -m venv $(CHECK)
+	-$(CHECK)/bin/python -m pip install --quiet 'usd-validation-nvidia>=1.22' usd-core && touch $(CHECK_STAMP)
+
+test: $(STAMP) $(PHYS_STAMP) $(CHECK_STAMP)
+	USDFOREST_PHYSICS_PYTHON=$(abspath $(PHYS))/bin/python \
+	USDFOREST_NVIDIA_VALIDATE=$(abspath $(CHECK))/bin/nvidia_usd_validate \
+	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)
 	$(BIN)/ruff check usdforest tests benchmarks templates docs
@@ -42,4 +51,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/run.py
 
 clean:
-	rm -rf $(VENV) $(PHYS) build *.egg-info .pytest_cache forest.usda forest_assets
+	rm -rf $(VENV) $(PHYS) $(CHECK) build *.egg-info .pytest_cache forest.usda forest_assets

@@ -142,7 +142,9 @@ def needle_fascicle() -> trimesh.Trimesh:
         s = np.linspace(0.0, 1.0, 3)
         centre = np.stack(
             [
-                np.sin(a) * 0.07 * s + 0.004 * sign * s**2,
+                # the two needles start 0.8 mm apart inside the sheath: coincident bases
+                # would fuse into non-manifold vertices and edges
+                0.0004 * sign + np.sin(a) * 0.07 * s + 0.004 * sign * s**2,
                 np.zeros_like(s),
                 0.004 + np.cos(a) * 0.07 * s,
             ],

@@ -58,6 +58,7 @@ def template_layer(part: TemplatePart) -> Sdf.Layer:
     with Sdf.ChangeBlock():
         root = prim(layer, "Template", "Xform")
         root.kind = "component"
+        root.assetInfo = {"name": part.name}
         root.customData = {
             "usdforest": {
                 "part": part.part,

@@ -1,0 +1,50 @@
+"""NVIDIA's asset validator (usd-validation-nvidia, its CLI) reports 0 failures and 0 warnings
+on what ``tree`` and ``build`` write. It lives in its own venv (``make test`` installs it in
+``.venv-validate``); without it these tests skip and say so."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from usdforest.recipe import default_recipe_path, parse_recipe, read_recipe
+from usdforest.species import get_species
+from usdforest.usd.forest import write_forest
+from usdforest.usd.tree import write_tree
+
+
+def _validator() -> str:
+    exe = os.environ.get("USDFOREST_NVIDIA_VALIDATE", "")
+    if not exe or not Path(exe).exists():
+        pytest.skip("usd-validation-nvidia is not installed (make test puts it in .venv-validate)")
+    return exe
+
+
+def _check(exe: str, stage: Path) -> None:
+    r = subprocess.run([exe, str(stage)], capture_output=True, text=True, check=False, timeout=1200)
+    text = r.stdout + r.stderr
+    assert r.returncode == 0 and "No issues found" in text, text[-3000:]
+
+
+@pytest.mark.parametrize("species", ["pine", "broadleaf", "paper-rule-2"])
+def test_trees_pass_nvidias_validator(tmp_path, species):
+    exe = _validator()
+    out = tmp_path / "t.usda"
+    write_tree(get_species(species), out, seed=2, colliders="wood")
+    _check(exe, out)
+
+
+def test_a_forest_with_ground_colliders_and_physics_scene_passes(tmp_path):
+    exe = _validator()
+    base = read_recipe(default_recipe_path().parent / "paper-two-tree-stand.toml")
+    data = dict(
+        base.data,
+        ground={"kind": "plane", "margin": 2.0},
+        forest={**base.data["forest"], "physics_scene": True, "lod": "medium"},
+    )
+    out = tmp_path / "f.usda"
+    write_forest(parse_recipe(data, base.base, base.source), out)
+    _check(exe, out)
