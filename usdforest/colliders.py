@@ -31,15 +31,6 @@ class Capsules:
     def __len__(self) -> int:
         return len(self.names)
 
-    def transformed(self, rotation: np.ndarray, scale: float, offset: np.ndarray) -> Capsules:
-        """The capsules moved by ``p -> rotation @ (scale * p) + offset`` (column vectors)."""
-        return Capsules(
-            self.names,
-            (scale * self.base) @ rotation.T + offset,
-            (scale * self.tip) @ rotation.T + offset,
-            self.radius * scale,
-        )
-
 
 def tree_capsules(p: Placement, mode: str = "trunk") -> Capsules:
     """The colliders of one placed tree: ``trunk`` (the trunk's first run), ``wood`` (also

@@ -104,8 +104,7 @@ def structure_findings(stage: Usd.Stage) -> list[Finding]:
     are left to the project's ``finite`` rule)."""
     return [
         Finding("usdforest:structure", "error", str(where), msg)
-        for where, msg in structural_problems(stage)
-        if "NaN" not in msg
+        for where, msg in structural_problems(stage, finite=False)
     ]
 
 

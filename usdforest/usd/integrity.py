@@ -32,14 +32,14 @@ def _array(attr: Usd.Attribute) -> np.ndarray | None:
     return None if value is None else np.asarray(value)
 
 
-def _mesh(prim: Usd.Prim) -> list[str]:
+def _mesh(prim: Usd.Prim, finite: bool) -> list[str]:
     mesh = UsdGeom.Mesh(prim)
     pts = _array(mesh.GetPointsAttr())
     counts = _array(mesh.GetFaceVertexCountsAttr())
     idx = _array(mesh.GetFaceVertexIndicesAttr())
     out = []
     n_pts = 0 if pts is None else len(pts)
-    if pts is not None and n_pts and not np.all(np.isfinite(pts)):
+    if finite and pts is not None and n_pts and not np.all(np.isfinite(pts)):
         out.append("points contain NaN or infinity")
     if counts is not None and len(counts):
         if np.any(counts < 3):
@@ -53,7 +53,7 @@ def _mesh(prim: Usd.Prim) -> list[str]:
     return out
 
 
-def _instancer(prim: Usd.Prim) -> list[str]:
+def _instancer(prim: Usd.Prim, finite: bool) -> list[str]:
     pi = UsdGeom.PointInstancer(prim)
     out = []
     targets = pi.GetPrototypesRel().GetTargets()
@@ -80,19 +80,20 @@ def _instancer(prim: Usd.Prim) -> list[str]:
             continue
         if len(a) != n:
             out.append(f"{name} has {len(a)} entries for {n} instances (protoIndices)")
-        elif name == "positions" and not np.all(np.isfinite(a)):
+        elif finite and name == "positions" and not np.all(np.isfinite(a)):
             out.append("positions contain NaN or infinity")
     return out
 
 
-def structural_problems(stage: Usd.Stage) -> list[tuple[Sdf.Path, str]]:
-    """``(prim path, message)`` for every structural problem of the stage's geometry."""
+def structural_problems(stage: Usd.Stage, *, finite: bool = True) -> list[tuple[Sdf.Path, str]]:
+    """``(prim path, message)`` for every structural problem of the stage's geometry;
+    ``finite=False`` leaves NaN/infinite points and positions to another check."""
     out = []
     for prim in _prims(stage):
         if prim.IsA(UsdGeom.Mesh):
-            out += [(prim.GetPath(), m) for m in _mesh(prim)]
+            out += [(prim.GetPath(), m) for m in _mesh(prim, finite)]
         elif prim.IsA(UsdGeom.PointInstancer):
-            out += [(prim.GetPath(), m) for m in _instancer(prim)]
+            out += [(prim.GetPath(), m) for m in _instancer(prim, finite)]
     return out
 
 

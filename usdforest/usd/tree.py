@@ -289,7 +289,7 @@ def tree_layer(
 
         if build.colliders is not None:
             add_colliders(root, build.colliders)
-        leaves = _author_leaves(
+        _author_leaves(
             root,
             "Leaves",
             (p.leaf_position, p.leaf_orient, p.leaf_scale, p.leaf_proto),
@@ -298,7 +298,7 @@ def tree_layer(
             leaf_mat,
             build.templates,
         )
-        _author_lod(root, build, template_assets, bark, leaf_mat, leaves is not None)
+        _author_lod(root, build, template_assets, bark, leaf_mat)
     return layer
 
 
@@ -371,7 +371,6 @@ def _author_lod(
     template_assets: Mapping[str, str],
     bark: Sdf.Path,
     leaf_mat: Sdf.Path,
-    has_leaves: bool,
 ) -> None:
     """The ``lod`` variant set on ``/Tree``: ``full`` (as authored), ``medium`` (the leaves
     merged into clusters of 8, same leaf area) and ``proxy`` (a stem prism and a crown hull,
@@ -385,7 +384,7 @@ def _author_lod(
     root.variantSelections["lod"] = "full"
 
     medium = variants["medium"].primSpec
-    if has_leaves and p.n_leaves:
+    if p.n_leaves:
         prim(medium, "Leaves", "", Sdf.SpecifierOver).active = False
         c = leaf_clusters(p)
         _author_leaves(
