@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 from pxr import Sdf, Vt
 
-from .layers import T, attr, bind_material, ints, preview_material, prim, semantic_label, vec3f
+from .layers import T, attr, bind_material, preview_material, prim, semantic_label, triangle_mesh
 
 GROUND_COLOR = (0.36, 0.30, 0.22)
 
@@ -32,19 +32,9 @@ def add_ground(
     ground = prim(root, "Ground", "Xform")
     looks = prim(ground, "Looks", "Scope")
     material = preview_material(looks, "Ground", color, roughness=0.95)
-    mesh = prim(ground, "Mesh", "Mesh")
-    attr(mesh, "points", T.Point3fArray, vec3f(pts))
-    attr(mesh, "faceVertexCounts", T.IntArray, ints(np.array([3, 3])))
-    attr(mesh, "faceVertexIndices", T.IntArray, ints(np.array([0, 1, 2, 0, 2, 3])))
-    attr(
-        mesh,
-        "normals",
-        T.Normal3fArray,
-        vec3f(np.tile([0.0, 0.0, 1.0], (4, 1))),
-        interpolation="vertex",
+    mesh = triangle_mesh(
+        ground, "Mesh", pts, np.array([[0, 1, 2], [0, 2, 3]]), np.tile([0.0, 0.0, 1.0], (4, 1))
     )
-    attr(mesh, "extent", T.Float3Array, vec3f(np.array([pts.min(axis=0), pts.max(axis=0)])))
-    attr(mesh, "subdivisionScheme", T.Token, "none", uniform=True)
     attr(
         mesh,
         "primvars:displayColor",

@@ -178,6 +178,21 @@ def extent_of(points: np.ndarray) -> Vt.Vec3fArray:
     return vec3f(np.stack([pts.min(axis=0), pts.max(axis=0)]))
 
 
+def triangle_mesh(
+    parent: Sdf.PrimSpec, name: str, points: np.ndarray, triangles: np.ndarray, normals: np.ndarray
+) -> Sdf.PrimSpec:
+    """``<parent>/<name>``: a Mesh of triangles with vertex normals, its extent and no
+    subdivision (the caller binds a material and adds labels)."""
+    mesh = prim(parent, name, "Mesh")
+    attr(mesh, "points", T.Point3fArray, vec3f(points))
+    attr(mesh, "faceVertexCounts", T.IntArray, ints(np.full(len(triangles), 3)))
+    attr(mesh, "faceVertexIndices", T.IntArray, ints(np.asarray(triangles).ravel()))
+    attr(mesh, "normals", T.Normal3fArray, vec3f(normals), interpolation="vertex")
+    attr(mesh, "extent", T.Float3Array, extent_of(points))
+    attr(mesh, "subdivisionScheme", T.Token, "none", uniform=True)
+    return mesh
+
+
 def semantic_label(spec: Sdf.PrimSpec, label: str | Sequence[str]) -> None:
     """Apply ``SemanticsLabelsAPI:class`` with ``semantics:labels:class = [label, ...]``."""
     labels = [label] if isinstance(label, str) else list(label)

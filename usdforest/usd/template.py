@@ -16,13 +16,12 @@ from .layers import (
     attr,
     bind_material,
     extent_of,
-    ints,
     new_layer,
     preview_material,
     prim,
     save_layer,
     semantic_label,
-    vec3f,
+    triangle_mesh,
 )
 
 SEMANTIC_CLASS = {"trunk": "trunk", "branch": "branch", "twig": "branch", "leaf": "leaf"}
@@ -80,19 +79,7 @@ def template_layer(part: TemplatePart) -> Sdf.Layer:
             part.color,
             roughness=0.6 if part.part == "leaf" else 0.9,
         )
-        mesh = prim(root, "Mesh", "Mesh")
-        attr(mesh, "points", T.Point3fArray, vec3f(points))
-        attr(mesh, "faceVertexCounts", T.IntArray, ints(np.full(len(part.faces), 3)))
-        attr(mesh, "faceVertexIndices", T.IntArray, ints(part.faces.ravel()))
-        attr(
-            mesh,
-            "normals",
-            T.Normal3fArray,
-            vec3f(stable_points(part.normals)),
-            interpolation="vertex",
-        )
-        attr(mesh, "extent", T.Float3Array, extent)
-        attr(mesh, "subdivisionScheme", T.Token, "none", uniform=True)
+        mesh = triangle_mesh(root, "Mesh", points, part.faces, stable_points(part.normals))
         attr(mesh, "doubleSided", T.Bool, part.part == "leaf", uniform=True)
         attr(
             mesh,

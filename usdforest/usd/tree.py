@@ -35,6 +35,7 @@ from .layers import (
     prim,
     save_layer,
     semantic_label,
+    triangle_mesh,
     vec3f,
 )
 from .physics import add_colliders
@@ -351,15 +352,7 @@ def _author_leaves(
 def _mesh(parent: Sdf.PrimSpec, name: str, v: np.ndarray, tri: np.ndarray, material, label):
     from ..cad import vertex_normals
 
-    mesh = prim(parent, name, "Mesh")
-    attr(mesh, "points", T.Point3fArray, vec3f(v))
-    attr(
-        mesh, "faceVertexCounts", T.IntArray, Vt.IntArray.FromNumpy(np.full(len(tri), 3, np.int32))
-    )
-    attr(mesh, "faceVertexIndices", T.IntArray, Vt.IntArray.FromNumpy(tri.astype(np.int32).ravel()))
-    attr(mesh, "normals", T.Normal3fArray, vec3f(vertex_normals(v, tri)), interpolation="vertex")
-    attr(mesh, "extent", T.Float3Array, vec3f(np.stack([v.min(axis=0), v.max(axis=0)])))
-    attr(mesh, "subdivisionScheme", T.Token, "none", uniform=True)
+    mesh = triangle_mesh(parent, name, v, tri, vertex_normals(v, tri))
     bind_material(mesh, material)
     semantic_label(mesh, label)
     return mesh
