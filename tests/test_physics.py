@@ -22,6 +22,15 @@ PIPELINES = default_recipe_path().parent
 PROBE = Path(__file__).with_name("physics_probe.py")
 
 
+def _two_trees(**forest):
+    """The paper's two-tree stand with ``[forest]`` settings added."""
+    from usdforest.recipe import parse_recipe
+
+    base = read_recipe(PIPELINES / "paper-two-tree-stand.toml")
+    data = dict(base.data, forest={**base.data.get("forest", {}), **forest})
+    return parse_recipe(data, base.base, base.source)
+
+
 def _capsules(stage: Usd.Stage) -> list[Usd.Prim]:
     return [p for p in stage.Traverse() if p.IsA(UsdGeom.Capsule)]
 
@@ -72,12 +81,7 @@ def test_forest_collision_layer_and_optional_physics_scene(tmp_path):
         c = np.asarray(UsdGeom.Xformable(p).ComputeLocalToWorldTransform(0))[3, :3]
         assert np.hypot(c[0] - float(row["x"]), c[1] - float(row["y"])) < 0.05
     assert not [p for p in stage.Traverse() if p.IsA(UsdPhysics.Scene)]  # not imposed
-    asked = read_recipe(PIPELINES / "paper-two-tree-stand.toml")
-    data = dict(asked.data, forest={**asked.data.get("forest", {}), "physics_scene": True})
-    from usdforest.recipe import parse_recipe
-
-    with_scene = parse_recipe(data, asked.base, asked.source)
-    write_forest(with_scene, tmp_path / "g.usda", thumbnail=False)
+    write_forest(_two_trees(physics_scene=True), tmp_path / "g.usda", thumbnail=False)
     s = Usd.Stage.Open(str(tmp_path / "g.usda"))
     assert [p.GetPath() for p in s.Traverse() if p.IsA(UsdPhysics.Scene)] == [
         "/Forest/PhysicsScene"
@@ -162,13 +166,8 @@ def test_ground_settings_are_checked(tmp_path):
 
 
 def test_centred_origin_and_asset_info(tmp_path):
-    from usdforest.recipe import parse_recipe
 
-    base = read_recipe(PIPELINES / "paper-two-tree-stand.toml")
-    centred = parse_recipe(
-        dict(base.data, forest={**base.data["forest"], "origin": "centre"}), base.base, base.source
-    )
-    write_forest(centred, tmp_path / "f.usda", thumbnail=False)
+    write_forest(_two_trees(origin="centre"), tmp_path / "f.usda", thumbnail=False)
     stage = Usd.Stage.Open(str(tmp_path / "f.usda"))
     root = stage.GetPrimAtPath("/Forest")
     assert Usd.ModelAPI(root).GetAssetName() == "f"
@@ -247,13 +246,8 @@ def test_lod_variants_switch_without_rebuilding(tmp_path):
 
 
 def test_a_forest_selects_its_level_per_prototype(tmp_path):
-    from usdforest.recipe import parse_recipe
 
-    base = read_recipe(PIPELINES / "paper-two-tree-stand.toml")
-    proxy = parse_recipe(
-        dict(base.data, forest={**base.data["forest"], "lod": "proxy"}), base.base, base.source
-    )
-    write_forest(proxy, tmp_path / "f.usda", thumbnail=False)
+    write_forest(_two_trees(lod="proxy"), tmp_path / "f.usda", thumbnail=False)
     stage = Usd.Stage.Open(str(tmp_path / "f.usda"))
     protos = stage.GetPrimAtPath("/Forest/Trees/Prototypes").GetChildren()
     assert protos and all(p.GetVariantSet("lod").GetVariantSelection() == "proxy" for p in protos)
