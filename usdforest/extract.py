@@ -252,15 +252,11 @@ def _wood_parts(wood: CADMesh, trunk_label: int, label: np.ndarray, height: floa
     """Trunk first, then every branch after its parent."""
     from scipy.spatial import cKDTree
 
-    from .tubes import split_tubes
+    from .tubes import mesh_edges, split_tubes
 
     n_comp = int(label.max()) + 1
     comps = [wood.subset(label == c) for c in range(n_comp)]
     trees = [cKDTree(m.vertices) for m in comps]
-
-    def radius_of(m: CADMesh) -> float:
-        _, axes = principal_axes(m.vertices, m.faces)
-        return max(_end_radius(m.vertices, axes[0], False), _end_radius(m.vertices, axes[0], True))
 
     # grow the hierarchy from the trunk (Prim's algorithm): repeatedly attach the component
     # whose end comes nearest to the wood attached so far; that end is its base
@@ -269,9 +265,11 @@ def _wood_parts(wood: CADMesh, trunk_label: int, label: np.ndarray, height: floa
     tm = comps[trunk_label]
     base_ring[trunk_label] = tm.vertices[:, 2] <= tm.vertices[:, 2].min() + 0.02 * height
     ends: dict[int, list[np.ndarray]] = {}
+    radius = np.zeros(n_comp)  # each component's thicker end, from one principal-axis fit
     for c in range(n_comp):
         m = comps[c]
         _, axes = principal_axes(m.vertices, m.faces)
+        radius[c] = max(_end_radius(m.vertices, axes[0], end) for end in (False, True))
         t = (m.vertices - m.vertices.mean(axis=0)) @ axes[0]
         ends[c] = [t <= t.min() + 0.05 * np.ptp(t), t >= t.max() - 0.05 * np.ptp(t)]
     # dist[c][o] = (distance, end) from component c's nearer end to component o
@@ -294,7 +292,7 @@ def _wood_parts(wood: CADMesh, trunk_label: int, label: np.ndarray, height: floa
         )
         # of the wood it nearly touches, the lowest order wins (limbs meeting at the top of
         # the trunk all grow from the trunk, not from each other)
-        tol = d + 0.5 * radius_of(comps[c])
+        tol = d + 0.5 * radius[c]
         _, _, o = min((depth[o], near[c, o][0], o) for o in order_of if near[c, o][0] <= tol)
         base_ring[c] = ends[c][near[c, o][1]]
         attach[c] = o
@@ -306,9 +304,9 @@ def _wood_parts(wood: CADMesh, trunk_label: int, label: np.ndarray, height: floa
     for c in order_of:
         m = comps[c]
         # bands at least as wide as the mesh's rings are apart, so a ring is one piece
-        e = np.sort(np.concatenate([m.faces[:, [0, 1]], m.faces[:, [1, 2]], m.faces[:, [2, 0]]]), 1)
+        e = mesh_edges(m.faces)
         edge = np.linalg.norm(m.vertices[e[:, 0]] - m.vertices[e[:, 1]], axis=1)
-        band = max(radius_of(m), float(np.quantile(edge, 0.75)), 0.01 * height)
+        band = max(radius[c], float(np.quantile(edge, 0.75)), 0.01 * height)
         tubes = split_tubes(
             m.vertices,
             m.faces,

@@ -38,7 +38,8 @@ class TubePart:
         return self.centreline[-1]
 
 
-def _edges(faces: np.ndarray) -> np.ndarray:
+def mesh_edges(faces: np.ndarray) -> np.ndarray:
+    """``(k, 2)`` unique undirected edges of a triangle mesh (smaller index first)."""
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     return np.unique(np.sort(e, axis=1), axis=0)
 
@@ -83,7 +84,7 @@ def split_tubes(
 
     n = len(vertices)
     link = 2.0 * band if link is None else link
-    e = _edges(faces)
+    e = mesh_edges(faces)
     w = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
     graph = coo_matrix((w, (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
     dist = dijkstra(graph, directed=False, indices=np.flatnonzero(root), min_only=True)
