@@ -11,6 +11,9 @@ PHYS_STAMP := $(PHYS)/.installed
 # NVIDIA's asset validator (usd-validation-nvidia), also in its own venv for the same reason
 CHECK       ?= .venv-validate
 CHECK_STAMP := $(CHECK)/.installed
+# Blender as a Python module (bpy), to import the forest as a Blender user does
+BLENDER       ?= .venv-blender
+BLENDER_STAMP := $(BLENDER)/.installed
 
 .PHONY: forest test lint bench figures templates clean
 
@@ -32,8 +35,13 @@ $(CHECK_STAMP):
 	-test -x $(CHECK)/bin/python || $(PYTHON) -m venv $(CHECK)
 	-$(CHECK)/bin/python -m pip install --quiet 'usd-validation-nvidia>=1.22' usd-core && touch $(CHECK_STAMP)
 
-test: $(STAMP) $(PHYS_STAMP) $(CHECK_STAMP)
+$(BLENDER_STAMP):
+	-test -x $(BLENDER)/bin/python || $(PYTHON) -m venv $(BLENDER)
+	-$(BLENDER)/bin/python -m pip install --quiet 'bpy>=4.2' && touch $(BLENDER_STAMP)
+
+test: $(STAMP) $(PHYS_STAMP) $(CHECK_STAMP) $(BLENDER_STAMP)
 	USDFOREST_PHYSICS_PYTHON=$(abspath $(PHYS))/bin/python \
+	USDFOREST_BLENDER_PYTHON=$(abspath $(BLENDER))/bin/python \
 	USDFOREST_NVIDIA_VALIDATE=$(abspath $(CHECK))/bin/nvidia_usd_validate \
 	$(BIN)/python -m pytest -q
 
@@ -51,4 +59,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/run.py
 
 clean:
-	rm -rf $(VENV) $(PHYS) $(CHECK) build *.egg-info .pytest_cache forest.usda forest_assets
+	rm -rf $(VENV) $(PHYS) $(CHECK) $(BLENDER) build *.egg-info .pytest_cache forest.usda forest_assets

@@ -71,16 +71,60 @@ def test_structure_model_hierarchy_and_materials(built, name):
     assert data["species"] == name and data["seed"] == b.grown.seed
     assert data["lsystem"]["leaves"] == b.placement.n_leaves
     assert list(tree.GetAttribute("semantics:labels:species").Get()) == [name]
-    # a branch's composed mesh is bound to the tree's bark, not the template's own material
-    some = next(iter(stage.GetPrimAtPath("/Tree/Branches").GetChildren()))
-    mesh = some.GetChild("Mesh")
-    assert mesh.IsInstanceProxy() and mesh.IsA(UsdGeom.Mesh)
-    mat, _ = UsdShade.MaterialBindingAPI(mesh).ComputeBoundMaterial()
-    assert mat.GetPath() == "/Tree/Looks/Bark"
+    g = b.grown.species.geometry
+    wood = [
+        stage.GetPrimAtPath("/Tree/Trunk"),
+        *stage.GetPrimAtPath("/Tree/Branches").GetChildren(),
+    ]
     leaves = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Tree/Leaves"))
-    proto_mesh = stage.GetPrimAtPath(leaves.GetPrototypesRel().GetTargets()[0]).GetChild("Mesh")
-    mat, _ = UsdShade.MaterialBindingAPI(proto_mesh).ComputeBoundMaterial()
-    assert mat.GetPath() == "/Tree/Looks/Leaf"
+    protos = [stage.GetPrimAtPath(t) for t in leaves.GetPrototypesRel().GetTargets()]
+    for parts, color, base in ((wood, g.bark_color, "bark"), (protos, g.leaf_color, "leaf_grass")):
+        for part in parts:
+            assert_tree_look(part, color, base)
+
+
+def assert_tree_look(part: Usd.Prim, color, base: str) -> None:
+    """The mesh under a wood prim or leaf prototype is bound, inside its instance, to a
+    material in the tree's colour that carries the SimReady non-visual base."""
+    mesh = part.GetChild("Mesh")
+    assert mesh.IsA(UsdGeom.Mesh)
+    mat, _ = UsdShade.MaterialBindingAPI(mesh).ComputeBoundMaterial()
+    assert mat.GetPath().HasPrefix(part.GetPath()), mat.GetPath()
+    shader = mat.GetPrim().GetChild("PreviewSurface")
+    np.testing.assert_allclose(shader.GetAttribute("inputs:diffuseColor").Get(), color, atol=1e-6)
+    np.testing.assert_allclose(
+        mesh.GetAttribute("primvars:displayColor").Get()[0], color, atol=1e-6
+    )
+    assert mat.GetPrim().GetAttribute("omni:simready:nonvisual:base").Get() == base
+    assert mat.GetPrim().GetAttribute("omni:simready:nonvisual:coating").Get() == "none"
+    assert list(mat.GetPrim().GetAttribute("omni:simready:nonvisual:attributes").Get()) == ["none"]
+
+
+def test_tree_colours_reach_inside_instances(tmp_path):
+    """Colours unlike any template's: every wood mesh and leaf prototype composes them, and
+    the wood instances of one template still share one prototype."""
+    sp = get_species("broadleaf")
+    sp = replace(
+        sp, geometry=replace(sp.geometry, bark_color=(0.9, 0.1, 0.2), leaf_color=(0.1, 0.2, 0.9))
+    )
+    out = tmp_path / "red.usda"
+    b = write_tree(sp, out, seed=2)
+    stage = Usd.Stage.Open(str(out))
+    wood = [
+        stage.GetPrimAtPath("/Tree/Trunk"),
+        *stage.GetPrimAtPath("/Tree/Branches").GetChildren(),
+    ]
+    for w in wood:
+        assert w.IsInstance()
+        assert_tree_look(w, (0.9, 0.1, 0.2), "bark")
+    leaves = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Tree/Leaves"))
+    for t in leaves.GetPrototypesRel().GetTargets():
+        assert_tree_look(stage.GetPrimAtPath(t), (0.1, 0.2, 0.9), "leaf_grass")
+    used = {b.placement.templates[i] for i in np.unique(b.placement.template)}
+    assert len(stage.GetPrototypes()) == len(used)
+    # the look classes are abstract: no reader traverses them as geometry
+    assert all(not p.IsAbstract() for p in stage.Traverse())
+    assert {p.GetName() for p in stage.GetPseudoRoot().GetAllChildren()} == {"Tree"}
 
 
 @pytest.mark.parametrize("name", TREES)

@@ -31,7 +31,7 @@ def add_ground(
     pts = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
     ground = prim(root, "Ground", "Xform")
     looks = prim(ground, "Looks", "Scope")
-    material = preview_material(looks, "Ground", color, roughness=0.95)
+    material = preview_material(looks, "Ground", color, nonvisual="dirt", roughness=0.95)
     mesh = triangle_mesh(
         ground, "Mesh", pts, np.array([[0, 1, 2], [0, 2, 3]]), np.tile([0.0, 0.0, 1.0], (4, 1))
     )

@@ -211,40 +211,46 @@ def class_labels(prim: Usd.Prim) -> list[str]:
     return list(v) if v else []
 
 
+# the SimReady non-visual material vocabulary that RTX lidar and radar read (base tokens)
+NONVISUAL_BASES = ("bark", "leaf_grass", "dead_leaf_grass", "wood", "dirt", "stone", "none")
+
+
 def preview_material(
     parent: Sdf.PrimSpec,
     name: str,
     color: Sequence[float],
     *,
+    nonvisual: str,
     roughness: float = 0.8,
-    opacity: float = 1.0,
 ) -> Sdf.Path:
-    """A Material with a UsdPreviewSurface shader; returns the material's path."""
+    """A Material with a UsdPreviewSurface shader; returns the material's path.
+
+    ``nonvisual`` is the SimReady non-visual base (``bark``, ``leaf_grass``, ``dirt``, ...),
+    authored as ``omni:simready:nonvisual:base`` with coating and attributes ``none``: the
+    material attributes NVIDIA's RTX lidar and radar models take their response from.
+    """
+    if nonvisual not in NONVISUAL_BASES:
+        raise ValueError(f"non-visual base {nonvisual!r}: expected one of {NONVISUAL_BASES}")
     mat = prim(parent, name, "Material")
+    attr(mat, "omni:simready:nonvisual:base", T.Token, nonvisual)
+    attr(mat, "omni:simready:nonvisual:coating", T.Token, "none")
+    attr(mat, "omni:simready:nonvisual:attributes", T.TokenArray, Vt.TokenArray(["none"]))
     shader = prim(mat, "PreviewSurface", "Shader")
     attr(shader, "info:id", T.Token, "UsdPreviewSurface", uniform=True)
     attr(shader, "inputs:diffuseColor", T.Color3f, tuple(float(c) for c in color))
     attr(shader, "inputs:roughness", T.Float, float(roughness))
     attr(shader, "inputs:metallic", T.Float, 0.0)
-    if opacity < 1.0:
-        attr(shader, "inputs:opacity", T.Float, float(opacity))
     out = attr(shader, "outputs:surface", T.Token)
     surf = attr(mat, "outputs:surface", T.Token)
     surf.connectionPathList.explicitItems = [out.path]
     return mat.path
 
 
-def bind_material(spec: Sdf.PrimSpec, material: Sdf.Path, *, stronger: bool = False) -> None:
-    """Apply MaterialBindingAPI and bind ``material``.
-
-    ``stronger`` sets ``bindMaterialAs = strongerThanDescendants``, so the binding wins over the
-    ones inside referenced templates.
-    """
+def bind_material(spec: Sdf.PrimSpec, material: Sdf.Path) -> None:
+    """Apply MaterialBindingAPI and bind ``material``."""
     existing = spec.GetInfo("apiSchemas") if spec.HasInfo("apiSchemas") else None
     items = list(existing.prependedItems) if existing else []
     if "MaterialBindingAPI" not in items:
         items.insert(0, "MaterialBindingAPI")
     spec.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=items))
-    r = rel(spec, "material:binding", [material])
-    if stronger:
-        r.SetInfo("bindMaterialAs", "strongerThanDescendants")
+    rel(spec, "material:binding", [material])

@@ -11,11 +11,13 @@ from pxr import Sdf, Usd, UsdGeom, Vt
 from ..cad import TemplatePart
 from ..errors import UsdForestError
 from ..placement import WoodShape, centreline_of
+from ..uvs import leaf_uvs, wood_uvs
 from .layers import (
     T,
     attr,
     bind_material,
     extent_of,
+    ints,
     new_layer,
     preview_material,
     prim,
@@ -77,10 +79,12 @@ def template_layer(part: TemplatePart) -> Sdf.Layer:
             looks,
             "Leaf" if part.part == "leaf" else "Bark",
             part.color,
+            nonvisual="leaf_grass" if part.part == "leaf" else "bark",
             roughness=0.6 if part.part == "leaf" else 0.9,
         )
         mesh = triangle_mesh(root, "Mesh", points, part.faces, stable_points(part.normals))
         attr(mesh, "doubleSided", T.Bool, part.part == "leaf", uniform=True)
+        _texture_coordinates(mesh, part.part, points, part.faces)
         attr(
             mesh,
             "primvars:displayColor",
@@ -91,6 +95,27 @@ def template_layer(part: TemplatePart) -> Sdf.Layer:
         bind_material(mesh, material)
         semantic_label(mesh, SEMANTIC_CLASS[part.part])
     return layer
+
+
+def _texture_coordinates(
+    mesh: Sdf.PrimSpec, part: str, points: np.ndarray, faces: np.ndarray
+) -> None:
+    """Indexed ``primvars:st`` (see :mod:`usdforest.uvs`) from the stored (rounded) points,
+    rounded like them: each distinct coordinate stored once, ``primvars:st:indices`` per
+    vertex (leaves) or per face corner (wood)."""
+    if part == "leaf":
+        st, interpolation = leaf_uvs(points), "vertex"
+    else:
+        st, interpolation = wood_uvs(points, faces), "faceVarying"
+    values, indices = np.unique(stable_points(st).astype(np.float32), axis=0, return_inverse=True)
+    attr(
+        mesh,
+        "primvars:st",
+        T.TexCoord2fArray,
+        Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(values)),
+        interpolation=interpolation,
+    )
+    attr(mesh, "primvars:st:indices", T.IntArray, ints(indices.ravel()))
 
 
 def _frame_doc(part: str) -> str:

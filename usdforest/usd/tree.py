@@ -3,10 +3,17 @@
 ::
 
     /Tree                     Xform, kind component, extentsHint, assetInfo, customData
-      /Looks/Bark, /Looks/Leaf  UsdPreviewSurface materials
+      /Looks/Bark, /Looks/Leaf  UsdPreviewSurface materials (the proxy level's meshes)
       /Trunk                  Xform -> trunk template (instanceable, kind subcomponent)
       /Branches/B_0000 ...    Xform -> branch or twig template; usdforest:order, length, ...
       /Leaves                 PointInstancer; /Leaves/Prototypes/Leaf -> leaf template
+    /_class_Bark, /_class_Leaf  classes that give a template's own material the tree's colour
+
+Each wood prim and leaf prototype references its look class before its template. The class
+overrides the template's ``Looks/<Bark|Leaf>/PreviewSurface`` colour and the mesh's display
+colour *inside* the instance, so every reader sees the tree's own colours, including those
+(Blender's importer) that take materials from instance prototypes and ignore bindings above
+them. The instances of one template in one tree still share one prototype.
 """
 
 from __future__ import annotations
@@ -210,9 +217,38 @@ def _xform_ops(
     )
 
 
-def _reference(spec: Sdf.PrimSpec, asset: str) -> None:
-    spec.referenceList.prependedItems = [Sdf.Reference(asset)]
+BARK_CLASS = "_class_Bark"
+LEAF_CLASS = "_class_Leaf"
+
+
+def _reference(spec: Sdf.PrimSpec, asset: str, look: str) -> None:
+    """Reference a template, with the tree's ``look`` class (stronger) before it."""
+    spec.referenceList.prependedItems = [
+        Sdf.Reference(primPath=Sdf.Path(f"/{look}")),
+        Sdf.Reference(asset),
+    ]
     spec.kind = "subcomponent"
+
+
+def _look_class(layer: Sdf.Layer, name: str, material: str, color) -> None:
+    """``class <name>``: the colour of a template's ``Looks/<material>`` and display colour."""
+    rgb = tuple(float(c) for c in color)
+    cls = prim(layer, name, "", Sdf.SpecifierClass)
+    shader = prim(
+        prim(prim(cls, "Looks", "", Sdf.SpecifierOver), material, "", Sdf.SpecifierOver),
+        "PreviewSurface",
+        "",
+        Sdf.SpecifierOver,
+    )
+    attr(shader, "inputs:diffuseColor", T.Color3f, rgb)
+    mesh = prim(cls, "Mesh", "", Sdf.SpecifierOver)
+    attr(
+        mesh,
+        "primvars:displayColor",
+        T.Color3fArray,
+        Vt.Vec3fArray([rgb]),
+        interpolation="constant",
+    )
 
 
 def tree_layer(
@@ -261,23 +297,25 @@ def tree_layer(
         semantic_label(root, "tree")
         _species_label(root, sp.name)
         looks = prim(root, "Looks", "Scope")
-        bark = preview_material(looks, "Bark", g.bark_color, roughness=0.9)
-        leaf_mat = preview_material(looks, "Leaf", g.leaf_color, roughness=0.6)
+        bark = preview_material(looks, "Bark", g.bark_color, nonvisual="bark", roughness=0.9)
+        leaf_mat = preview_material(
+            looks, "Leaf", g.leaf_color, nonvisual="leaf_grass", roughness=0.6
+        )
+        _look_class(layer, BARK_CLASS, "Bark", g.bark_color)
+        _look_class(layer, LEAF_CLASS, "Leaf", g.leaf_color)
 
         # wood prim i is /Tree/Trunk for the trunk's first run, else /Tree/Branches/B_<i>;
         # usdforest:parent holds that index of the prim a branch grows from
         trunk = int(np.flatnonzero((p.order == 0) & (p.parent < 0))[0])
         branches = prim(root, "Branches", "Xform")
-        bind_material(branches, bark, stronger=True)
         for i in range(p.n_wood):
             if i == trunk:
                 spec = prim(root, "Trunk", "Xform")
-                bind_material(spec, bark, stronger=True)
                 semantic_label(spec, "trunk")
             else:
                 spec = prim(branches, f"B_{i:04d}", "Xform")
                 semantic_label(spec, "branch")
-            _reference(spec, template_assets[p.templates[p.template[i]]])
+            _reference(spec, template_assets[p.templates[p.template[i]]], BARK_CLASS)
             spec.SetInfo("instanceable", True)
             _xform_ops(spec, p.translate[i], p.orient[i], p.scale[i], p.shear[i])
             attr(spec, "usdforest:order", T.Int, int(p.order[i]))
@@ -296,7 +334,6 @@ def tree_layer(
             (p.leaf_position, p.leaf_orient, p.leaf_scale, p.leaf_proto),
             p.leaf_templates,
             template_assets,
-            leaf_mat,
             build.templates,
         )
         _author_lod(root, build, template_assets, bark, leaf_mat)
@@ -312,20 +349,18 @@ def _author_leaves(
     arrays: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     templates: tuple[str, ...],
     template_assets: Mapping[str, str],
-    material: Sdf.Path,
     infos: Mapping[str, TemplateInfo],
 ) -> Sdf.PrimSpec:
     """A leaf PointInstancer (positions, quath orientations, scales, protoIndices, ids,
-    extent) with one prototype per leaf template, bound to ``material``."""
+    extent) with one prototype per leaf template, in the tree's leaf colour."""
     position, orient, scale, proto = arrays
     leaves = prim(parent, name, "PointInstancer")
-    bind_material(leaves, material, stronger=True)
     semantic_label(leaves, "leaf")
     protos = prim(leaves, "Prototypes", "Scope")
     targets = []
     for k, t in enumerate(templates):
         spec = prim(protos, "Leaf" if k == 0 else f"Leaf_{k}", "Xform")
-        _reference(spec, template_assets[t])
+        _reference(spec, template_assets[t], LEAF_CLASS)
         targets.append(spec.path.StripAllVariantSelections())
     r = Sdf.RelationshipSpec(leaves, "prototypes", custom=False)
     r.targetPathList.explicitItems = targets
@@ -386,7 +421,6 @@ def _author_lod(
             (c["position"], c["orient"], c["scale"], c["proto"]),
             p.leaf_templates,
             template_assets,
-            leaf_mat,
             build.templates,
         )
 

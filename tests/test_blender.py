@@ -1,0 +1,108 @@
+"""Forests and trees as Blender imports them (the ``bpy`` module, run in its own venv).
+
+``make test`` installs bpy into ``.venv-blender`` and points ``USDFOREST_BLENDER_PYTHON`` at
+it; without it these tests skip and say why. The probe reads only the stage.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pxr import Usd
+
+from usdforest.recipe import default_recipe_path, parse_recipe, read_recipe
+from usdforest.species import get_species
+from usdforest.usd.forest import write_forest
+from usdforest.usd.tree import write_tree
+
+PROBE = Path(__file__).with_name("blender_probe.py")
+PIPELINES = default_recipe_path().parent
+
+
+def _blender_python() -> str:
+    py = os.environ.get("USDFOREST_BLENDER_PYTHON", "")
+    if not py or not Path(py).exists():
+        pytest.skip("Blender's bpy is not installed (make test installs it in .venv-blender)")
+    probe = subprocess.run([py, "-c", "import bpy"], capture_output=True, check=False)
+    if probe.returncode:
+        pytest.skip(f"bpy does not import in {py}")
+    return py
+
+
+def _open_in_blender(stage: Path, *render: Path) -> dict:
+    py = _blender_python()
+    run = subprocess.run(
+        [py, str(PROBE), str(stage), *map(str, render)],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=600,
+        cwd=stage.parent,
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def test_blender_shows_each_trees_own_colours_and_uvs(tmp_path):
+    """Two species in colours no template has: Blender's imported materials carry them (the
+    binding sits inside the instance prototypes Blender imports), and every template mesh
+    arrives with its ``st`` UV layer."""
+    base = read_recipe(PIPELINES / "paper-two-tree-stand.toml")
+    colours = {
+        "paper-rule-3": ((0.9, 0.1, 0.2), (0.1, 0.8, 0.3)),
+        "paper-rule-2": ((0.2, 0.1, 0.9), (0.7, 0.7, 0.1)),
+    }
+    species = {
+        name: {"geometry": {"bark_color": list(bark), "leaf_color": list(leaf)}}
+        for name, (bark, leaf) in colours.items()
+    }
+    recipe = parse_recipe(dict(base.data, species=species), base.base, base.source)
+    out = tmp_path / "f.usda"
+    write_forest(recipe, out, thumbnail=False)
+    report = _open_in_blender(out)
+    wood = [m for m in report["meshes"] if m["material"] and m["material"].startswith("Bark")]
+    leaves = [m for m in report["meshes"] if m["material"] and m["material"].startswith("Leaf")]
+    assert wood and leaves
+    seen_bark = {tuple(m["color"]) for m in wood}
+    seen_leaf = {tuple(m["color"]) for m in leaves}
+    assert seen_bark == {bark for bark, _ in colours.values()}
+    assert seen_leaf == {leaf for _, leaf in colours.values()}
+    assert all("st" in m["uv"] for m in wood + leaves)
+
+
+def test_blender_imports_the_proxy_level_at_its_triangle_count(tmp_path):
+    """A forest built at ``lod = "proxy"``: Blender instances exactly the proxy triangles
+    pxr composes (stem prisms and crown hulls) plus the two of the ground."""
+    base = read_recipe(PIPELINES / "paper-two-tree-stand.toml")
+    forest = dict(base.data.get("forest", {}), lod="proxy")
+    data = dict(base.data, forest=forest, ground={"kind": "plane"})
+    out = tmp_path / "f.usda"
+    write_forest(parse_recipe(data, base.base, base.source), out, thumbnail=False)
+    stage = Usd.Stage.Open(str(out))
+    per_tree = {
+        p.GetName(): sum(
+            len(q.GetAttribute("faceVertexCounts").Get())
+            for q in Usd.PrimRange(p, Usd.TraverseInstanceProxies())
+            if q.GetTypeName() == "Mesh"
+        )
+        for p in stage.GetPrimAtPath("/Forest/Trees/Prototypes").GetChildren()
+    }
+    assert per_tree and all(0 < n <= 1000 for n in per_tree.values())
+    report = _open_in_blender(out)
+    assert report["scene_triangles"] == sum(per_tree.values()) + 2
+
+
+def test_blender_keeps_a_lone_trees_colours(tmp_path):
+    sp = get_species("broadleaf")
+    sp = replace(sp, geometry=replace(sp.geometry, bark_color=(0.8, 0.2, 0.1)))
+    out = tmp_path / "t.usda"
+    write_tree(sp, out, seed=4)
+    report = _open_in_blender(out)
+    bark = [m["color"] for m in report["meshes"] if m["material"].startswith("Bark")]
+    assert bark and np.allclose(bark, [0.8, 0.2, 0.1], atol=1e-4)
