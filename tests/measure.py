@@ -15,6 +15,11 @@ from pxr import Usd, UsdGeom
 T0 = Usd.TimeCode.Default()
 
 
+def renders(prim: Usd.Prim) -> bool:
+    """A renderer draws it: computed purpose default or render (not a proxy or guide)."""
+    return UsdGeom.Imageable(prim).ComputePurpose() in ("default", "render")
+
+
 def _world_points(prim: Usd.Prim) -> np.ndarray:
     mesh = UsdGeom.Mesh(prim)
     pts = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float64)
@@ -38,7 +43,7 @@ def world_mesh(prim: Usd.Prim) -> trimesh.Trimesh:
     """Every Mesh at or under ``prim`` (instance proxies included), in world space, as one."""
     parts = []
     for p in Usd.PrimRange(prim, Usd.TraverseInstanceProxies()):
-        if p.IsA(UsdGeom.Mesh):
+        if p.IsA(UsdGeom.Mesh) and renders(p):
             parts.append(trimesh.Trimesh(_world_points(p), _triangles(p), process=False))
     return trimesh.util.concatenate(parts) if parts else trimesh.Trimesh()
 
@@ -139,7 +144,7 @@ def composed_triangles(stage: Usd.Stage) -> np.ndarray:
                     full = mats[idx == k] @ here  # (n, 4, 4) row-vector transforms
                     tris = np.einsum("tvj,njk->ntvk", local, full[:, :3, :3])
                     out.append((tris + full[:, None, None, 3, :3]).reshape(-1, 3, 3))
-            elif p.IsA(UsdGeom.Mesh):
+            elif p.IsA(UsdGeom.Mesh) and renders(p):
                 pts = _world_points(p) @ xf[:3, :3] + xf[3, :3]
                 out.append(pts[_triangles(p)])
 
@@ -152,7 +157,7 @@ def triangles_under(proto: Usd.Prim) -> np.ndarray:
     inv = np.linalg.inv(np.asarray(UsdGeom.Xformable(proto).ComputeLocalToWorldTransform(T0)))
     tris = []
     for p in Usd.PrimRange(proto, Usd.TraverseInstanceProxies()):
-        if p.IsA(UsdGeom.Mesh):
+        if p.IsA(UsdGeom.Mesh) and renders(p):
             pts = _world_points(p) @ inv[:3, :3] + inv[3, :3]
             tris.append(pts[_triangles(p)])
     return np.concatenate(tris) if tris else np.zeros((0, 3, 3))

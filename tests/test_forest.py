@@ -378,3 +378,40 @@ def test_bad_pipelines_exit_2_name_the_key_and_write_nothing(tmp_path, runner, t
     assert fragment in r.stderr and str(p) in r.stderr
     assert "Traceback" not in r.stderr + r.stdout
     assert not out.parent.exists() or not any(out.parent.iterdir())
+
+
+def test_instancer_extent_is_exact_on_the_composed_trees(tmp_path):
+    """/Forest/Trees' extent is the bounds of every composed tree triangle (pxr's own
+    ComputeExtentAtTime, boxes turned with each tree, is looser); /Forest's extentsHint holds
+    it as the render purpose and the proxies' bounds as the proxy purpose."""
+    import measure
+
+    out = tmp_path / "f.usda"
+    write_forest(read_recipe(PIPELINES / "paper-two-tree-stand.toml"), out, thumbnail=False)
+    stage = Usd.Stage.Open(str(out))
+    assert not stage.GetPrimAtPath("/Forest/Ground")
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+    # each tree asset opened alone (its leaves expanded), moved by the forest's transforms
+    mats = np.asarray(pi.ComputeInstanceTransformsAtTime(*[Usd.TimeCode.Default()] * 2))
+    idx = np.asarray(pi.GetProtoIndicesAttr().Get())
+    pts = []
+    for k, target in enumerate(pi.GetProtoIndicesAttr() and pi.GetPrototypesRel().GetTargets()):
+        ref = stage.GetPrimAtPath(target).GetPrimStack()[0].referenceList.prependedItems[0]
+        asset = (out.parent / "f_assets" / ref.assetPath).resolve()
+        local = measure.composed_triangles(Usd.Stage.Open(str(asset))).reshape(-1, 3)
+        for m in mats[idx == k]:
+            pts.append(local @ m[:3, :3] + m[3, :3])
+    pts = np.concatenate(pts)
+    truth = np.stack([pts.min(axis=0), pts.max(axis=0)])
+    authored = np.array(pi.GetExtentAttr().Get(), dtype=float)
+    np.testing.assert_allclose(authored, truth, atol=2e-5)
+    loose = np.array(pi.ComputeExtentAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default()))
+    assert np.all(loose[0] <= authored[0] + 1e-4) and np.all(loose[1] >= authored[1] - 1e-4)
+    hint = np.array(stage.GetPrimAtPath("/Forest").GetAttribute("extentsHint").Get())
+    assert hint.shape == (6, 3) and np.all(hint[0] > 1e30)
+    np.testing.assert_allclose(hint[2:4], authored, atol=1e-6)
+    cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["proxy"])
+    proxy = cache.ComputeUntransformedBound(stage.GetPrimAtPath("/Forest/Trees"))
+    r = proxy.ComputeAlignedRange()
+    assert np.all(hint[4] <= np.array(r.GetMin()) + 1e-4)
+    assert np.all(hint[5] >= np.array(r.GetMax()) - 1e-4)

@@ -200,11 +200,11 @@ def test_a_tree_written_as_usda_keeps_its_data_in_a_crate_file(tmp_path):
     assert len(leaves.GetPositionsAttr().Get()) > 1000
 
 
-def _composed_counts(stage: Usd.Stage) -> tuple[int, int]:
-    """(triangles of every Mesh once, leaf instances) on the composed stage."""
+def _composed_counts(stage: Usd.Stage, purposes=("default", "render")) -> tuple[int, int]:
+    """(triangles of every Mesh of ``purposes`` once, leaf instances) on the composed stage."""
     tris = leaves = 0
     for p in Usd.PrimRange(stage.GetPseudoRoot(), Usd.TraverseInstanceProxies()):
-        if p.IsA(UsdGeom.Mesh):
+        if p.IsA(UsdGeom.Mesh) and UsdGeom.Imageable(p).ComputePurpose() in purposes:
             counts = UsdGeom.Mesh(p).GetFaceVertexCountsAttr().Get()
             tris += int(np.sum(np.asarray(counts) - 2)) if counts is not None else 0
         elif p.IsA(UsdGeom.PointInstancer) and p.GetName() in ("Leaves", "LeafClusters"):
@@ -230,6 +230,29 @@ def test_lod_variants_switch_without_rebuilding(tmp_path):
     assert counts["proxy"][1] == 0
     assert counts["proxy"][0] <= 1000  # the proxy's triangle budget: stem + crown hull
     assert counts["full"][0] > counts["proxy"][0]
+    # beside the full tree, the same proxy with purpose proxy: a viewer showing proxies
+    # draws it, a renderer draws the render-purpose tree
+    stage = Usd.Stage.Open(str(out))
+    assert _composed_counts(stage, ("proxy",))[0] == counts["proxy"][0]
+    for name, purpose in [("Trunk", "render"), ("Branches", "render"), ("Leaves", "render")]:
+        assert UsdGeom.Imageable(stage.GetPrimAtPath(f"/Tree/{name}")).ComputePurpose() == purpose
+    assert UsdGeom.Imageable(stage.GetPrimAtPath("/Tree/Proxy/Crown")).ComputePurpose() == "proxy"
+    # extentsHint per purpose (default, render, proxy, guide) as pxr computes it
+    purposes = ["default", "render", "proxy", "guide"]
+    for level in ("full", "medium", "proxy"):
+        cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), purposes)
+        stage.SetEditTarget(stage.GetSessionLayer())
+        tree = stage.GetPrimAtPath("/Tree")
+        tree.GetVariantSet("lod").SetVariantSelection(level)
+        authored = np.array(tree.GetAttribute("extentsHint").Get(), dtype=float)
+        computed = np.array(UsdGeom.ModelAPI(tree).ComputeExtentsHint(cache), dtype=float)
+        assert authored.shape[0] >= 2 and authored.shape == computed.shape, level
+        big = np.abs(computed) > 1e30  # an empty purpose
+        assert np.array_equal(big, np.abs(authored) > 1e30), level
+        # pxr bounds instancers and capsules by rotated boxes: ours are exact, so inside
+        lo, hi = authored[0::2][~big[0::2]], authored[1::2][~big[1::2]]
+        assert np.all(lo >= computed[0::2][~big[0::2]] - 1e-4), level
+        assert np.all(hi <= computed[1::2][~big[1::2]] + 1e-4), level
     stage = Usd.Stage.Open(str(out))
     stage.SetEditTarget(stage.GetSessionLayer())
     stage.GetPrimAtPath("/Tree").GetVariantSet("lod").SetVariantSelection("proxy")

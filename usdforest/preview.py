@@ -119,8 +119,11 @@ def _matrix(m) -> np.ndarray:
 def stage_cloud(
     stage, root=None, *, spacing: float = 0.01, budget: int = MAX_POINTS, seed: int = 0
 ) -> Cloud:
-    """Surface samples of everything under ``root`` (default prim), instancers expanded."""
+    """Surface samples of everything under ``root`` (default prim) that renders (no proxy or
+    guide purpose), instancers expanded."""
     from pxr import Usd, UsdGeom
+
+    from .usd.layers import rendered
 
     rng = np.random.default_rng(seed)
     root = root or stage.GetDefaultPrim() or stage.GetPseudoRoot()
@@ -136,8 +139,13 @@ def stage_cloud(
         parts = []
         it = iter(Usd.PrimRange(prim, Usd.TraverseInstanceProxies()))
         for p in it:
-            if not p.IsActive() or (
-                p.IsA(UsdGeom.Imageable) and UsdGeom.Imageable(p).ComputeVisibility() == "invisible"
+            if (
+                not p.IsActive()
+                or not rendered(p)
+                or (
+                    p.IsA(UsdGeom.Imageable)
+                    and UsdGeom.Imageable(p).ComputeVisibility() == "invisible"
+                )
             ):
                 it.PruneChildren()
                 continue
@@ -307,9 +315,14 @@ def render_stage(
         .ComputeWorldBound(root)
         .ComputeAlignedRange()
     )
-    if box.IsEmpty():
+    region = (root.GetCustomDataByKey("usdforest") or {}).get("regionBounds")
+    if not box.IsEmpty():
+        lo, hi = np.array(box.GetMin()), np.array(box.GetMax())
+    elif region is not None:  # a forest with no trees and no ground: its plot
+        x0, y0, x1, y1 = (float(v) for v in region)
+        lo, hi = np.array([x0, y0, 0.0]), np.array([x1, y1, 0.0])
+    else:
         raise UsdForestError(f"{path}: the stage has no geometry to draw")
-    lo, hi = np.array(box.GetMin()), np.array(box.GetMax())
     # a flat or empty stage (a forest with no trees) still gets a 1 m window
     flat = (hi - lo) < 1e-6
     lo, hi = np.where(flat, lo - 0.5, lo), np.where(flat, hi + 0.5, hi)

@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -102,3 +103,27 @@ def leaf_clusters(p: Placement, k: int = CLUSTER) -> dict[str, np.ndarray]:
         "scale": p.leaf_scale[sel] * math.sqrt(k),
         "proto": p.leaf_proto[sel],
     }
+
+
+@dataclass(frozen=True, eq=False)
+class Levels:
+    """The geometry of the lighter levels of detail of one tree."""
+
+    clusters: dict[str, np.ndarray]  # the medium level's leaves (see :func:`leaf_clusters`)
+    stem: tuple[np.ndarray, np.ndarray]  # the proxy's (vertices, triangles)
+    crown: tuple[np.ndarray, np.ndarray] | None
+
+    def proxy_points(self) -> np.ndarray:
+        """Every vertex of the proxy level."""
+        parts = [self.stem[0]] + ([self.crown[0]] if self.crown is not None else [])
+        return np.concatenate(parts)
+
+
+def levels(p: Placement) -> Levels:
+    """The medium leaf clusters and the proxy stem and crown of a placed tree."""
+    trunk = int(np.flatnonzero((p.order == 0) & (p.parent < 0))[0])
+    return Levels(
+        leaf_clusters(p),
+        stem_prism(p.translate[trunk], p.tip[trunk], float(p.radius[trunk])),
+        crown_hull(proxy_points(p)),
+    )

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..usd.layers import class_labels, mesh_triangles, open_stage
+from ..usd.layers import class_labels, mesh_triangles, open_stage, rendered
 
 CLASSES = ("unknown", "trunk", "branch", "leaf")
 CLASS_ID = {name: i for i, name in enumerate(CLASSES)}
@@ -294,7 +294,9 @@ def extract_scene(
         parts = []
         it = iter(Usd.PrimRange(prim, Usd.TraverseInstanceProxies()))
         for p in it:
-            if p.IsA(UsdGeom.Imageable) and UsdGeom.Imageable(p).ComputeVisibility() == "invisible":
+            if not rendered(p) or (
+                p.IsA(UsdGeom.Imageable) and UsdGeom.Imageable(p).ComputeVisibility() == "invisible"
+            ):
                 it.PruneChildren()
                 continue
             if p.IsA(UsdGeom.Mesh):

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import re
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,13 +28,14 @@ import tomli_w
 from pxr import Gf, Sdf, Vt
 
 from ..atomic import publish, refuse_overwrite, staging_folder
+from ..bounds import yawed_extent
 from ..errors import UsdForestError
 from ..recipe import Recipe, resolved_toml
 from ..sites import Sites, sample_sites
 from .ground import add_ground
 from .layers import T, attr, new_layer, prim, save_layer, vec3f
 from .physics import add_physics_scene, collision_layer, instance_capsules
-from .tree import TreeBuild, build_tree, copy_templates, tree_layer
+from .tree import EMPTY_EXTENT, TreeBuild, build_tree, copy_templates, tree_layer
 
 THUMBNAIL = "thumbnail.png"  # inside the assets folder
 
@@ -57,35 +58,33 @@ class ForestBuild:
     prototypes: tuple[tuple[str, int], ...]  # (species, variant) per prototype index
     proto_index: np.ndarray
     trees: dict[tuple[str, int], TreeBuild]
-    extent: np.ndarray
+    extent: np.ndarray  # of the trees at the level of detail the forest selects
     out: Path
     assets: Path
+    proxy_extent: np.ndarray  # of the trees' proxies
 
     @property
     def n_trees(self) -> int:
         return len(self.sites)
 
 
-def instancer_extent(sites: Sites, proto_index: np.ndarray, proto_extent: np.ndarray) -> np.ndarray:
-    """Exact extent of yawed, uniformly scaled instances of boxes ``proto_extent (p, 2, 3)``."""
-    if len(sites) == 0:
-        return np.zeros((2, 3))
-    lo = np.full(3, np.inf)
-    hi = np.full(3, -np.inf)
-    for start in range(0, len(sites), 1_000_000):
-        sl = slice(start, start + 1_000_000)
-        ext = proto_extent[proto_index[sl]]  # (n, 2, 3)
-        s = sites.scale[sl][:, None]
-        a = np.radians(sites.yaw[sl])
-        c, sn = np.cos(a)[:, None], np.sin(a)[:, None]
-        cx = np.stack([ext[:, 0, 0], ext[:, 1, 0], ext[:, 1, 0], ext[:, 0, 0]], axis=1)
-        cy = np.stack([ext[:, 0, 1], ext[:, 0, 1], ext[:, 1, 1], ext[:, 1, 1]], axis=1)
-        x = (c * cx - sn * cy) * s + sites.xy[sl, 0:1]
-        y = (sn * cx + c * cy) * s + sites.xy[sl, 1:2]
-        z = ext[:, :, 2] * s
-        lo = np.minimum(lo, [x.min(), y.min(), z.min()])
-        hi = np.maximum(hi, [x.max(), y.max(), z.max()])
-    return np.stack([lo, hi])
+def instancer_extent(
+    sites: Sites, proto_index: np.ndarray, trees: Sequence[TreeBuild], level: str
+) -> np.ndarray:
+    """Exact extent of the yawed, scaled instances of ``trees`` (one per prototype) at level
+    of detail ``level``, from each tree's footprint (the hull of its points on the ground)."""
+    b = [t.bounds[level] for t in trees]
+    # the turn a reader computes from the stored half-precision quaternion (0, 0, k, r)
+    q = yaw_quaternions(sites.yaw).astype(np.float16).astype(np.float64)
+    k, r = q[:, 2], q[:, 3]
+    return yawed_extent(
+        [x.footprint for x in b],
+        np.array([x.extent[:, 2] for x in b]),
+        proto_index,
+        sites.xy.astype(np.float32).astype(np.float64),
+        (1.0 - 2.0 * k * k, 2.0 * k * r),
+        sites.scale.astype(np.float32).astype(np.float64),
+    )
 
 
 def yaw_quaternions(yaw_deg: np.ndarray) -> np.ndarray:
@@ -183,7 +182,7 @@ def interface_layer(
                 "pipeline": "./" + f"{build.assets.name}/pipeline.toml",
             }
         }
-        attr(forest, "extentsHint", T.Float3Array, vec3f(build.extent))
+        attr(forest, "extentsHint", T.Float3Array, vec3f(_extents_hint(build, recipe)))
         if recipe.physics_scene:
             add_physics_scene(forest)
         if recipe.ground is not None:
@@ -194,6 +193,34 @@ def interface_layer(
                 color=recipe.ground["color"],
             )
     return layer
+
+
+def _extents_hint(build: ForestBuild, recipe: Recipe) -> np.ndarray:
+    """``/Forest``'s extentsHint by purpose (default, render, proxy; guide colliders left
+    out): the ground is default; trees are render with their proxies beside them, or default
+    when the forest selects the proxy level."""
+    boxes = {"default": [], "render": [], "proxy": []}
+    if recipe.ground is not None:
+        x0, y0, x1, y1 = recipe.region.bounds
+        m = recipe.ground["margin"]
+        boxes["default"].append(np.array([[x0 - m, y0 - m, 0.0], [x1 + m, y1 + m, 0.0]]))
+    if build.n_trees:
+        if recipe.lod == "proxy":
+            boxes["default"].append(build.extent)
+        else:
+            boxes["render"].append(build.extent)
+            boxes["proxy"].append(build.proxy_extent)
+    out = []
+    for purpose in ("default", "render", "proxy"):
+        b = boxes[purpose]
+        out.append(
+            np.stack([np.min([x[0] for x in b], axis=0), np.max([x[1] for x in b], axis=0)])
+            if b
+            else EMPTY_EXTENT
+        )
+    while len(out) > 1 and out[-1] is EMPTY_EXTENT:
+        out.pop()
+    return np.concatenate(out)
 
 
 def _write_csv(path: Path, sites: Sites, heights: np.ndarray, proto_index: np.ndarray) -> None:
@@ -267,14 +294,16 @@ def write_forest(
 
     proto_extent = np.stack([trees[p].extent for p in prototypes])
     heights = proto_extent[:, 1, 2] - proto_extent[:, 0, 2]
+    ordered = [trees[p] for p in prototypes]
     build = ForestBuild(
         sites,
         tuple(prototypes),
         proto_index,
         trees,
-        instancer_extent(sites, proto_index, proto_extent),
+        instancer_extent(sites, proto_index, ordered, recipe.lod),
         out,
         assets,
+        instancer_extent(sites, proto_index, ordered, "proxy"),
     )
 
     tmp = staging_folder(out)

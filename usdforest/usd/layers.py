@@ -204,6 +204,16 @@ def semantic_label(spec: Sdf.PrimSpec, label: str | Sequence[str]) -> None:
     attr(spec, "semantics:labels:class", T.TokenArray, Vt.TokenArray(labels), uniform=True)
 
 
+RENDERED_PURPOSES = ("default", "render")
+
+
+def rendered(prim: Usd.Prim) -> bool:
+    """Whether a renderer draws ``prim`` as far as its own purpose goes: False where it is
+    ``proxy`` or ``guide`` (purpose inherits, so a traversal prunes there)."""
+    a = prim.GetAttribute("purpose")
+    return not a or a.Get() in RENDERED_PURPOSES
+
+
 def class_labels(prim: Usd.Prim) -> list[str]:
     """The prim's ``semantics:labels:class`` labels (empty when it has none)."""
     a = prim.GetAttribute("semantics:labels:class")

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom
 
-from .layers import class_labels, open_stage
+from .layers import class_labels, open_stage, rendered
 
 
 @dataclass
@@ -43,6 +43,9 @@ def _expand(prim: Usd.Prim, cache: dict) -> _Tally:
     if key in cache:
         return cache[key]
     t = _Tally()
+    if not rendered(prim):  # the proxy beside the full tree, colliders
+        cache[key] = t
+        return t
     if prim.IsA(UsdGeom.Mesh):
         t.meshes = 1
         t.triangles = _mesh_triangles(UsdGeom.Mesh(prim))

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, Vt
 
+from ..bounds import hull_vertices
 from ..cad import TemplatePart
 from ..errors import UsdForestError
 from ..placement import WoodShape, centreline_of
@@ -154,6 +155,7 @@ class TemplateInfo:
     extent: np.ndarray  # (2, 3)
     measurements: dict
     centreline: np.ndarray  # (K, 2): x, y of the centreline at K heights z = 0..1
+    hull: np.ndarray  # (h, 3) vertices of the convex hull of its meshes (exact bounds)
 
     def wood_shape(self) -> WoodShape:
         """Normalised base radius and centreline, for placement."""
@@ -188,4 +190,5 @@ def read_template(path: str | Path) -> TemplateInfo:
         extent=np.array([list(box.GetMin()), list(box.GetMax())]),
         measurements=dict(data["measurements"]),
         centreline=centreline_of(points),
+        hull=hull_vertices(points),
     )

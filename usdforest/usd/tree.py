@@ -27,10 +27,12 @@ import numpy as np
 from pxr import Gf, Sdf, Vt
 
 from ..atomic import publish, refuse_overwrite, staging_folder
+from ..bounds import EMPTY, Bounds, instances_bounds
 from ..colliders import Capsules, tree_capsules
 from ..errors import UsdForestError
 from ..library import template_path
 from ..placement import Placement, place
+from ..proxy import Levels, levels
 from ..seeds import stream
 from ..species import Grown, Species, grow
 from .layers import (
@@ -47,8 +49,6 @@ from .layers import (
 )
 from .physics import add_colliders
 from .template import TemplateInfo, read_template
-
-BOX_CORNERS = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dtype=float)
 
 
 def resolve_template(name: str, base: Path | None = None) -> Path:
@@ -71,7 +71,9 @@ class TreeBuild:
     placement: Placement
     templates: Mapping[str, TemplateInfo]  # by template name (wood and leaf)
     variant: int
-    extent: np.ndarray  # (2, 3)
+    extent: np.ndarray  # (2, 3), of the full level
+    levels: Levels  # the medium and proxy levels' geometry
+    bounds: Mapping[str, Bounds]  # exact extent and footprint of each level of detail
     colliders: Capsules | None = None  # the wood's collider capsules
 
     def used_templates(self) -> dict[str, TemplateInfo]:
@@ -126,19 +128,24 @@ def build_tree(
         stream(seed, species.name, variant, "place"),
         clumps=species.clumps,
     )
-    extent = _extent(placement, infos)
-    return TreeBuild(grown, placement, infos, variant, extent, tree_capsules(placement, colliders))
+    lv = levels(placement)
+    bounds = _level_bounds(placement, infos, lv)
+    return TreeBuild(
+        grown,
+        placement,
+        infos,
+        variant,
+        bounds["full"].extent,
+        lv,
+        bounds,
+        tree_capsules(placement, colliders),
+    )
 
 
-def _corners(ext: np.ndarray) -> np.ndarray:
-    return ext[0] + BOX_CORNERS * (ext[1] - ext[0])
-
-
-def _wood_extent(p: Placement, infos: Mapping[str, TemplateInfo]) -> np.ndarray:
-    corners = np.stack([_corners(infos[t].extent) for t in p.templates])  # (t, 8, 3)
+def _wood_bounds(p: Placement, infos: Mapping[str, TemplateInfo]) -> Bounds:
     m = p.wood_matrices()
-    pts = np.einsum("wcj,wjk->wck", corners[p.template], m[:, :3, :3]) + m[:, None, 3, :3]
-    return np.stack([pts.reshape(-1, 3).min(axis=0), pts.reshape(-1, 3).max(axis=0)])
+    hulls = [infos[t].hull for t in p.templates]
+    return instances_bounds(hulls, p.template, m[:, :3, :3], m[:, 3, :3])
 
 
 def gf_rotation_rows(q: np.ndarray) -> np.ndarray:
@@ -153,41 +160,39 @@ def gf_rotation_rows(q: np.ndarray) -> np.ndarray:
     return m
 
 
-def leaf_instance_extent(p: Placement, infos: Mapping[str, TemplateInfo]) -> np.ndarray:
-    """Extent of the leaf PointInstancer in the tree's space."""
-    return instances_extent(
-        p.leaf_position, p.leaf_orient, p.leaf_scale, p.leaf_proto, p.leaf_templates, infos
-    )
-
-
-def instances_extent(
+def instances_bounds_as_stored(
     position: np.ndarray,
     orient: np.ndarray,
     scale: np.ndarray,
     proto: np.ndarray,
     templates: tuple[str, ...],
     infos: Mapping[str, TemplateInfo],
-) -> np.ndarray:
-    """Extent of instances of template boxes (orientations x, y, z, w; per-axis scales)."""
+) -> Bounds:
+    """Exact bounds of leaf-like instances of templates (orientations x, y, z, w; per-axis
+    scales), from the values as stored (quath orientations, float3 positions and scales),
+    so they hold what a reader computes from them."""
     if len(position) == 0:
-        return np.zeros((2, 3))
-    # from the values as stored (quath orientations, float3 positions and scales), so the
-    # extent contains what a reader computes from them
+        return EMPTY
     rows = gf_rotation_rows(orient.astype(np.float16).astype(np.float64))
-    corners = np.stack([_corners(infos[t].extent) for t in templates])[proto]
-    scale = scale.astype(np.float32).astype(np.float64)
+    rows *= scale.astype(np.float32).astype(np.float64)[:, :, None]
     pos = position.astype(np.float32).astype(np.float64)
-    pts = np.einsum("mcj,mjk->mck", corners * scale[:, None, :], rows) + pos[:, None]
-    flat = pts.reshape(-1, 3)
-    return np.stack([flat.min(axis=0), flat.max(axis=0)])
+    return instances_bounds([infos[t].hull for t in templates], proto, rows, pos)
 
 
-def _extent(p: Placement, infos: Mapping[str, TemplateInfo]) -> np.ndarray:
-    boxes = [_wood_extent(p, infos)]
-    if p.n_leaves:
-        boxes.append(leaf_instance_extent(p, infos))
-    b = np.stack(boxes)
-    return np.stack([b[:, 0].min(axis=0), b[:, 1].max(axis=0)])
+def _level_bounds(p: Placement, infos: Mapping[str, TemplateInfo], lv: Levels) -> dict[str, Bounds]:
+    wood = _wood_bounds(p, infos)
+    leaves = instances_bounds_as_stored(
+        p.leaf_position, p.leaf_orient, p.leaf_scale, p.leaf_proto, p.leaf_templates, infos
+    )
+    c = lv.clusters
+    clusters = instances_bounds_as_stored(
+        c["position"], c["orient"], c["scale"], c["proto"], p.leaf_templates, infos
+    )
+    return {
+        "full": Bounds.union([wood, leaves]),
+        "medium": Bounds.union([wood, clusters]),
+        "proxy": Bounds.of_points(lv.proxy_points()),
+    }
 
 
 def _xform_ops(
@@ -293,7 +298,6 @@ def tree_layer(
                 "lsystem": stats,
             }
         }
-        attr(root, "extentsHint", T.Float3Array, vec3f(build.extent))
         semantic_label(root, "tree")
         _species_label(root, sp.name)
         looks = prim(root, "Looks", "Scope")
@@ -308,9 +312,11 @@ def tree_layer(
         # usdforest:parent holds that index of the prim a branch grows from
         trunk = int(np.flatnonzero((p.order == 0) & (p.parent < 0))[0])
         branches = prim(root, "Branches", "Xform")
+        _purpose(branches, "render")
         for i in range(p.n_wood):
             if i == trunk:
                 spec = prim(root, "Trunk", "Xform")
+                _purpose(spec, "render")
                 semantic_label(spec, "trunk")
             else:
                 spec = prim(branches, f"B_{i:04d}", "Xform")
@@ -355,6 +361,7 @@ def _author_leaves(
     extent) with one prototype per leaf template, in the tree's leaf colour."""
     position, orient, scale, proto = arrays
     leaves = prim(parent, name, "PointInstancer")
+    _purpose(leaves, "render")
     semantic_label(leaves, "leaf")
     protos = prim(leaves, "Prototypes", "Scope")
     targets = []
@@ -379,7 +386,7 @@ def _author_leaves(
         leaves,
         "extent",
         T.Float3Array,
-        vec3f(instances_extent(position, orient, scale, proto, templates, infos)),
+        vec3f(instances_bounds_as_stored(position, orient, scale, proto, templates, infos).extent),
     )
     return leaves
 
@@ -400,21 +407,38 @@ def _author_lod(
     bark: Sdf.Path,
     leaf_mat: Sdf.Path,
 ) -> None:
-    """The ``lod`` variant set on ``/Tree``: ``full`` (as authored), ``medium`` (the leaves
-    merged into clusters of 8, same leaf area) and ``proxy`` (a stem prism and a crown hull,
-    a few hundred triangles). Selected ``full``; a forest picks its level per prototype."""
-    from ..proxy import crown_hull, leaf_clusters, proxy_points, stem_prism
-
+    """Levels of detail, two ways. ``/Tree/Proxy`` (purpose ``proxy``: a stem prism and a
+    crown hull, a few hundred triangles) sits beside the full geometry (purpose ``render``),
+    so a viewer that draws proxies shows it while a renderer draws the tree. The ``lod``
+    variant set picks what exists: ``full`` (as authored), ``medium`` (the leaves merged into
+    clusters of 8, same leaf area) or ``proxy`` (only the proxy, purpose ``default``).
+    Selected ``full``; a forest picks its level per prototype. Each variant authors the
+    ``extentsHint`` of what it shows, per purpose (default, render, proxy)."""
     p = build.placement
+    lv = build.levels
+    b = build.bounds
+    shell = prim(root, "Proxy", "Xform")
+    _mesh(shell, "Stem", *lv.stem, bark, "trunk")
+    if lv.crown is not None:
+        _mesh(shell, "Crown", *lv.crown, leaf_mat, "leaf" if p.n_leaves else "branch")
+
     vset = Sdf.VariantSetSpec(root, "lod")
-    variants = {name: Sdf.VariantSpec(vset, name) for name in LOD_LEVELS}
+    variants = {name: Sdf.VariantSpec(vset, name).primSpec for name in LOD_LEVELS}
     root.variantSetNameList.prependedItems = ["lod"]
     root.variantSelections["lod"] = "full"
+    guide = _guide_extent(build.colliders)
+    # the proxy's purpose is authored in the variants only: a local opinion would beat them
+    for level in ("full", "medium"):
+        hint = [EMPTY_EXTENT, b[level].extent, b["proxy"].extent, *guide]
+        attr(variants[level], "extentsHint", T.Float3Array, vec3f(np.concatenate(hint)))
+        _purpose(prim(variants[level], "Proxy", "", Sdf.SpecifierOver), "proxy")
+    hint = [b["proxy"].extent, *([EMPTY_EXTENT, EMPTY_EXTENT, *guide] if guide else [])]
+    attr(variants["proxy"], "extentsHint", T.Float3Array, vec3f(np.concatenate(hint)))
 
-    medium = variants["medium"].primSpec
+    medium = variants["medium"]
     if p.n_leaves:
         prim(medium, "Leaves", "", Sdf.SpecifierOver).active = False
-        c = leaf_clusters(p)
+        c = lv.clusters
         _author_leaves(
             medium,
             "LeafClusters",
@@ -424,16 +448,34 @@ def _author_lod(
             build.templates,
         )
 
-    proxy = variants["proxy"].primSpec
+    proxy = variants["proxy"]
     for name in ("Trunk", "Branches", "Leaves"):
         prim(proxy, name, "", Sdf.SpecifierOver).active = False
-    shell = prim(proxy, "Proxy", "Xform")
-    trunk = int(np.flatnonzero((p.order == 0) & (p.parent < 0))[0])
-    v, tri = stem_prism(p.translate[trunk], p.tip[trunk], float(p.radius[trunk]))
-    _mesh(shell, "Stem", v, tri, bark, "trunk")
-    hull = crown_hull(proxy_points(p))
-    if hull is not None:
-        _mesh(shell, "Crown", hull[0], hull[1], leaf_mat, "leaf" if p.n_leaves else "branch")
+
+
+# an empty extent, as UsdGeomModelAPI writes one for a purpose with nothing to bound
+EMPTY_EXTENT = np.array([[np.finfo(np.float32).max] * 3, [-np.finfo(np.float32).max] * 3])
+
+
+def _guide_extent(c: Capsules | None) -> list[np.ndarray]:
+    """The colliders' exact extent (guide purpose), or nothing without colliders."""
+    if c is None or len(c) == 0:
+        return []
+    # a capsule spans base to tip: its cylinder's axis ends one radius inside each end
+    r = c.radius[:, None]
+    d = c.tip - c.base
+    length = np.linalg.norm(d, axis=1, keepdims=True)
+    unit = d / np.maximum(length, 1e-12)
+    half = np.maximum(length / 2 - r, 0.0)
+    mid = 0.5 * (c.base + c.tip)
+    a, b = mid - unit * half, mid + unit * half
+    lo = np.minimum(a, b) - r
+    hi = np.maximum(a, b) + r
+    return [np.stack([lo.min(axis=0), hi.max(axis=0)])]
+
+
+def _purpose(spec: Sdf.PrimSpec, purpose: str) -> None:
+    attr(spec, "purpose", T.Token, purpose, uniform=True)
 
 
 TREE_PAYLOAD = "tree.usdc"  # a tree written as OUT.usda keeps its data in OUT_assets/tree.usdc
@@ -450,8 +492,8 @@ def interface_tree_layer(build: TreeBuild, data: str, out: Path) -> Sdf.Layer:
         root = prim(layer, "Tree", "Xform")
         root.kind = "component"
         root.assetInfo = {"name": out.stem, "identifier": Sdf.AssetPath(f"./{out.name}")}
+        # no extentsHint here: a local one would hide the one each lod variant authors
         root.referenceList.prependedItems = [Sdf.Reference(data)]
-        attr(root, "extentsHint", T.Float3Array, vec3f(build.extent))
     return layer
 
 

@@ -1,0 +1,128 @@
+"""Exact bounds of instanced geometry, from the convex hulls of what is instanced.
+
+A box rotated with its instance is up to ``sqrt(2)`` times too wide; the extreme points of a
+transformed mesh are transformed vertices of its convex hull, so transforming only the hull's
+vertices gives the exact extent. A forest's trees turn about Z only, so the hull of a tree's
+points projected on the ground plane (its *footprint*) gives the exact x, y extent of every
+yawed, scaled instance of it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+CHUNK = 2_000_000  # transformed points held at once
+
+
+def hull_vertices(points: np.ndarray) -> np.ndarray:
+    """The vertices of the convex hull of ``(n, 3)`` points (a superset for flat input: qhull's
+    joggle keeps a planar leaf's outline)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    p = np.unique(np.asarray(points, dtype=np.float64).reshape(-1, 3), axis=0)
+    if len(p) <= 8:
+        return p
+    try:
+        return p[np.sort(ConvexHull(p, qhull_options="QJ").vertices)]
+    except QhullError:  # collinear or a single point
+        return p
+
+
+def footprint_of(xy: np.ndarray) -> np.ndarray:
+    """Vertices of the convex hull of ``(n, 2)`` points (all of them when degenerate)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    p = np.unique(np.asarray(xy, dtype=np.float64).reshape(-1, 2), axis=0)
+    if len(p) <= 4:
+        return p
+    try:
+        return p[np.sort(ConvexHull(p).vertices)]
+    except QhullError:
+        return p
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """An axis-aligned extent ``(2, 3)`` and the footprint ``(k, 2)`` of the same points."""
+
+    extent: np.ndarray
+    footprint: np.ndarray
+
+    @staticmethod
+    def of_points(points: np.ndarray) -> Bounds:
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if len(p) == 0:
+            return EMPTY
+        return Bounds(np.stack([p.min(axis=0), p.max(axis=0)]), footprint_of(p[:, :2]))
+
+    @staticmethod
+    def union(parts: Sequence[Bounds]) -> Bounds:
+        parts = [b for b in parts if len(b.footprint)]
+        if not parts:
+            return EMPTY
+        ext = np.stack([b.extent for b in parts])
+        return Bounds(
+            np.stack([ext[:, 0].min(axis=0), ext[:, 1].max(axis=0)]),
+            footprint_of(np.concatenate([b.footprint for b in parts])),
+        )
+
+
+EMPTY = Bounds(np.zeros((2, 3)), np.zeros((0, 2)))
+
+
+def instances_bounds(
+    hulls: Sequence[np.ndarray],
+    proto: np.ndarray,
+    rows: np.ndarray,
+    translate: np.ndarray,
+) -> Bounds:
+    """Bounds of instances: prototype ``proto[i]`` (convex hull vertices ``hulls[k]``) under
+    the row-vector linear map ``rows[i] (3, 3)`` then ``translate[i]``. Worked in chunks so
+    a million leaves never hold all their transformed points at once."""
+    parts = []
+    for k, hull in enumerate(hulls):
+        sel = np.flatnonzero(proto == k)
+        if len(sel) == 0 or len(hull) == 0:
+            continue
+        step = max(1, CHUNK // len(hull))
+        for start in range(0, len(sel), step):
+            i = sel[start : start + step]
+            pts = np.einsum("cj,njk->nck", hull, rows[i]) + translate[i, None, :]
+            parts.append(Bounds.of_points(pts))
+    return Bounds.union(parts)
+
+
+def yawed_extent(
+    footprints: Sequence[np.ndarray],
+    z_ranges: np.ndarray,
+    proto: np.ndarray,
+    xy: np.ndarray,
+    turn: tuple[np.ndarray, np.ndarray],
+    scale: np.ndarray,
+) -> np.ndarray:
+    """Exact extent ``(2, 3)`` of instances turned about Z by ``turn = (c, s)`` (x' = c x - s
+    y, y' = s x + c y: the cosine and sine of the yaw, or what a stored quaternion makes of
+    them), scaled uniformly by ``scale`` and moved to ``xy``; prototype ``k`` has footprint
+    ``footprints[k]`` and z range ``z_ranges[k] = (zmin, zmax)``."""
+    if len(proto) == 0:
+        return np.zeros((2, 3))
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    c, s = turn
+    for k, f in enumerate(footprints):
+        sel = np.flatnonzero(proto == k)
+        if len(sel) == 0:
+            continue
+        step = max(1, CHUNK // max(len(f), 1))
+        for start in range(0, len(sel), step):
+            i = sel[start : start + step]
+            sc = scale[i, None]
+            x = (c[i, None] * f[:, 0] - s[i, None] * f[:, 1]) * sc + xy[i, 0:1]
+            y = (s[i, None] * f[:, 0] + c[i, None] * f[:, 1]) * sc + xy[i, 1:2]
+            z = np.asarray(z_ranges[k])[None, :] * sc
+            lo = np.minimum(lo, [x.min(), y.min(), z.min()])
+            hi = np.maximum(hi, [x.max(), y.max(), z.max()])
+    return np.stack([lo, hi])
