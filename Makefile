@@ -55,8 +55,9 @@ templates: $(STAMP)
 figures: $(STAMP)
 	$(BIN)/python docs/make_figures.py docs/figures
 
-bench: $(STAMP)
+bench: $(STAMP) $(BLENDER_STAMP)
 	$(BIN)/python benchmarks/run.py
+	USDFOREST_BLENDER_PYTHON=$(abspath $(BLENDER))/bin/python $(BIN)/python benchmarks/bench_lod.py
 
 clean:
 	rm -rf $(VENV) $(PHYS) $(CHECK) $(BLENDER) build *.egg-info .pytest_cache forest.usda forest_assets

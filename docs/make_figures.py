@@ -230,6 +230,27 @@ def sensors(out: Path, work: Path) -> None:
     save_figure(fig, out / "sonar-echo.png")
 
 
+def terrain(out: Path, work: Path) -> None:
+    """The default stand on a height field (a slope, a hill and a hollow), seen from the side."""
+    import numpy as np
+
+    from usdforest.recipe import parse_recipe
+
+    x = np.linspace(-5, 105, 56)
+    gx, gy = np.meshgrid(x, x[::-1])
+    z = (
+        0.08 * gx
+        + 8 * np.exp(-((gx - 30) ** 2 + (gy - 70) ** 2) / 300)
+        - 4 * np.exp(-((gx - 75) ** 2 + (gy - 30) ** 2) / 200)
+    )
+    np.save(work / "dem.npy", z)
+    base = read_recipe(PIPELINES / "default.toml")
+    data = dict(base.data, ground={"kind": "raster", "file": "dem.npy", "margin": 5.0})
+    path = work / "terrain.usda"
+    write_forest(parse_recipe(data, work, str(work / "terrain.toml")), path, thumbnail=False)
+    preview(path, out / "terrain-side.png", view="side", size=(900, 420))
+
+
 def main(out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
@@ -241,6 +262,7 @@ def main(out: Path) -> None:
         stands(out, work)
         gallery(out, work)
         sensors(out, work)
+        terrain(out, work)
     for p in sorted(out.glob("*.png")):
         print(f"wrote {p}")
 

@@ -127,7 +127,8 @@ def test_newton_stops_a_ball_at_a_trunk_of_a_built_forest(tmp_path):
 def test_default_forest_stands_on_a_labelled_ground_collider(tmp_path):
     out = tmp_path / "f.usda"
     recipe = read_recipe(default_recipe_path())
-    assert recipe.ground == {"kind": "plane", "margin": 5.0, "color": (0.36, 0.3, 0.22)}
+    g = recipe.ground
+    assert (g["kind"], g["margin"], g["color"]) == ("plane", 5.0, (0.36, 0.3, 0.22))
     write_forest(recipe, out, thumbnail=False)
     stage = Usd.Stage.Open(str(out))
     mesh = stage.GetPrimAtPath("/Forest/Ground/Mesh")
@@ -141,7 +142,9 @@ def test_default_forest_stands_on_a_labelled_ground_collider(tmp_path):
     # tree's own z
     import trimesh
 
-    tri = trimesh.Trimesh(pts, np.array([[0, 1, 2], [0, 2, 3]]))
+    faces = np.asarray(UsdGeom.Mesh(mesh).GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+    assert len(faces) == 2
+    tri = trimesh.Trimesh(pts, faces)
     pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
     pos = np.asarray(pi.GetPositionsAttr().Get(), dtype=float)
     origins = pos + np.array([0.0, 0.0, 50.0])

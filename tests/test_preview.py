@@ -5,7 +5,7 @@ from __future__ import annotations
 import matplotlib.image as mpimg
 import numpy as np
 import pytest
-from pxr import Sdf
+from pxr import Sdf, Usd
 
 from usdforest.cli import app
 from usdforest.preview import render_stage
@@ -61,7 +61,11 @@ def test_forest_render_has_ground_and_trees(tmp_path):
     write_forest(read_recipe(default_recipe_path()), out, thumbnail=False)
     img, _, kind = render_stage(out, view="top", size=(200, 200))
     assert kind == "forest"
-    ground = np.abs(img - np.array([0.55, 0.5, 0.4]) * 1.04).sum(axis=2) < 0.05  # lit ground
+    # the stage's own ground, in its material's colour, lit from above (no stand-in drawn)
+    stage = Usd.Stage.Open(str(out))
+    shader = stage.GetPrimAtPath("/Forest/Ground/Looks/Ground/PreviewSurface")
+    colour = np.array(shader.GetAttribute("inputs:diffuseColor").Get())
+    ground = np.abs(img - colour * 1.04).sum(axis=2) < 0.05
     c = classify(img)
     assert ground.mean() > 0.2 and c["green"].mean() > 0.05
 

@@ -102,11 +102,12 @@ def yawed_extent(
     xy: np.ndarray,
     turn: tuple[np.ndarray, np.ndarray],
     scale: np.ndarray,
+    base_z: np.ndarray,
 ) -> np.ndarray:
     """Exact extent ``(2, 3)`` of instances turned about Z by ``turn = (c, s)`` (x' = c x - s
     y, y' = s x + c y: the cosine and sine of the yaw, or what a stored quaternion makes of
-    them), scaled uniformly by ``scale`` and moved to ``xy``; prototype ``k`` has footprint
-    ``footprints[k]`` and z range ``z_ranges[k] = (zmin, zmax)``."""
+    them), scaled uniformly by ``scale``, moved to ``xy`` and up to ``base_z``; prototype
+    ``k`` has footprint ``footprints[k]`` and z range ``z_ranges[k] = (zmin, zmax)``."""
     if len(proto) == 0:
         return np.zeros((2, 3))
     lo = np.full(3, np.inf)
@@ -122,7 +123,7 @@ def yawed_extent(
             sc = scale[i, None]
             x = (c[i, None] * f[:, 0] - s[i, None] * f[:, 1]) * sc + xy[i, 0:1]
             y = (s[i, None] * f[:, 0] + c[i, None] * f[:, 1]) * sc + xy[i, 1:2]
-            z = np.asarray(z_ranges[k])[None, :] * sc
+            z = np.asarray(z_ranges[k])[None, :] * sc + base_z[i, None]
             lo = np.minimum(lo, [x.min(), y.min(), z.min()])
             hi = np.maximum(hi, [x.max(), y.max(), z.max()])
     return np.stack([lo, hi])

@@ -342,19 +342,63 @@ def render_stage(
     budget = budget or min(MAX_POINTS, 12 * size[0] * size[1])
     cloud = stage_cloud(stage, root, spacing=max(extent * 0.7, 1e-4), budget=budget)
     if ground and kind == "forest":
-        cloud = Cloud.concat([_ground(lo, hi, extent), cloud])
+        cloud = Cloud.concat([_ground(lo, hi, extent, _ground_meshes(stage)), cloud])
     img, window = splat(cloud, basis, size)
     return img, window, kind
 
 
-def _ground(lo: np.ndarray, hi: np.ndarray, px: float) -> Cloud:
+def _ground_meshes(stage) -> list:
+    """The stage's Meshes labelled ``ground`` that render."""
+    from pxr import UsdGeom
+
+    from .usd.layers import class_labels, rendered
+
+    return [
+        p
+        for p in stage.Traverse()
+        if p.IsA(UsdGeom.Mesh) and rendered(p) and "ground" in class_labels(p)
+    ]
+
+
+def _ground(lo: np.ndarray, hi: np.ndarray, px: float, meshes: list) -> Cloud:
+    """A dense grid of ground samples, one per pixel: on the stage's own ground meshes (their
+    heights interpolated, their colour) or, without one, a plain floor under everything."""
     step = px * 0.9
     xs = np.arange(lo[0], hi[0], step)
     ys = np.arange(lo[1], hi[1], step)
     gx, gy = np.meshgrid(xs, ys)
-    p = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, lo[2] - 1e-3)])
-    n = np.tile([0.0, 0.0, 1.0], (len(p), 1))
-    return Cloud(p, n, np.tile(GROUND, (len(p), 1)), np.full(len(p), step))
+    z = np.full(gx.shape, lo[2] - 1e-3)
+    n = np.zeros((*gx.shape, 3))
+    n[..., 2] = 1.0
+    color = GROUND
+    if meshes:
+        from matplotlib.tri import LinearTriInterpolator, Triangulation
+        from pxr import Usd, UsdGeom
+
+        from .usd.layers import mesh_triangles
+
+        world = [
+            _matrix(UsdGeom.Xformable(m).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+            for m in meshes
+        ]
+        corners = np.concatenate(
+            [mesh_triangles(m, w) for m, w in zip(meshes, world, strict=True)]
+        ).reshape(-1, 3)
+        if len(corners):
+            # interpolate on the ground's own triangles (a height field: one z per x, y)
+            pts, tri = np.unique(corners, axis=0, return_inverse=True)
+            mesh = Triangulation(pts[:, 0], pts[:, 1], tri.reshape(-1, 3))
+            z = np.ma.filled(LinearTriInterpolator(mesh, pts[:, 2])(gx, gy), np.nan)
+            if min(z.shape) > 1:  # shade the relief: normals from the height's gradient
+                dzdy, dzdx = np.gradient(z, step)
+                n = np.stack([-dzdx, -dzdy, np.ones_like(z)], axis=-1)
+                n /= np.linalg.norm(n, axis=-1, keepdims=True)
+            keep = np.isfinite(z) & np.all(np.isfinite(n), axis=-1)
+            gx, gy, z, n = gx[keep], gy[keep], z[keep] - 1e-3, n[keep]
+            color = _mesh_color(meshes[0])
+    p = np.column_stack([gx.ravel(), gy.ravel(), np.ravel(z)])
+    n = n.reshape(-1, 3)
+    return Cloud(p, n, np.tile(color, (len(p), 1)), np.full(len(p), step))
 
 
 def preview(

@@ -187,7 +187,7 @@ __all__ = [
 # --------------------------------------------------------------------------- forest recipes
 
 TOP_KEYS = {"seed", "region", "intensity", "sites", "mix", "species", "forest", "ground"}
-GROUND_KEYS = {"kind", "margin", "color"}
+GROUND_KEYS = {"kind", "margin", "color", "file", "max", "bounds"}
 FOREST_KEYS = {
     "variants",
     "hard_core",
@@ -232,7 +232,7 @@ class Recipe:
     data: dict
     colliders: str = "trunk"
     physics_scene: bool = False
-    ground: dict | None = None  # {"kind": "plane", "margin": m, "color": (r, g, b)}
+    ground: dict | None = None  # {"kind", "margin", "color", "field": terrain.HeightField}
     origin: str = "corner"  # "corner": recipe coordinates; "centre": the plot's centre at 0, 0
     lod: str = "full"  # the tree assets' lod variant the forest selects: full, medium, proxy
 
@@ -437,7 +437,7 @@ def parse_recipe(
                 f"forest.colliders: {colliders!r} is not one of {', '.join(COLLIDER_MODES)}"
             )
         physics_scene = coerce(forest.get("physics_scene", False), bool, "forest.physics_scene")
-        ground = _parse_ground(data.get("ground"))
+        ground = _parse_ground(data.get("ground"), region, base)
         origin = coerce(forest.get("origin", "corner"), str, "forest.origin")
         if origin not in ("corner", "centre"):
             raise RecipeError(f"forest.origin: {origin!r} is not corner or centre")
@@ -491,24 +491,52 @@ def parse_recipe(
     return recipe
 
 
-def _parse_ground(t: Any) -> dict | None:
-    """``[ground]``: ``kind = "plane"`` (or ``"none"``), ``margin`` metres around the region,
-    ``color`` linear RGB in 0..1."""
+def _parse_ground(t: Any, region: Any, base: Path) -> dict | None:
+    """``[ground]``: ``kind = "plane"``, ``"raster"`` or ``"none"``; ``margin`` metres around
+    the region, ``color`` linear RGB in 0..1; a raster takes ``file`` (``.npy`` metres, or an
+    image with ``max`` metres for white), optional ``max`` and ``bounds`` (default: the
+    region's bounds grown by ``margin``), and must cover the region."""
+    from .terrain import HeightField, load_height_field
+
     if t is None:
         return None
     if not isinstance(t, Mapping):
         raise RecipeError('ground: expected a table, e.g. [ground] kind = "plane"')
     check_keys(t, GROUND_KEYS, "ground")
     kind = coerce(t.get("kind", "plane"), str, "ground.kind")
-    if kind not in ("plane", "none"):
-        raise RecipeError(f"ground.kind: {kind!r} is not plane or none")
+    if kind not in ("plane", "raster", "none"):
+        raise RecipeError(f"ground.kind: {kind!r} is not plane, raster or none")
     if kind == "none":
         return None
     margin = _num(t.get("margin", 0.0), "ground.margin", lo=0)
     color = coerce(t.get("color", [0.36, 0.30, 0.22]), tuple[float, float, float], "ground.color")
     if not all(math.isfinite(c) and 0 <= c <= 1 for c in color):
         raise RecipeError(f"ground.color: {list(color)} is outside 0..1 (linear RGB)")
-    return {"kind": kind, "margin": margin, "color": color}
+    x0, y0, x1, y1 = region.bounds
+    grown = (x0 - margin, y0 - margin, x1 + margin, y1 + margin)
+    if kind == "plane":
+        for key in ("file", "max", "bounds"):
+            if key in t:
+                raise RecipeError(f'ground.{key}: only a kind = "raster" ground takes it')
+        field = HeightField.plane(grown)
+    else:
+        bounds = grown
+        if "bounds" in t:
+            bounds = coerce(t["bounds"], tuple[float, float, float, float], "ground.bounds")
+            if not (bounds[0] < bounds[2] and bounds[1] < bounds[3]):
+                raise RecipeError(f"ground.bounds: {list(bounds)} is not [x0, y0, x1, y1]")
+            if bounds[0] > x0 or bounds[1] > y0 or bounds[2] < x1 or bounds[3] < y1:
+                raise RecipeError(
+                    f"ground.bounds: {list(bounds)} does not cover the region "
+                    f"{list(region.bounds)}; trees there would have no ground height"
+                )
+        peak = t.get("max")
+        field = load_height_field(
+            base / coerce(t.get("file"), str, "ground.file"),
+            bounds,
+            None if peak is None else _num(peak, "ground.max"),
+        )
+    return {"kind": kind, "margin": margin, "color": color, "field": field}
 
 
 def _parse_scale(t: Any) -> ScaleSpec:
@@ -563,9 +591,10 @@ def resolved_toml(recipe: Recipe, to_dir: Path) -> dict:
         src = (recipe.base / p).resolve()
         return os.path.relpath(src, to_dir.resolve())
 
-    inten = data.get("intensity")
-    if isinstance(inten, dict) and "file" in inten:
-        inten["file"] = rebase(inten["file"])
+    for table in ("intensity", "ground"):
+        t = data.get(table)
+        if isinstance(t, dict) and "file" in t:
+            t["file"] = rebase(t["file"])
     for t in data.get("species", {}).values():
         if "profile" in t:
             t["profile"] = rebase(t["profile"])

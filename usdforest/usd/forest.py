@@ -62,6 +62,7 @@ class ForestBuild:
     out: Path
     assets: Path
     proxy_extent: np.ndarray  # of the trees' proxies
+    ground_z: np.ndarray  # (n,) the ground's height under each tree (0 on a plane)
 
     @property
     def n_trees(self) -> int:
@@ -69,7 +70,11 @@ class ForestBuild:
 
 
 def instancer_extent(
-    sites: Sites, proto_index: np.ndarray, trees: Sequence[TreeBuild], level: str
+    sites: Sites,
+    proto_index: np.ndarray,
+    trees: Sequence[TreeBuild],
+    level: str,
+    ground_z: np.ndarray,
 ) -> np.ndarray:
     """Exact extent of the yawed, scaled instances of ``trees`` (one per prototype) at level
     of detail ``level``, from each tree's footprint (the hull of its points on the ground)."""
@@ -84,6 +89,7 @@ def instancer_extent(
         sites.xy.astype(np.float32).astype(np.float64),
         (1.0 - 2.0 * k * k, 2.0 * k * r),
         sites.scale.astype(np.float32).astype(np.float64),
+        ground_z.astype(np.float32).astype(np.float64),
     )
 
 
@@ -120,6 +126,7 @@ def instancer_layer(
         r.targetPathList.explicitItems = targets
         pos = np.zeros((n, 3), dtype=np.float32)
         pos[:, :2] = sites.xy
+        pos[:, 2] = build.ground_z
         attr(trees, "positions", T.Point3fArray, vec3f(pos))
         attr(
             trees,
@@ -186,12 +193,7 @@ def interface_layer(
         if recipe.physics_scene:
             add_physics_scene(forest)
         if recipe.ground is not None:
-            add_ground(
-                forest,
-                recipe.region.bounds,
-                margin=recipe.ground["margin"],
-                color=recipe.ground["color"],
-            )
+            add_ground(forest, recipe.ground["field"], color=recipe.ground["color"])
     return layer
 
 
@@ -201,9 +203,10 @@ def _extents_hint(build: ForestBuild, recipe: Recipe) -> np.ndarray:
     when the forest selects the proxy level."""
     boxes = {"default": [], "render": [], "proxy": []}
     if recipe.ground is not None:
-        x0, y0, x1, y1 = recipe.region.bounds
-        m = recipe.ground["margin"]
-        boxes["default"].append(np.array([[x0 - m, y0 - m, 0.0], [x1 + m, y1 + m, 0.0]]))
+        field = recipe.ground["field"]
+        x0, y0, x1, y1 = field.bounds
+        z = field.z
+        boxes["default"].append(np.array([[x0, y0, z.min()], [x1, y1, z.max()]]))
     if build.n_trees:
         if recipe.lod == "proxy":
             boxes["default"].append(build.extent)
@@ -223,13 +226,16 @@ def _extents_hint(build: ForestBuild, recipe: Recipe) -> np.ndarray:
     return np.concatenate(out)
 
 
-def _write_csv(path: Path, sites: Sites, heights: np.ndarray, proto_index: np.ndarray) -> None:
+def _write_csv(
+    path: Path, sites: Sites, heights: np.ndarray, proto_index: np.ndarray, z: np.ndarray
+) -> None:
     names = np.asarray(sites.names, dtype=object)[sites.species].tolist()
     h = (heights[proto_index] * sites.scale).tolist()
     rows = zip(
         range(len(sites)),
         sites.xy[:, 0].tolist(),
         sites.xy[:, 1].tolist(),
+        z.tolist(),
         names,
         sites.variant.tolist(),
         sites.yaw.tolist(),
@@ -240,8 +246,8 @@ def _write_csv(path: Path, sites: Sites, heights: np.ndarray, proto_index: np.nd
     with path.open("w", newline="") as f:
         f.write("id,x,y,z,species,variant,yaw,scale,height\n")
         f.writelines(
-            f"{i},{x:.4f},{y:.4f},0,{sp},{v},{yaw:.3f},{s:.4f},{hh:.3f}\n"
-            for i, x, y, sp, v, yaw, s, hh in rows
+            f"{i},{x:.4f},{y:.4f},{zz:.4f},{sp},{v},{yaw:.3f},{s:.4f},{hh:.3f}\n"
+            for i, x, y, zz, sp, v, yaw, s, hh in rows
         )
 
 
@@ -295,15 +301,22 @@ def write_forest(
     proto_extent = np.stack([trees[p].extent for p in prototypes])
     heights = proto_extent[:, 1, 2] - proto_extent[:, 0, 2]
     ordered = [trees[p] for p in prototypes]
+    # each tree stands on the ground mesh (float32 as stored, so on it to the bit)
+    ground_z = (
+        recipe.ground["field"].height(sites.xy[:, 0], sites.xy[:, 1]).astype(np.float32)
+        if recipe.ground is not None
+        else np.zeros(len(sites), dtype=np.float32)
+    ) + np.float32(0.0)
     build = ForestBuild(
         sites,
         tuple(prototypes),
         proto_index,
         trees,
-        instancer_extent(sites, proto_index, ordered, recipe.lod),
+        instancer_extent(sites, proto_index, ordered, recipe.lod, ground_z),
         out,
         assets,
-        instancer_extent(sites, proto_index, ordered, "proxy"),
+        instancer_extent(sites, proto_index, ordered, "proxy", ground_z),
+        ground_z,
     )
 
     tmp = staging_folder(out)
@@ -330,13 +343,13 @@ def write_forest(
             caps, names = instance_capsules(
                 [trees[key].colliders for key in prototypes],
                 proto_index,
-                sites.xy,
+                np.column_stack([sites.xy, ground_z]),
                 sites.yaw,
                 sites.scale,
             )
             save_layer(collision_layer(caps, names), staged / "colliders.usdc")
             sublayers.append(f"./{assets.name}/colliders.usdc")
-        _write_csv(staged / "trees.csv", sites, heights, proto_index)
+        _write_csv(staged / "trees.csv", sites, heights, proto_index, ground_z)
         (staged / "pipeline.toml").write_text(
             "# The resolved recipe of this forest: usdforest build OUT.usda --pipeline this\n"
             + tomli_w.dumps(resolved_toml(recipe, assets))

@@ -1,9 +1,11 @@
-"""The forest's ground: a flat plane under the plot, with a collider, a label and a material.
+"""The forest's ground: a plane or a height field under the plot, with a collider, a label and
+a material.
 
-``/Forest/Ground`` is a Mesh of two triangles over the region's bounding box (plus a margin)
-at z = 0, where every tree stands; ``PhysicsCollisionAPI`` makes it the floor robots drive on,
-``SemanticsLabelsAPI:class = ground`` labels it for sensors, and a UsdPreviewSurface gives it
-the colour the thumbnail shows.
+``/Forest/Ground/Mesh`` is the triangulated :class:`~usdforest.terrain.HeightField` (two
+triangles for a plane over the region's bounding box plus a margin, at z = 0; a raster's grid
+otherwise) on which every tree stands; ``PhysicsCollisionAPI`` makes it the floor robots drive
+on, ``SemanticsLabelsAPI:class = ground`` labels it for sensors, and a UsdPreviewSurface gives
+it the colour the thumbnail shows.
 """
 
 from __future__ import annotations
@@ -13,28 +15,24 @@ from collections.abc import Sequence
 import numpy as np
 from pxr import Sdf, Vt
 
+from ..terrain import HeightField
 from .layers import T, attr, bind_material, preview_material, prim, semantic_label, triangle_mesh
 
 GROUND_COLOR = (0.36, 0.30, 0.22)
 
 
 def add_ground(
-    root: Sdf.PrimSpec,
-    bounds: Sequence[float],
-    *,
-    margin: float = 0.0,
-    color: Sequence[float] = GROUND_COLOR,
+    root: Sdf.PrimSpec, field: HeightField, *, color: Sequence[float] = GROUND_COLOR
 ) -> None:
-    """``<root>/Ground`` over ``bounds`` (x0, y0, x1, y1) grown by ``margin`` metres."""
-    x0, y0, x1, y1 = (float(b) for b in bounds)
-    x0, y0, x1, y1 = x0 - margin, y0 - margin, x1 + margin, y1 + margin
-    pts = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+    """``<root>/Ground``: the mesh of ``field``, with its collider, label and material."""
+    from ..cad import vertex_normals
+
+    pts, tri = field.mesh()
     ground = prim(root, "Ground", "Xform")
     looks = prim(ground, "Looks", "Scope")
     material = preview_material(looks, "Ground", color, nonvisual="dirt", roughness=0.95)
-    mesh = triangle_mesh(
-        ground, "Mesh", pts, np.array([[0, 1, 2], [0, 2, 3]]), np.tile([0.0, 0.0, 1.0], (4, 1))
-    )
+    normals = vertex_normals(pts, tri)
+    mesh = triangle_mesh(ground, "Mesh", pts, tri, np.round(normals, 6) + 0.0)
     attr(
         mesh,
         "primvars:displayColor",

@@ -104,12 +104,13 @@ def collision_layer(caps: Capsules, names: list[str]) -> Sdf.Layer:
 def instance_capsules(
     proto_caps: list[Capsules],
     proto_index: np.ndarray,
-    xy: np.ndarray,
+    xyz: np.ndarray,
     yaw_deg: np.ndarray,
     scale: np.ndarray,
 ) -> tuple[Capsules, list[str]]:
-    """Each instance's prototype capsules moved to where it stands (yaw about Z, uniform
-    scale), with names ``T_<instance>`` (``T_<instance>_<k>`` for a tree's k-th capsule)."""
+    """Each instance's prototype capsules moved to where it stands (``xyz``: on the ground;
+    yaw about Z, uniform scale), with names ``T_<instance>`` (``T_<instance>_<k>`` for a
+    tree's k-th capsule)."""
     bases, tips, radii, names = [], [], [], []
     c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
     for k, caps in enumerate(proto_caps):
@@ -119,9 +120,9 @@ def instance_capsules(
         for j in range(len(caps)):
             for src, out in ((caps.base[j], bases), (caps.tip[j], tips)):
                 p = src[None, :] * scale[inst, None]
-                x = c[inst] * p[:, 0] - s[inst] * p[:, 1] + xy[inst, 0]
-                y = s[inst] * p[:, 0] + c[inst] * p[:, 1] + xy[inst, 1]
-                out.append(np.stack([x, y, p[:, 2]], axis=1))
+                x = c[inst] * p[:, 0] - s[inst] * p[:, 1] + xyz[inst, 0]
+                y = s[inst] * p[:, 0] + c[inst] * p[:, 1] + xyz[inst, 1]
+                out.append(np.stack([x, y, p[:, 2] + xyz[inst, 2]], axis=1))
             radii.append(caps.radius[j] * scale[inst])
             names.append((inst, j))
     if not bases:

@@ -1,0 +1,128 @@
+"""The ground's shape: a height field on a regular grid, and heights on it.
+
+A :class:`HeightField` holds elevations (metres) at the nodes of a regular grid over
+``bounds = (x0, y0, x1, y1)``, row 0 along the north edge (max y), as a DEM raster is stored.
+Its surface is the triangulation the ground mesh is written with: each grid cell split along
+the diagonal from its south-west to its north-east corner. :meth:`HeightField.height`
+interpolates on exactly those triangles, so a tree's z is on the mesh a viewer, a sensor and a
+physics engine see, not on a smoother surface beside it.
+
+A flat plane is the 2 x 2 height field of zeros.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import RecipeError
+from .paths import require_file
+
+MAX_NODES = 1025  # per side of the ground mesh: a finer raster is decimated to this
+
+
+@dataclass(frozen=True, eq=False)
+class HeightField:
+    """Elevations ``z (rows, cols)`` at grid nodes over ``bounds`` (row 0 = north)."""
+
+    z: np.ndarray
+    bounds: tuple[float, float, float, float]
+
+    @staticmethod
+    def plane(bounds: tuple[float, float, float, float], height: float = 0.0) -> HeightField:
+        return HeightField(np.full((2, 2), float(height)), tuple(map(float, bounds)))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.z.shape
+
+    def _cell(self, x: np.ndarray, y: np.ndarray):
+        x0, y0, x1, y1 = self.bounds
+        rows, cols = self.z.shape
+        fx = np.clip((np.asarray(x, dtype=np.float64) - x0) / (x1 - x0), 0, 1) * (cols - 1)
+        fy = np.clip((y1 - np.asarray(y, dtype=np.float64)) / (y1 - y0), 0, 1) * (rows - 1)
+        c = np.minimum(fx.astype(np.int64), cols - 2)
+        r = np.minimum(fy.astype(np.int64), rows - 2)
+        return r, c, fx - c, fy - r
+
+    def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Heights at ``x, y`` on the ground mesh's triangles (clamped to the bounds)."""
+        r, c, u, v = self._cell(x, y)
+        z = self.z
+        nw, ne = z[r, c], z[r, c + 1]  # row r is the cell's north edge
+        sw, se = z[r + 1, c], z[r + 1, c + 1]
+        # v runs south from the north edge; the diagonal joins sw (u=0, v=1) and ne (1, 0)
+        upper = u + v <= 1.0  # the north-west triangle nw, ne, sw
+        z_upper = nw + u * (ne - nw) + v * (sw - nw)
+        z_lower = se + (1.0 - u) * (sw - se) + (1.0 - v) * (ne - se)
+        return np.where(upper, z_upper, z_lower)
+
+    def mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(points (rows*cols, 3), triangles (2*(rows-1)*(cols-1), 3))``, wound up (+Z)."""
+        x0, y0, x1, y1 = self.bounds
+        rows, cols = self.z.shape
+        xs = np.linspace(x0, x1, cols)
+        ys = np.linspace(y1, y0, rows)
+        gx, gy = np.meshgrid(xs, ys)
+        pts = np.stack([gx.ravel(), gy.ravel(), self.z.ravel()], axis=1)
+        idx = np.arange(rows * cols).reshape(rows, cols)
+        nw, ne = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
+        sw, se = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+        # counter-clockwise seen from above: nw, sw, ne and ne, sw, se
+        tri = np.concatenate([np.stack([nw, sw, ne], 1), np.stack([ne, sw, se], 1)])
+        return pts, tri
+
+
+def load_height_field(
+    path: Path,
+    bounds: tuple[float, float, float, float],
+    peak: float | None = None,
+) -> HeightField:
+    """A height field from ``.npy`` (metres; times ``peak`` if given) or an image (grey 0..1
+    times ``peak`` metres), decimated to at most ``MAX_NODES`` nodes per side."""
+    where = "ground.file"
+    try:
+        require_file(path, "ground raster", RecipeError)
+    except RecipeError as exc:
+        raise RecipeError(f"{where}: {exc}") from None
+    if path.suffix.lower() == ".npy":
+        try:
+            z = np.load(path, allow_pickle=False)
+        except Exception as exc:
+            raise RecipeError(f"{where}: cannot read {path.name}: {exc}") from None
+        if peak is not None:
+            z = z * peak
+    else:
+        import matplotlib.image as mpimg
+
+        if peak is None:
+            raise RecipeError("ground.max: an image height field needs 'max' (metres for white)")
+        try:
+            img = np.asarray(mpimg.imread(path), dtype=float)
+        except Exception as exc:
+            raise RecipeError(f"{where}: cannot read {path.name}: {exc}") from None
+        if img.ndim == 3:
+            img = img[..., :3].mean(axis=2)
+        z = (img / 255.0 if img.max() > 1.0 else img) * peak
+    z = np.asarray(z)
+    if z.dtype.kind not in "biuf":
+        raise RecipeError(f"{where}: {path.name} holds {z.dtype} values, not elevations")
+    if z.ndim != 2 or min(z.shape) < 2:
+        raise RecipeError(
+            f"{where}: {path.name} must be a 2D grid of at least 2 x 2 elevations, "
+            f"got shape {z.shape}"
+        )
+    z = z.astype(np.float64)
+    if not np.all(np.isfinite(z)):
+        bad = int(np.count_nonzero(~np.isfinite(z)))
+        raise RecipeError(f"{where}: {path.name} has {bad} missing or non-finite elevations")
+    field = HeightField(z, tuple(map(float, bounds)))
+    if max(z.shape) <= MAX_NODES:
+        return field
+    # resample the surface itself on a coarser lattice over the same bounds
+    rows, cols = (min(n, MAX_NODES) for n in z.shape)
+    x0, y0, x1, y1 = field.bounds
+    gx, gy = np.meshgrid(np.linspace(x0, x1, cols), np.linspace(y1, y0, rows))
+    return HeightField(field.height(gx, gy), field.bounds)
