@@ -63,6 +63,7 @@ def test_layout_and_ground_truth(default_forest):
     assets = out.parent / "forest_assets"
     assert sorted(p.name for p in assets.iterdir()) == [
         "colliders.usdc",
+        "ground.usdc",
         "instances.usdc",
         "pipeline.toml",
         "templates",
@@ -76,6 +77,7 @@ def test_layout_and_ground_truth(default_forest):
     assert list(forest_layer.subLayerPaths) == [
         "./forest_assets/instances.usdc",
         "./forest_assets/colliders.usdc",
+        "./forest_assets/ground.usdc",
     ]
     with (assets / "trees.csv").open() as f:
         rows = list(csv.DictReader(f))

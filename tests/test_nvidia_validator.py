@@ -48,3 +48,19 @@ def test_a_forest_with_ground_colliders_and_physics_scene_passes(tmp_path):
     out = tmp_path / "f.usda"
     write_forest(parse_recipe(data, base.base, base.source), out)
     _check(exe, out)
+
+
+def test_a_forest_on_a_raster_height_field_passes(tmp_path):
+    """The height field's arrays go to their own crate layer (ground.usdc): no ASCII
+    performance failure, and its collider and label pass the physics and semantics rules."""
+    import numpy as np
+
+    exe = _validator()
+    x = np.linspace(-2.0, 12.0, 15)
+    gx, gy = np.meshgrid(x, x[::-1])
+    np.save(tmp_path / "dem.npy", 0.2 * gx + np.sin(gy))
+    base = read_recipe(default_recipe_path().parent / "paper-two-tree-stand.toml")
+    data = dict(base.data, ground={"kind": "raster", "file": "dem.npy", "margin": 2.0})
+    out = tmp_path / "f.usda"
+    write_forest(parse_recipe(data, tmp_path, str(tmp_path / "r.toml")), out)
+    _check(exe, out)

@@ -2,7 +2,8 @@
 
 ::
 
-    forest.usda                 /Forest  Xform, kind assembly, defaultPrim; sublayers instances
+    forest.usda                 /Forest  Xform, kind assembly, defaultPrim; sublayers instances,
+                                colliders and ground; /Forest/PhysicsScene only if asked
     forest_assets/
       instances.usdc            /Forest/Trees  PointInstancer (kind group) with positions,
                                 orientations (quath), scales, protoIndices, ids (int64), extent
@@ -10,6 +11,8 @@
                                     -> trees/<species>_<k>.usdc
       trees/<species>_<k>.usdc  tree assets (/Tree, kind component)
       templates/<name>.usdc     the CAD templates the trees reference
+      colliders.usdc            /Forest/Colliders: one capsule per trunk where the tree stands
+      ground.usdc               /Forest/Ground: the plane or height field (collider, label)
       trees.csv                 ground truth, one row per instance
       pipeline.toml             the resolved recipe (seed included)
     forest_assets/thumbnail.png a 256x256 thumbnail (customLayerData.thumbnail)
@@ -32,7 +35,7 @@ from ..bounds import yawed_extent
 from ..errors import UsdForestError
 from ..recipe import Recipe, resolved_toml
 from ..sites import Sites, sample_sites
-from .ground import add_ground
+from .ground import ground_layer
 from .layers import T, attr, new_layer, prim, save_layer, vec3f
 from .physics import add_physics_scene, collision_layer, instance_capsules
 from .tree import EMPTY_EXTENT, TreeBuild, build_tree, copy_templates, tree_layer
@@ -192,8 +195,6 @@ def interface_layer(
         attr(forest, "extentsHint", T.Float3Array, vec3f(_extents_hint(build, recipe)))
         if recipe.physics_scene:
             add_physics_scene(forest)
-        if recipe.ground is not None:
-            add_ground(forest, recipe.ground["field"], color=recipe.ground["color"])
     return layer
 
 
@@ -349,6 +350,12 @@ def write_forest(
             )
             save_layer(collision_layer(caps, names), staged / "colliders.usdc")
             sublayers.append(f"./{assets.name}/colliders.usdc")
+        if recipe.ground is not None:
+            save_layer(
+                ground_layer(recipe.ground["field"], recipe.ground["color"]),
+                staged / "ground.usdc",
+            )
+            sublayers.append(f"./{assets.name}/ground.usdc")
         _write_csv(staged / "trees.csv", sites, heights, proto_index, ground_z)
         (staged / "pipeline.toml").write_text(
             "# The resolved recipe of this forest: usdforest build OUT.usda --pipeline this\n"

@@ -16,9 +16,29 @@ import numpy as np
 from pxr import Sdf, Vt
 
 from ..terrain import HeightField
-from .layers import T, attr, bind_material, preview_material, prim, semantic_label, triangle_mesh
+from .layers import (
+    T,
+    attr,
+    bind_material,
+    new_layer,
+    preview_material,
+    prim,
+    semantic_label,
+    triangle_mesh,
+)
 
 GROUND_COLOR = (0.36, 0.30, 0.22)
+
+
+def ground_layer(field: HeightField, color: Sequence[float] = GROUND_COLOR) -> Sdf.Layer:
+    """``/Forest/Ground`` in a layer of its own (a height field's arrays belong in a crate
+    file, not in the text interface)."""
+    layer = new_layer("Forest", comment="usdforest forest ground")
+    with Sdf.ChangeBlock():
+        forest = prim(layer, "Forest", "Xform")
+        forest.kind = "assembly"
+        add_ground(forest, field, color=color)
+    return layer
 
 
 def add_ground(
