@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-CHUNK = 2_000_000  # transformed points held at once
+CHUNK = 400_000  # transformed points held at once
 
 
 def hull_vertices(points: np.ndarray) -> np.ndarray:
@@ -32,16 +32,31 @@ def hull_vertices(points: np.ndarray) -> np.ndarray:
 
 
 def footprint_of(xy: np.ndarray) -> np.ndarray:
-    """Vertices of the convex hull of ``(n, 2)`` points (all of them when degenerate)."""
+    """Vertices of the convex hull of ``(n, 2)`` points (all distinct points when
+    degenerate)."""
     from scipy.spatial import ConvexHull, QhullError
 
-    p = np.unique(np.asarray(xy, dtype=np.float64).reshape(-1, 2), axis=0)
+    p = _outside_octagon(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
     if len(p) <= 4:
-        return p
+        return np.unique(p, axis=0)
     try:
         return p[np.sort(ConvexHull(p).vertices)]
     except QhullError:
+        return np.unique(p, axis=0)
+
+
+def _outside_octagon(p: np.ndarray) -> np.ndarray:
+    """Akl-Toussaint: drop the points strictly inside the polygon of the extreme points
+    along x, y and both diagonals (never a hull vertex), so qhull sees few of a million."""
+    if len(p) < 64:
         return p
+    keys = np.stack([p[:, 0], p[:, 0] + p[:, 1], p[:, 1], p[:, 1] - p[:, 0]], axis=1)
+    ext = np.concatenate([np.argmax(keys, axis=0), np.argmin(keys, axis=0)])
+    ring = p[ext]  # east, north-east, north, north-west, west, ...: counter-clockwise
+    edge = np.roll(ring, -1, axis=0) - ring
+    cross = edge[:, 0] * (p[:, None, 1] - ring[:, 1]) - edge[:, 1] * (p[:, None, 0] - ring[:, 0])
+    inside = np.all(cross > 0, axis=1)
+    return p[~inside]
 
 
 @dataclass(frozen=True)
@@ -80,11 +95,22 @@ def instances_bounds(
     translate: np.ndarray,
 ) -> Bounds:
     """Bounds of instances: prototype ``proto[i]`` (convex hull vertices ``hulls[k]``) under
-    the row-vector linear map ``rows[i] (3, 3)`` then ``translate[i]``. Worked in chunks so
-    a million leaves never hold all their transformed points at once."""
+    the row-vector linear map ``rows[i] (3, 3)`` then ``translate[i]``.
+
+    Only instances that can reach the boundary are transformed: one whose origin lies deeper
+    than the largest instance's reach inside the hull of all origins (or farther than that
+    reach from their extremes on every axis) has every point inside bounds that other
+    instances' origins already span. Worked in chunks so a million leaves never hold all
+    their transformed points at once."""
+    proto = np.asarray(proto)
+    if len(proto) == 0:
+        return EMPTY
+    radius = np.array([np.linalg.norm(h, axis=1).max() if len(h) else 0.0 for h in hulls])
+    reach = np.linalg.norm(rows, axis=(1, 2)) * radius[proto]  # Frobenius >= spectral norm
+    keep = _may_reach_boundary(translate, float(reach.max()))
     parts = []
     for k, hull in enumerate(hulls):
-        sel = np.flatnonzero(proto == k)
+        sel = np.flatnonzero((proto == k) & keep)
         if len(sel) == 0 or len(hull) == 0:
             continue
         step = max(1, CHUNK // len(hull))
@@ -93,6 +119,26 @@ def instances_bounds(
             pts = np.einsum("cj,njk->nck", hull, rows[i]) + translate[i, None, :]
             parts.append(Bounds.of_points(pts))
     return Bounds.union(parts)
+
+
+def _may_reach_boundary(origin: np.ndarray, reach: float) -> np.ndarray:
+    """Mask of the origins within ``reach`` of the boundary of their own bounds or of the
+    convex hull of their x, y (the only instances that can touch the union's bounds)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    o = np.asarray(origin, dtype=np.float64)
+    lo, hi = o.min(axis=0), o.max(axis=0)
+    keep = np.any((o <= lo + reach) | (o >= hi - reach), axis=1)
+    xy = footprint_of(o[:, :2])
+    if len(xy) >= 3:
+        try:
+            eq = ConvexHull(xy).equations  # n . p + d <= 0 inside
+        except QhullError:
+            return np.ones(len(o), dtype=bool)
+        keep |= (o[:, :2] @ eq[:, :2].T + eq[:, 2]).max(axis=1) >= -reach
+    else:
+        keep[:] = True
+    return keep
 
 
 def yawed_extent(

@@ -46,6 +46,7 @@ def crown_hull(points: np.ndarray, budget: int = 900) -> tuple[np.ndarray, np.nd
         return None
     try:
         hull = ConvexHull(pts)
+        outer = pts[hull.vertices]  # a linear function's maximum over pts is at one of these
         if len(hull.simplices) > budget:
             dirs = _fibonacci_sphere(HULL_DIRECTIONS)
             hull = ConvexHull(pts[np.unique(np.argmax(pts @ dirs.T, axis=0))])
@@ -62,7 +63,8 @@ def crown_hull(points: np.ndarray, budget: int = 900) -> tuple[np.ndarray, np.nd
     n[flip] = -n[flip]
     # grow about the centre until no point is outside any face plane
     reach = np.einsum("ij,ij->i", n, v[tri[:, 0]] - c)  # > 0 for every face
-    worst = float(np.max(((pts - c) @ n.T) / reach))
+    # (einsum, not BLAS: the same bits on every machine)
+    worst = float(np.max(np.einsum("pk,fk->pf", outer - c, n) / reach))
     v = c + (v - c) * max(worst, 1.0) * (1.0 + 1e-6)
     return v, tri
 

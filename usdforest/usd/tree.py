@@ -73,7 +73,8 @@ class TreeBuild:
     variant: int
     extent: np.ndarray  # (2, 3), of the full level
     levels: Levels  # the medium and proxy levels' geometry
-    bounds: Mapping[str, Bounds]  # exact extent and footprint of each level of detail
+    bounds: Mapping[str, Bounds]  # exact extent and footprint of each level of detail (and
+    # of the leaf instancers: "leaves", "clusters")
     colliders: Capsules | None = None  # the wood's collider capsules
 
     def used_templates(self) -> dict[str, TemplateInfo]:
@@ -192,6 +193,8 @@ def _level_bounds(p: Placement, infos: Mapping[str, TemplateInfo], lv: Levels) -
         "full": Bounds.union([wood, leaves]),
         "medium": Bounds.union([wood, clusters]),
         "proxy": Bounds.of_points(lv.proxy_points()),
+        "leaves": leaves,  # the leaf instancers' own extents
+        "clusters": clusters,
     }
 
 
@@ -340,7 +343,7 @@ def tree_layer(
             (p.leaf_position, p.leaf_orient, p.leaf_scale, p.leaf_proto),
             p.leaf_templates,
             template_assets,
-            build.templates,
+            build.bounds["leaves"].extent,
         )
         _author_lod(root, build, template_assets, bark, leaf_mat)
     return layer
@@ -355,7 +358,7 @@ def _author_leaves(
     arrays: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     templates: tuple[str, ...],
     template_assets: Mapping[str, str],
-    infos: Mapping[str, TemplateInfo],
+    extent: np.ndarray,
 ) -> Sdf.PrimSpec:
     """A leaf PointInstancer (positions, quath orientations, scales, protoIndices, ids,
     extent) with one prototype per leaf template, in the tree's leaf colour."""
@@ -382,12 +385,7 @@ def _author_leaves(
     attr(leaves, "scales", T.Float3Array, vec3f(scale))
     attr(leaves, "protoIndices", T.IntArray, Vt.IntArray.FromNumpy(proto.astype(np.int32)))
     attr(leaves, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(np.arange(n, dtype=np.int64)))
-    attr(
-        leaves,
-        "extent",
-        T.Float3Array,
-        vec3f(instances_bounds_as_stored(position, orient, scale, proto, templates, infos).extent),
-    )
+    attr(leaves, "extent", T.Float3Array, vec3f(extent))
     return leaves
 
 
@@ -445,7 +443,7 @@ def _author_lod(
             (c["position"], c["orient"], c["scale"], c["proto"]),
             p.leaf_templates,
             template_assets,
-            build.templates,
+            build.bounds["clusters"].extent,
         )
 
     proxy = variants["proxy"]
