@@ -102,10 +102,11 @@ def test_forest_trees_stand_on_a_raster_ground(tmp_path):
         axis = m[2, :3] / np.linalg.norm(m[2, :3])
         bottom = m[3, :3] - axis * (c.GetHeightAttr().Get() / 2 + c.GetRadiusAttr().Get())
         assert bottom[2] == pytest.approx(_down(mesh, bottom[None, :2])[0], abs=0.01)
-    # the forest's extentsHint (default purpose: the ground) spans the terrain's heights
+    # the forest's extentsHint holds the terrain (its lowest point is the ground's) and trees
     hint = np.array(stage.GetPrimAtPath("/Forest").GetAttribute("extentsHint").Get())
     assert hint[0, 2] == pytest.approx(mesh.bounds[0, 2], abs=1e-5)
-    assert hint[1, 2] == pytest.approx(mesh.bounds[1, 2], abs=1e-5)
+    assert np.all(hint[0] <= mesh.bounds[0] + 1e-5) and np.all(hint[1] >= mesh.bounds[1] - 1e-5)
+    assert hint[1, 2] > world[:, 2].max() + 1.0
     # the resolved recipe rebases the raster's path and rebuilds the same forest
     again = tmp_path / "again.usda"
     write_forest(read_recipe(tmp_path / "f_assets" / "pipeline.toml"), again, thumbnail=False)
@@ -164,3 +165,24 @@ def test_bad_ground_rasters_name_the_key(tmp_path, ground, setup, fragment):
         np.save(tmp_path / "dem.npy", _dem())
     with pytest.raises(RecipeError, match=fragment):
         _recipe(tmp_path, ground)
+
+
+def test_image_rasters_keep_their_scale_whatever_their_bit_depth(tmp_path):
+    """A 16-bit TIFF and a dark 8-bit image are divided by their type's maximum (a guess from
+    the values once gave 257 times the height of a 16-bit file)."""
+    from PIL import Image
+
+    from usdforest.pointprocess import load_raster
+
+    grey = np.linspace(0.0, 1.0, 12).reshape(3, 4)
+    Image.fromarray(np.round(grey * 65535).astype(np.uint16)).save(tmp_path / "dem16.tif")
+    field = load_height_field(tmp_path / "dem16.tif", (0, 0, 30, 20), 100.0)
+    np.testing.assert_allclose(field.z, grey * 100.0, atol=1e-3)
+    dark = np.array([[0, 1], [1, 0]], dtype=np.uint8)  # nearly black: 0 and 1/255
+    Image.fromarray(dark).save(tmp_path / "dark.png")
+    np.testing.assert_allclose(
+        load_height_field(tmp_path / "dark.png", (0, 0, 1, 1), 100.0).z, dark / 255 * 100, atol=1e-4
+    )
+    # the intensity raster reads images the same way
+    r = load_raster(tmp_path / "dem16.tif", (0, 0, 30, 20), 0.5)
+    np.testing.assert_allclose(r.values, grey * 0.5, atol=1e-5)

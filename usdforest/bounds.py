@@ -85,7 +85,19 @@ class Bounds:
         )
 
 
-EMPTY = Bounds(np.zeros((2, 3)), np.zeros((0, 2)))
+# an empty box, as UsdGeom writes one for nothing to bound (min FLT_MAX, max -FLT_MAX)
+EMPTY_EXTENT = np.array([[np.finfo(np.float32).max] * 3, [-np.finfo(np.float32).max] * 3])
+EMPTY = Bounds(EMPTY_EXTENT, np.zeros((0, 2)))
+
+
+def outward_f32(extents: np.ndarray) -> np.ndarray:
+    """Extents ``(2 k, 3)`` (min, max pairs) as float32 rounded outward (each min down, each
+    max up), so a stored box still holds what it bounds after the float64 -> float32 cast."""
+    e = np.asarray(extents, dtype=np.float64).reshape(-1, 2, 3)
+    f = e.astype(np.float32)
+    lo = np.where(f[:, 0] > e[:, 0], np.nextafter(f[:, 0], np.float32(-np.inf)), f[:, 0])
+    hi = np.where(f[:, 1] < e[:, 1], np.nextafter(f[:, 1], np.float32(np.inf)), f[:, 1])
+    return np.stack([lo, hi], axis=1).reshape(-1, 3)
 
 
 def instances_bounds(
@@ -97,17 +109,26 @@ def instances_bounds(
     """Bounds of instances: prototype ``proto[i]`` (convex hull vertices ``hulls[k]``) under
     the row-vector linear map ``rows[i] (3, 3)`` then ``translate[i]``.
 
-    Only instances that can reach the boundary are transformed: one whose origin lies deeper
-    than the largest instance's reach inside the hull of all origins (or farther than that
-    reach from their extremes on every axis) has every point inside bounds that other
-    instances' origins already span. Worked in chunks so a million leaves never hold all
-    their transformed points at once."""
+    Only instances that can reach the boundary are transformed: one whose anchor (its hull's
+    centroid, transformed) lies deeper than the largest instance's reach inside the hull of
+    all anchors (or farther than that reach from their extremes on every axis) has every
+    point inside bounds that the other instances' geometry already spans. Worked in chunks
+    so a million leaves never hold all their transformed points at once."""
     proto = np.asarray(proto)
     if len(proto) == 0:
         return EMPTY
-    radius = np.array([np.linalg.norm(h, axis=1).max() if len(h) else 0.0 for h in hulls])
+    # each instance is anchored at its hull's centroid, which lies inside its geometry, so
+    # the union's bounds hold every anchor; the reach is measured from that centroid
+    centre = np.array([h.mean(axis=0) if len(h) else np.zeros(3) for h in hulls])
+    radius = np.array(
+        [
+            np.linalg.norm(h - c, axis=1).max() if len(h) else 0.0
+            for h, c in zip(hulls, centre, strict=True)
+        ]
+    )
+    anchor = np.einsum("nj,njk->nk", centre[proto], rows) + translate
     reach = np.linalg.norm(rows, axis=(1, 2)) * radius[proto]  # Frobenius >= spectral norm
-    keep = _may_reach_boundary(translate, float(reach.max()))
+    keep = _may_reach_boundary(anchor, float(reach.max()))
     parts = []
     for k, hull in enumerate(hulls):
         sel = np.flatnonzero((proto == k) & keep)
@@ -122,7 +143,7 @@ def instances_bounds(
 
 
 def _may_reach_boundary(origin: np.ndarray, reach: float) -> np.ndarray:
-    """Mask of the origins within ``reach`` of the boundary of their own bounds or of the
+    """Mask of the anchors within ``reach`` of the boundary of their own bounds or of the
     convex hull of their x, y (the only instances that can touch the union's bounds)."""
     from scipy.spatial import ConvexHull, QhullError
 
@@ -155,7 +176,7 @@ def yawed_extent(
     them), scaled uniformly by ``scale``, moved to ``xy`` and up to ``base_z``; prototype
     ``k`` has footprint ``footprints[k]`` and z range ``z_ranges[k] = (zmin, zmax)``."""
     if len(proto) == 0:
-        return np.zeros((2, 3))
+        return EMPTY_EXTENT.copy()
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     c, s = turn

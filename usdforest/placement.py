@@ -120,6 +120,11 @@ class Placement:
         return int(self.translate.shape[0])
 
     @property
+    def trunk(self) -> int:
+        """Index of the trunk's first run (the wood prim written as ``/Tree/Trunk``)."""
+        return int(np.flatnonzero((self.order == 0) & (self.parent < 0))[0])
+
+    @property
     def n_leaves(self) -> int:
         return int(self.leaf_position.shape[0])
 

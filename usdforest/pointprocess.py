@@ -21,7 +21,6 @@ from scipy.special import erf
 
 from .errors import RecipeError, UsdForestError
 from .expr import Expression, compile_expression
-from .paths import require_file
 
 MAX_CANDIDATES = 50_000_000  # thinning candidates drawn at most (memory: ~16 bytes each)
 CHUNK = 4_000_000
@@ -364,39 +363,16 @@ def load_raster(
     path: Path, bounds: tuple[float, float, float, float], peak: float | None
 ) -> Raster:
     """A raster intensity from ``.npy`` (trees/m^2) or an image (grey 0..1 scaled by ``peak``)."""
-    try:
-        require_file(path, "raster", RecipeError)
-    except RecipeError as exc:
-        raise RecipeError(f"intensity.file: {exc}") from None
+    from .rasters import read_grey, read_npy
+
     if path.suffix.lower() == ".npy":
-        try:
-            values = np.load(path, allow_pickle=False)
-        except ValueError as exc:
-            if "pickle" in str(exc):  # never suggest loading pickles: they run code
-                raise RecipeError(
-                    f"intensity.file: {path.name} holds Python objects, not numbers; save a "
-                    "plain numeric 2D array (numpy.save of a float array)"
-                ) from None
-            raise RecipeError(f"intensity.file: cannot read {path.name}: {exc}") from None
-        except Exception as exc:
-            raise RecipeError(f"intensity.file: cannot read {path.name}: {exc}") from None
+        values = np.asarray(read_npy(path, "intensity.file"))
         if peak is not None:
             values = values * peak
     else:
-        import matplotlib.image as mpimg
-
         if peak is None:
             raise RecipeError("intensity.max: an image raster needs 'max' (trees/m² for white)")
-        try:
-            img = mpimg.imread(path)
-        except Exception as exc:
-            raise RecipeError(f"intensity.file: cannot read {path.name}: {exc}") from None
-        img = np.asarray(img, dtype=float)
-        if img.ndim == 3:
-            img = img[..., :3].mean(axis=2)
-        if img.max() > 1.0:
-            img = img / 255.0
-        values = img * peak
+        values = read_grey(path, "intensity.file") * peak
     return Raster(values, bounds, path.name)
 
 

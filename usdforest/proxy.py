@@ -115,15 +115,15 @@ class Levels:
     stem: tuple[np.ndarray, np.ndarray]  # the proxy's (vertices, triangles)
     crown: tuple[np.ndarray, np.ndarray] | None
 
-    def proxy_points(self) -> np.ndarray:
-        """Every vertex of the proxy level."""
+    def proxy_vertices(self) -> np.ndarray:
+        """Every vertex of the proxy level's meshes."""
         parts = [self.stem[0]] + ([self.crown[0]] if self.crown is not None else [])
         return np.concatenate(parts)
 
 
 def levels(p: Placement) -> Levels:
     """The medium leaf clusters and the proxy stem and crown of a placed tree."""
-    trunk = int(np.flatnonzero((p.order == 0) & (p.parent < 0))[0])
+    trunk = p.trunk
     return Levels(
         leaf_clusters(p),
         stem_prism(p.translate[trunk], p.tip[trunk], float(p.radius[trunk])),

@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 
 from .errors import RecipeError
-from .paths import require_file
 
 MAX_NODES = 1025  # per side of the ground mesh: a finer raster is decimated to this
 
@@ -82,47 +81,32 @@ def load_height_field(
 ) -> HeightField:
     """A height field from ``.npy`` (metres; times ``peak`` if given) or an image (grey 0..1
     times ``peak`` metres), decimated to at most ``MAX_NODES`` nodes per side."""
-    where = "ground.file"
-    try:
-        require_file(path, "ground raster", RecipeError)
-    except RecipeError as exc:
-        raise RecipeError(f"{where}: {exc}") from None
-    if path.suffix.lower() == ".npy":
-        try:
-            z = np.load(path, allow_pickle=False)
-        except Exception as exc:
-            raise RecipeError(f"{where}: cannot read {path.name}: {exc}") from None
-        if peak is not None:
-            z = z * peak
-    else:
-        import matplotlib.image as mpimg
+    from .rasters import read_grey, read_npy
 
+    where = "ground.file"
+    if path.suffix.lower() == ".npy":
+        z = read_npy(path, where)
+    else:
         if peak is None:
             raise RecipeError("ground.max: an image height field needs 'max' (metres for white)")
-        try:
-            img = np.asarray(mpimg.imread(path), dtype=float)
-        except Exception as exc:
-            raise RecipeError(f"{where}: cannot read {path.name}: {exc}") from None
-        if img.ndim == 3:
-            img = img[..., :3].mean(axis=2)
-        z = (img / 255.0 if img.max() > 1.0 else img) * peak
-    z = np.asarray(z)
-    if z.dtype.kind not in "biuf":
-        raise RecipeError(f"{where}: {path.name} holds {z.dtype} values, not elevations")
+        z = read_grey(path, where)
     if z.ndim != 2 or min(z.shape) < 2:
         raise RecipeError(
             f"{where}: {path.name} must be a 2D grid of at least 2 x 2 elevations, "
             f"got shape {z.shape}"
         )
-    z = z.astype(np.float64)
+    scale = 1.0 if peak is None else float(peak)
+    bounds = tuple(map(float, bounds))
+    if max(z.shape) > MAX_NODES:
+        # resample the surface itself on a coarser lattice over the same bounds, reading only
+        # the cells it needs from the (memory-mapped) raster
+        rows, cols = (min(n, MAX_NODES) for n in z.shape)
+        x0, y0, x1, y1 = bounds
+        gx, gy = np.meshgrid(np.linspace(x0, x1, cols), np.linspace(y1, y0, rows))
+        z = HeightField(z, bounds).height(gx, gy)
+    # stored as float32 by the mesh: heights are interpolated from the same node values
+    z = (np.asarray(z, dtype=np.float64) * scale).astype(np.float32).astype(np.float64)
     if not np.all(np.isfinite(z)):
         bad = int(np.count_nonzero(~np.isfinite(z)))
         raise RecipeError(f"{where}: {path.name} has {bad} missing or non-finite elevations")
-    field = HeightField(z, tuple(map(float, bounds)))
-    if max(z.shape) <= MAX_NODES:
-        return field
-    # resample the surface itself on a coarser lattice over the same bounds
-    rows, cols = (min(n, MAX_NODES) for n in z.shape)
-    x0, y0, x1, y1 = field.bounds
-    gx, gy = np.meshgrid(np.linspace(x0, x1, cols), np.linspace(y1, y0, rows))
-    return HeightField(field.height(gx, gy), field.bounds)
+    return HeightField(z, bounds)

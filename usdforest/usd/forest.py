@@ -31,14 +31,14 @@ import tomli_w
 from pxr import Gf, Sdf, Vt
 
 from ..atomic import publish, refuse_overwrite, staging_folder
-from ..bounds import yawed_extent
+from ..bounds import EMPTY_EXTENT, yawed_extent
 from ..errors import UsdForestError
 from ..recipe import Recipe, resolved_toml
 from ..sites import Sites, sample_sites
 from .ground import ground_layer
-from .layers import T, attr, new_layer, prim, save_layer, vec3f
+from .layers import T, attr, extents, new_layer, prim, save_layer, vec3f
 from .physics import add_physics_scene, collision_layer, instance_capsules
-from .tree import EMPTY_EXTENT, TreeBuild, build_tree, copy_templates, tree_layer
+from .tree import TreeBuild, build_tree, copy_templates, tree_layer
 
 THUMBNAIL = "thumbnail.png"  # inside the assets folder
 
@@ -61,10 +61,9 @@ class ForestBuild:
     prototypes: tuple[tuple[str, int], ...]  # (species, variant) per prototype index
     proto_index: np.ndarray
     trees: dict[tuple[str, int], TreeBuild]
-    extent: np.ndarray  # of the trees at the level of detail the forest selects
+    extent: np.ndarray  # of the trees at the level the forest selects and of their proxies
     out: Path
     assets: Path
-    proxy_extent: np.ndarray  # of the trees' proxies
     ground_z: np.ndarray  # (n,) the ground's height under each tree (0 on a plane)
 
     @property
@@ -145,7 +144,7 @@ def instancer_layer(
             Vt.IntArray.FromNumpy(build.proto_index.astype(np.int32)),
         )
         attr(trees, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(np.arange(n, dtype=np.int64)))
-        attr(trees, "extent", T.Float3Array, vec3f(build.extent))
+        attr(trees, "extent", T.Float3Array, extents(build.extent))
     return layer
 
 
@@ -192,39 +191,26 @@ def interface_layer(
                 "pipeline": "./" + f"{build.assets.name}/pipeline.toml",
             }
         }
-        attr(forest, "extentsHint", T.Float3Array, vec3f(_extents_hint(build, recipe)))
+        attr(forest, "extentsHint", T.Float3Array, extents(_extents_hint(build, recipe)))
         if recipe.physics_scene:
             add_physics_scene(forest)
     return layer
 
 
 def _extents_hint(build: ForestBuild, recipe: Recipe) -> np.ndarray:
-    """``/Forest``'s extentsHint by purpose (default, render, proxy; guide colliders left
-    out): the ground is default; trees are render with their proxies beside them, or default
-    when the forest selects the proxy level."""
-    boxes = {"default": [], "render": [], "proxy": []}
+    """``/Forest``'s extentsHint: one box, for the default purpose, holding the ground and
+    the trees (``/Forest/Trees`` is a default-purpose prim: its whole extent, proxies
+    included, counts there, as ``UsdGeomModelAPI.ComputeExtentsHint`` finds)."""
+    boxes = []
     if recipe.ground is not None:
         field = recipe.ground["field"]
         x0, y0, x1, y1 = field.bounds
-        z = field.z
-        boxes["default"].append(np.array([[x0, y0, z.min()], [x1, y1, z.max()]]))
+        boxes.append(np.array([[x0, y0, field.z.min()], [x1, y1, field.z.max()]]))
     if build.n_trees:
-        if recipe.lod == "proxy":
-            boxes["default"].append(build.extent)
-        else:
-            boxes["render"].append(build.extent)
-            boxes["proxy"].append(build.proxy_extent)
-    out = []
-    for purpose in ("default", "render", "proxy"):
-        b = boxes[purpose]
-        out.append(
-            np.stack([np.min([x[0] for x in b], axis=0), np.max([x[1] for x in b], axis=0)])
-            if b
-            else EMPTY_EXTENT
-        )
-    while len(out) > 1 and out[-1] is EMPTY_EXTENT:
-        out.pop()
-    return np.concatenate(out)
+        boxes.append(build.extent)
+    if not boxes:
+        return EMPTY_EXTENT
+    return np.stack([np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)])
 
 
 def _write_csv(
@@ -302,21 +288,29 @@ def write_forest(
     proto_extent = np.stack([trees[p].extent for p in prototypes])
     heights = proto_extent[:, 1, 2] - proto_extent[:, 0, 2]
     ordered = [trees[p] for p in prototypes]
-    # each tree stands on the ground mesh (float32 as stored, so on it to the bit)
+    # each tree stands on the ground mesh (its height on the mesh's triangles, float32 as
+    # positions store it)
     ground_z = (
         recipe.ground["field"].height(sites.xy[:, 0], sites.xy[:, 1]).astype(np.float32)
         if recipe.ground is not None
         else np.zeros(len(sites), dtype=np.float32)
     ) + np.float32(0.0)
+    # a PointInstancer's extent bounds its prototypes' default, render and proxy purposes:
+    # the selected level and, beside a full or medium tree, its proxy
+    proxy = instancer_extent(sites, proto_index, ordered, "proxy", ground_z)
+    if recipe.lod == "proxy" or len(sites) == 0:
+        extent = proxy
+    else:
+        selected = instancer_extent(sites, proto_index, ordered, recipe.lod, ground_z)
+        extent = np.stack([np.minimum(selected[0], proxy[0]), np.maximum(selected[1], proxy[1])])
     build = ForestBuild(
         sites,
         tuple(prototypes),
         proto_index,
         trees,
-        instancer_extent(sites, proto_index, ordered, recipe.lod, ground_z),
+        extent,
         out,
         assets,
-        instancer_extent(sites, proto_index, ordered, "proxy", ground_z),
         ground_z,
     )
 

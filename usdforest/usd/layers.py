@@ -167,6 +167,14 @@ def vec3f(a: np.ndarray) -> Vt.Vec3fArray:
     return Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(a, dtype=np.float32))
 
 
+def extents(a: np.ndarray) -> Vt.Vec3fArray:
+    """Min, max pairs ``(2 k, 3)`` as a float3[] rounded outward (see
+    :func:`usdforest.bounds.outward_f32`): an extent or an extentsHint."""
+    from ..bounds import outward_f32
+
+    return Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(outward_f32(a)))
+
+
 def ints(a: np.ndarray) -> Vt.IntArray:
     return Vt.IntArray.FromNumpy(np.ascontiguousarray(a, dtype=np.int32))
 

@@ -152,7 +152,6 @@ class TemplateInfo:
     name: str
     base_radius: float  # normalised (unit length)
     tip_radius: float
-    extent: np.ndarray  # (2, 3)
     measurements: dict
     centreline: np.ndarray  # (K, 2): x, y of the centreline at K heights z = 0..1
     hull: np.ndarray  # (h, 3) vertices of the convex hull of its meshes (exact bounds)
@@ -163,7 +162,7 @@ class TemplateInfo:
 
 
 def read_template(path: str | Path) -> TemplateInfo:
-    """Read a template layer's part type, normalised radii and extent."""
+    """Read a template layer's part type, normalised radii, centreline and convex hull."""
     path = Path(path)
     layer = Sdf.Layer.FindOrOpen(str(path))
     if layer is None:
@@ -173,11 +172,6 @@ def read_template(path: str | Path) -> TemplateInfo:
         raise UsdForestError(f"{path}: not a usdforest template (no /Template with customData)")
     data = spec.customData["usdforest"]
     stage = Usd.Stage.Open(layer)
-    box = (
-        UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"])
-        .ComputeUntransformedBound(stage.GetPrimAtPath("/Template"))
-        .ComputeAlignedRange()
-    )
     meshes = [UsdGeom.Mesh(p) for p in Usd.PrimRange(stage.GetPrimAtPath("/Template"))]
     pts = [np.asarray(m.GetPointsAttr().Get() or [], dtype=np.float64) for m in meshes if m]
     points = np.concatenate(pts).reshape(-1, 3) if pts else np.zeros((0, 3))
@@ -187,7 +181,6 @@ def read_template(path: str | Path) -> TemplateInfo:
         name=str(data["name"]),
         base_radius=float(data["normalisedBaseRadius"]),
         tip_radius=float(data["normalisedTipRadius"]),
-        extent=np.array([list(box.GetMin()), list(box.GetMax())]),
         measurements=dict(data["measurements"]),
         centreline=centreline_of(points),
         hull=hull_vertices(points),

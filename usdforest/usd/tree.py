@@ -27,7 +27,7 @@ import numpy as np
 from pxr import Gf, Sdf, Vt
 
 from ..atomic import publish, refuse_overwrite, staging_folder
-from ..bounds import EMPTY, Bounds, instances_bounds
+from ..bounds import EMPTY, EMPTY_EXTENT, Bounds, instances_bounds
 from ..colliders import Capsules, tree_capsules
 from ..errors import UsdForestError
 from ..library import template_path
@@ -39,6 +39,7 @@ from .layers import (
     T,
     attr,
     bind_material,
+    extents,
     new_layer,
     preview_material,
     prim,
@@ -192,7 +193,7 @@ def _level_bounds(p: Placement, infos: Mapping[str, TemplateInfo], lv: Levels) -
     return {
         "full": Bounds.union([wood, leaves]),
         "medium": Bounds.union([wood, clusters]),
-        "proxy": Bounds.of_points(lv.proxy_points()),
+        "proxy": Bounds.of_points(lv.proxy_vertices()),
         "leaves": leaves,  # the leaf instancers' own extents
         "clusters": clusters,
     }
@@ -313,7 +314,7 @@ def tree_layer(
 
         # wood prim i is /Tree/Trunk for the trunk's first run, else /Tree/Branches/B_<i>;
         # usdforest:parent holds that index of the prim a branch grows from
-        trunk = int(np.flatnonzero((p.order == 0) & (p.parent < 0))[0])
+        trunk = p.trunk
         branches = prim(root, "Branches", "Xform")
         _purpose(branches, "render")
         for i in range(p.n_wood):
@@ -385,7 +386,7 @@ def _author_leaves(
     attr(leaves, "scales", T.Float3Array, vec3f(scale))
     attr(leaves, "protoIndices", T.IntArray, Vt.IntArray.FromNumpy(proto.astype(np.int32)))
     attr(leaves, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(np.arange(n, dtype=np.int64)))
-    attr(leaves, "extent", T.Float3Array, vec3f(extent))
+    attr(leaves, "extent", T.Float3Array, extents(extent))
     return leaves
 
 
@@ -428,10 +429,10 @@ def _author_lod(
     # the proxy's purpose is authored in the variants only: a local opinion would beat them
     for level in ("full", "medium"):
         hint = [EMPTY_EXTENT, b[level].extent, b["proxy"].extent, *guide]
-        attr(variants[level], "extentsHint", T.Float3Array, vec3f(np.concatenate(hint)))
+        attr(variants[level], "extentsHint", T.Float3Array, extents(np.concatenate(hint)))
         _purpose(prim(variants[level], "Proxy", "", Sdf.SpecifierOver), "proxy")
     hint = [b["proxy"].extent, *([EMPTY_EXTENT, EMPTY_EXTENT, *guide] if guide else [])]
-    attr(variants["proxy"], "extentsHint", T.Float3Array, vec3f(np.concatenate(hint)))
+    attr(variants["proxy"], "extentsHint", T.Float3Array, extents(np.concatenate(hint)))
 
     medium = variants["medium"]
     if p.n_leaves:
@@ -449,10 +450,6 @@ def _author_lod(
     proxy = variants["proxy"]
     for name in ("Trunk", "Branches", "Leaves"):
         prim(proxy, name, "", Sdf.SpecifierOver).active = False
-
-
-# an empty extent, as UsdGeomModelAPI writes one for a purpose with nothing to bound
-EMPTY_EXTENT = np.array([[np.finfo(np.float32).max] * 3, [-np.finfo(np.float32).max] * 3])
 
 
 def _guide_extent(c: Capsules | None) -> list[np.ndarray]:
