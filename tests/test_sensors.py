@@ -169,7 +169,7 @@ def test_absorption_iso_9613_1():
 
 
 def test_single_disk_at_normal_incidence():
-    cfg = SonarConfig()
+    cfg = SonarConfig(leaf_model="disk")
     c = cfg.speed_of_sound
     r = 2.0
     e = echo_from_leaves(disk(r), Pose(0, 0, 0), cfg)

@@ -6,15 +6,31 @@ axis and incidence angle theta_i from its normal, at frequency f (wavenumber k =
 its contribution to the transfer function (pressure at the receiver relative to the emitted
 pressure at 1 m) is::
 
-    H_l(f) = B(theta_b, f)^2 * |S(f, theta_i, a)| * 10^(-alpha(f) * 2 r / 20) / r^2
+    H_l(f) = B(theta_b, f)^2 * S(f, theta_i, a) * 10^(-alpha(f) * 2 r / 20) / r^2
              * exp(-i 2 pi f * 2 r / c)
 
 * B: the one-way beam amplitude, Gaussian with a -3 dB full width theta_3(f) = theta_3(f_ref)
   f_ref / f, or a piston of the radius that has that width at f_ref; emitter and receiver
   share it, hence the square.
-* S: physical-optics backscatter of a rigid disk, |S| = (k a^2 / 2) |2 J1(x) / x| |cos theta_i|
-  with x = 2 k a sin theta_i (its backscattering cross-section is 4 pi |S|^2).
+* S, the leaf's backscatter (``leaf_model``):
+
+  - ``group-fit`` (default): the group's fitted leaf beampattern (Ming, Zhu and Müller 2017;
+    the numbers of their public MATLAB echo code), with x = k a::
+
+        S = A(x) cos(b(x) theta_i) / k * exp(-i phi),   clipped at 0 where the cosine is < 0
+        A(x) = 0.5003 x^2 + 0.6867          b(x) = 0.3999 x^-0.9065 + 0.9979
+        phi = erf(p(x) (1.57 - theta_i)) - 2.6343,   p(x) = 0.9824 x^0.3523 - 0.9459
+
+    (their code also scales every echo by a constant 0.2, left out here: H is in physical
+    units, and at normal incidence this S meets the disk's k a^2 / 2 as k a grows).
+  - ``disk``: physical-optics backscatter of a rigid disk, real and positive,
+    S = (k a^2 / 2) |2 J1(x) / x| |cos theta_i| with x = 2 k a sin theta_i (its
+    backscattering cross-section is 4 pi |S|^2).
+
 * 1 / r^2: two-way spherical spreading; alpha: atmospheric absorption per ISO 9613-1 in dB/m.
+* ``window = "hann"`` weighs the band with a Hann window (times 2, the window's amplitude
+  correction) before the impulse response is formed, as the group's code does over 60-80 kHz;
+  the ``paper`` preset is that set-up (60-80 kHz, Hann, group-fit leaves).
 
 The leaves are summed coherently. To do it fast for 100k leaves, the smooth amplitude is
 interpolated in frequency between K band centres (hat functions), and the phase terms become
@@ -36,7 +52,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.special import j1
+from scipy.special import erf, j1
 
 from ..atomic import atomic_path
 from ..errors import UsdForestError
@@ -64,6 +80,8 @@ class SonarConfig:
     max_range: float = 10.0
     call_duration: float = 2e-3
     occlusion: bool = False
+    leaf_model: str = "group-fit"  # or "disk"
+    window: str = "none"  # or "hann": the band weighted before the impulse response
 
     def check(self) -> None:
         if not (self.f_min > 0 and self.f_max > 0):
@@ -91,14 +109,24 @@ class SonarConfig:
             raise UsdForestError("sonar: humidity must be 0-100 % and temperature -40-60 °C")
         if self.f_ref <= 0 or self.pressure <= 0:
             raise UsdForestError("sonar.f_ref and sonar.pressure must be > 0")
+        if self.leaf_model not in LEAF_MODELS:
+            raise UsdForestError(
+                f"sonar.leaf_model: {self.leaf_model!r} is not one of {', '.join(LEAF_MODELS)}"
+            )
+        if self.window not in ("none", "hann"):
+            raise UsdForestError(f"sonar.window: {self.window!r} is not none or hann")
 
     @property
     def speed_of_sound(self) -> float:
         return 331.3 * math.sqrt(1 + self.temperature / 273.15)
 
 
+LEAF_MODELS = ("group-fit", "disk")
+
 PRESETS = {
     "bat-fm": SonarConfig(),
+    # the group's set-up: 60-80 kHz, a Hann window over the band, fitted leaf beampatterns
+    "paper": SonarConfig(f_min=60e3, f_max=80e3, window="hann", leaf_model="group-fit"),
     "narrow": SonarConfig(beam_width=20.0),
     "wide": SonarConfig(beam_width=80.0),
 }
@@ -160,6 +188,28 @@ def disk_backscatter(f: np.ndarray, theta_i: np.ndarray, a: np.ndarray, c: float
     return k * a**2 / 2 * directivity * np.abs(np.cos(theta_i))
 
 
+def group_fit_backscatter(
+    f: np.ndarray, theta_i: np.ndarray, a: np.ndarray, c: float
+) -> np.ndarray:
+    """S, the group's fitted leaf beampattern (complex, m): amplitude A(ka) cos(b(ka) theta) / k
+    (0 where the cosine is negative) and phase -phi(ka, theta); see the module docstring."""
+    k = 2 * math.pi * np.asarray(f, dtype=float) / c
+    x = k * np.asarray(a, dtype=float)
+    theta = np.asarray(theta_i, dtype=float)
+    amp = np.maximum((0.5003 * x**2 + 0.6867) * np.cos((0.3999 * x**-0.9065 + 0.9979) * theta), 0)
+    phi = erf((0.9824 * x**0.3523 - 0.9459) * (1.57 - theta)) - 2.6343
+    return amp / k * np.exp(-1j * phi)
+
+
+def leaf_backscatter(
+    model: str, f: np.ndarray, theta_i: np.ndarray, a: np.ndarray, c: float
+) -> np.ndarray:
+    """S of a leaf under ``model`` (``group-fit``: complex; ``disk``: real)."""
+    if model == "disk":
+        return disk_backscatter(f, theta_i, a, c)
+    return group_fit_backscatter(f, theta_i, a, c)
+
+
 def leaf_geometry(leaves: Leaves, pose: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Range, beam angle and incidence angle (rad) of every leaf."""
     d = leaves.centre - pose.position
@@ -177,13 +227,14 @@ def band_centres(cfg: SonarConfig) -> np.ndarray:
 def leaf_amplitudes(
     leaves: Leaves, pose: Pose, cfg: SonarConfig, f: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``(L, len(f))`` amplitudes |H_l(f)| and the ranges of the leaves."""
+    """``(L, len(f))`` amplitudes H_l(f) without the delay (complex for ``group-fit``
+    leaves) and the ranges of the leaves."""
     r, tb, ti = leaf_geometry(leaves, pose)
     c = cfg.speed_of_sound
     ff = np.asarray(f)[None, :]
     amp = (
         beam_amplitude(tb[:, None], ff, cfg) ** 2
-        * disk_backscatter(ff, ti[:, None], leaves.radius[:, None], c)
+        * leaf_backscatter(cfg.leaf_model, ff, ti[:, None], leaves.radius[:, None], c)
         * 10
         ** (
             -absorption_db_per_m(ff, cfg.temperature, cfg.humidity, cfg.pressure)
@@ -245,12 +296,16 @@ def echo_from_leaves(leaves: Leaves, pose: Pose, cfg: SonarConfig) -> Echo:
         i0 = np.floor(pos).astype(np.int64)
         frac = pos - i0
         for k in range(cfg.bands):
-            hist = (
-                np.bincount(i0, amp[:, k] * (1 - frac), minlength=n_fine + 1)
-                + np.bincount(i0 + 1, amp[:, k] * frac, minlength=n_fine + 2)[: n_fine + 1]
-            )
-            spectrum += hats[k] * np.fft.rfft(hist[:n_fine])
-    impulse_fine = np.fft.irfft(spectrum, n_fine) * fs_fine  # per second (delta -> fs)
+            hist = _delay_histogram(i0, frac, amp[:, k].real, n_fine)
+            if np.iscomplexobj(amp):
+                hist = hist + 1j * _delay_histogram(i0, frac, amp[:, k].imag, n_fine)
+            spectrum += hats[k] * _rfft_of(hist)
+    weighted = spectrum
+    if cfg.window == "hann":
+        u = np.clip((freqs_fine - cfg.f_min) / (cfg.f_max - cfg.f_min), 0, 1)
+        inside = (freqs_fine >= cfg.f_min) & (freqs_fine <= cfg.f_max)
+        weighted = spectrum * np.where(inside, 2 * (0.5 - 0.5 * np.cos(2 * math.pi * u)), 0.0)
+    impulse_fine = np.fft.irfft(weighted, n_fine) * fs_fine  # per second (delta -> fs)
     impulse = impulse_fine[::OVERSAMPLE]
     call = chirp(cfg)
     echo = np.convolve(impulse, call)[:n_out] / cfg.sample_rate
@@ -267,6 +322,25 @@ def echo_from_leaves(leaves: Leaves, pose: Pose, cfg: SonarConfig) -> Echo:
         config=cfg,
         pose=pose,
     )
+
+
+def _delay_histogram(i0: np.ndarray, frac: np.ndarray, w: np.ndarray, n: int) -> np.ndarray:
+    """Weights ``w`` spread linearly between the two fine samples around each delay."""
+    return (
+        np.bincount(i0, w * (1 - frac), minlength=n + 1)
+        + np.bincount(i0 + 1, w * frac, minlength=n + 2)[: n + 1]
+    )[:n]
+
+
+def _rfft_of(hist: np.ndarray) -> np.ndarray:
+    """The spectrum (non-negative frequencies) of a real or complex delay histogram.
+
+    A complex histogram (complex leaf amplitudes) holds H on the positive frequencies only:
+    its full FFT's first half is taken, so the impulse response stays the real part of the
+    inverse of a one-sided spectrum, as for real amplitudes."""
+    if not np.iscomplexobj(hist):
+        return np.fft.rfft(hist)
+    return np.fft.fft(hist)[: len(hist) // 2 + 1]
 
 
 def visible_leaves(scene: Scene, pose: Pose, cfg: SonarConfig, caster=None) -> np.ndarray:
