@@ -581,7 +581,7 @@ def scan_cmd(
 
     from .config import check_keys, load_toml, override
     from .sensors import lidar, sonar
-    from .sensors.checks import check_not_inside_wood, pose_warnings
+    from .sensors.checks import check_not_inside_wood, pose_warnings, unseen_warning
     from .sensors.pose import parse_pose
     from .sensors.raycast import SceneCaster
     from .sensors.scene import extract_scene
@@ -620,8 +620,9 @@ def scan_cmd(
         raise UsdForestError(f"{config}: {exc}" if config is not None else str(exc)) from None
     t0 = time.perf_counter()
     scene = extract_scene(stage, centre=p.position, radius=settings.max_range)
-    for w in pose_warnings(scene, p, settings.max_range):
-        err.print(f"warning: {w}", highlight=False)
+    for w in [*pose_warnings(scene, p, settings.max_range), unseen_warning(scene)]:
+        if w:
+            err.print(f"warning: {w}", highlight=False)
     caster = SceneCaster(scene)
     check_not_inside_wood(scene, p, caster)
     if sensor == "lidar":

@@ -34,6 +34,19 @@ def pose_warnings(scene: Scene, pose: Pose, max_range: float) -> list[str]:
     return []
 
 
+def unseen_warning(scene: Scene, shown: int = 3) -> str | None:
+    """One line naming the geometry prims the scene could not hold (None when there are
+    none): a sensor never silently ignores what a user put in the stage."""
+    if not scene.unseen:
+        return None
+    names = ", ".join(scene.unseen[:shown])
+    more = f" and {len(scene.unseen) - shown} more" if len(scene.unseen) > shown else ""
+    return (
+        f"{len(scene.unseen)} prim(s) the sensor cannot see (only meshes, instancers and "
+        f"Cube/Sphere/Cylinder/Capsule/Cone/Plane are cast): {names}{more}"
+    )
+
+
 def check_not_inside_wood(scene: Scene, pose: Pose, caster: SceneCaster | None = None) -> None:
     """Refuse a pose inside a trunk: (almost) every axis ray first meets a trunk from inside."""
     caster = caster or SceneCaster(scene)

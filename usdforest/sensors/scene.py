@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from ..usd.layers import class_labels, mesh_triangles, open_stage, rendered
+from .implicit import IMPLICIT, shape_triangles
 
-CLASSES = ("unknown", "trunk", "branch", "leaf")
+CLASSES = ("unknown", "trunk", "branch", "leaf", "ground")
 CLASS_ID = {name: i for i, name in enumerate(CLASSES)}
 
 
@@ -96,6 +97,7 @@ class Scene:
             np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros(0, np.int64)
         )
     )
+    unseen: tuple[str, ...] = ()  # geometry prims the scene cannot hold (curves, points...)
 
     def __len__(self) -> int:
         """Triangles in the scene, every instance counted."""
@@ -255,6 +257,7 @@ def extract_scene(
     memo: dict = {}
     protos: list[Prototype] = []
     proto_of: dict = {}
+    unseen: list[str] = []
     placed: list[tuple[int, np.ndarray, int]] = []
 
     def prototype(prim) -> int:
@@ -299,8 +302,15 @@ def extract_scene(
             ):
                 it.PruneChildren()
                 continue
-            if p.IsA(UsdGeom.Mesh):
-                tri = _triangles(p, _m(cache.GetLocalToWorldTransform(p)) @ inv)
+            if p.IsA(UsdGeom.Mesh) or p.GetTypeName() in IMPLICIT:
+                to_root = _m(cache.GetLocalToWorldTransform(p)) @ inv
+                if p.IsA(UsdGeom.Mesh):
+                    tri = _triangles(p, to_root)
+                else:  # Cube, Sphere, ...: tessellated (see sensors.implicit)
+                    local = shape_triangles(p)
+                    if local is None:
+                        continue
+                    tri = (local @ to_root[:3, :3] + to_root[3, :3]).astype(np.float32)
                 n = len(tri)
                 parts.append(
                     _Part(
@@ -313,6 +323,8 @@ def extract_scene(
             elif p.IsA(UsdGeom.PointInstancer):
                 it.PruneChildren()
                 parts.append(instances(p, _m(cache.GetLocalToWorldTransform(p)) @ inv, top))
+            elif p.IsA(UsdGeom.Gprim):
+                unseen.append(str(p.GetPath()))
         out = _Part.concat(parts)
         memo[key] = out
         return out
@@ -423,4 +435,5 @@ def extract_scene(
         bounds,
         tuple(protos),
         inst,
+        tuple(dict.fromkeys(unseen)),
     )
