@@ -584,7 +584,7 @@ def scan_cmd(
     from .sensors.checks import check_not_inside_wood, pose_warnings, unseen_warning
     from .sensors.pose import parse_pose
     from .sensors.raycast import SceneCaster
-    from .sensors.scene import extract_scene
+    from .sensors.scene import CLASSES, extract_scene
 
     if sensor not in ("lidar", "sonar"):
         raise UsdForestError(f"--sensor: {sensor!r} is not lidar or sonar")
@@ -628,15 +628,12 @@ def scan_cmd(
     if sensor == "lidar":
         r = lidar.scan(scene, settings, p, seed=seed, caster=caster)
         lidar.write_returns(r, output)
-        counts = np.bincount(r.cls, minlength=4)
+        counts = np.bincount(r.cls, minlength=len(CLASSES))
         summary = {
             "output": str(output),
             "rays": r.n_rays,
             "returns": len(r),
-            "returns_by_class": {
-                c: int(n)
-                for c, n in zip(("unknown", "trunk", "branch", "leaf"), counts, strict=True)
-            },
+            "returns_by_class": {c: int(n) for c, n in zip(CLASSES, counts, strict=True)},
             "trees_hit": int(np.unique(r.tree[r.tree >= 0]).size),
             "triangles": len(scene),
             "seconds": round(time.perf_counter() - t0, 3),
@@ -672,6 +669,127 @@ def scan_cmd(
         sys.stdout.write(json.dumps(summary) + "\n")
     else:
         out.print(text, highlight=False)
+
+
+@app.command("fly")
+@handles_errors
+def fly_cmd(
+    stage: Annotated[Path, typer.Argument(help="Any stage that composes trees or forests.")],
+    output: Annotated[
+        Path,
+        typer.Option(
+            "--output", "-o", help="Output stem: writes STEM.las and STEM_sonar.npz/.wav/.png."
+        ),
+    ],
+    path: Annotated[
+        Path | None, typer.Option(help="CSV of poses: t,x,y,z[,yaw,pitch,roll] (s, m, deg).")
+    ] = None,
+    line: Annotated[
+        str | None, typer.Option(help="x0,y0,z0:x1,y1,z1, a straight flight (with --speed).")
+    ] = None,
+    speed: Annotated[float, typer.Option(help="m/s along --line.")] = 2.0,
+    lidar_preset: Annotated[
+        str, typer.Option("--lidar", help="vlp-16, hdl-32, os1-64 or none.")
+    ] = "vlp-16",
+    lidar_rate: Annotated[float, typer.Option(help="Lidar sweeps per second.")] = 10.0,
+    sonar_preset: Annotated[
+        str, typer.Option("--sonar", help="paper, bat-fm, narrow, wide or none.")
+    ] = "paper",
+    config: Annotated[
+        Path | None, typer.Option(help="TOML with \\[lidar] and/or \\[sonar] settings.")
+    ] = None,
+    seed: Annotated[int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise.")] = 0,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite the outputs.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
+) -> None:
+    """Fly a lidar and a sonar through a stage: LAS 1.4 returns with GPS time, class and
+    tree id; sonar pulses with Doppler, a WAV of the flight and an echogram."""
+    import time
+
+    from .config import check_keys, load_toml, override
+    from .sensors import flight, lidar, sonar
+    from .sensors.checks import unseen_warning
+    from .sensors.scene import CLASSES, extract_scene
+
+    if (path is None) == (line is None):
+        raise UsdForestError("give the flight as --path CSV or as --line x0,y0,z0:x1,y1,z1")
+    if path is not None:
+        traj = flight.read_path(path)
+    else:
+        try:
+            a, b = ([float(v) for v in end.split(",")] for end in line.split(":"))
+            if len(a) != 3 or len(b) != 3:
+                raise ValueError
+        except ValueError:
+            raise UsdForestError(f"--line: expected x0,y0,z0:x1,y1,z1, got {line!r}") from None
+        traj = flight.Trajectory.line(a, b, speed)
+    tables = {}
+    if config is not None:
+        tables = load_toml(config)
+        check_keys(tables, {"lidar", "sonar"}, str(config))
+    lidar_cfg = sonar_cfg = None
+    if lidar_preset != "none":
+        if lidar_preset not in lidar.PRESETS or lidar.PRESETS[lidar_preset].kind != "spinning":
+            names = [n for n, v in lidar.PRESETS.items() if v.kind == "spinning"]
+            raise UsdForestError(f"--lidar: {lidar_preset!r} is not one of {', '.join(names)}")
+        lidar_cfg = override(
+            lidar.PRESETS[lidar_preset], dict(tables.get("lidar", {})), f"{config}: lidar"
+        )
+        lidar_cfg.check()
+    if sonar_preset != "none":
+        if sonar_preset not in sonar.PRESETS:
+            raise UsdForestError(
+                f"--sonar: {sonar_preset!r} is not one of {', '.join(sonar.PRESETS)} or none"
+            )
+        sonar_cfg = override(
+            sonar.PRESETS[sonar_preset], dict(tables.get("sonar", {})), f"{config}: sonar"
+        )
+        sonar_cfg.check()
+    if lidar_cfg is None and sonar_cfg is None:
+        raise UsdForestError("nothing to fly: --lidar none and --sonar none")
+    las = output.with_name(output.name + ".las")
+    echo_stem = output.with_name(output.name + "_sonar")
+    outs = ([las] if lidar_cfg else []) + (
+        [echo_stem.with_suffix(x) for x in (".npz", ".wav", ".png")] if sonar_cfg else []
+    )
+    for o in outs:
+        require_output(o)
+    refuse_overwrite(*outs, force=force)
+    t0 = time.perf_counter()
+    reach = max(c.max_range for c in (lidar_cfg, sonar_cfg) if c is not None)
+    lo, hi = traj.position.min(axis=0), traj.position.max(axis=0)
+    scene = extract_scene(
+        stage, centre=(lo + hi) / 2, radius=float(np.linalg.norm(hi - lo) / 2 + reach)
+    )
+    if (w := unseen_warning(scene)) is not None:
+        err.print(f"warning: {w}", highlight=False)
+    summary: dict = {"duration_s": traj.duration, "outputs": [str(o) for o in outs]}
+    if lidar_cfg is not None:
+        r = flight.fly_lidar(scene, lidar_cfg, traj, lidar_rate, seed=seed)
+        flight.write_las(r, las)
+        counts = np.bincount(r.cls, minlength=len(CLASSES))
+        summary["lidar"] = {
+            "sweeps": r.sweeps,
+            "rays": r.n_rays,
+            "returns": len(r),
+            "returns_by_class": {c: int(n) for c, n in zip(CLASSES, counts, strict=True)},
+        }
+    if sonar_cfg is not None:
+        f = flight.fly_sonar(scene, sonar_cfg, traj)
+        flight.write_flight_echo(f, echo_stem)
+        summary["sonar"] = {"pulses": len(f.t), "max_leaves_in_range": int(f.leaves.max())}
+    summary["seconds"] = round(time.perf_counter() - t0, 3)
+    if as_json:
+        sys.stdout.write(json.dumps(summary) + "\n")
+        return
+    parts = [f"{traj.duration:.1f} s flight"]
+    if "lidar" in summary:
+        parts.append(
+            f"{las}: {summary['lidar']['returns']:,} returns in {summary['lidar']['sweeps']} sweeps"
+        )
+    if "sonar" in summary:
+        parts.append(f"{echo_stem}.npz/.wav/.png: {summary['sonar']['pulses']} sonar pulses")
+    out.print("; ".join(parts) + f" ({summary['seconds']:.1f} s)", highlight=False)
 
 
 template_app = typer.Typer(

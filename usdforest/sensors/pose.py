@@ -28,17 +28,23 @@ class Pose:
 
     def rotation(self) -> np.ndarray:
         """Column-vector rotation from the sensor frame to the world frame."""
-        cy, sy = math.cos(math.radians(self.yaw)), math.sin(math.radians(self.yaw))
-        cp, sp = math.cos(math.radians(self.pitch)), math.sin(math.radians(self.pitch))
-        cr, sr = math.cos(math.radians(self.roll)), math.sin(math.radians(self.roll))
-        rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-        ry = np.array([[cp, 0, -sp], [0, 1, 0], [sp, 0, cp]])  # +pitch: forward towards +Z
-        rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-        return rz @ ry @ rx
+        return rotations(np.array([self.yaw]), np.array([self.pitch]), np.array([self.roll]))[0]
 
     @property
     def forward(self) -> np.ndarray:
         return self.rotation()[:, 0]
+
+
+def rotations(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """``(n, 3, 3)`` column-vector rotations sensor -> world for angles in degrees: yaw about
+    +Z, then pitch (positive turns the forward axis towards +Z), then roll about forward."""
+    y, p, r = (np.radians(np.asarray(a, dtype=np.float64)) for a in (yaw, pitch, roll))
+    cy, sy, cp, sp, cr, sr = np.cos(y), np.sin(y), np.cos(p), np.sin(p), np.cos(r), np.sin(r)
+    one, zero = np.ones_like(y), np.zeros_like(y)
+    rz = np.stack([cy, -sy, zero, sy, cy, zero, zero, zero, one], -1).reshape(-1, 3, 3)
+    ry = np.stack([cp, zero, -sp, zero, one, zero, sp, zero, cp], -1).reshape(-1, 3, 3)
+    rx = np.stack([one, zero, zero, zero, cr, -sr, zero, sr, cr], -1).reshape(-1, 3, 3)
+    return rz @ ry @ rx
 
 
 def parse_pose(text: str) -> Pose:

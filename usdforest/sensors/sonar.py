@@ -39,9 +39,9 @@ histogram (linear interpolation at 8x the output rate), whose spectrum times the
 gives that band's share of H. The impulse response is H's inverse FFT, decimated to the output
 rate; the echo is the impulse response convolved with the call (a linear FM sweep).
 
-Modelled: leaves (disks), beam, backscatter, spreading, absorption, optional occlusion of
-leaves by wood and other leaves (ray cast: hidden leaves are dropped). Not modelled: twigs and
-branches as reflectors, multiple scattering, ground echoes, Doppler.
+Modelled: leaves, beam, backscatter, spreading, absorption, optional occlusion of leaves by
+wood and other leaves (ray cast: hidden leaves are dropped), the Doppler of a moving sonar.
+Not modelled: twigs and branches as reflectors, multiple scattering, ground echoes.
 """
 
 from __future__ import annotations
@@ -52,6 +52,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.interpolate import CubicSpline
 from scipy.special import erf, j1
 
 from ..atomic import atomic_path
@@ -82,6 +83,8 @@ class SonarConfig:
     occlusion: bool = False
     leaf_model: str = "group-fit"  # or "disk"
     window: str = "none"  # or "hann": the band weighted before the impulse response
+    doppler_bins: int = 4  # Doppler factors a moving sonar's echo is computed with
+    pulse_rate: float = 20.0  # pulses per second along a flight
 
     def check(self) -> None:
         if not (self.f_min > 0 and self.f_max > 0):
@@ -115,6 +118,10 @@ class SonarConfig:
             )
         if self.window not in ("none", "hann"):
             raise UsdForestError(f"sonar.window: {self.window!r} is not none or hann")
+        if not 1 <= self.doppler_bins <= 256:
+            raise UsdForestError("sonar.doppler_bins: must be in 1..256")
+        if not 0 < self.pulse_rate <= 1000:
+            raise UsdForestError("sonar.pulse_rate: must be in (0, 1000] pulses per second")
 
     @property
     def speed_of_sound(self) -> float:
@@ -271,8 +278,18 @@ def chirp(cfg: SonarConfig) -> np.ndarray:
     return np.hanning(n) * np.sin(2 * math.pi * (cfg.f_max * t + 0.5 * k * t**2))
 
 
-def echo_from_leaves(leaves: Leaves, pose: Pose, cfg: SonarConfig) -> Echo:
-    """Coherent foliage echo of ``leaves`` heard by a sonar at ``pose``."""
+def echo_from_leaves(
+    leaves: Leaves, pose: Pose, cfg: SonarConfig, velocity: np.ndarray | None = None
+) -> Echo:
+    """Coherent foliage echo of ``leaves`` heard by a sonar at ``pose``.
+
+    With the platform's ``velocity`` (m/s), each leaf's echo is its echo at rest
+    time-compressed by its two-way Doppler factor s = 1 + 2 (v . u) / c (u: the unit vector
+    to the leaf) about its delay, so every frequency f of it arrives as s f: the leaves are
+    grouped into ``doppler_bins`` factors spanning the pulse's range of them (one leaf, or a
+    sonar at rest, is exact; the compression is a cubic spline at the output rate).
+    ``transfer`` and ``impulse`` are those of the sonar at rest; ``echo`` carries the
+    Doppler."""
     cfg.check()
     c = cfg.speed_of_sound
     fs_fine = cfg.sample_rate * OVERSAMPLE
@@ -284,31 +301,48 @@ def echo_from_leaves(leaves: Leaves, pose: Pose, cfg: SonarConfig) -> Echo:
     step = centres[1] - centres[0]
     # hat functions: a partition of unity on [f_min, f_max], tapering to 0 one step outside
     hats = np.clip(1 - np.abs(freqs_fine[None, :] - centres[:, None]) / step, 0, None)
-    spectrum = np.zeros(freqs_fine.size, dtype=complex)
-    d = leaves.centre - pose.position
-    r_all = np.linalg.norm(d, axis=1)
-    in_range = np.flatnonzero(r_all <= cfg.max_range)
-    for start in range(0, in_range.size, LEAF_CHUNK):
-        sel = in_range[start : start + LEAF_CHUNK]
-        chunk = Leaves(leaves.centre[sel], leaves.normal[sel], leaves.area[sel], leaves.tree[sel])
-        amp, r = leaf_amplitudes(chunk, pose, cfg, centres)
-        pos = 2 * r / c * fs_fine
-        i0 = np.floor(pos).astype(np.int64)
-        frac = pos - i0
-        for k in range(cfg.bands):
-            hist = _delay_histogram(i0, frac, amp[:, k].real, n_fine)
-            if np.iscomplexobj(amp):
-                hist = hist + 1j * _delay_histogram(i0, frac, amp[:, k].imag, n_fine)
-            spectrum += hats[k] * _rfft_of(hist)
-    weighted = spectrum
+    weight = np.ones(freqs_fine.size)
     if cfg.window == "hann":
         u = np.clip((freqs_fine - cfg.f_min) / (cfg.f_max - cfg.f_min), 0, 1)
         inside = (freqs_fine >= cfg.f_min) & (freqs_fine <= cfg.f_max)
-        weighted = spectrum * np.where(inside, 2 * (0.5 - 0.5 * np.cos(2 * math.pi * u)), 0.0)
-    impulse_fine = np.fft.irfft(weighted, n_fine) * fs_fine  # per second (delta -> fs)
-    impulse = impulse_fine[::OVERSAMPLE]
-    call = chirp(cfg)
-    echo = np.convolve(impulse, call)[:n_out] / cfg.sample_rate
+        weight = np.where(inside, 2 * (0.5 - 0.5 * np.cos(2 * math.pi * u)), 0.0)
+    d = leaves.centre - pose.position
+    r_all = np.linalg.norm(d, axis=1)
+    in_range = np.flatnonzero(r_all <= cfg.max_range)
+    eta = np.zeros(in_range.size)
+    if velocity is not None and np.any(np.asarray(velocity) != 0):
+        u = d[in_range] / np.maximum(r_all[in_range], 1e-12)[:, None]
+        eta = 2 * (u @ np.asarray(velocity, dtype=float)) / c
+    spectrum = np.zeros(freqs_fine.size, dtype=complex)
+    echo = np.zeros(n_out)
+    for factor, group in _doppler_groups(eta, cfg.doppler_bins):
+        part = np.zeros(freqs_fine.size, dtype=complex)
+        sel_all = in_range[group]
+        for start in range(0, sel_all.size, LEAF_CHUNK):
+            sel = sel_all[start : start + LEAF_CHUNK]
+            chunk = Leaves(
+                leaves.centre[sel], leaves.normal[sel], leaves.area[sel], leaves.tree[sel]
+            )
+            amp, r = leaf_amplitudes(chunk, pose, cfg, centres)
+            pos = 2 * r / c * fs_fine
+            i0 = np.floor(pos).astype(np.int64)
+            frac = pos - i0
+            for k in range(cfg.bands):
+                hist = _delay_histogram(i0, frac, amp[:, k].real, n_fine)
+                if np.iscomplexobj(amp):
+                    hist = hist + 1j * _delay_histogram(i0, frac, amp[:, k].imag, n_fine)
+                part += hats[k] * _rfft_of(hist)
+        spectrum += part
+        impulse_part = (np.fft.irfft(part * weight, n_fine) * fs_fine)[::OVERSAMPLE]
+        rest = np.convolve(impulse_part, chirp(cfg))[:n_out] / cfg.sample_rate
+        if factor == 1.0:
+            echo += rest
+        else:  # the echo at rest, time-compressed by the factor about the group's delay
+            tau = float(np.mean(2 * r_all[sel_all] / c))
+            t = np.arange(n_out) / cfg.sample_rate
+            scaled = CubicSpline(t, rest, extrapolate=False)(tau + factor * (t - tau))
+            echo += np.nan_to_num(scaled)  # outside the window: silence
+    impulse = (np.fft.irfft(spectrum * weight, n_fine) * fs_fine)[::OVERSAMPLE]  # per second
     band = (freqs_fine >= cfg.f_min) & (freqs_fine <= cfg.f_max)
     return Echo(
         freqs=freqs_fine[band],
@@ -316,12 +350,28 @@ def echo_from_leaves(leaves: Leaves, pose: Pose, cfg: SonarConfig) -> Echo:
         t=np.arange(n_out) / cfg.sample_rate,
         impulse=impulse,
         echo=echo,
-        call=call,
+        call=chirp(cfg),
         leaves_used=int(in_range.size),
         leaves_in_range=int(in_range.size),
         config=cfg,
         pose=pose,
     )
+
+
+def _doppler_groups(eta: np.ndarray, bins: int) -> list[tuple[float, np.ndarray]]:
+    """``(1 + eta_bin, indices)`` for up to ``bins`` equal bins over the leaves' ``eta``
+    (each bin's factor is its members' mean); one group when all share one factor."""
+    if eta.size == 0:
+        return [(1.0, np.zeros(0, dtype=np.int64))]
+    lo, hi = float(eta.min()), float(eta.max())
+    if hi - lo < 1e-12:
+        return [(1.0 + lo, np.arange(eta.size))]
+    which = np.minimum(((eta - lo) / (hi - lo) * bins).astype(np.int64), bins - 1)
+    out = []
+    for b in np.unique(which):
+        idx = np.flatnonzero(which == b)
+        out.append((1.0 + float(eta[idx].mean()), idx))
+    return out
 
 
 def _delay_histogram(i0: np.ndarray, frac: np.ndarray, w: np.ndarray, n: int) -> np.ndarray:

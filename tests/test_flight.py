@@ -1,0 +1,133 @@
+"""Flights: Doppler on a moving sonar's echo against 2 v / c, a moving lidar's per-ray poses
+against a wall, and a flight through a built forest read back with laspy."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from usdforest.cli import app
+from usdforest.errors import UsdForestError
+from usdforest.recipe import default_recipe_path, read_recipe
+from usdforest.sensors.flight import Trajectory, fly_lidar, read_path
+from usdforest.sensors.lidar import SpinningLidar
+from usdforest.sensors.pose import Pose
+from usdforest.sensors.scene import Leaves, extract_scene
+from usdforest.sensors.sonar import SonarConfig, chirp, echo_from_leaves
+from usdforest.usd.forest import write_forest
+
+
+def _disk(x: float) -> Leaves:
+    return Leaves(
+        np.array([[x, 0.0, 0.0]]),
+        np.array([[-1.0, 0.0, 0.0]]),
+        np.array([math.pi * 0.03**2]),
+        np.array([0]),
+    )
+
+
+def _peak_frequency(x: np.ndarray, fs: float) -> float:
+    """The frequency of the spectrum's peak (zero-padded FFT, parabolic interpolation)."""
+    n = 1 << 21
+    a = np.abs(np.fft.rfft(x, n))
+    k = int(np.argmax(a))
+    y0, y1, y2 = np.log(a[k - 1 : k + 2])
+    return (k + 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2)) * fs / n
+
+
+@pytest.mark.parametrize("v", [8.0, -6.0])
+def test_a_moving_sonar_hears_the_doppler_shift_2v_over_c(v):
+    """A long narrow-band call (69-71 kHz, 10 ms) and one disk 3 m ahead: approaching
+    (v > 0) or receding, the echo's spectral peak moves by 2 v / c f, within 1 % of that."""
+    cfg = SonarConfig(leaf_model="disk", f_min=69e3, f_max=71e3, call_duration=0.01)
+    c = cfg.speed_of_sound
+    rest = echo_from_leaves(_disk(3.0), Pose(0, 0, 0), cfg)
+    moving = echo_from_leaves(_disk(3.0), Pose(0, 0, 0), cfg, velocity=np.array([v, 0, 0]))
+    f0 = _peak_frequency(rest.echo, cfg.sample_rate)
+    f1 = _peak_frequency(moving.echo, cfg.sample_rate)
+    assert f0 == pytest.approx(70e3, rel=2e-3)
+    assert f1 - f0 == pytest.approx(2 * v / c * f0, rel=0.01)
+    # the transfer function and impulse response are those at rest
+    np.testing.assert_allclose(moving.transfer, rest.transfer)
+    assert chirp(cfg).size == round(cfg.call_duration * cfg.sample_rate)
+
+
+def _wall(tmp_path, d):
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "wall.usda"))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    wall = UsdGeom.Plane.Define(stage, "/Wall")
+    wall.CreateAxisAttr("X")
+    wall.CreateWidthAttr(200.0)
+    wall.CreateLengthAttr(200.0)
+    UsdGeom.XformCommonAPI(wall).SetTranslate((d, 0, 0))
+    stage.SetDefaultPrim(wall.GetPrim())
+    stage.Save()
+    return tmp_path / "wall.usda"
+
+
+def test_a_moving_lidar_fires_each_ray_from_where_the_platform_is(tmp_path):
+    """Towards a wall 30 m ahead at 20 m/s: a ray fired at time t straight ahead meets the
+    wall at 30 - 20 t; its GPS time is its sweep's start plus its azimuth's share."""
+    scene = extract_scene(_wall(tmp_path, 30.0))
+    traj = Trajectory.line((0, 0, 0), (10, 0, 0), 20.0)
+    lidar = SpinningLidar(channels=1, vfov_min=0, vfov_max=0, azimuth_step=1.0, max_range=100)
+    r = fly_lidar(scene, lidar, traj, rate=10.0)
+    assert r.sweeps == 5 and r.n_rays == 5 * 360
+    ahead = np.abs(r.points[:, 1]) < 1e-6
+    sensor_x = 20.0 * r.gps_time[ahead]
+    np.testing.assert_allclose(r.range[ahead], 30.0 - sensor_x, atol=1e-4)
+    np.testing.assert_allclose(r.points[:, 0], 30.0, atol=1e-4)
+    frac = (r.gps_time * 10.0) % 1.0  # share of the sweep = azimuth / 360
+    az = np.degrees(np.arctan2(r.points[:, 1], r.points[:, 0] - 20.0 * r.gps_time)) % 360
+    np.testing.assert_allclose(frac * 360, az, atol=1e-3)
+
+
+def test_a_flight_through_a_built_forest_writes_las_and_sonar(tmp_path, runner):
+    import laspy
+
+    stand = tmp_path / "two.usda"
+    pipe = default_recipe_path().parent / "paper-two-tree-stand.toml"
+    write_forest(read_recipe(pipe), stand, thumbnail=False)
+    out = tmp_path / "run"
+    args = ["fly", str(stand), "--line", "1,2,1.5:9,2,1.5", "--speed", "8", "-o", str(out)]
+    r = runner.invoke(app, [*args, "--json"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.stdout.strip().splitlines()[-1])
+    las = laspy.read(str(tmp_path / "run.las"))
+    assert las.header.version.major == 1 and las.header.version.minor == 4
+    assert len(las.points) == summary["lidar"]["returns"] > 1000
+    assert las.gps_time.min() >= 0 and las.gps_time.max() <= 1.0 + 1e-9
+    tree = np.asarray(las.tree_id)
+    assert set(np.unique(tree[tree >= 0])) == {0, 1}  # both trees of the stand are hit
+    cls = np.asarray(las.usdforest_class)
+    assert {1, 3} <= set(np.unique(cls))  # trunk and leaf returns
+    assert np.all(np.asarray(las.classification)[cls == 3] == 5)  # high vegetation
+    pulses = np.load(tmp_path / "run_sonar.npz")
+    assert pulses["echoes"].shape[0] == summary["sonar"]["pulses"] == 21  # 1 s at 20/s
+    np.testing.assert_allclose(pulses["velocity"][:, 0], 8.0)
+    assert (tmp_path / "run_sonar.wav").stat().st_size > 1000
+    assert (tmp_path / "run_sonar.png").stat().st_size > 1000
+    # again without --force: refused, nothing changed
+    r = runner.invoke(app, args)
+    assert r.exit_code != 0 and "exists" in r.output
+
+
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [
+        ("t,x,y\n0,0,0\n1,1,1\n", "needs columns t,x,y,z"),
+        ("t,x,y,z\n0,0,0,0\n0,1,1,1\n", "strictly increasing"),
+        ("t,x,y,z\n0,0,0,0\n", "at least two poses"),
+        ("t,x,y,z\n0,0,0,0\n1,a,0,0\n", "could not convert"),
+    ],
+)
+def test_bad_paths_are_refused(tmp_path, text, fragment):
+    p = tmp_path / "p.csv"
+    p.write_text(text)
+    with pytest.raises(UsdForestError, match=fragment):
+        read_path(p)

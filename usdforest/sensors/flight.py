@@ -1,0 +1,310 @@
+"""Flights: a platform moving along a path with a spinning lidar and a sonar on board.
+
+* **Trajectory**: poses at times (a CSV ``t,x,y,z[,yaw,pitch,roll]`` or a straight line at a
+  speed), linearly interpolated; without yaw the platform faces where it is going (pitch and
+  roll level).
+* **Lidar**: sweeps at ``rate`` Hz; every ray is fired at its own time within the sweep (its
+  azimuth's share of the turn) from where the platform is then, so a fast platform's points
+  are not smeared. Returns carry GPS time, class, tree id and prim path; written as LAS 1.4
+  (point format 6) with laspy.
+* **Sonar**: pulses at ``pulse_rate`` from the pose at each pulse's time, the platform's
+  velocity giving each leaf's echo its Doppler factor (see
+  :func:`usdforest.sensors.sonar.echo_from_leaves`).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_path
+from ..errors import UsdForestError
+from ..paths import require_file
+from ..seeds import stream
+from .lidar import SpinningLidar
+from .pose import Pose, rotations
+from .raycast import SceneCaster
+from .scene import CLASSES, Scene
+from .sonar import SonarConfig, echo_from_leaves
+
+# ASPRS LAS classes for our semantic classes: unclassified, high vegetation (trunk, branch,
+# leaf) and ground; our own class is kept in the extra dimension "usdforest_class"
+ASPRS = {"unknown": 1, "trunk": 5, "branch": 5, "leaf": 5, "ground": 2}
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """Poses at increasing times ``t (n,)``: ``position (n, 3)``, and ``yaw``, ``pitch``,
+    ``roll`` (n,) in degrees, or ``yaw = None`` to face along the path."""
+
+    t: np.ndarray
+    position: np.ndarray
+    yaw: np.ndarray | None = None
+    pitch: np.ndarray | None = None
+    roll: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t, dtype=float)
+        if t.ndim != 1 or len(t) < 2:
+            raise UsdForestError("path: need at least two poses")
+        if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+            raise UsdForestError("path: times must be finite and strictly increasing")
+        if not np.all(np.isfinite(self.position)):
+            raise UsdForestError("path: positions must be finite")
+
+    @property
+    def duration(self) -> float:
+        return float(self.t[-1] - self.t[0])
+
+    @staticmethod
+    def line(start, end, speed: float) -> Trajectory:
+        """From ``start`` to ``end`` (x, y, z) at ``speed`` m/s."""
+        a, b = np.asarray(start, dtype=float), np.asarray(end, dtype=float)
+        length = float(np.linalg.norm(b - a))
+        if not speed > 0 or not math.isfinite(speed):
+            raise UsdForestError(f"--speed: must be > 0 m/s, got {speed:g}")
+        if length == 0:
+            raise UsdForestError("--line: start and end are the same point")
+        return Trajectory(np.array([0.0, length / speed]), np.stack([a, b]))
+
+    def at(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Positions ``(m, 3)``, rotations ``(m, 3, 3)`` (sensor -> world) and velocities
+        ``(m, 3)`` at ``times``."""
+        times = np.asarray(times, dtype=float)
+        pos = np.stack([np.interp(times, self.t, self.position[:, k]) for k in range(3)], 1)
+        seg = np.clip(np.searchsorted(self.t, times, side="right") - 1, 0, len(self.t) - 2)
+        vel = (self.position[seg + 1] - self.position[seg]) / (self.t[seg + 1] - self.t[seg])[
+            :, None
+        ]
+        if self.yaw is None:
+            yaw = np.degrees(np.arctan2(vel[:, 1], vel[:, 0]))
+            pitch = roll = np.zeros(len(times))
+        else:
+            yaw = np.interp(times, self.t, np.unwrap(np.radians(self.yaw)))
+            yaw = np.degrees(yaw)
+            pitch = np.interp(times, self.t, self.pitch)
+            roll = np.interp(times, self.t, self.roll)
+        return pos, rotations(yaw, pitch, roll), vel
+
+
+def read_path(path: Path) -> Trajectory:
+    """A CSV with a header: ``t,x,y,z`` and optionally ``yaw,pitch,roll`` (degrees)."""
+    require_file(path, "path")
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise UsdForestError(f"{path}: no poses (expected a header t,x,y,z[,yaw,pitch,roll])")
+    cols = set(rows[0])
+    if not {"t", "x", "y", "z"} <= cols:
+        raise UsdForestError(f"{path}: needs columns t,x,y,z (has {', '.join(sorted(cols))})")
+    try:
+        t = np.array([float(r["t"]) for r in rows])
+        xyz = np.array([[float(r[k]) for k in "xyz"] for r in rows])
+        angles = (
+            [np.array([float(r.get(k) or 0.0) for r in rows]) for k in ("yaw", "pitch", "roll")]
+            if "yaw" in cols
+            else [None, None, None]
+        )
+    except ValueError as exc:
+        raise UsdForestError(f"{path}: {exc}") from None
+    try:
+        return Trajectory(t, xyz, *angles)
+    except UsdForestError as exc:
+        raise UsdForestError(f"{path}: {exc}") from None
+
+
+@dataclass(frozen=True, eq=False)
+class FlightReturns:
+    """Lidar returns of a whole flight."""
+
+    points: np.ndarray
+    gps_time: np.ndarray
+    range: np.ndarray
+    cls: np.ndarray
+    tree: np.ndarray
+    path: np.ndarray
+    paths: tuple[str, ...]
+    n_rays: int
+    sweeps: int
+
+    def __len__(self) -> int:
+        return len(self.range)
+
+
+def fly_lidar(
+    scene: Scene,
+    sensor: SpinningLidar,
+    traj: Trajectory,
+    rate: float = 10.0,
+    *,
+    seed: int = 0,
+    caster: SceneCaster | None = None,
+) -> FlightReturns:
+    """Sweeps at ``rate`` Hz along ``traj`` (first returns; per-ray time and pose)."""
+    sensor.check()
+    if not 0 < rate <= 100:
+        raise UsdForestError(f"--lidar-rate: must be in (0, 100] Hz, got {rate:g}")
+    caster = caster or SceneCaster(scene)
+    az, _ = sensor.angles()
+    local = sensor.directions()
+    starts = traj.t[0] + np.arange(0.0, traj.duration, 1.0 / rate)
+    parts = []
+    for k, t0 in enumerate(starts):
+        times = np.minimum(t0 + (az % 360.0) / 360.0 / rate, traj.t[-1])
+        pos, rot, _ = traj.at(times)
+        dirs = np.einsum("nij,nj->ni", rot, local)
+        h = caster.first_hit(pos, dirs, sensor.max_range)
+        hit = np.flatnonzero(h.hit)
+        rng_ = h.t[hit]
+        if sensor.range_noise > 0:
+            rng_ = rng_ + stream(seed, "flight-lidar", k).normal(0, sensor.range_noise, hit.size)
+        parts.append(
+            (
+                pos[hit] + dirs[hit] * rng_[:, None],
+                times[hit],
+                rng_,
+                h.cls[hit],
+                h.tree[hit],
+                h.path[hit],
+            )
+        )
+    cat = (
+        [np.concatenate([p[i] for p in parts]) for i in range(6)]
+        if parts
+        else [np.zeros((0, 3)), *(np.zeros(0) for _ in range(5))]
+    )
+    return FlightReturns(
+        cat[0],
+        cat[1],
+        cat[2],
+        cat[3].astype(np.uint8),
+        cat[4].astype(np.int32),
+        cat[5].astype(np.int32),
+        scene.paths,
+        len(starts) * len(local),
+        len(starts),
+    )
+
+
+def write_las(r: FlightReturns, out: Path) -> Path:
+    """LAS 1.4, point format 6: x, y, z (0.1 mm), GPS time (s since the flight's start),
+    ASPRS classification, and extra dimensions ``tree_id`` (int32, -1 off any tree) and
+    ``usdforest_class`` (0 unknown, 1 trunk, 2 branch, 3 leaf, 4 ground)."""
+    import laspy
+
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales = np.array([1e-4, 1e-4, 1e-4])
+    header.offsets = np.floor(r.points.min(axis=0)) if len(r) else np.zeros(3)
+    header.add_extra_dims(
+        [
+            laspy.ExtraBytesParams(name="tree_id", type=np.int32),
+            laspy.ExtraBytesParams(name="usdforest_class", type=np.uint8),
+        ]
+    )
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = r.points[:, 0], r.points[:, 1], r.points[:, 2]
+    las.gps_time = r.gps_time
+    lut = np.array([ASPRS[c] for c in CLASSES], dtype=np.uint8)
+    las.classification = lut[r.cls]
+    las.tree_id = r.tree
+    las.usdforest_class = r.cls
+    with atomic_path(out) as tmp:
+        las.write(str(tmp))
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class FlightEcho:
+    """Sonar pulses of a flight: emission times, poses, velocities, one echo per pulse."""
+
+    t: np.ndarray
+    position: np.ndarray
+    forward: np.ndarray
+    velocity: np.ndarray
+    echoes: np.ndarray  # (pulses, samples)
+    leaves: np.ndarray  # leaves in range per pulse
+    config: SonarConfig
+
+
+def fly_sonar(scene: Scene, cfg: SonarConfig, traj: Trajectory) -> FlightEcho:
+    """Pulses at ``cfg.pulse_rate`` along ``traj``, Doppler from the platform's velocity."""
+    cfg.check()
+    times = traj.t[0] + np.arange(0.0, traj.duration + 1e-12, 1.0 / cfg.pulse_rate)
+    pos, rot, vel = traj.at(times)
+    echoes, counts = [], []
+    for p, rm, v in zip(pos, rot, vel, strict=True):
+        fwd = rm[:, 0]
+        yaw = math.degrees(math.atan2(fwd[1], fwd[0]))
+        pitch = math.degrees(math.asin(max(-1.0, min(1.0, fwd[2]))))
+        e = echo_from_leaves(scene.leaves, Pose(*p, yaw, pitch), cfg, velocity=v)
+        echoes.append(e.echo)
+        counts.append(e.leaves_in_range)
+    return FlightEcho(times, pos, rot[:, :, 0], vel, np.array(echoes), np.array(counts), cfg)
+
+
+def write_flight_echo(f: FlightEcho, out: Path) -> list[Path]:
+    """``OUT.npz`` (all pulses), ``OUT.wav`` (the flight's sound: each echo at its pulse's
+    time) and ``OUT.png`` (echogram: range against time, dB)."""
+    import json
+    from dataclasses import asdict
+
+    from scipy.io import wavfile
+
+    npz, wav, png = out.with_suffix(".npz"), out.with_suffix(".wav"), out.with_suffix(".png")
+    fs = f.config.sample_rate
+    with atomic_path(npz) as tmp, tmp.open("wb") as fh:
+        np.savez_compressed(
+            fh,
+            t=f.t,
+            position=f.position,
+            forward=f.forward,
+            velocity=f.velocity,
+            echoes=f.echoes,
+            leaves_in_range=f.leaves,
+            sample_rate=fs,
+            config=json.dumps(asdict(f.config)),
+        )
+    n = math.ceil((f.t[-1] - f.t[0]) * fs) + f.echoes.shape[1]
+    sound = np.zeros(n)
+    for t, e in zip(f.t, f.echoes, strict=True):
+        i = round((t - f.t[0]) * fs)
+        sound[i : i + len(e)] += e[: n - i]
+    peak = np.abs(sound).max() or 1.0
+    with atomic_path(wav) as tmp:
+        wavfile.write(tmp, int(fs), (sound / peak * 32767 * 0.9).astype(np.int16))
+    _echogram(f, png)
+    return [npz, wav, png]
+
+
+def _echogram(f: FlightEcho, png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    c = f.config.speed_of_sound
+    fs = f.config.sample_rate
+    env = np.abs(f.echoes)
+    db = 20 * np.log10(np.maximum(env / (env.max() or 1.0), 1e-6))
+    fig, ax = plt.subplots(figsize=(8, 3.6), dpi=110)
+    rng = np.arange(f.echoes.shape[1]) / fs * c / 2
+    ax.imshow(
+        db.T,
+        origin="lower",
+        aspect="auto",
+        vmin=-60,
+        vmax=0,
+        cmap="magma",
+        extent=(f.t[0], f.t[-1] + 1 / f.config.pulse_rate, rng[0], rng[-1]),
+    )
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("range (m) = c t / 2")
+    ax.set_title(f"sonar along the flight: {len(f.t)} pulses at {f.config.pulse_rate:g}/s")
+    fig.tight_layout()
+    with atomic_path(png) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
