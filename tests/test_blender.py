@@ -7,13 +7,12 @@ it; without it these tests skip and say why. The probe reads only the stage.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import pytest
+from optional import optional_tool
 from pxr import Usd
 
 from usdforest.recipe import default_recipe_path, parse_recipe, read_recipe
@@ -26,13 +25,7 @@ PIPELINES = default_recipe_path().parent
 
 
 def _blender_python() -> str:
-    py = os.environ.get("USDFOREST_BLENDER_PYTHON", "")
-    if not py or not Path(py).exists():
-        pytest.skip("Blender's bpy is not installed (make test installs it in .venv-blender)")
-    probe = subprocess.run([py, "-c", "import bpy"], capture_output=True, check=False)
-    if probe.returncode:
-        pytest.skip(f"bpy does not import in {py}")
-    return py
+    return optional_tool("USDFOREST_BLENDER_PYTHON", "Blender's bpy", ".venv-blender", "bpy")
 
 
 def _open_in_blender(stage: Path, *render: Path) -> dict:

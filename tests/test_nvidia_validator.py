@@ -4,11 +4,11 @@ on what ``tree`` and ``build`` write. It lives in its own venv (``make test`` in
 
 from __future__ import annotations
 
-import os
 import subprocess
 from pathlib import Path
 
 import pytest
+from optional import optional_tool
 
 from usdforest.recipe import default_recipe_path, parse_recipe, read_recipe
 from usdforest.species import get_species
@@ -17,10 +17,7 @@ from usdforest.usd.tree import write_tree
 
 
 def _validator() -> str:
-    exe = os.environ.get("USDFOREST_NVIDIA_VALIDATE", "")
-    if not exe or not Path(exe).exists():
-        pytest.skip("usd-validation-nvidia is not installed (make test puts it in .venv-validate)")
-    return exe
+    return optional_tool("USDFOREST_NVIDIA_VALIDATE", "usd-validation-nvidia", ".venv-validate")
 
 
 def _check(exe: str, stage: Path) -> None:

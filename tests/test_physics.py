@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
+from optional import optional_tool
 from pxr import Usd, UsdGeom, UsdPhysics
 
 from usdforest.recipe import default_recipe_path, read_recipe
@@ -89,13 +89,7 @@ def test_forest_collision_layer_and_optional_physics_scene(tmp_path):
 
 
 def _physics_python() -> str:
-    py = os.environ.get("USDFOREST_PHYSICS_PYTHON", "")
-    if not py or not Path(py).exists():
-        pytest.skip("newton is not installed (make test installs it in .venv-physics)")
-    probe = subprocess.run([py, "-c", "import newton"], capture_output=True, check=False)
-    if probe.returncode:
-        pytest.skip(f"newton does not import in {py}")
-    return py
+    return optional_tool("USDFOREST_PHYSICS_PYTHON", "newton", ".venv-physics", "newton")
 
 
 def test_newton_stops_a_ball_at_a_trunk_of_a_built_forest(tmp_path):

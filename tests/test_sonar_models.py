@@ -49,10 +49,14 @@ def reference_disk(ka: float, theta: float) -> float:
 GRID = [(ka, deg) for ka in np.linspace(1, 10, 10) for deg in range(0, 81, 5)]
 
 
-def test_group_fit_matches_its_formula_for_incidences_0_to_80_and_ka_1_to_10():
+def _grid() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ka, incidence (rad) and the frequency giving that ka for a leaf of radius A."""
     ka = np.array([g[0] for g in GRID])
-    theta = np.radians([g[1] for g in GRID])
-    f = ka / A * C / (2 * math.pi)
+    return ka, np.radians([g[1] for g in GRID]), ka / A * C / (2 * math.pi)
+
+
+def test_group_fit_matches_its_formula_for_incidences_0_to_80_and_ka_1_to_10():
+    ka, theta, f = _grid()
     ours = group_fit_backscatter(f, theta, np.full(len(f), A), C)
     ref = np.array([reference_group_fit(x, t) for x, t in zip(ka, theta, strict=True)])
     live = np.abs(ref) > 1e-9 * np.abs(ref).max()  # the clipped lobe is exactly 0 in both
@@ -62,9 +66,7 @@ def test_group_fit_matches_its_formula_for_incidences_0_to_80_and_ka_1_to_10():
 
 
 def test_disk_matches_its_formula_for_incidences_0_to_80_and_ka_1_to_10():
-    ka = np.array([g[0] for g in GRID])
-    theta = np.radians([g[1] for g in GRID])
-    f = ka / A * C / (2 * math.pi)
+    ka, theta, f = _grid()
     ours = disk_backscatter(f, theta, np.full(len(f), A), C)
     ref = np.array([reference_disk(x, t) for x, t in zip(ka, theta, strict=True)])
     live = ref > 1e-9 * ref.max()

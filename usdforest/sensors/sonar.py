@@ -311,9 +311,12 @@ def echo_from_leaves(
     in_range = np.flatnonzero(r_all <= cfg.max_range)
     eta = np.zeros(in_range.size)
     if velocity is not None and np.any(np.asarray(velocity) != 0):
-        u = d[in_range] / np.maximum(r_all[in_range], 1e-12)[:, None]
-        eta = 2 * (u @ np.asarray(velocity, dtype=float)) / c
+        unit = d[in_range] / np.maximum(r_all[in_range], 1e-12)[:, None]
+        eta = 2 * (unit @ np.asarray(velocity, dtype=float)) / c
+    call = chirp(cfg)
+    t = np.arange(n_out) / cfg.sample_rate
     spectrum = np.zeros(freqs_fine.size, dtype=complex)
+    impulse = np.zeros(n_out)  # per second (delta -> fs): the groups' sum (irfft is linear)
     echo = np.zeros(n_out)
     for factor, group in _doppler_groups(eta, cfg.doppler_bins):
         part = np.zeros(freqs_fine.size, dtype=complex)
@@ -334,23 +337,22 @@ def echo_from_leaves(
                 part += hats[k] * _rfft_of(hist)
         spectrum += part
         impulse_part = (np.fft.irfft(part * weight, n_fine) * fs_fine)[::OVERSAMPLE]
-        rest = np.convolve(impulse_part, chirp(cfg))[:n_out] / cfg.sample_rate
+        impulse += impulse_part
+        rest = np.convolve(impulse_part, call)[:n_out] / cfg.sample_rate
         if factor == 1.0:
             echo += rest
         else:  # the echo at rest, time-compressed by the factor about the group's delay
             tau = float(np.mean(2 * r_all[sel_all] / c))
-            t = np.arange(n_out) / cfg.sample_rate
             scaled = CubicSpline(t, rest, extrapolate=False)(tau + factor * (t - tau))
             echo += np.nan_to_num(scaled)  # outside the window: silence
-    impulse = (np.fft.irfft(spectrum * weight, n_fine) * fs_fine)[::OVERSAMPLE]  # per second
     band = (freqs_fine >= cfg.f_min) & (freqs_fine <= cfg.f_max)
     return Echo(
         freqs=freqs_fine[band],
         transfer=spectrum[band],
-        t=np.arange(n_out) / cfg.sample_rate,
+        t=t,
         impulse=impulse,
         echo=echo,
-        call=chirp(cfg),
+        call=call,
         leaves_used=int(in_range.size),
         leaves_in_range=int(in_range.size),
         config=cfg,
