@@ -14,12 +14,17 @@ from .errors import RecipeError
 from .paths import require_file
 
 
-def read_npy(path: Path, where: str) -> np.ndarray:
-    """A numeric ``.npy`` grid, memory-mapped (never unpickled: pickles run code)."""
+def _require(path: Path, where: str) -> None:
+    """The file exists, or an error naming the recipe key ``where`` and the file."""
     try:
         require_file(path, "raster", RecipeError)
     except RecipeError as exc:
         raise RecipeError(f"{where}: {exc}") from None
+
+
+def read_npy(path: Path, where: str) -> np.ndarray:
+    """A numeric ``.npy`` grid, memory-mapped (never unpickled: pickles run code)."""
+    _require(path, where)
     try:
         a = np.load(path, allow_pickle=False, mmap_mode="r")
     except ValueError as exc:
@@ -42,10 +47,7 @@ def read_grey(path: Path, where: str) -> np.ndarray:
     colour channels averaged."""
     import matplotlib.image as mpimg
 
-    try:
-        require_file(path, "raster", RecipeError)
-    except RecipeError as exc:
-        raise RecipeError(f"{where}: {exc}") from None
+    _require(path, where)
     try:
         img = np.asarray(mpimg.imread(path))
     except Exception as exc:
