@@ -584,7 +584,7 @@ def scan_cmd(
     from .sensors.checks import check_not_inside_wood, pose_warnings, unseen_warning
     from .sensors.pose import parse_pose
     from .sensors.raycast import SceneCaster
-    from .sensors.scene import CLASSES, extract_scene
+    from .sensors.scene import class_counts, extract_scene
 
     if sensor not in ("lidar", "sonar"):
         raise UsdForestError(f"--sensor: {sensor!r} is not lidar or sonar")
@@ -628,12 +628,11 @@ def scan_cmd(
     if sensor == "lidar":
         r = lidar.scan(scene, settings, p, seed=seed, caster=caster)
         lidar.write_returns(r, output)
-        counts = np.bincount(r.cls, minlength=len(CLASSES))
         summary = {
             "output": str(output),
             "rays": r.n_rays,
             "returns": len(r),
-            "returns_by_class": {c: int(n) for c, n in zip(CLASSES, counts, strict=True)},
+            "returns_by_class": class_counts(r.cls),
             "trees_hit": int(np.unique(r.tree[r.tree >= 0]).size),
             "triangles": len(scene),
             "seconds": round(time.perf_counter() - t0, 3),
@@ -709,7 +708,7 @@ def fly_cmd(
     from .config import check_keys, load_toml, override
     from .sensors import flight, lidar, sonar
     from .sensors.checks import unseen_warning
-    from .sensors.scene import CLASSES, extract_scene
+    from .sensors.scene import class_counts, extract_scene
 
     if (path is None) == (line is None):
         raise UsdForestError("give the flight as --path CSV or as --line x0,y0,z0:x1,y1,z1")
@@ -767,12 +766,11 @@ def fly_cmd(
     if lidar_cfg is not None:
         r = flight.fly_lidar(scene, lidar_cfg, traj, lidar_rate, seed=seed)
         flight.write_las(r, las)
-        counts = np.bincount(r.cls, minlength=len(CLASSES))
         summary["lidar"] = {
             "sweeps": r.sweeps,
             "rays": r.n_rays,
             "returns": len(r),
-            "returns_by_class": {c: int(n) for c, n in zip(CLASSES, counts, strict=True)},
+            "returns_by_class": class_counts(r.cls),
         }
     if sonar_cfg is not None:
         f = flight.fly_sonar(scene, sonar_cfg, traj)

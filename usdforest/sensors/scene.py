@@ -26,6 +26,12 @@ CLASSES = ("unknown", "trunk", "branch", "leaf", "ground")
 CLASS_ID = {name: i for i, name in enumerate(CLASSES)}
 
 
+def class_counts(cls: np.ndarray) -> dict[str, int]:
+    """How many of ``cls`` (class indices) fall in each class, by name."""
+    counts = np.bincount(np.asarray(cls, dtype=np.int64), minlength=len(CLASSES))
+    return {c: int(n) for c, n in zip(CLASSES, counts, strict=True)}
+
+
 @dataclass(frozen=True, eq=False)
 class Leaves:
     """Leaves as reflectors: centre, unit normal, one-sided area (m²), tree id."""
