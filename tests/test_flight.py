@@ -110,6 +110,13 @@ def test_a_flight_through_a_built_forest_writes_las_and_sonar(tmp_path, runner):
     pulses = np.load(tmp_path / "run_sonar.npz")
     assert pulses["echoes"].shape[0] == summary["sonar"]["pulses"] == 21  # 1 s at 20/s
     np.testing.assert_allclose(pulses["velocity"][:, 0], 8.0)
+    parts = {k for k in pulses.files if k.startswith("echoes_")}
+    assert {"echoes_leaf", "echoes_trunk", "echoes_branch"} <= parts
+    total = sum(pulses[k].astype(float) for k in parts)
+    np.testing.assert_allclose(total, pulses["echoes"], atol=1e-6 * np.abs(pulses["echoes"]).max())
+    labels = pulses["labels"]
+    assert set(np.unique(labels["pulse"])) <= set(range(21))
+    assert set(np.unique(labels["tree"][labels["tree"] >= 0])) == {0, 1}
     assert (tmp_path / "run_sonar.wav").stat().st_size > 1000
     assert (tmp_path / "run_sonar.png").stat().st_size > 1000
     # again without --force: refused, nothing changed

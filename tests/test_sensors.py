@@ -12,6 +12,7 @@ from pxr import Usd, UsdGeom, Vt
 
 from usdforest.cli import app
 from usdforest.recipe import read_recipe
+from usdforest.sensors.backscatter import disk_backscatter
 from usdforest.sensors.lidar import DepthCamera, SpinningLidar, scan
 from usdforest.sensors.pose import Pose
 from usdforest.sensors.scene import CLASS_ID, Leaves, extract_scene
@@ -19,7 +20,6 @@ from usdforest.sensors.sonar import (
     SonarConfig,
     absorption_db_per_m,
     beam_amplitude,
-    disk_backscatter,
     echo_from_leaves,
 )
 from usdforest.species import get_species
@@ -321,6 +321,11 @@ def test_scan_cli_outputs(stand, tmp_path, runner):
         (["--sensor", "sonar"], "[sonar]\nf_min = 0.0\n", "frequencies must be > 0"),
         (["--sensor", "sonar"], "[sonar]\nf_min = -5.0\n", "frequencies must be > 0"),
         (["--sensor", "sonar"], "[sonar]\nbeam_width = 0.0\n", "an empty beam"),
+        (["--sensor", "sonar"], "[sonar]\nwood_segment = 0.0\n", "sonar.wood_segment: 0 must"),
+        (["--sensor", "sonar"], "[sonar]\nground_patch = 0.005\nmax_range = 200.0\n", "facets"),
+        (["--sensor", "sonar"], "[sonar]\nground_slope = -1.0\n", "sonar.ground_slope"),
+        (["--sensor", "sonar"], "[sonar]\nground_lambert = 2.0\n", "sonar.ground_lambert"),
+        (["--sensor", "sonar"], "[sonar]\nground = 'yes'\n", "sonar.ground"),
         (["--sensor", "lidar"], "[lidar]\nchannels = 0\n", "at least 1 channel"),
         (["--sensor", "lidar"], "[lidar]\nchanels = 4\n", "unknown key 'chanels'"),
         (["--sensor", "lidar"], "[sonar]\nbeam = 'x'\n", "unknown key 'sonar'"),

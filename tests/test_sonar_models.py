@@ -15,16 +15,10 @@ import pytest
 from scipy.special import erf, j1
 
 from usdforest.errors import UsdForestError
+from usdforest.sensors.backscatter import disk_backscatter, group_fit_backscatter
 from usdforest.sensors.pose import Pose
 from usdforest.sensors.scene import Leaves
-from usdforest.sensors.sonar import (
-    PRESETS,
-    SonarConfig,
-    absorption_db_per_m,
-    disk_backscatter,
-    echo_from_leaves,
-    group_fit_backscatter,
-)
+from usdforest.sensors.sonar import PRESETS, SonarConfig, absorption_db_per_m, echo_from_leaves
 
 C = 343.0
 A = 0.03  # leaf radius, m

@@ -570,7 +570,9 @@ def scan_cmd(
     occlusion: Annotated[
         bool, typer.Option("--occlusion", help="sonar: drop leaves hidden by wood or leaves.")
     ] = False,
-    seed: Annotated[int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise.")] = 0,
+    seed: Annotated[
+        int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise and ground roughness.")
+    ] = 0,
     force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
 ) -> None:
@@ -643,10 +645,10 @@ def scan_cmd(
             + f"), {summary['trees_hit']} trees, {len(scene):,} triangles in range"
         )
     else:
-        e = sonar.sonar_scan(scene, p, settings, caster)
-        if e.leaves_used == 0:
+        e = sonar.sonar_scan(scene, p, settings, caster, seed=seed)
+        if not any(e.reflectors.values()):
             err.print(
-                "warning: no leaves within range of the sonar: the echo is silent", highlight=False
+                "warning: nothing within range of the sonar: the echo is silent", highlight=False
             )
         files = sonar.write_echo(e, output)
         c = settings.speed_of_sound
@@ -656,12 +658,19 @@ def scan_cmd(
             "output": [str(f) for f in files],
             "leaves_in_range": e.leaves_in_range,
             "leaves_used": e.leaves_used,
+            "reflectors": e.reflectors,
             "strongest_echo_range_m": peak,
             "seconds": round(time.perf_counter() - t0, 3),
+        }
+        heard = {
+            "trunk": "trunk cylinders",
+            "branch": "branch cylinders",
+            "ground": "ground facets",
         }
         text = (
             f"{', '.join(map(str, files))}: echo of {e.leaves_used:,} leaves "
             f"(of {e.leaves_in_range:,} within {settings.max_range:g} m)"
+            + "".join(f", {n:,} {heard[k]}" for k, n in e.reflectors.items() if k in heard and n)
             + (f", strongest at {peak:.2f} m" if peak is not None else "")
         )
     if as_json:
@@ -697,7 +706,9 @@ def fly_cmd(
     config: Annotated[
         Path | None, typer.Option(help="TOML with \\[lidar] and/or \\[sonar] settings.")
     ] = None,
-    seed: Annotated[int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise.")] = 0,
+    seed: Annotated[
+        int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise and ground roughness.")
+    ] = 0,
     force: Annotated[bool, typer.Option("--force", help="Overwrite the outputs.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
 ) -> None:
@@ -773,9 +784,13 @@ def fly_cmd(
             "returns_by_class": class_counts(r.cls),
         }
     if sonar_cfg is not None:
-        f = flight.fly_sonar(scene, sonar_cfg, traj)
+        f = flight.fly_sonar(scene, sonar_cfg, traj, seed=seed)
         flight.write_flight_echo(f, echo_stem)
-        summary["sonar"] = {"pulses": len(f.t), "max_leaves_in_range": int(f.leaves.max())}
+        summary["sonar"] = {
+            "pulses": len(f.t),
+            "max_leaves_in_range": int(f.leaves.max()),
+            "classes_heard": sorted(k for k, v in f.parts.items() if np.any(v)),
+        }
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     if as_json:
         sys.stdout.write(json.dumps(summary) + "\n")

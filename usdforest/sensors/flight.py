@@ -9,7 +9,8 @@
   (point format 6) with laspy.
 * **Sonar**: pulses at ``pulse_rate`` from the pose at each pulse's time, the platform's
   velocity giving each leaf's echo its Doppler factor (see
-  :func:`usdforest.sensors.sonar.echo_from_leaves`).
+  :func:`usdforest.sensors.sonar.echo_from_targets`): leaves, wood and ground, each
+  class's echo kept apart as well.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from .lidar import SpinningLidar
 from .pose import Pose, rotations
 from .raycast import SceneCaster
 from .scene import CLASSES, Scene
-from .sonar import SonarConfig, echo_from_leaves
+from .sonar import SonarConfig, SonarScene
 
 # ASPRS LAS classes for our semantic classes: unclassified, high vegetation (trunk, branch,
 # leaf) and ground; our own class is kept in the extra dimension "usdforest_class"
@@ -219,7 +220,8 @@ def write_las(r: FlightReturns, out: Path) -> Path:
 
 @dataclass(frozen=True, eq=False)
 class FlightEcho:
-    """Sonar pulses of a flight: emission times, poses, velocities, one echo per pulse."""
+    """Sonar pulses of a flight: emission times, poses, velocities, one echo per pulse, and
+    the echo of each class heard (``parts``: class name -> (pulses, samples), float32)."""
 
     t: np.ndarray
     position: np.ndarray
@@ -228,22 +230,61 @@ class FlightEcho:
     echoes: np.ndarray  # (pulses, samples)
     leaves: np.ndarray  # leaves in range per pulse
     config: SonarConfig
+    parts: dict
+    labels: np.ndarray  # (tree, class, energy, range_min, range_max) rows, with their pulse
 
 
-def fly_sonar(scene: Scene, cfg: SonarConfig, traj: Trajectory) -> FlightEcho:
+def fly_sonar(
+    scene: Scene, cfg: SonarConfig, traj: Trajectory, *, seed: int = 0, caster=None
+) -> FlightEcho:
     """Pulses at ``cfg.pulse_rate`` along ``traj``, Doppler from the platform's velocity."""
     cfg.check()
     times = traj.t[0] + np.arange(0.0, traj.duration + 1e-12, 1.0 / cfg.pulse_rate)
     pos, rot, vel = traj.at(times)
-    echoes, counts = [], []
-    for p, rm, v in zip(pos, rot, vel, strict=True):
+    prepared = SonarScene(scene, cfg, seed=seed, caster=caster)
+    echoes, counts, labels = [], [], []
+    parts: dict[str, list] = {}
+    for k, (p, rm, v) in enumerate(zip(pos, rot, vel, strict=True)):
         fwd = rm[:, 0]
         yaw = math.degrees(math.atan2(fwd[1], fwd[0]))
         pitch = math.degrees(math.asin(max(-1.0, min(1.0, fwd[2]))))
-        e = echo_from_leaves(scene.leaves, Pose(*p, yaw, pitch), cfg, velocity=v)
+        e = prepared.echo(Pose(*p, yaw, pitch), cfg, velocity=v)
         echoes.append(e.echo)
         counts.append(e.leaves_in_range)
-    return FlightEcho(times, pos, rot[:, :, 0], vel, np.array(echoes), np.array(counts), cfg)
+        for name, part in e.parts.items():
+            parts.setdefault(name, [np.zeros(len(e.echo), np.float32)] * k).append(
+                part.astype(np.float32)
+            )
+        for name in parts.keys() - e.parts.keys():
+            parts[name].append(np.zeros(len(e.echo), np.float32))
+        rows = np.zeros(len(e.labels), _PULSE_LABEL)
+        for f in e.labels.dtype.names:
+            rows[f] = e.labels[f]
+        rows["pulse"] = k
+        labels.append(rows)
+    return FlightEcho(
+        times,
+        pos,
+        rot[:, :, 0],
+        vel,
+        np.array(echoes),
+        np.array(counts),
+        cfg,
+        {name: np.array(v) for name, v in parts.items()},
+        np.concatenate(labels) if labels else np.zeros(0, _PULSE_LABEL),
+    )
+
+
+_PULSE_LABEL = np.dtype(
+    [
+        ("pulse", "<i8"),
+        ("tree", "<i8"),
+        ("cls", "u1"),
+        ("energy", "<f8"),
+        ("range_min", "<f8"),
+        ("range_max", "<f8"),
+    ]
+)
 
 
 def write_flight_echo(f: FlightEcho, out: Path) -> list[Path]:
@@ -267,6 +308,9 @@ def write_flight_echo(f: FlightEcho, out: Path) -> list[Path]:
             leaves_in_range=f.leaves,
             sample_rate=fs,
             config=json.dumps(asdict(f.config)),
+            classes=np.array(CLASSES),
+            labels=f.labels,
+            **{f"echoes_{name}": part for name, part in f.parts.items()},
         )
     n = math.ceil((f.t[-1] - f.t[0]) * fs) + f.echoes.shape[1]
     sound = np.zeros(n)

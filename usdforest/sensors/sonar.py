@@ -1,64 +1,84 @@
-"""Bat-like sonar: the foliage echo model of Müller's group, on the leaves of a composed stage.
+"""Bat-like sonar: the foliage echo model of Müller's group on the leaves of a composed stage,
+with the trunks, branches and ground echoing too.
 
-Every leaf is a disk reflector of radius a = sqrt(area / pi) (Ming, Zhu and Müller, PLoS ONE
-2017; Zhu et al., PLoS ONE 2023). For a leaf at range r, beam angle theta_b from the sonar
-axis and incidence angle theta_i from its normal, at frequency f (wavenumber k = 2 pi f / c)
-its contribution to the transfer function (pressure at the receiver relative to the emitted
-pressure at 1 m) is::
+Every reflector contributes to the transfer function (pressure at the receiver relative to
+the emitted pressure at 1 m), at range r, beam angle theta_b from the sonar axis and
+frequency f (wavenumber k = 2 pi f / c)::
 
-    H_l(f) = B(theta_b, f)^2 * S(f, theta_i, a) * 10^(-alpha(f) * 2 r / 20) / r^2
-             * exp(-i 2 pi f * 2 r / c)
+    H(f) = B(theta_b, f)^2 * S(f, ...) * 10^(-alpha(f) * 2 r / 20) / r^2 * exp(-i 2 pi f 2 r / c)
 
 * B: the one-way beam amplitude, Gaussian with a -3 dB full width theta_3(f) = theta_3(f_ref)
   f_ref / f, or a piston of the radius that has that width at f_ref; emitter and receiver
   share it, hence the square.
-* S, the leaf's backscatter (``leaf_model``):
+* S, the reflector's backscatter amplitude (formulas in :mod:`usdforest.sensors.backscatter`):
 
-  - ``group-fit`` (default): the group's fitted leaf beampattern (Ming, Zhu and Müller 2017;
-    the numbers of their public MATLAB echo code), with x = k a::
+  - a leaf is a disk of radius a = sqrt(area / pi) (Ming, Zhu and Müller, PLoS ONE 2017;
+    Zhu et al., PLoS ONE 2023) at incidence theta_i from its normal, ``leaf_model``:
+    ``group-fit`` (default), the group's fitted leaf beampattern (the numbers of their public
+    MATLAB echo code), with x = k a::
 
         S = A(x) cos(b(x) theta_i) / k * exp(-i phi),   clipped at 0 where the cosine is < 0
         A(x) = 0.5003 x^2 + 0.6867          b(x) = 0.3999 x^-0.9065 + 0.9979
         phi = erf(p(x) (1.57 - theta_i)) - 2.6343,   p(x) = 0.9824 x^0.3523 - 0.9459
 
     (their code also scales every echo by a constant 0.2, left out here: H is in physical
-    units, and at normal incidence this S meets the disk's k a^2 / 2 as k a grows).
-  - ``disk``: physical-optics backscatter of a rigid disk, real and positive,
-    S = (k a^2 / 2) |2 J1(x) / x| |cos theta_i| with x = 2 k a sin theta_i (its
-    backscattering cross-section is 4 pi |S|^2).
+    units, and at normal incidence this S meets the disk's k a^2 / 2 as k a grows), or
+    ``disk``: physical-optics backscatter of a rigid disk, real and positive,
+    S = (k a^2 / 2) |2 J1(x) / x| |cos theta_i| with x = 2 k a sin theta_i.
+  - wood (``wood = true``) is cut into rigid finite cylinders of at most ``wood_segment`` m
+    (:mod:`usdforest.sensors.wood`), each a Kirchhoff cylinder
+    S = (L / 2) sqrt(k a cos beta / pi) sinc(k L sin beta) exp(-i pi / 4) (beta: the line of
+    sight's tilt from the plane normal to the axis), its range that of its specular line
+    (centre less a cos beta).
+  - the ground (``ground = true``) is sampled as rough facets of ``ground_patch`` m
+    (:mod:`usdforest.sensors.facets`), each with the two-part rough-surface cross-section
+    sigma0 = R^2 exp(-tan^2 theta / s^2) / (s^2 cos^4 theta) + 4 pi mu cos^2 theta (a glint
+    of rms slope s = ``ground_slope`` and |R| = ``ground_reflection``, plus Lambert's diffuse
+    part, mu = ``ground_lambert``), and a random phase.
 
 * 1 / r^2: two-way spherical spreading; alpha: atmospheric absorption per ISO 9613-1 in dB/m.
 * ``window = "hann"`` weighs the band with a Hann window (times 2, the window's amplitude
   correction) before the impulse response is formed, as the group's code does over 60-80 kHz;
   the ``paper`` preset is that set-up (60-80 kHz, Hann, group-fit leaves).
 
-The leaves are summed coherently. To do it fast for 100k leaves, the smooth amplitude is
-interpolated in frequency between K band centres (hat functions), and the phase terms become
-delays: for each band, the leaves' amplitudes are accumulated into a finely sampled delay
-histogram (linear interpolation at 8x the output rate), whose spectrum times the band's hat
-gives that band's share of H. The impulse response is H's inverse FFT, decimated to the output
-rate; the echo is the impulse response convolved with the call (a linear FM sweep).
+The reflectors are summed coherently, one sum per class (leaf, trunk, branch, ground: the
+echo's ``parts``, which add up to the echo). To do it fast for 100k reflectors, the smooth
+amplitude is interpolated in frequency between K band centres (hat functions), and the phase
+terms become delays: for each band, the amplitudes, moved to baseband at the band's centre,
+are accumulated into a delay histogram (linear interpolation, sampled 32x finer than the
+hat's half-width), whose spectrum times the hat gives that band's share of H on the bins the
+hat covers. The impulse response is H's inverse FFT (at 8x the output rate, decimated); the
+echo is the impulse response convolved with the call (a linear FM sweep).
 
-Modelled: leaves, beam, backscatter, spreading, absorption, optional occlusion of leaves by
-wood and other leaves (ray cast: hidden leaves are dropped), the Doppler of a moving sonar.
-Not modelled: twigs and branches as reflectors, multiple scattering, ground echoes.
+Modelled: leaves, wood, ground, beam, backscatter, spreading, absorption, optional occlusion
+(ray cast: a reflector with anything in front of it is dropped), the Doppler of a moving sonar.
+Not modelled: multiple scattering, diffraction round trunks, the ground's coherent specular
+reflection, leaves' and twigs' Rayleigh regime below k a ~ 1 (overestimated).
 """
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 from scipy.interpolate import CubicSpline
-from scipy.special import erf, j1
+from scipy.special import j1
 
 from ..atomic import atomic_path
 from ..errors import UsdForestError
+from .backscatter import (
+    LEAF_MODELS,
+    cylinder_backscatter,
+    facet_backscatter,
+    leaf_backscatter,
+)
+from .facets import Facets, GroundField
 from .pose import Pose
-from .scene import Leaves, Scene
+from .scene import CLASS_ID, CLASSES, Leaves, Scene
+from .wood import Cylinders, scene_cylinders
 
 OVERSAMPLE = 8
 LEAF_CHUNK = 200_000
@@ -85,6 +105,15 @@ class SonarConfig:
     window: str = "none"  # or "hann": the band weighted before the impulse response
     doppler_bins: int = 4  # Doppler factors a moving sonar's echo is computed with
     pulse_rate: float = 20.0  # pulses per second along a flight
+    wood: bool = True  # trunks and branches echo, as finite cylinders
+    # m: the longest cylinder a wood prim is cut into; a segment s long at range R is off
+    # a curved wavefront by a phase k s^2 / (4 R): under 0.6 rad beyond 2 m at 100 kHz
+    wood_segment: float = 0.05
+    ground: bool = True  # the ground echoes, as rough facets
+    ground_patch: float = 0.05  # m: one facet per cell of this size
+    ground_slope: float = 0.2  # rms slope of the ground's roughness
+    ground_reflection: float = 1.0  # |R| of the ground (1: rigid)
+    ground_lambert: float = 0.01  # Lambert's mu of the ground's diffuse part (-20 dB)
 
     def check(self) -> None:
         if not (self.f_min > 0 and self.f_max > 0):
@@ -122,13 +151,34 @@ class SonarConfig:
             raise UsdForestError("sonar.doppler_bins: must be in 1..256")
         if not 0 < self.pulse_rate <= 1000:
             raise UsdForestError("sonar.pulse_rate: must be in (0, 1000] pulses per second")
+        if not 0.005 <= self.wood_segment <= 5:
+            raise UsdForestError(
+                f"sonar.wood_segment: {self.wood_segment:g} must be in [0.005, 5] m"
+            )
+        if not 0.005 <= self.ground_patch <= 1:
+            raise UsdForestError(
+                f"sonar.ground_patch: {self.ground_patch:g} must be in [0.005, 1] m"
+            )
+        if (2 * self.max_range / self.ground_patch) ** 2 > 4e7:
+            raise UsdForestError(
+                f"sonar.ground_patch: {self.ground_patch:g} m over a {self.max_range:g} m range "
+                "makes more than 40 million facets a pulse; use a larger patch"
+            )
+        if not 0.01 <= self.ground_slope <= 2:
+            raise UsdForestError(
+                f"sonar.ground_slope: {self.ground_slope:g} must be in [0.01, 2] (rms slope)"
+            )
+        if not 0 <= self.ground_lambert <= 1:
+            raise UsdForestError(f"sonar.ground_lambert: {self.ground_lambert:g} must be in [0, 1]")
+        if not 0 <= self.ground_reflection <= 1:
+            raise UsdForestError(
+                f"sonar.ground_reflection: {self.ground_reflection:g} must be in [0, 1]"
+            )
 
     @property
     def speed_of_sound(self) -> float:
         return 331.3 * math.sqrt(1 + self.temperature / 273.15)
 
-
-LEAF_MODELS = ("group-fit", "disk")
 
 PRESETS = {
     "bat-fm": SonarConfig(),
@@ -184,45 +234,33 @@ def beam_amplitude(theta: np.ndarray, f: np.ndarray, cfg: SonarConfig) -> np.nda
     return np.where(theta < math.pi / 2, out, 0.0)
 
 
-def disk_backscatter(f: np.ndarray, theta_i: np.ndarray, a: np.ndarray, c: float) -> np.ndarray:
-    """|S|, the physical-optics backscatter amplitude of a rigid disk (m)."""
-    k = 2 * math.pi * np.asarray(f, dtype=float) / c
-    a = np.asarray(a, dtype=float)
-    x = 2 * k * a * np.sin(theta_i)
-    directivity = np.ones(np.broadcast(x, a).shape)
-    nz = np.abs(x) > 1e-9
-    directivity[nz] = np.abs(2 * j1(x[nz]) / x[nz])
-    return k * a**2 / 2 * directivity * np.abs(np.cos(theta_i))
+def _propagation(r: np.ndarray, theta_b: np.ndarray, f: np.ndarray, cfg: SonarConfig) -> np.ndarray:
+    """``(n, len(f))``: two-way beam, absorption and spherical spreading to range ``r``."""
+    ff = np.asarray(f)[None, :]
+    return (
+        beam_amplitude(theta_b[:, None], ff, cfg) ** 2
+        * 10
+        ** (
+            -absorption_db_per_m(ff, cfg.temperature, cfg.humidity, cfg.pressure)
+            * 2
+            * r[:, None]
+            / 20
+        )
+        / np.maximum(r[:, None], 1e-6) ** 2
+    )
 
 
-def group_fit_backscatter(
-    f: np.ndarray, theta_i: np.ndarray, a: np.ndarray, c: float
-) -> np.ndarray:
-    """S, the group's fitted leaf beampattern (complex, m): amplitude A(ka) cos(b(ka) theta) / k
-    (0 where the cosine is negative) and phase -phi(ka, theta); see the module docstring."""
-    k = 2 * math.pi * np.asarray(f, dtype=float) / c
-    x = k * np.asarray(a, dtype=float)
-    theta = np.asarray(theta_i, dtype=float)
-    amp = np.maximum((0.5003 * x**2 + 0.6867) * np.cos((0.3999 * x**-0.9065 + 0.9979) * theta), 0)
-    phi = erf((0.9824 * x**0.3523 - 0.9459) * (1.57 - theta)) - 2.6343
-    return amp / k * np.exp(-1j * phi)
-
-
-def leaf_backscatter(
-    model: str, f: np.ndarray, theta_i: np.ndarray, a: np.ndarray, c: float
-) -> np.ndarray:
-    """S of a leaf under ``model`` (``group-fit``: complex; ``disk``: real)."""
-    if model == "disk":
-        return disk_backscatter(f, theta_i, a, c)
-    return group_fit_backscatter(f, theta_i, a, c)
+def _sight(points: np.ndarray, pose: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Range, unit line of sight and beam angle (rad) of ``points`` from the sonar."""
+    d = points - pose.position
+    r = np.linalg.norm(d, axis=1)
+    u = d / np.maximum(r, 1e-12)[:, None]
+    return r, u, np.arccos(np.clip(u @ pose.forward, -1, 1))
 
 
 def leaf_geometry(leaves: Leaves, pose: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Range, beam angle and incidence angle (rad) of every leaf."""
-    d = leaves.centre - pose.position
-    r = np.linalg.norm(d, axis=1)
-    u = d / np.maximum(r, 1e-12)[:, None]
-    theta_b = np.arccos(np.clip(u @ pose.forward, -1, 1))
+    r, u, theta_b = _sight(leaves.centre, pose)
     theta_i = np.arccos(np.clip(np.abs(np.sum(u * leaves.normal, axis=1)), 0, 1))
     return r, theta_b, theta_i
 
@@ -238,25 +276,66 @@ def leaf_amplitudes(
     leaves) and the ranges of the leaves."""
     r, tb, ti = leaf_geometry(leaves, pose)
     c = cfg.speed_of_sound
-    ff = np.asarray(f)[None, :]
-    amp = (
-        beam_amplitude(tb[:, None], ff, cfg) ** 2
-        * leaf_backscatter(cfg.leaf_model, ff, ti[:, None], leaves.radius[:, None], c)
-        * 10
-        ** (
-            -absorption_db_per_m(ff, cfg.temperature, cfg.humidity, cfg.pressure)
-            * 2
-            * r[:, None]
-            / 20
-        )
-        / np.maximum(r[:, None], 1e-6) ** 2
+    s = leaf_backscatter(
+        cfg.leaf_model, np.asarray(f)[None, :], ti[:, None], leaves.radius[:, None], c
     )
-    return amp, r
+    return _propagation(r, tb, f, cfg) * s, r
+
+
+def wood_amplitudes(
+    cyl: Cylinders, pose: Pose, cfg: SonarConfig, f: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(n, len(f))`` amplitudes of wood cylinders and the ranges of their specular lines
+    (the centre's range less a cos beta: where the reflection comes from)."""
+    r, u, tb = _sight(cyl.centre, pose)
+    beta = np.arcsin(np.clip(np.abs(np.sum(u * cyl.axis, axis=1)), 0, 1))
+    s = cylinder_backscatter(
+        np.asarray(f)[None, :],
+        beta[:, None],
+        cyl.length[:, None],
+        cyl.radius[:, None],
+        cfg.speed_of_sound,
+    )
+    surface = np.maximum(r - cyl.radius * np.cos(beta), 1e-6)
+    return _propagation(surface, tb, f, cfg) * s, surface
+
+
+def ground_amplitudes(
+    facets: Facets, pose: Pose, cfg: SonarConfig, f: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(n, len(f))`` amplitudes of ground facets and their ranges."""
+    r, u, tb = _sight(facets.centre, pose)
+    theta = np.arccos(np.clip(np.abs(np.sum(u * facets.normal, axis=1)), 0, 1))
+    s = facet_backscatter(
+        theta,
+        facets.area,
+        facets.phase,
+        cfg.ground_slope,
+        cfg.ground_reflection,
+        cfg.ground_lambert,
+    )
+    return _propagation(r, tb, f, cfg) * s[:, None], r
+
+
+@dataclass(frozen=True, eq=False)
+class Targets:
+    """What the sonar hears: leaves, wood cylinders and ground facets (each may be empty)."""
+
+    leaves: Leaves
+    wood: Cylinders = field(default_factory=lambda: Cylinders.concat([]))
+    ground: Facets = field(
+        default_factory=lambda: Facets(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+    )
 
 
 @dataclass(frozen=True, eq=False)
 class Echo:
-    """The result: transfer function on the band, impulse response and echo at the output rate."""
+    """The result: transfer function on the band, impulse response and echo at the output rate.
+
+    ``parts`` holds the echo of each class heard (``leaf``, ``trunk``, ``branch``, ``ground``;
+    they add up to ``echo``); ``labels`` one row per (tree id, class) heard: its share of the
+    echo's energy (the band's mean of sum |H|^2) and the ranges of its first and last
+    reflectors."""
 
     freqs: np.ndarray
     transfer: np.ndarray
@@ -268,6 +347,14 @@ class Echo:
     leaves_in_range: int
     config: SonarConfig
     pose: Pose
+    parts: dict = field(default_factory=dict)
+    labels: np.ndarray = field(default_factory=lambda: np.zeros(0, LABEL_DTYPE))
+    reflectors: dict = field(default_factory=dict)
+
+
+LABEL_DTYPE = np.dtype(
+    [("tree", "<i8"), ("cls", "u1"), ("energy", "<f8"), ("range_min", "<f8"), ("range_max", "<f8")]
+)
 
 
 def chirp(cfg: SonarConfig) -> np.ndarray:
@@ -278,86 +365,244 @@ def chirp(cfg: SonarConfig) -> np.ndarray:
     return np.hanning(n) * np.sin(2 * math.pi * (cfg.f_max * t + 0.5 * k * t**2))
 
 
-def echo_from_leaves(
-    leaves: Leaves, pose: Pose, cfg: SonarConfig, velocity: np.ndarray | None = None
-) -> Echo:
-    """Coherent foliage echo of ``leaves`` heard by a sonar at ``pose``.
+@dataclass(frozen=True, eq=False)
+class _Grid:
+    """The sampling of one pulse: the output times and the spectrum's frequencies (those of a
+    delay grid at ``OVERSAMPLE`` times the output rate), each band's hat function on the bins
+    it covers, the baseband delay grid each band is summed on, the window and the call."""
 
-    With the platform's ``velocity`` (m/s), each leaf's echo is its echo at rest
-    time-compressed by its two-way Doppler factor s = 1 + 2 (v . u) / c (u: the unit vector
-    to the leaf) about its delay, so every frequency f of it arrives as s f: the leaves are
-    grouped into ``doppler_bins`` factors spanning the pulse's range of them (one leaf, or a
-    sonar at rest, is exact; the compression is a cubic spline at the output rate).
-    ``transfer`` and ``impulse`` are those of the sonar at rest; ``echo`` carries the
-    Doppler."""
-    cfg.check()
+    n_out: int
+    n_fine: int
+    fs_fine: float
+    freqs: np.ndarray
+    bands: tuple  # per band: (fine bin indices, hat values there, baseband bins, f0 in Hz)
+    n_base: int
+    fs_base: float
+    weight: np.ndarray
+    centres: np.ndarray
+    call: np.ndarray
+    t: np.ndarray
+
+    @staticmethod
+    def of(cfg: SonarConfig) -> _Grid:
+        from scipy.fft import next_fast_len
+
+        c = cfg.speed_of_sound
+        fs_fine = cfg.sample_rate * OVERSAMPLE
+        window = 2 * cfg.max_range / c + cfg.call_duration + 2e-3
+        n_out = math.ceil(window * cfg.sample_rate)
+        n_fine = n_out * OVERSAMPLE
+        duration = n_fine / fs_fine
+        freqs = np.fft.rfftfreq(n_fine, 1 / fs_fine)
+        centres = band_centres(cfg)
+        step = centres[1] - centres[0]
+        # each band is summed at baseband on a delay grid 32x finer than the half-width of
+        # its hat (the same oversampling as the fine grid against the top of the band)
+        n_base = next_fast_len(math.ceil(2 * 32 * (step + 1 / duration) * duration))
+        bands = []
+        for ck in centres:
+            j0 = round(ck * duration)  # the band's baseband centre: the bin nearest its hat's
+            lo = max(math.ceil((ck - step) * duration), 0)
+            hi = min(math.floor((ck + step) * duration), freqs.size - 1)
+            idx = np.arange(lo, hi + 1)
+            # hat functions: a partition of unity on [f_min, f_max], 0 one step outside
+            hat = np.clip(1 - np.abs(freqs[idx] - ck) / step, 0, None)
+            bands.append((idx, hat, (idx - j0) % n_base, j0 / duration))
+        weight = np.ones(freqs.size)
+        if cfg.window == "hann":
+            u = np.clip((freqs - cfg.f_min) / (cfg.f_max - cfg.f_min), 0, 1)
+            inside = (freqs >= cfg.f_min) & (freqs <= cfg.f_max)
+            weight = np.where(inside, 2 * (0.5 - 0.5 * np.cos(2 * math.pi * u)), 0.0)
+        return _Grid(
+            n_out,
+            n_fine,
+            fs_fine,
+            freqs,
+            tuple(bands),
+            n_base,
+            n_base / duration,
+            weight,
+            centres,
+            chirp(cfg),
+            np.arange(n_out) / cfg.sample_rate,
+        )
+
+
+def _coherent(
+    position: np.ndarray,
+    amplitudes,
+    pose: Pose,
+    cfg: SonarConfig,
+    grid: _Grid,
+    velocity: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Spectrum, impulse response and echo of reflectors at ``position (n, 3)`` whose
+    band amplitudes and delay ranges ``amplitudes(indices)`` gives, plus each reflector's
+    band-mean energy (the coherent sum of module docstring; Doppler as in
+    :func:`echo_from_leaves`)."""
     c = cfg.speed_of_sound
-    fs_fine = cfg.sample_rate * OVERSAMPLE
-    window = 2 * cfg.max_range / c + cfg.call_duration + 2e-3
-    n_out = math.ceil(window * cfg.sample_rate)
-    n_fine = n_out * OVERSAMPLE
-    freqs_fine = np.fft.rfftfreq(n_fine, 1 / fs_fine)
-    centres = band_centres(cfg)
-    step = centres[1] - centres[0]
-    # hat functions: a partition of unity on [f_min, f_max], tapering to 0 one step outside
-    hats = np.clip(1 - np.abs(freqs_fine[None, :] - centres[:, None]) / step, 0, None)
-    weight = np.ones(freqs_fine.size)
-    if cfg.window == "hann":
-        u = np.clip((freqs_fine - cfg.f_min) / (cfg.f_max - cfg.f_min), 0, 1)
-        inside = (freqs_fine >= cfg.f_min) & (freqs_fine <= cfg.f_max)
-        weight = np.where(inside, 2 * (0.5 - 0.5 * np.cos(2 * math.pi * u)), 0.0)
-    d = leaves.centre - pose.position
+    d = position - pose.position
     r_all = np.linalg.norm(d, axis=1)
-    in_range = np.flatnonzero(r_all <= cfg.max_range)
-    eta = np.zeros(in_range.size)
+    eta = np.zeros(len(position))
     if velocity is not None and np.any(np.asarray(velocity) != 0):
-        unit = d[in_range] / np.maximum(r_all[in_range], 1e-12)[:, None]
+        unit = d / np.maximum(r_all, 1e-12)[:, None]
         eta = 2 * (unit @ np.asarray(velocity, dtype=float)) / c
-    call = chirp(cfg)
-    t = np.arange(n_out) / cfg.sample_rate
-    spectrum = np.zeros(freqs_fine.size, dtype=complex)
-    impulse = np.zeros(n_out)  # per second (delta -> fs): the groups' sum (irfft is linear)
-    echo = np.zeros(n_out)
+    spectrum = np.zeros(grid.freqs.size, dtype=complex)
+    impulse = np.zeros(grid.n_out)  # per second (delta -> fs): the groups' sum (irfft is linear)
+    echo = np.zeros(grid.n_out)
+    energy = np.zeros(len(position))
     for factor, group in _doppler_groups(eta, cfg.doppler_bins):
-        part = np.zeros(freqs_fine.size, dtype=complex)
-        sel_all = in_range[group]
-        for start in range(0, sel_all.size, LEAF_CHUNK):
-            sel = sel_all[start : start + LEAF_CHUNK]
-            chunk = Leaves(
-                leaves.centre[sel], leaves.normal[sel], leaves.area[sel], leaves.tree[sel]
-            )
-            amp, r = leaf_amplitudes(chunk, pose, cfg, centres)
-            pos = 2 * r / c * fs_fine
+        part = np.zeros(grid.freqs.size, dtype=complex)
+        delay = np.zeros(group.size)
+        for start in range(0, group.size, LEAF_CHUNK):
+            sel = group[start : start + LEAF_CHUNK]
+            amp, r = amplitudes(sel)
+            delay[start : start + sel.size] = r
+            energy[sel] = np.mean(np.abs(amp) ** 2, axis=1)
+            tau = 2 * r / c
+            pos = tau * grid.fs_base
             i0 = np.floor(pos).astype(np.int64)
             frac = pos - i0
-            for k in range(cfg.bands):
-                hist = _delay_histogram(i0, frac, amp[:, k].real, n_fine)
-                if np.iscomplexobj(amp):
-                    hist = hist + 1j * _delay_histogram(i0, frac, amp[:, k].imag, n_fine)
-                part += hats[k] * _rfft_of(hist)
+            # exp(-i 2 pi f0 tau) band after band: each centre is the last one's plus a whole
+            # number of bins, one of (at most) two numbers, so one product a band
+            phasor = np.exp(-2j * math.pi * grid.bands[0][3] * tau)
+            turns: dict[int, np.ndarray] = {}
+            for k, (idx, hat, base, f0) in enumerate(grid.bands):
+                # the band's share of H: sum_l a_lk exp(-i 2 pi f tau_l) near f0, as the
+                # spectrum of a delay histogram of the amplitudes moved to baseband at f0
+                if k:
+                    bins = round((f0 - grid.bands[k - 1][3]) * grid.n_fine / grid.fs_fine)
+                    if bins not in turns:
+                        turns[bins] = np.exp(
+                            -2j * math.pi * bins * grid.fs_fine / grid.n_fine * tau
+                        )
+                    phasor *= turns[bins]
+                w = amp[:, k] * phasor
+                hist = _delay_histogram(i0, frac, w.real, grid.n_base) + 1j * _delay_histogram(
+                    i0, frac, w.imag, grid.n_base
+                )
+                part[idx] += hat * np.fft.fft(hist)[base]
         spectrum += part
-        impulse_part = (np.fft.irfft(part * weight, n_fine) * fs_fine)[::OVERSAMPLE]
+        impulse_part = (np.fft.irfft(part * grid.weight, grid.n_fine) * grid.fs_fine)[::OVERSAMPLE]
         impulse += impulse_part
-        rest = np.convolve(impulse_part, call)[:n_out] / cfg.sample_rate
+        rest = np.convolve(impulse_part, grid.call)[: grid.n_out] / cfg.sample_rate
         if factor == 1.0:
             echo += rest
         else:  # the echo at rest, time-compressed by the factor about the group's delay
-            tau = float(np.mean(2 * r_all[sel_all] / c))
-            scaled = CubicSpline(t, rest, extrapolate=False)(tau + factor * (t - tau))
+            tau = float(np.mean(2 * delay / c)) if delay.size else 0.0
+            scaled = CubicSpline(grid.t, rest, extrapolate=False)(tau + factor * (grid.t - tau))
             echo += np.nan_to_num(scaled)  # outside the window: silence
-    band = (freqs_fine >= cfg.f_min) & (freqs_fine <= cfg.f_max)
+    return spectrum, impulse, echo, energy
+
+
+def echo_from_targets(
+    targets: Targets, pose: Pose, cfg: SonarConfig, velocity: np.ndarray | None = None
+) -> Echo:
+    """Coherent echo of leaves, wood and ground heard by a sonar at ``pose``, within
+    ``cfg.max_range`` (wood and ground only where ``cfg.wood`` and ``cfg.ground`` are on).
+
+    With the platform's ``velocity`` (m/s), each reflector's echo is its echo at rest
+    time-compressed by its two-way Doppler factor s = 1 + 2 (v . u) / c (u: the unit vector
+    to it) about its delay, so every frequency f of it arrives as s f: the reflectors are
+    grouped into ``doppler_bins`` factors spanning the pulse's range of them (one reflector,
+    or a sonar at rest, is exact; the compression is a cubic spline at the output rate).
+    ``transfer`` and ``impulse`` are those of the sonar at rest; ``echo`` carries the
+    Doppler."""
+    cfg.check()
+    grid = _Grid.of(cfg)
+    lv, wood, ground = targets.leaves, targets.wood, targets.ground
+
+    def near(points: np.ndarray) -> np.ndarray:
+        return np.flatnonzero(np.linalg.norm(points - pose.position, axis=1) <= cfg.max_range)
+
+    leaf_in = near(lv.centre)
+    # (class, tree ids, positions, amplitudes of a subset): one coherent sum per class
+    sources = [
+        (
+            CLASS_ID["leaf"],
+            lv.tree[leaf_in],
+            lv.centre[leaf_in],
+            lambda sel: leaf_amplitudes(_leaf_subset(lv, leaf_in[sel]), pose, cfg, grid.centres),
+        )
+    ]
+    if cfg.wood and len(wood):
+        w = wood.take(near(wood.centre))
+        for k in (CLASS_ID["trunk"], CLASS_ID["branch"]):
+            wk = w.take(np.flatnonzero(w.cls == k))
+            if len(wk):
+                sources.append(
+                    (
+                        k,
+                        wk.tree,
+                        wk.centre,
+                        lambda sel, wk=wk: wood_amplitudes(wk.take(sel), pose, cfg, grid.centres),
+                    )
+                )
+    if cfg.ground and len(ground):
+        g = ground.take(near(ground.centre))
+        sources.append(
+            (
+                CLASS_ID["ground"],
+                np.full(len(g), -1, np.int64),
+                g.centre,
+                lambda sel: ground_amplitudes(g.take(sel), pose, cfg, grid.centres),
+            )
+        )
+    spectrum = np.zeros(grid.freqs.size, dtype=complex)
+    impulse, echo = np.zeros(grid.n_out), np.zeros(grid.n_out)
+    parts: dict[str, np.ndarray] = {}
+    labels, reflectors = [], {}
+    for k, tree, position, amplitudes in sources:
+        sp, imp, ec, energy = _coherent(position, amplitudes, pose, cfg, grid, velocity)
+        spectrum += sp
+        impulse += imp
+        echo += ec
+        parts[CLASSES[k]] = ec
+        reflectors[CLASSES[k]] = len(position)
+        if len(position):
+            r = np.linalg.norm(position - pose.position, axis=1)
+            labels.append(_labels(tree, np.full(len(position), k), energy, r))
+    band = (grid.freqs >= cfg.f_min) & (grid.freqs <= cfg.f_max)
     return Echo(
-        freqs=freqs_fine[band],
+        freqs=grid.freqs[band],
         transfer=spectrum[band],
-        t=t,
+        t=grid.t,
         impulse=impulse,
         echo=echo,
-        call=call,
-        leaves_used=int(in_range.size),
-        leaves_in_range=int(in_range.size),
+        call=grid.call,
+        leaves_used=int(leaf_in.size),
+        leaves_in_range=int(leaf_in.size),
         config=cfg,
         pose=pose,
+        parts=parts,
+        labels=np.concatenate(labels) if labels else np.zeros(0, LABEL_DTYPE),
+        reflectors=reflectors,
     )
+
+
+def echo_from_leaves(
+    leaves: Leaves, pose: Pose, cfg: SonarConfig, velocity: np.ndarray | None = None
+) -> Echo:
+    """Coherent foliage echo of ``leaves`` alone (see :func:`echo_from_targets`)."""
+    return echo_from_targets(Targets(leaves), pose, cfg, velocity)
+
+
+def _leaf_subset(lv: Leaves, sel: np.ndarray) -> Leaves:
+    return Leaves(lv.centre[sel], lv.normal[sel], lv.area[sel], lv.tree[sel])
+
+
+def _labels(tree: np.ndarray, cls: np.ndarray, energy: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """One row per (tree id, class): summed energy, first and last range."""
+    key = np.asarray(tree, np.int64) * 256 + np.asarray(cls, np.int64)
+    uniq, inv = np.unique(key, return_inverse=True)
+    out = np.zeros(len(uniq), LABEL_DTYPE)
+    out["tree"], out["cls"] = uniq // 256, uniq % 256
+    out["energy"] = np.bincount(inv, energy, minlength=len(uniq))
+    out["range_min"] = np.full(len(uniq), np.inf)
+    out["range_max"] = np.full(len(uniq), -np.inf)
+    np.minimum.at(out["range_min"], inv, r)
+    np.maximum.at(out["range_max"], inv, r)
+    return out
 
 
 def _doppler_groups(eta: np.ndarray, bins: int) -> list[tuple[float, np.ndarray]]:
@@ -384,15 +629,17 @@ def _delay_histogram(i0: np.ndarray, frac: np.ndarray, w: np.ndarray, n: int) ->
     )[:n]
 
 
-def _rfft_of(hist: np.ndarray) -> np.ndarray:
-    """The spectrum (non-negative frequencies) of a real or complex delay histogram.
-
-    A complex histogram (complex leaf amplitudes) holds H on the positive frequencies only:
-    its full FFT's first half is taken, so the impulse response stays the real part of the
-    inverse of a one-sided spectrum, as for real amplitudes."""
-    if not np.iscomplexobj(hist):
-        return np.fft.rfft(hist)
-    return np.fft.fft(hist)[: len(hist) // 2 + 1]
+def _visible(points: np.ndarray, tolerance: np.ndarray, pose: Pose, caster) -> np.ndarray:
+    """``bool[n]``: points the sonar sees (the first hit towards each is within
+    ``tolerance`` of it: nothing else in between)."""
+    d = points - pose.position
+    r = np.linalg.norm(d, axis=1)
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    h = caster.first_hit(
+        np.broadcast_to(pose.position, points.shape), d / np.maximum(r, 1e-12)[:, None]
+    )
+    return h.t >= r - tolerance
 
 
 def visible_leaves(scene: Scene, pose: Pose, cfg: SonarConfig, caster=None) -> np.ndarray:
@@ -400,41 +647,74 @@ def visible_leaves(scene: Scene, pose: Pose, cfg: SonarConfig, caster=None) -> n
     from .raycast import SceneCaster
 
     lv = scene.leaves
-    d = lv.centre - pose.position
-    r = np.linalg.norm(d, axis=1)
-    near = np.flatnonzero(r <= cfg.max_range)
+    near = np.flatnonzero(np.linalg.norm(lv.centre - pose.position, axis=1) <= cfg.max_range)
     out = np.zeros(len(lv), dtype=bool)
-    if near.size == 0:
-        return out
-    caster = caster or SceneCaster(scene)
-    h = caster.first_hit(np.broadcast_to(pose.position, (near.size, 3)), d[near] / r[near, None])
-    tolerance = 1.5 * lv.radius[near] + 1e-3
-    out[near] = h.t >= r[near] - tolerance
+    if near.size:
+        caster = caster or SceneCaster(scene)
+        out[near] = _visible(lv.centre[near], 1.5 * lv.radius[near] + 1e-3, pose, caster)
     return out
 
 
-def sonar_scan(scene: Scene, pose: Pose, cfg: SonarConfig, caster=None) -> Echo:
-    """The echo of the stage's leaves (occluded ones dropped when ``cfg.occlusion``)."""
-    lv = scene.leaves
-    in_range = int(
-        np.count_nonzero(np.linalg.norm(lv.centre - pose.position, axis=1) <= cfg.max_range)
-    )
-    if cfg.occlusion and len(lv):
-        keep = visible_leaves(scene, pose, cfg, caster)
-        lv = Leaves(lv.centre[keep], lv.normal[keep], lv.area[keep], lv.tree[keep])
-    e = echo_from_leaves(lv, pose, cfg)
-    return Echo(
-        e.freqs,
-        e.transfer,
-        e.t,
-        e.impulse,
-        e.echo,
-        e.call,
-        e.leaves_used,
-        in_range,
-        e.config,
-        e.pose,
-    )
+class SonarScene:
+    """A scene prepared for the sonar once: its leaves, its wood fitted as cylinders and its
+    ground ready to be sampled as facets (when ``cfg.wood`` and ``cfg.ground`` are on), for
+    any number of pulses."""
+
+    def __init__(self, scene: Scene, cfg: SonarConfig, *, seed: int = 0, caster=None):
+        self.scene = scene
+        self.wood = scene_cylinders(scene, cfg.wood_segment) if cfg.wood else Cylinders.concat([])
+        self.ground = GroundField(scene, cfg.ground_patch, seed) if cfg.ground else None
+        self._caster = caster
+
+    @property
+    def caster(self):
+        from .raycast import SceneCaster
+
+        if self._caster is None:
+            self._caster = SceneCaster(self.scene)
+        return self._caster
+
+    def targets(self, pose: Pose, cfg: SonarConfig) -> Targets:
+        """Reflectors within range of ``pose`` (hidden ones dropped when ``cfg.occlusion``)."""
+
+        def near(points: np.ndarray) -> np.ndarray:
+            return np.flatnonzero(np.linalg.norm(points - pose.position, axis=1) <= cfg.max_range)
+
+        lv = self.scene.leaves
+        lv = _leaf_subset(lv, near(lv.centre))
+        wood = self.wood.take(near(self.wood.centre))
+        ground = (
+            self.ground.facets(pose.position, cfg.max_range)
+            if self.ground is not None
+            else Targets(lv).ground
+        )
+        if cfg.occlusion:
+            lv = _leaf_subset(
+                lv, np.flatnonzero(_visible(lv.centre, 1.5 * lv.radius + 1e-3, pose, self.caster))
+            )
+            wood = wood.take(
+                np.flatnonzero(_visible(wood.centre, 1.05 * wood.radius + 0.01, pose, self.caster))
+            )
+            ground = ground.take(
+                np.flatnonzero(
+                    _visible(ground.centre, np.full(len(ground), 0.01), pose, self.caster)
+                )
+            )
+        return Targets(lv, wood, ground)
+
+    def echo(self, pose: Pose, cfg: SonarConfig, velocity: np.ndarray | None = None) -> Echo:
+        """The echo at ``pose``; ``leaves_in_range`` counts leaves before occlusion."""
+        lv = self.scene.leaves
+        in_range = int(
+            np.count_nonzero(np.linalg.norm(lv.centre - pose.position, axis=1) <= cfg.max_range)
+        )
+        e = echo_from_targets(self.targets(pose, cfg), pose, cfg, velocity)
+        return replace(e, leaves_in_range=in_range)
+
+
+def sonar_scan(scene: Scene, pose: Pose, cfg: SonarConfig, caster=None, *, seed: int = 0) -> Echo:
+    """The echo of the stage's leaves, wood and ground at ``pose`` (see :class:`SonarScene`)."""
+    return SonarScene(scene, cfg, seed=seed, caster=caster).echo(pose, cfg)
 
 
 def write_echo(e: Echo, out: str | Path) -> list[Path]:
@@ -449,7 +729,9 @@ def write_echo(e: Echo, out: str | Path) -> list[Path]:
         "pose": asdict(e.pose),
         "leaves_used": e.leaves_used,
         "leaves_in_range": e.leaves_in_range,
+        "reflectors": e.reflectors,
         "speed_of_sound": e.config.speed_of_sound,
+        "classes": list(CLASSES),
     }
     with atomic_path(out) as tmp, tmp.open("wb") as f:
         np.savez_compressed(
@@ -461,6 +743,8 @@ def write_echo(e: Echo, out: str | Path) -> list[Path]:
             echo=e.echo,
             call=e.call,
             meta=json.dumps(meta),
+            labels=e.labels,
+            **{f"echo_{name}": part for name, part in e.parts.items()},
         )
     wav = out.with_suffix(".wav")
     peak = float(np.abs(e.echo).max()) or 1.0
@@ -478,14 +762,24 @@ def _plot(e: Echo, png: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from scipy.signal import hilbert
 
     c = e.config.speed_of_sound
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 6), dpi=100, sharex=True)
-    env = np.abs(e.impulse)
-    a1.plot(e.t * c / 2, 20 * np.log10(env / max(env.max(), 1e-30) + 1e-6), lw=0.6)
+    rng = e.t * c / 2
+    top = max(float(np.abs(hilbert(e.echo)).max()), 1e-30)
+    colours = {"leaf": "tab:green", "trunk": "saddlebrown", "branch": "peru", "ground": "0.4"}
+    for name, part in e.parts.items():
+        if np.any(part):
+            env = np.abs(hilbert(part))
+            a1.plot(
+                rng, 20 * np.log10(env / top + 1e-6), lw=0.6, label=name, color=colours.get(name)
+            )
     a1.set_ylim(-60, 3)
-    a1.set_ylabel("impulse response (dB)")
-    a1.set_title(f"foliage echo: {e.leaves_used:,} leaves within {e.config.max_range:g} m")
+    a1.set_ylabel("echo envelope (dB)")
+    a1.legend(loc="upper right", fontsize=8)
+    heard = ", ".join(f"{n:,} {k}" for k, n in e.reflectors.items() if n)
+    a1.set_title(f"echo within {e.config.max_range:g} m: {heard or 'nothing'}", fontsize=10)
     a2.specgram(
         e.echo,
         NFFT=256,
