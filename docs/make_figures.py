@@ -230,6 +230,57 @@ def sensors(out: Path, work: Path) -> None:
     save_figure(fig, out / "sonar-echo.png")
 
 
+def forest_sensors(out: Path, work: Path) -> None:
+    """In the default forest: a sonar echo by class (leaves, trunks, branches, ground), a
+    camera frame's four images, and a short flight's camera contact sheet."""
+    import numpy as np
+
+    from usdforest.recipe import default_recipe_path
+    from usdforest.sensors import camera
+    from usdforest.sensors.flight import Trajectory
+    from usdforest.sensors.pose import Pose
+    from usdforest.sensors.raycast import SceneCaster
+    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.sonar import SonarConfig, sonar_scan, write_echo
+
+    stage = work / "default.usda"
+    if not stage.exists():
+        write_forest(read_recipe(default_recipe_path()), stage, thumbnail=False)
+    pose = Pose(30.0, 60.0, 1.6, yaw=90)
+    scene = extract_scene(stage, centre=pose.position, radius=60.0)
+    caster = SceneCaster(scene)
+    e = sonar_scan(scene, pose, SonarConfig(), caster)
+    write_echo(e, work / "forest-echo.npz")
+    fig, ax = plt.subplots(figsize=(8, 6), dpi=100)
+    image_panel(ax, work / "forest-echo.png", "")
+    save_figure(fig, out / "sonar-forest.png")
+    cam = camera.DepthCamera(640, 480, 90.0, 60.0, kind="camera")
+    colours = camera.path_colours(stage, scene.paths)
+    frame = camera.render(scene, cam, pose, colours, caster)
+    depth = np.where(np.isfinite(frame.depth), frame.depth, np.nan)
+    fig, axes = plt.subplots(2, 2, figsize=(10, 7.8), dpi=100)
+    panels = (
+        (frame.rgb, {}, "RGB (material colour, Lambert-shaded)"),
+        (camera.PALETTE[frame.semantic], {}, "semantic: trunk, branch, leaf, ground"),
+        (depth, {"cmap": "viridis_r"}, "depth (z, m)"),
+        (camera.instance_colours(frame.instance), {}, "instance: one colour per tree id"),
+    )
+    for ax, (image, kw, title) in zip(axes.ravel(), panels, strict=True):
+        shown = ax.imshow(image, **kw)
+        ax.set_title(title, fontsize=10)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        if kw:
+            fig.colorbar(shown, ax=ax, fraction=0.035)
+    save_figure(fig, out / "camera.png")
+    traj = Trajectory.line((20.0, 40.0, 2.0), (30.0, 40.0, 2.0), 5.0)
+    frames = camera.fly_camera(scene, cam, traj, 2.0, colours, caster)
+    camera.write_frames(frames, work / "flight_camera")
+    fig, ax = plt.subplots(figsize=(14, 7), dpi=100)
+    image_panel(ax, work / "flight_camera.png", "")
+    save_figure(fig, out / "flight-camera.png")
+
+
 def terrain(out: Path, work: Path) -> None:
     """The default stand on a height field (a slope, a hill and a hollow), seen from the side."""
     import numpy as np
@@ -262,6 +313,7 @@ def main(out: Path) -> None:
         stands(out, work)
         gallery(out, work)
         sensors(out, work)
+        forest_sensors(out, work)
         terrain(out, work)
     for p in sorted(out.glob("*.png")):
         print(f"wrote {p}")

@@ -316,7 +316,7 @@ def test_scan_cli_outputs(stand, tmp_path, runner):
 @pytest.mark.parametrize(
     ("args", "config", "fragment"),
     [
-        (["--sensor", "radar"], None, "'radar' is not lidar or sonar"),
+        (["--sensor", "radar"], None, "'radar' is not lidar, sonar or camera"),
         (["--sensor", "lidar", "--preset", "vlp-99"], None, "unknown lidar preset 'vlp-99'"),
         (["--sensor", "sonar"], "[sonar]\nf_min = 0.0\n", "frequencies must be > 0"),
         (["--sensor", "sonar"], "[sonar]\nf_min = -5.0\n", "frequencies must be > 0"),

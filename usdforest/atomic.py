@@ -34,6 +34,15 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise
 
 
+def save_npz(path: str | Path, /, **arrays) -> Path:
+    """``np.savez_compressed`` of ``arrays`` to ``path``, atomically."""
+    import numpy as np
+
+    with atomic_path(path) as tmp, tmp.open("wb") as f:
+        np.savez_compressed(f, **arrays)
+    return Path(path)
+
+
 def refuse_overwrite(*paths: str | Path, force: bool) -> None:
     """Raise a :class:`UsdForestError` naming the first of ``paths`` that exists, unless
     ``force``."""

@@ -553,19 +553,27 @@ def plot_sites_cmd(
 @handles_errors
 def scan_cmd(
     stage: Annotated[Path, typer.Argument(help="Any stage that composes trees or forests.")],
-    sensor: Annotated[str, typer.Option(help="lidar or sonar.")],
+    sensor: Annotated[str, typer.Option(help="lidar, sonar or camera.")],
     pose: Annotated[str, typer.Option(help="x,y,z[,yaw,pitch,roll] (m, degrees).")],
     output: Annotated[
-        Path, typer.Option("--output", "-o", help="lidar: .ply or .npz; sonar: .npz")
+        Path,
+        typer.Option(
+            "--output",
+            "-o",
+            help="lidar: .ply or .npz; sonar: .npz (+ .wav, .png); camera: .npz "
+            "(+ _rgb, _depth, _semantic, _instance .png)",
+        ),
     ],
     preset: Annotated[
         str | None,
         typer.Option(
-            help="lidar: vlp-16, hdl-32, os1-64, depth-camera; sonar: bat-fm, narrow, wide."
+            help="lidar: vlp-16, hdl-32, os1-64, depth-camera; sonar: bat-fm, paper, narrow, "
+            "wide; camera: pinhole-640, d435, fpv-1280."
         ),
     ] = None,
     config: Annotated[
-        Path | None, typer.Option(help="TOML with a \\[lidar] or \\[sonar] table of settings.")
+        Path | None,
+        typer.Option(help="TOML with a \\[lidar], \\[sonar] or \\[camera] table of settings."),
     ] = None,
     occlusion: Annotated[
         bool, typer.Option("--occlusion", help="sonar: drop leaves hidden by wood or leaves.")
@@ -576,27 +584,40 @@ def scan_cmd(
     force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
 ) -> None:
-    """Scan a stage with a lidar (ray casting) or a bat-like sonar (foliage echoes)."""
+    """Scan a stage with a lidar (ray casting), a bat-like sonar (echoes of leaves, wood and
+    ground) or a camera (depth, semantic and instance images, shaded RGB)."""
     require_output(output)
     import dataclasses
     import time
 
     from .config import check_keys, load_toml, override
-    from .sensors import lidar, sonar
+    from .sensors import camera, lidar, sonar
     from .sensors.checks import check_not_inside_wood, pose_warnings, unseen_warning
     from .sensors.pose import parse_pose
     from .sensors.raycast import SceneCaster
     from .sensors.scene import class_counts, extract_scene
 
-    if sensor not in ("lidar", "sonar"):
-        raise UsdForestError(f"--sensor: {sensor!r} is not lidar or sonar")
+    kinds = {
+        "lidar": (lidar.PRESETS, "vlp-16"),
+        "sonar": (sonar.PRESETS, "bat-fm"),
+        "camera": (camera.PRESETS, "pinhole-640"),
+    }
+    if sensor not in kinds:
+        raise UsdForestError(f"--sensor: {sensor!r} is not lidar, sonar or camera")
     suffixes = (".ply", ".npz") if sensor == "lidar" else (".npz",)
     if output.suffix.lower() not in suffixes:
         raise UsdForestError(f"{output}: a {sensor} scan is written as {' or '.join(suffixes)}")
-    refuse_overwrite(output, force=force)
+    companions = {
+        "sonar": [output.with_suffix(x) for x in (".wav", ".png")],
+        "camera": [
+            output.with_name(f"{output.stem}_{k}.png")
+            for k in ("rgb", "depth", "semantic", "instance")
+        ],
+    }.get(sensor, [])
+    refuse_overwrite(output, *companions, force=force)
     p = parse_pose(pose)
-    presets = lidar.PRESETS if sensor == "lidar" else sonar.PRESETS
-    name = preset or ("vlp-16" if sensor == "lidar" else "bat-fm")
+    presets, default = kinds[sensor]
+    name = preset or default
     if name not in presets:
         raise UsdForestError(
             f"--preset: unknown {sensor} preset {name!r}; known: " + ", ".join(presets)
@@ -606,6 +627,8 @@ def scan_cmd(
         data = load_toml(config)
         check_keys(data, {sensor}, str(config))
         table = dict(data.get(sensor, {}))
+        if sensor == "camera" and "kind" in table:
+            raise UsdForestError(f"{config}: camera.kind: a camera has no kind to set")
         if sensor == "lidar" and table.get("kind") not in (None, settings.kind):
             kinds = {"spinning": lidar.SpinningLidar(), "depth-camera": lidar.DepthCamera()}
             if table["kind"] not in kinds:
@@ -643,6 +666,23 @@ def scan_cmd(
             f"{output}: {len(r):,} returns from {r.n_rays:,} rays ("
             + ", ".join(f"{k} {v:,}" for k, v in summary["returns_by_class"].items() if v)
             + f"), {summary['trees_hit']} trees, {len(scene):,} triangles in range"
+        )
+    elif sensor == "camera":
+        colours = camera.path_colours(stage, scene.paths)
+        frame = camera.render(scene, settings, p, colours, caster)
+        files = camera.write_frame(frame, settings, output)
+        summary = {
+            "output": [str(f) for f in files],
+            "pixels": int(frame.depth.size),
+            "pixels_by_class": class_counts(frame.semantic.ravel()),
+            "trees_seen": int(np.unique(frame.instance[frame.instance >= 0]).size),
+            "seconds": round(time.perf_counter() - t0, 3),
+        }
+        seen = summary["pixels_by_class"]
+        text = (
+            f"{output} (+ 4 PNGs): {settings.width} x {settings.height} pixels ("
+            + ", ".join(f"{k} {v:,}" for k, v in seen.items() if v and k != "unknown")
+            + f"), {summary['trees_seen']} trees in view"
         )
     else:
         e = sonar.sonar_scan(scene, p, settings, caster, seed=seed)
@@ -686,7 +726,9 @@ def fly_cmd(
     output: Annotated[
         Path,
         typer.Option(
-            "--output", "-o", help="Output stem: writes STEM.las and STEM_sonar.npz/.wav/.png."
+            "--output",
+            "-o",
+            help="Output stem: writes STEM.las, STEM_sonar.npz/.wav/.png and STEM_camera.npz/.png.",
         ),
     ],
     path: Annotated[
@@ -703,8 +745,13 @@ def fly_cmd(
     sonar_preset: Annotated[
         str, typer.Option("--sonar", help="paper, bat-fm, narrow, wide or none.")
     ] = "paper",
+    camera_preset: Annotated[
+        str, typer.Option("--camera", help="pinhole-640, d435, fpv-1280 or none.")
+    ] = "none",
+    camera_rate: Annotated[float, typer.Option(help="Camera frames per second.")] = 2.0,
     config: Annotated[
-        Path | None, typer.Option(help="TOML with \\[lidar] and/or \\[sonar] settings.")
+        Path | None,
+        typer.Option(help="TOML with \\[lidar], \\[sonar] and/or \\[camera] settings."),
     ] = None,
     seed: Annotated[
         int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise and ground roughness.")
@@ -712,12 +759,13 @@ def fly_cmd(
     force: Annotated[bool, typer.Option("--force", help="Overwrite the outputs.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
 ) -> None:
-    """Fly a lidar and a sonar through a stage: LAS 1.4 returns with GPS time, class and
-    tree id; sonar pulses with Doppler, a WAV of the flight and an echogram."""
+    """Fly a lidar, a sonar and a camera through a stage: LAS 1.4 returns with GPS time,
+    class and tree id; sonar pulses with Doppler (leaves, wood, ground), a WAV of the flight
+    and an echogram; camera frames (depth, semantic, instance, RGB) and a contact sheet."""
     import time
 
     from .config import check_keys, load_toml, override
-    from .sensors import flight, lidar, sonar
+    from .sensors import camera, flight, lidar, sonar
     from .sensors.checks import unseen_warning
     from .sensors.scene import class_counts, extract_scene
 
@@ -736,8 +784,8 @@ def fly_cmd(
     tables = {}
     if config is not None:
         tables = load_toml(config)
-        check_keys(tables, {"lidar", "sonar"}, str(config))
-    lidar_cfg = sonar_cfg = None
+        check_keys(tables, {"lidar", "sonar", "camera"}, str(config))
+    lidar_cfg = sonar_cfg = camera_cfg = None
     if lidar_preset != "none":
         if lidar_preset not in lidar.PRESETS or lidar.PRESETS[lidar_preset].kind != "spinning":
             names = [n for n, v in lidar.PRESETS.items() if v.kind == "spinning"]
@@ -755,18 +803,33 @@ def fly_cmd(
             sonar.PRESETS[sonar_preset], dict(tables.get("sonar", {})), f"{config}: sonar"
         )
         sonar_cfg.check()
-    if lidar_cfg is None and sonar_cfg is None:
-        raise UsdForestError("nothing to fly: --lidar none and --sonar none")
+    if camera_preset != "none":
+        if camera_preset not in camera.PRESETS:
+            raise UsdForestError(
+                f"--camera: {camera_preset!r} is not one of {', '.join(camera.PRESETS)} or none"
+            )
+        table = dict(tables.get("camera", {}))
+        if "kind" in table:
+            raise UsdForestError(f"{config}: camera.kind: a camera has no kind to set")
+        camera_cfg = override(camera.PRESETS[camera_preset], table, f"{config}: camera")
+        camera_cfg.check()
+        if not 0 < camera_rate <= 120:
+            raise UsdForestError("--camera-rate: must be in (0, 120] frames per second")
+    if lidar_cfg is None and sonar_cfg is None and camera_cfg is None:
+        raise UsdForestError("nothing to fly: --lidar none, --sonar none and --camera none")
     las = output.with_name(output.name + ".las")
     echo_stem = output.with_name(output.name + "_sonar")
-    outs = ([las] if lidar_cfg else []) + (
-        [echo_stem.with_suffix(x) for x in (".npz", ".wav", ".png")] if sonar_cfg else []
+    frames_stem = output.with_name(output.name + "_camera")
+    outs = (
+        ([las] if lidar_cfg else [])
+        + ([echo_stem.with_suffix(x) for x in (".npz", ".wav", ".png")] if sonar_cfg else [])
+        + ([frames_stem.with_suffix(x) for x in (".npz", ".png")] if camera_cfg else [])
     )
     for o in outs:
         require_output(o)
     refuse_overwrite(*outs, force=force)
     t0 = time.perf_counter()
-    reach = max(c.max_range for c in (lidar_cfg, sonar_cfg) if c is not None)
+    reach = max(c.max_range for c in (lidar_cfg, sonar_cfg, camera_cfg) if c is not None)
     lo, hi = traj.position.min(axis=0), traj.position.max(axis=0)
     scene = extract_scene(
         stage, centre=(lo + hi) / 2, radius=float(np.linalg.norm(hi - lo) / 2 + reach)
@@ -791,6 +854,14 @@ def fly_cmd(
             "max_leaves_in_range": int(f.leaves.max()),
             "classes_heard": sorted(k for k, v in f.parts.items() if np.any(v)),
         }
+    if camera_cfg is not None:
+        colours = camera.path_colours(stage, scene.paths)
+        frames = camera.fly_camera(scene, camera_cfg, traj, camera_rate, colours)
+        camera.write_frames(frames, frames_stem)
+        summary["camera"] = {
+            "frames": len(frames),
+            "trees_seen": int(np.unique(frames.instance[frames.instance >= 0]).size),
+        }
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     if as_json:
         sys.stdout.write(json.dumps(summary) + "\n")
@@ -802,6 +873,8 @@ def fly_cmd(
         )
     if "sonar" in summary:
         parts.append(f"{echo_stem}.npz/.wav/.png: {summary['sonar']['pulses']} sonar pulses")
+    if "camera" in summary:
+        parts.append(f"{frames_stem}.npz/.png: {summary['camera']['frames']} camera frames")
     out.print("; ".join(parts) + f" ({summary['seconds']:.1f} s)", highlight=False)
 
 

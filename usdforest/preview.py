@@ -68,7 +68,8 @@ class Cloud:
 # --------------------------------------------------------------------------- stage -> points
 
 
-def _mesh_color(prim) -> np.ndarray:
+def mesh_color(prim) -> np.ndarray:
+    """The diffuse colour of the material bound to ``prim`` (its display colour, else grey)."""
     from pxr import UsdGeom, UsdShade
 
     mat, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
@@ -100,7 +101,7 @@ def _sample_mesh(prim, to_root: np.ndarray, spacing: float, rng: np.random.Gener
     if n.sum() == 0:
         k = int(np.argmax(area))
         p = t[k].mean(axis=0)[None]
-        color = _mesh_color(prim)[None]
+        color = mesh_color(prim)[None]
         return Cloud(p, fn[k][None], color, np.array([max(np.sqrt(area.sum()), 1e-6)]))
     which = np.repeat(np.arange(len(area)), n)
     r1, r2 = rng.uniform(size=(2, which.size))
@@ -108,7 +109,7 @@ def _sample_mesh(prim, to_root: np.ndarray, spacing: float, rng: np.random.Gener
     r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
     p = t[which, 0] + e1[which] * r1[:, None] + e2[which] * r2[:, None]
     local_spacing = np.full(which.size, spacing)
-    color = np.broadcast_to(_mesh_color(prim), p.shape)
+    color = np.broadcast_to(mesh_color(prim), p.shape)
     return Cloud(p, fn[which], np.array(color), np.maximum(local_spacing, 1e-6))
 
 
@@ -395,7 +396,7 @@ def _ground(lo: np.ndarray, hi: np.ndarray, px: float, meshes: list) -> Cloud:
                 n /= np.linalg.norm(n, axis=-1, keepdims=True)
             keep = np.isfinite(z) & np.all(np.isfinite(n), axis=-1)
             gx, gy, z, n = gx[keep], gy[keep], z[keep] - 1e-3, n[keep]
-            color = _mesh_color(meshes[0])
+            color = mesh_color(meshes[0])
     p = np.column_stack([gx.ravel(), gy.ravel(), np.ravel(z)])
     n = n.reshape(-1, 3)
     return Cloud(p, n, np.tile(color, (len(p), 1)), np.full(len(p), step))

@@ -35,6 +35,10 @@ class Facets:
     def take(self, sel: np.ndarray) -> Facets:
         return Facets(self.centre[sel], self.normal[sel], self.area[sel], self.phase[sel])
 
+    @staticmethod
+    def empty() -> Facets:
+        return Facets(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+
 
 def hash_uniform(i: np.ndarray, j: np.ndarray, salt: int) -> np.ndarray:
     """Uniform numbers in [0, 1) from integer cell indices (splitmix64 finaliser)."""
@@ -67,8 +71,7 @@ class GroundField:
     def facets(self, position: np.ndarray, max_range: float) -> Facets:
         """Facets within ``max_range`` of ``position``."""
         if self._caster is None:
-            z = np.zeros((0, 3))
-            return Facets(z, z, np.zeros(0), np.zeros(0))
+            return Facets.empty()
         h = self.patch
         x0, y0 = float(position[0]), float(position[1])
         ii = np.arange(np.floor((x0 - max_range) / h), np.ceil((x0 + max_range) / h) + 1)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
+from ..atomic import atomic_path, save_npz
 from ..errors import UsdForestError
 from ..paths import require_file
 from ..seeds import stream
@@ -297,21 +297,20 @@ def write_flight_echo(f: FlightEcho, out: Path) -> list[Path]:
 
     npz, wav, png = out.with_suffix(".npz"), out.with_suffix(".wav"), out.with_suffix(".png")
     fs = f.config.sample_rate
-    with atomic_path(npz) as tmp, tmp.open("wb") as fh:
-        np.savez_compressed(
-            fh,
-            t=f.t,
-            position=f.position,
-            forward=f.forward,
-            velocity=f.velocity,
-            echoes=f.echoes,
-            leaves_in_range=f.leaves,
-            sample_rate=fs,
-            config=json.dumps(asdict(f.config)),
-            classes=np.array(CLASSES),
-            labels=f.labels,
-            **{f"echoes_{name}": part for name, part in f.parts.items()},
-        )
+    save_npz(
+        npz,
+        t=f.t,
+        position=f.position,
+        forward=f.forward,
+        velocity=f.velocity,
+        echoes=f.echoes,
+        leaves_in_range=f.leaves,
+        sample_rate=fs,
+        config=json.dumps(asdict(f.config)),
+        classes=np.array(CLASSES),
+        labels=f.labels,
+        **{f"echoes_{name}": part for name, part in f.parts.items()},
+    )
     n = math.ceil((f.t[-1] - f.t[0]) * fs) + f.echoes.shape[1]
     sound = np.zeros(n)
     for t, e in zip(f.t, f.echoes, strict=True):

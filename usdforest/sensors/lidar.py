@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
+from ..atomic import atomic_path, save_npz
 from ..errors import UsdForestError
 from ..seeds import stream
 from .pose import Pose
@@ -69,11 +69,16 @@ class DepthCamera:
     kind: str = "depth-camera"
 
     def check(self) -> None:
+        table = "camera" if self.kind == "camera" else "lidar"
         if self.width < 1 or self.height < 1:
-            raise UsdForestError("lidar.width/height: the image needs at least one pixel")
+            raise UsdForestError(f"{table}.width/height: the image needs at least one pixel")
+        if self.width * self.height > 50_000_000:
+            raise UsdForestError(
+                f"{table}.width/height: {self.width} x {self.height} is over 50 megapixels"
+            )
         if not 0 < self.hfov < 180:
-            raise UsdForestError("lidar.hfov: must be in (0, 180) degrees")
-        _check_common(self.max_range, self.range_noise)
+            raise UsdForestError(f"{table}.hfov: must be in (0, 180) degrees")
+        _check_common(self.max_range, self.range_noise, table)
 
     def directions(self) -> np.ndarray:
         f = (self.width / 2) / np.tan(np.radians(self.hfov) / 2)
@@ -84,11 +89,11 @@ class DepthCamera:
         return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def _check_common(max_range: float, noise: float) -> None:
+def _check_common(max_range: float, noise: float, table: str = "lidar") -> None:
     if not (np.isfinite(max_range) and max_range > 0):
-        raise UsdForestError("lidar.max_range: must be a finite number > 0")
+        raise UsdForestError(f"{table}.max_range: must be a finite number > 0")
     if not (np.isfinite(noise) and noise >= 0):
-        raise UsdForestError("lidar.range_noise: must be >= 0")
+        raise UsdForestError(f"{table}.range_noise: must be >= 0")
 
 
 PRESETS: dict[str, SpinningLidar | DepthCamera] = {
@@ -153,20 +158,19 @@ def write_returns(r: Returns, out: str | Path) -> None:
     """``.npz`` (all arrays, path table, sensor) or ``.ply`` (binary; class, tree, path index)."""
     out = Path(out)
     if out.suffix == ".npz":
-        with atomic_path(out) as tmp, tmp.open("wb") as f:
-            np.savez_compressed(
-                f,
-                points=r.points,
-                range=r.range,
-                ray=r.ray,
-                cls=r.cls,
-                tree=r.tree,
-                path=r.path,
-                paths=np.array(r.paths, dtype=str),
-                classes=np.array(CLASSES),
-                n_rays=r.n_rays,
-                sensor=json.dumps(r.sensor),
-            )
+        save_npz(
+            out,
+            points=r.points,
+            range=r.range,
+            ray=r.ray,
+            cls=r.cls,
+            tree=r.tree,
+            path=r.path,
+            paths=np.array(r.paths, dtype=str),
+            classes=np.array(CLASSES),
+            n_rays=r.n_rays,
+            sensor=json.dumps(r.sensor),
+        )
         return
     if out.suffix != ".ply":
         raise UsdForestError(f"{out}: lidar output must end in .ply or .npz")

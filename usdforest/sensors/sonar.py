@@ -67,7 +67,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.special import j1
 
-from ..atomic import atomic_path
+from ..atomic import atomic_path, save_npz
 from ..errors import UsdForestError
 from .backscatter import (
     LEAF_MODELS,
@@ -323,9 +323,7 @@ class Targets:
 
     leaves: Leaves
     wood: Cylinders = field(default_factory=lambda: Cylinders.concat([]))
-    ground: Facets = field(
-        default_factory=lambda: Facets(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
-    )
+    ground: Facets = field(default_factory=Facets.empty)
 
 
 @dataclass(frozen=True, eq=False)
@@ -686,7 +684,7 @@ class SonarScene:
         ground = (
             self.ground.facets(pose.position, cfg.max_range)
             if self.ground is not None
-            else Targets(lv).ground
+            else Facets.empty()
         )
         if cfg.occlusion:
             lv = _leaf_subset(
@@ -733,19 +731,18 @@ def write_echo(e: Echo, out: str | Path) -> list[Path]:
         "speed_of_sound": e.config.speed_of_sound,
         "classes": list(CLASSES),
     }
-    with atomic_path(out) as tmp, tmp.open("wb") as f:
-        np.savez_compressed(
-            f,
-            freqs=e.freqs,
-            transfer=e.transfer,
-            t=e.t,
-            impulse=e.impulse,
-            echo=e.echo,
-            call=e.call,
-            meta=json.dumps(meta),
-            labels=e.labels,
-            **{f"echo_{name}": part for name, part in e.parts.items()},
-        )
+    save_npz(
+        out,
+        freqs=e.freqs,
+        transfer=e.transfer,
+        t=e.t,
+        impulse=e.impulse,
+        echo=e.echo,
+        call=e.call,
+        meta=json.dumps(meta),
+        labels=e.labels,
+        **{f"echo_{name}": part for name, part in e.parts.items()},
+    )
     wav = out.with_suffix(".wav")
     peak = float(np.abs(e.echo).max()) or 1.0
     with atomic_path(wav) as tmp:

@@ -1,0 +1,99 @@
+"""A 100 m flight through the default forest: a VLP-16 at 10 Hz, the paper's sonar at 20
+pulses/s (leaves, wood and ground) and a 640 x 480 camera at 1 frame/s, at 5 m/s and 2 m up.
+
+Usage: ``python benchmarks/bench_flight.py`` (``make bench`` runs it after the main table).
+Prints a Markdown table: wall time of each part, rays/s, echoes (pulses)/s and reflectors/s,
+frames/s, and the whole flight's wall time and peak memory. One run (the flight takes
+minutes); the parts are timed in process, as ``usdforest fly`` runs them.
+"""
+
+from __future__ import annotations
+
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+LINE = ((0.0, 50.0, 2.0), (100.0, 50.0, 2.0))
+SPEED = 5.0
+
+
+def main() -> None:
+    from usdforest.recipe import default_recipe_path, read_recipe
+    from usdforest.sensors import camera
+    from usdforest.sensors.flight import Trajectory, fly_lidar, fly_sonar
+    from usdforest.sensors.lidar import PRESETS as LIDARS
+    from usdforest.sensors.raycast import SceneCaster
+    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.sonar import PRESETS as SONARS
+    from usdforest.sensors.sonar import SonarScene
+    from usdforest.usd.forest import write_forest
+
+    work = Path(tempfile.mkdtemp(prefix="usdforest-flight-"))
+    stage = work / "forest.usda"
+    write_forest(read_recipe(default_recipe_path()), stage, thumbnail=False)
+    traj = Trajectory.line(*LINE, SPEED)
+    lidar, sonar, cam = LIDARS["vlp-16"], SONARS["paper"], camera.PRESETS["pinhole-640"]
+    rows = []
+    start = time.perf_counter()
+    t = time.perf_counter()
+    lo, hi = traj.position.min(axis=0), traj.position.max(axis=0)
+    reach = max(lidar.max_range, sonar.max_range, cam.max_range)
+    scene = extract_scene(
+        stage, centre=(lo + hi) / 2, radius=float(np.linalg.norm(hi - lo) / 2 + reach)
+    )
+    caster = SceneCaster(scene)
+    rows.append(
+        ("scene: extract + Embree build", time.perf_counter() - t,
+         f"{len(scene.instances)} trees, {len(scene):,} triangles, {len(scene.leaves):,} leaves")
+    )  # fmt: skip
+    t = time.perf_counter()
+    r = fly_lidar(scene, lidar, traj, 10.0, caster=caster)
+    dt = time.perf_counter() - t
+    rows.append(
+        ("lidar: VLP-16, 10 Hz", dt,
+         f"{r.sweeps} sweeps, {r.n_rays:,} rays, {r.n_rays / dt / 1e3:,.0f} k rays/s, "
+         f"{len(r):,} returns")
+    )  # fmt: skip
+    t = time.perf_counter()
+    prepared = SonarScene(scene, sonar, caster=caster)
+    prep = time.perf_counter() - t
+    t = time.perf_counter()
+    f = fly_sonar(scene, sonar, traj, caster=caster)
+    dt = time.perf_counter() - t
+    heard = sum(
+        int(np.count_nonzero(np.linalg.norm(x - p, axis=1) <= sonar.max_range))
+        for p in f.position
+        for x in (scene.leaves.centre, prepared.wood.centre)
+    )
+    rows.append(
+        ("sonar: paper preset, 20 pulses/s", dt,
+         f"{len(f.t)} pulses, {len(f.t) / dt:.2f} echoes/s; {heard / dt / 1e3:,.0f} k leaves and "
+         f"cylinders/s (+ ground facets); {len(prepared.wood):,} wood cylinders fitted in "
+         f"{prep:.1f} s")
+    )  # fmt: skip
+    t = time.perf_counter()
+    colours = camera.path_colours(stage, scene.paths)
+    frames = camera.fly_camera(scene, cam, traj, 1.0, colours, caster)
+    dt = time.perf_counter() - t
+    rays = frames.depth.size
+    rows.append(
+        ("camera: 640 x 480, 1 frame/s", dt,
+         f"{len(frames)} frames, {len(frames) / dt:.2f} frames/s, {rays / dt / 1e3:,.0f} k rays/s")
+    )  # fmt: skip
+    total = time.perf_counter() - start
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"100 m at {SPEED:g} m/s ({traj.duration:g} s of flight), 2 m up, default forest\n")
+    print("| part | wall time | figures |")
+    print("| --- | --- | --- |")
+    for name, seconds, note in rows:
+        print(f"| {name} | {seconds:,.1f} s | {note} |")
+    print(f"| whole flight | {total:,.1f} s | peak memory {peak:,.0f} MiB |")
+    sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,285 @@
+"""A pinhole camera: depth, semantic and instance segmentation, and shaded RGB images.
+
+Every pixel is a ray through its centre (:class:`~usdforest.sensors.lidar.DepthCamera`'s
+model: looking along the pose's +X, image right is -Y, image down is -Z), cast into the scene
+like a lidar ray, so the images are pixel-exact ground truth of the composed stage:
+
+* ``depth``: z-depth in metres (distance along the optical axis, as depth sensors and
+  OpenCV's pinhole model report it), ``inf`` where nothing is within ``max_range``;
+* ``semantic``: class index (0 unknown/sky, 1 trunk, 2 branch, 3 leaf, 4 ground);
+* ``instance``: tree id (the forest's ``ids`` and ``trees.csv``'s ``id``), -1 off any tree;
+* ``rgb``: the hit prim's bound material colour, Lambert-shaded under the preview renderer's
+  light (leaves lit on both sides), sky where nothing is hit.
+
+Intrinsics follow OpenCV: fx = fy = (width / 2) / tan(hfov / 2), cx = width / 2,
+cy = height / 2, pixel (u, v) centred at (u + 0.5, v + 0.5); a point at camera coordinates
+(forward x, left y, up z) projects to u = cx - fx y / x, v = cy - fy z / x.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_path, save_npz
+from ..errors import UsdForestError
+from .lidar import DepthCamera
+from .pose import Pose
+from .raycast import SceneCaster
+from .scene import CLASSES, Scene
+
+PRESETS: dict[str, DepthCamera] = {
+    "pinhole-640": DepthCamera(640, 480, 90.0, 200.0, kind="camera"),
+    "d435": DepthCamera(848, 480, 87.0, 10.0, kind="camera"),  # RealSense D435's depth stream
+    "fpv-1280": DepthCamera(1280, 720, 120.0, 200.0, kind="camera"),
+}
+# semantic palette for pictures: unknown/sky, trunk, branch, leaf, ground
+PALETTE = np.array(
+    [[0, 0, 0], [120, 72, 36], [205, 133, 63], [60, 170, 60], [128, 128, 128]], dtype=np.uint8
+)
+AMBIENT = 0.35
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One image of every kind, ``(height, width)`` each (``rgb`` has 3 channels), and the
+    camera's position and rotation (column-vector, camera -> world) when it was taken."""
+
+    depth: np.ndarray
+    semantic: np.ndarray
+    instance: np.ndarray
+    rgb: np.ndarray
+    position: np.ndarray
+    rotation: np.ndarray
+
+
+def intrinsics(cam: DepthCamera) -> np.ndarray:
+    """The 3x3 OpenCV camera matrix K."""
+    f = (cam.width / 2) / math.tan(math.radians(cam.hfov) / 2)
+    return np.array([[f, 0.0, cam.width / 2], [0.0, f, cam.height / 2], [0.0, 0.0, 1.0]])
+
+
+def path_colours(stage_path: str | Path, paths: tuple[str, ...]) -> np.ndarray:
+    """``(len(paths), 3)``: each prim's bound material colour (what the preview draws)."""
+    from ..preview import mesh_color
+    from ..usd.layers import open_stage
+
+    stage = open_stage(stage_path)
+    out = np.full((len(paths), 3), 0.6)
+    for i, p in enumerate(paths):
+        prim = stage.GetPrimAtPath(p)
+        if prim:
+            out[i] = mesh_color(prim)
+    return out
+
+
+def render(
+    scene: Scene,
+    cam: DepthCamera,
+    pose: Pose,
+    colours: np.ndarray,
+    caster: SceneCaster | None = None,
+) -> Frame:
+    """The images of ``scene`` seen from ``pose``; ``colours`` per scene path
+    (:func:`path_colours`)."""
+    return render_at(scene, cam, pose.position, pose.rotation(), colours, caster)
+
+
+def render_at(
+    scene: Scene,
+    cam: DepthCamera,
+    position: np.ndarray,
+    rotation: np.ndarray,
+    colours: np.ndarray,
+    caster: SceneCaster | None = None,
+) -> Frame:
+    """:func:`render` from a position and a camera -> world rotation matrix."""
+    from ..preview import LIGHT, SKY
+
+    cam.check()
+    local = cam.directions()
+    dirs = local @ np.asarray(rotation).T
+    caster = caster or SceneCaster(scene)
+    h = caster.first_hit(np.broadcast_to(position, dirs.shape), dirs, cam.max_range)
+    shape = (cam.height, cam.width)
+    depth = np.where(h.hit, h.t * local[:, 0], np.inf).astype(np.float32)
+    n = h.normal / np.maximum(np.linalg.norm(h.normal, axis=1, keepdims=True), 1e-30)
+    n *= np.where(np.sum(n * dirs, axis=1) > 0, -1.0, 1.0)[:, None]  # facing the camera
+    shade = AMBIENT + (1 - AMBIENT) * np.clip(n @ LIGHT, 0.0, 1.0)
+    base = colours[np.maximum(h.path, 0)] if len(colours) else np.full(dirs.shape, 0.6)
+    rgb = np.where((h.hit & (h.path >= 0))[:, None], base * shade[:, None], SKY)
+    return Frame(
+        depth.reshape(shape),
+        h.cls.reshape(shape).astype(np.uint8),
+        np.where(h.hit, h.tree, -1).reshape(shape).astype(np.int64),
+        np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8).reshape(*shape, 3),
+        np.asarray(position, dtype=float),
+        np.asarray(rotation, dtype=float),
+    )
+
+
+def instance_colours(instance: np.ndarray) -> np.ndarray:
+    """A distinct colour per tree id (a hash), black off any tree: for looking at."""
+    ids = instance.astype(np.int64)
+    h = (ids * 2654435761) & 0xFFFFFF
+    out = np.stack([(h >> 16) & 255, (h >> 8) & 255, h & 255], -1).astype(np.uint8)
+    out = np.maximum(out, 40)
+    out[ids < 0] = 0
+    return out
+
+
+def _png(array: np.ndarray, path: Path) -> None:
+    from PIL import Image
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(array).save(tmp, format="PNG")
+
+
+def write_frame(frame: Frame, cam: DepthCamera, out: str | Path) -> list[Path]:
+    """``OUT.npz`` (depth in m, semantic, instance, rgb, K, position, rotation camera -> world,
+    class names) and four PNGs
+    beside it: ``OUT_rgb.png``, ``OUT_depth.png`` (16-bit millimetres, 0 where nothing),
+    ``OUT_semantic.png`` and ``OUT_instance.png`` (colour-coded for looking at)."""
+    import json
+
+    out = Path(out)
+    if out.suffix != ".npz":
+        raise UsdForestError(f"{out}: camera output must end in .npz")
+    save_npz(
+        out,
+        depth=frame.depth,
+        semantic=frame.semantic,
+        instance=frame.instance,
+        rgb=frame.rgb,
+        K=intrinsics(cam),
+        position=frame.position,
+        rotation=frame.rotation,
+        classes=np.array(CLASSES),
+        camera=json.dumps(asdict(cam)),
+    )
+    stem = out.with_suffix("")
+    files = [out]
+    for name, image in (
+        ("rgb", frame.rgb),
+        ("depth", depth_millimetres(frame.depth)),
+        ("semantic", PALETTE[frame.semantic]),
+        ("instance", instance_colours(frame.instance)),
+    ):
+        path = stem.with_name(f"{stem.name}_{name}.png")
+        _png(image, path)
+        files.append(path)
+    return files
+
+
+def depth_millimetres(depth: np.ndarray) -> np.ndarray:
+    """uint16 millimetres (0: no return; beyond 65.534 m clipped to 65534)."""
+    mm = np.where(np.isfinite(depth), np.round(depth * 1000.0), 0.0)
+    return np.clip(mm, 0, 65534).astype(np.uint16)
+
+
+@dataclass(frozen=True, eq=False)
+class Frames:
+    """Frames along a flight: times, camera positions and rotations, and the images stacked
+    ``(frames, height, width[, 3])``."""
+
+    t: np.ndarray
+    position: np.ndarray
+    rotation: np.ndarray
+    depth: np.ndarray
+    semantic: np.ndarray
+    instance: np.ndarray
+    rgb: np.ndarray
+    camera: DepthCamera
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+def fly_camera(
+    scene: Scene,
+    cam: DepthCamera,
+    traj,
+    rate: float,
+    colours: np.ndarray,
+    caster: SceneCaster | None = None,
+) -> Frames:
+    """Frames at ``rate`` per second along ``traj`` (a
+    :class:`~usdforest.sensors.flight.Trajectory`), each from the pose at its time."""
+    cam.check()
+    if not 0 < rate <= 120:
+        raise UsdForestError(f"--camera-rate: must be in (0, 120] frames per second, got {rate:g}")
+    times = traj.t[0] + np.arange(0.0, traj.duration + 1e-12, 1.0 / rate)
+    pos, rot, _ = traj.at(times)
+    caster = caster or SceneCaster(scene)
+    frames = [render_at(scene, cam, p, r, colours, caster) for p, r in zip(pos, rot, strict=True)]
+    return Frames(
+        times,
+        pos,
+        rot,
+        np.stack([f.depth for f in frames]),
+        np.stack([f.semantic for f in frames]),
+        np.stack([f.instance for f in frames]).astype(np.int32),
+        np.stack([f.rgb for f in frames]),
+        cam,
+    )
+
+
+def write_frames(f: Frames, out: Path) -> list[Path]:
+    """``OUT.npz`` (every frame's images, times, positions, rotations, K) and ``OUT.png``, a
+    contact sheet of up to six frames (RGB, semantic, depth)."""
+    import json
+
+    npz, png = out.with_suffix(".npz"), out.with_suffix(".png")
+    save_npz(
+        npz,
+        t=f.t,
+        position=f.position,
+        rotation=f.rotation,
+        depth=f.depth,
+        semantic=f.semantic,
+        instance=f.instance,
+        rgb=f.rgb,
+        K=intrinsics(f.camera),
+        classes=np.array(CLASSES),
+        camera=json.dumps(asdict(f.camera)),
+    )
+    _contact_sheet(f, png)
+    return [npz, png]
+
+
+def _contact_sheet(f: Frames, png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pick = np.unique(np.linspace(0, len(f) - 1, min(6, len(f))).round().astype(int))
+    aspect = f.camera.height / f.camera.width
+    fig, axes = plt.subplots(
+        3, len(pick), figsize=(2.6 * len(pick), 2.6 * aspect * 3 + 0.6), dpi=110, squeeze=False
+    )
+    finite = f.depth[np.isfinite(f.depth)]
+    top = float(np.percentile(finite, 99)) if finite.size else 1.0
+    for col, k in enumerate(pick):
+        depth = np.where(np.isfinite(f.depth[k]), f.depth[k], np.nan)
+        for row, (image, kw) in enumerate(
+            (
+                (f.rgb[k], {}),
+                (PALETTE[f.semantic[k]], {}),
+                (depth, {"cmap": "viridis_r", "vmin": 0, "vmax": top}),
+            )
+        ):
+            ax = axes[row, col]
+            ax.imshow(image, **kw)
+            ax.set_xticks([])
+            ax.set_yticks([])
+        axes[0, col].set_title(f"t = {f.t[k]:.2f} s", fontsize=8)
+    for row, name in enumerate(("RGB", "semantic", f"depth (0-{top:.0f} m)")):
+        axes[row, 0].set_ylabel(name, fontsize=8)
+    fig.tight_layout()
+    with atomic_path(png) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
