@@ -13,7 +13,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
-import numpy as np
 import typer
 from rich.console import Console
 from rich.markup import escape
@@ -350,6 +349,8 @@ def build_cmd(
     ] = False,
 ) -> None:
     """Build a forest: sample tree sites, grow tree variants, write the USD layers."""
+    import numpy as np
+
     require_output(output)
     import time
 
@@ -426,6 +427,8 @@ def sample_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
 ) -> None:
     """Sample tree sites (and marks) from the recipe's point process into a CSV."""
+    import numpy as np
+
     require_output(output)
     from .config import load_toml
     from .recipe import default_recipe_path, parse_recipe
@@ -586,6 +589,8 @@ def scan_cmd(
 ) -> None:
     """Scan a stage with a lidar (ray casting), a bat-like sonar (echoes of leaves, wood and
     ground) or a camera (depth, semantic and instance images, shaded RGB)."""
+    import numpy as np
+
     require_output(output)
     import dataclasses
     import time
@@ -763,6 +768,8 @@ def fly_cmd(
     class and tree id; sonar pulses with Doppler (leaves, wood, ground), a WAV of the flight
     and an echogram; camera frames (depth, semantic, instance, RGB) and a contact sheet."""
     import time
+
+    import numpy as np
 
     from .config import check_keys, load_toml, override
     from .sensors import camera, flight, lidar, sonar
