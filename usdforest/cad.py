@@ -28,6 +28,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from .errors import CADError
+from .normals import vertex_normals
 from .paths import require_file
 
 PARTS = ("trunk", "branch", "twig", "leaf")
@@ -402,19 +403,6 @@ def principal_axes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     if np.linalg.det(axes) < 0:
         axes[2] = -axes[2]
     return c, axes
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals (unit length; +Z for isolated vertices)."""
-    tri = vertices[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    vn = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(vn, faces[:, k], fn)
-    norm = np.linalg.norm(vn, axis=1)
-    vn[norm == 0] = (0.0, 0.0, 1.0)
-    norm[norm == 0] = 1.0
-    return vn / norm[:, None]
 
 
 # --------------------------------------------------------------------------- normalisation

@@ -46,9 +46,9 @@ from .cad import (
     normalise_part,
     principal_axes,
     read_cad,
-    vertex_normals,
 )
 from .errors import CADError
+from .normals import vertex_normals
 
 WOOD_NAMES = re.compile(r"bark|wood|trunk|branch|stem|twig|log|limb", re.IGNORECASE)
 FOLIAGE_NAMES = re.compile(r"lea(f|ves)|foliage|needle|crown|canopy|frond|conifer", re.IGNORECASE)

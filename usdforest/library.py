@@ -19,7 +19,6 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-from .cad import PARTS, UNITS, import_part
 from .config import check_keys, load_toml, table_array
 from .errors import RecipeError
 
@@ -60,6 +59,8 @@ class Manifest:
 
 def read_manifest(path: str | Path) -> Manifest:
     """Parse and check a template manifest; every problem names the file and key."""
+    from .cad import PARTS, UNITS
+
     path = Path(path)
     data = load_toml(path)
     check_keys(data, MANIFEST_KEYS, str(path))
@@ -104,6 +105,7 @@ def read_manifest(path: str | Path) -> Manifest:
 
 def build_manifest(manifest: Manifest, output: Path | None = None) -> list[Path]:
     """Import every template of ``manifest`` and write ``<output>/<name>.usdc``."""
+    from .cad import import_part
     from .usd.template import write_template
 
     out = output or manifest.output

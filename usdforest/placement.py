@@ -28,9 +28,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .errors import UsdForestError
+from .rotations import matrix_from_quat, quat_from_matrix
 from .skeleton import Skeleton
 from .species import Clumps, Geometry
 
@@ -130,7 +130,7 @@ class Placement:
 
     def wood_matrices(self) -> np.ndarray:
         """``(w, 4, 4)`` row-vector transforms (USD convention: p' = p @ M)."""
-        rot = Rotation.from_quat(self.orient).as_matrix()  # column-vector rotations
+        rot = matrix_from_quat(self.orient)  # column-vector rotations
         m = np.zeros((self.n_wood, 4, 4))
         m[:, :3, :3] = shear_matrices(self.shear) @ (
             np.transpose(rot, (0, 2, 1)) * self.scale[:, :, None]
@@ -251,7 +251,7 @@ def place(
     rn = rn_t[template]
     scale = np.stack([radius / rn, radius / rn, length], axis=1)
     rot = frames_from_directions(vec / length[:, None], roll)
-    orient = Rotation.from_matrix(rot).as_quat()  # x, y, z, w
+    orient = quat_from_matrix(rot)  # x, y, z, w
 
     # joints: shear branch templates so their tips land on the axis; move children onto
     # their parent's bent centreline
@@ -448,7 +448,7 @@ def _leaves(sk: Skeleton, g: Geometry, rng: np.random.Generator) -> dict[str, np
     )
     return {
         "leaf_position": pos,
-        "leaf_orient": Rotation.from_matrix(rot).as_quat(),
+        "leaf_orient": quat_from_matrix(rot),
         "leaf_scale": size,
         "leaf_segment": seg.astype(np.int32),
         "leaf_out": out,  # unit direction from the twig's axis to the leaf's attachment

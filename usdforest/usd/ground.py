@@ -45,7 +45,7 @@ def add_ground(
     root: Sdf.PrimSpec, field: HeightField, *, color: Sequence[float] = GROUND_COLOR
 ) -> None:
     """``<root>/Ground``: the mesh of ``field``, with its collider, label and material."""
-    from ..cad import vertex_normals
+    from ..normals import vertex_normals
 
     pts, tri = field.mesh()
     ground = prim(root, "Ground", "Xform")

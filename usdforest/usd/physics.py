@@ -15,6 +15,7 @@ from pxr import Gf, Sdf, Vt
 
 from ..colliders import Capsules
 from ..placement import frames_from_directions
+from ..rotations import quat_from_matrix
 from .layers import T, attr, new_layer, prim
 
 COLLISION_API = "PhysicsCollisionAPI"
@@ -22,9 +23,7 @@ COLLISION_API = "PhysicsCollisionAPI"
 
 def _quaternions(d: np.ndarray) -> np.ndarray:
     """(x, y, z, w) quaternions turning +Z to each unit direction."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(frames_from_directions(d, np.zeros(len(d)))).as_quat()
+    return quat_from_matrix(frames_from_directions(d, np.zeros(len(d))))
 
 
 def author_capsules(parent: Sdf.PrimSpec, caps: Capsules, names: list[str] | None = None) -> None:

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, Vt
 
 from ..bounds import hull_vertices
-from ..cad import TemplatePart
 from ..errors import UsdForestError
 from ..placement import WoodShape, centreline_of
 from ..uvs import leaf_uvs, wood_uvs
@@ -26,6 +26,9 @@ from .layers import (
     semantic_label,
     triangle_mesh,
 )
+
+if TYPE_CHECKING:  # trimesh loads with the CAD importer, not with every template reader
+    from ..cad import TemplatePart
 
 SEMANTIC_CLASS = {"trunk": "trunk", "branch": "branch", "twig": "branch", "leaf": "leaf"}
 

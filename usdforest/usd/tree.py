@@ -391,7 +391,7 @@ def _author_leaves(
 
 
 def _mesh(parent: Sdf.PrimSpec, name: str, v: np.ndarray, tri: np.ndarray, material, label):
-    from ..cad import vertex_normals
+    from ..normals import vertex_normals
 
     mesh = triangle_mesh(parent, name, v, tri, vertex_normals(v, tri))
     bind_material(mesh, material)
