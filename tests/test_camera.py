@@ -40,9 +40,10 @@ def _ball_and_wall(path, centre=(6.0, 1.0, 0.5), radius=1.0, wall=20.0):
 
 
 def _world_rays(cam: DepthCamera, pose: Pose) -> np.ndarray:
-    """Each pixel's ray from K (independent of the camera module's own directions)."""
+    """Each pixel's ray from K (independent of the camera module's own directions; OpenCV:
+    pixel centres at integer coordinates)."""
     k = intrinsics(cam)
-    u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+    u, v = np.meshgrid(np.arange(cam.width), np.arange(cam.height))
     # camera frame: x forward, y left, z up; image u right (-y), v down (-z)
     d = np.stack([np.ones(u.shape), -(u - k[0, 2]) / k[0, 0], -(v - k[1, 2]) / k[1, 1]], -1)
     return d @ pose.rotation().T  # not unit: x component 1 along the optical axis
@@ -80,8 +81,8 @@ def test_depth_is_the_z_depth_of_analytic_surfaces(tmp_path):
 
 
 def test_a_point_is_seen_where_K_projects_it(tmp_path):
-    """A 5 cm ball off-axis, camera yawed and pitched: the ball's pixels centre on K's
-    projection of its centre within half a pixel."""
+    """A 5 cm ball off-axis, camera yawed and pitched: the ball's pixel indices centre on K's
+    projection of its centre within half a pixel (OpenCV's convention)."""
     centre = np.array([8.0, 2.5, 2.0])
     scene = extract_scene(_ball_and_wall(tmp_path / "s.usda", tuple(centre), 0.05))
     cam = DepthCamera(640, 480, 60.0, 100.0, kind="camera")
@@ -94,8 +95,9 @@ def test_a_point_is_seen_where_K_projects_it(tmp_path):
     k = intrinsics(cam)
     u = k[0, 2] - k[0, 0] * local[1] / local[0]
     v = k[1, 2] - k[1, 1] * local[2] / local[0]
-    assert us.mean() + 0.5 == pytest.approx(u, abs=0.5)
-    assert vs.mean() + 0.5 == pytest.approx(v, abs=0.5)
+    assert us.mean() == pytest.approx(u, abs=0.5)
+    assert vs.mean() == pytest.approx(v, abs=0.5)
+    np.testing.assert_allclose(k[:2, 2], [319.5, 239.5])
 
 
 @pytest.fixture(scope="module")
@@ -124,8 +126,8 @@ def test_each_trees_trunk_is_labelled_with_its_id(stand):
     for row in rows:
         base = np.array([float(row["x"]), float(row["y"]), float(row["z"]) + 0.4])
         local = pose.rotation().T @ (base - pose.position)
-        u = int(k[0, 2] - k[0, 0] * local[1] / local[0])
-        v = int(k[1, 2] - k[1, 1] * local[2] / local[0])
+        u = round(k[0, 2] - k[0, 0] * local[1] / local[0])
+        v = round(k[1, 2] - k[1, 1] * local[2] / local[0])
         assert frame.semantic[v, u] == CLASS_ID["trunk"], row
         assert frame.instance[v, u] == int(row["id"])
         assert frame.depth[v, u] == pytest.approx(local[0], abs=0.5)  # the trunk's near side
@@ -174,7 +176,7 @@ def test_camera_scan_writes_images_a_user_opens(stand, tmp_path, runner):
 def test_a_flight_films_frames_at_its_rate(stand, tmp_path, runner):
     out, _ = stand
     (tmp_path / "cam.toml").write_text("[camera]\nwidth = 96\nheight = 64\n")
-    stem = tmp_path / "run"
+    stem = tmp_path / "run.v2"  # a dot in the stem is part of the name, not a suffix
     r = runner.invoke(
         app,
         [
@@ -185,12 +187,16 @@ def test_a_flight_films_frames_at_its_rate(stand, tmp_path, runner):
     )  # fmt: skip
     assert r.exit_code == 0, r.output
     summary = json.loads(r.stdout.strip().splitlines()[-1])
-    data = np.load(tmp_path / "run_camera.npz")
+    data = np.load(tmp_path / "run.v2_camera.npz")
     n = math.floor(1.5 * 4) + 1  # 6 m at 4 m/s, 4 frames a second
     assert summary["camera"]["frames"] == n == len(data["t"])
     assert data["depth"].shape == (n, 64, 96) and data["rgb"].shape == (n, 64, 96, 3)
     np.testing.assert_allclose(data["position"][:, 0], 2 + 4 * data["t"])
-    assert (tmp_path / "run_camera.png").stat().st_size > 10_000
+    assert (tmp_path / "run.v2_camera.png").stat().st_size > 10_000
+    assert sorted(p.name for p in tmp_path.glob("run*")) == [
+        "run.v2_camera.npz",
+        "run.v2_camera.png",
+    ]
 
 
 @pytest.mark.parametrize(
@@ -200,6 +206,7 @@ def test_a_flight_films_frames_at_its_rate(stand, tmp_path, runner):
         ("[camera]\nwidth = 0\n", "camera.width/height"),
         ("[camera]\nkind = 'spinning'\n", "camera.kind"),
         ("[camera]\nmax_range = -1.0\n", "camera.max_range"),
+        ("[camera]\nrange_noise = 0.01\n", "camera.range_noise: not a camera setting"),
     ],
 )
 def test_bad_camera_settings_are_named(stand, tmp_path, runner, table, fragment):
@@ -214,3 +221,17 @@ def test_bad_camera_settings_are_named(stand, tmp_path, runner, table, fragment)
     assert r.exit_code == 2, r.output
     assert fragment in r.stderr
     assert not list(tmp_path.glob("x*"))
+
+
+def test_a_flights_frames_must_fit_in_memory(stand, tmp_path, runner):
+    """A 1280 x 720 camera at 120 frames/s over 100 s would hold 99 GiB: refused up front,
+    naming the option, nothing written."""
+    out, _ = stand
+    r = runner.invoke(
+        app,
+        ["fly", str(out), "--line", "0,0,2:100,0,2", "--speed", "1", "-o", str(tmp_path / "f"),
+         "--lidar", "none", "--sonar", "none", "--camera", "fpv-1280", "--camera-rate", "120"],
+    )  # fmt: skip
+    assert r.exit_code == 2, r.output
+    assert "--camera-rate" in r.stderr and "GiB" in r.stderr
+    assert not list(tmp_path.glob("f*"))

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -115,7 +116,8 @@ def test_a_trunks_echo_matches_the_kirchhoff_integral_at_its_range(tmp_path):
     scene = extract_scene(_stage(tmp_path / "t.usda", trunk=(a, height, (r0, 0.0, 0.0))))
     cfg = SonarConfig(f_min=30e3, f_max=40e3, bands=16, ground=False)
     e = sonar_scan(scene, Pose(0, 0, 0), cfg)
-    assert set(e.parts) == {"leaf", "trunk"} and e.reflectors["trunk"] in (6, 7)
+    assert set(e.parts) == {"leaf", "trunk", "branch"} and e.reflectors["trunk"] in (6, 7)
+    assert not np.any(e.parts["leaf"]) and not np.any(e.parts["branch"])  # silent: none
     c = cfg.speed_of_sound
     nphi, nz = 3000, 1500
     phi = math.pi / 2 + (np.arange(nphi) + 0.5) * math.pi / nphi
@@ -179,7 +181,7 @@ def test_wood_and_ground_are_switchable_and_the_parts_add_up(tmp_path):
     stage = _stage(tmp_path / "s.usda", trunk=(0.2, 3.0, (4.0, 0.0, 0.0)), ground_z=-1.5)
     scene = extract_scene(stage)
     both = sonar_scan(scene, Pose(0, 0, 0), SonarConfig())
-    assert set(both.parts) == {"leaf", "trunk", "ground"}
+    assert set(both.parts) == {"leaf", "trunk", "branch", "ground"}
     np.testing.assert_allclose(
         sum(both.parts.values()), both.echo, atol=1e-12 * np.abs(both.echo).max()
     )
@@ -189,10 +191,24 @@ def test_wood_and_ground_are_switchable_and_the_parts_add_up(tmp_path):
     np.testing.assert_array_equal(no_wood.parts["ground"], both.parts["ground"])
     neither = sonar_scan(scene, Pose(0, 0, 0), SonarConfig(wood=False, ground=False))
     assert set(neither.parts) == {"leaf"} and not np.any(neither.echo)
-    # occlusion: the trunk hides the ground behind it, so less ground is heard
+    # occlusion: the trunk hides the ground behind it, so less ground is heard; the trunk
+    # itself (3 m tall, so seen up to 20 degrees off broadside) hides none of its own segments
     hidden = sonar_scan(scene, Pose(0, 0, 0), SonarConfig(occlusion=True))
     assert hidden.reflectors["ground"] < both.reflectors["ground"]
-    assert hidden.reflectors["trunk"] == both.reflectors["trunk"]  # nothing in front of it
+    assert hidden.reflectors["trunk"] == both.reflectors["trunk"]
+
+
+def test_a_tall_trunk_does_not_hide_itself(tmp_path):
+    """An 8 m trunk 4 m away: with occlusion on, every segment is still heard (a line of
+    sight to a segment's centre crosses that segment's own wall first, which hides nothing),
+    and the labels put the trunk where its echo is: from its near surface on."""
+    scene = extract_scene(_stage(tmp_path / "t.usda", trunk=(0.2, 8.0, (4.0, 0.0, 0.0))))
+    cfg = SonarConfig(ground=False, max_range=8.0)
+    seen = sonar_scan(scene, Pose(0, 0, 0), replace(cfg, occlusion=True))
+    all_ = sonar_scan(scene, Pose(0, 0, 0), cfg)
+    assert seen.reflectors["trunk"] == all_.reflectors["trunk"] >= 150
+    row = all_.labels[all_.labels["cls"] == CLASS_ID["trunk"]][0]
+    assert row["range_min"] == pytest.approx(4.0 - 0.2, abs=2e-3)
 
 
 def test_a_forests_echoes_are_labelled_by_class_and_tree(tmp_path, runner):

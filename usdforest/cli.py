@@ -579,7 +579,10 @@ def scan_cmd(
         typer.Option(help="TOML with a \\[lidar], \\[sonar] or \\[camera] table of settings."),
     ] = None,
     occlusion: Annotated[
-        bool, typer.Option("--occlusion", help="sonar: drop leaves hidden by wood or leaves.")
+        bool,
+        typer.Option(
+            "--occlusion", help="sonar: drop leaves, wood and ground hidden by anything in front."
+        ),
     ] = False,
     seed: Annotated[
         int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise and ground roughness.")
@@ -613,7 +616,7 @@ def scan_cmd(
     if output.suffix.lower() not in suffixes:
         raise UsdForestError(f"{output}: a {sensor} scan is written as {' or '.join(suffixes)}")
     companions = {
-        "sonar": [output.with_suffix(x) for x in (".wav", ".png")],
+        "sonar": [output.with_suffix(x) for x in (".wav", ".png")],  # OUT.npz -> OUT.wav
         "camera": [
             output.with_name(f"{output.stem}_{k}.png")
             for k in ("rgb", "depth", "semantic", "instance")
@@ -632,8 +635,8 @@ def scan_cmd(
         data = load_toml(config)
         check_keys(data, {sensor}, str(config))
         table = dict(data.get(sensor, {}))
-        if sensor == "camera" and "kind" in table:
-            raise UsdForestError(f"{config}: camera.kind: a camera has no kind to set")
+        if sensor == "camera":
+            camera.refuse_lidar_keys(table, config)
         if sensor == "lidar" and table.get("kind") not in (None, settings.kind):
             kinds = {"spinning": lidar.SpinningLidar(), "depth-camera": lidar.DepthCamera()}
             if table["kind"] not in kinds:
@@ -816,12 +819,9 @@ def fly_cmd(
                 f"--camera: {camera_preset!r} is not one of {', '.join(camera.PRESETS)} or none"
             )
         table = dict(tables.get("camera", {}))
-        if "kind" in table:
-            raise UsdForestError(f"{config}: camera.kind: a camera has no kind to set")
+        camera.refuse_lidar_keys(table, config)
         camera_cfg = override(camera.PRESETS[camera_preset], table, f"{config}: camera")
-        camera_cfg.check()
-        if not 0 < camera_rate <= 120:
-            raise UsdForestError("--camera-rate: must be in (0, 120] frames per second")
+        camera.frame_times(camera_cfg, traj, camera_rate)  # checks the rate and the memory
     if lidar_cfg is None and sonar_cfg is None and camera_cfg is None:
         raise UsdForestError("nothing to fly: --lidar none, --sonar none and --camera none")
     las = output.with_name(output.name + ".las")
@@ -829,8 +829,16 @@ def fly_cmd(
     frames_stem = output.with_name(output.name + "_camera")
     outs = (
         ([las] if lidar_cfg else [])
-        + ([echo_stem.with_suffix(x) for x in (".npz", ".wav", ".png")] if sonar_cfg else [])
-        + ([frames_stem.with_suffix(x) for x in (".npz", ".png")] if camera_cfg else [])
+        + (
+            [echo_stem.with_name(echo_stem.name + x) for x in (".npz", ".wav", ".png")]
+            if sonar_cfg
+            else []
+        )
+        + (
+            [frames_stem.with_name(frames_stem.name + x) for x in (".npz", ".png")]
+            if camera_cfg
+            else []
+        )
     )
     for o in outs:
         require_output(o)

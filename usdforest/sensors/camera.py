@@ -11,9 +11,9 @@ like a lidar ray, so the images are pixel-exact ground truth of the composed sta
 * ``rgb``: the hit prim's bound material colour, Lambert-shaded under the preview renderer's
   light (leaves lit on both sides), sky where nothing is hit.
 
-Intrinsics follow OpenCV: fx = fy = (width / 2) / tan(hfov / 2), cx = width / 2,
-cy = height / 2, pixel (u, v) centred at (u + 0.5, v + 0.5); a point at camera coordinates
-(forward x, left y, up z) projects to u = cx - fx y / x, v = cy - fy z / x.
+Intrinsics follow OpenCV (pixel centres at integer coordinates): fx = fy = (width / 2) /
+tan(hfov / 2), cx = (width - 1) / 2, cy = (height - 1) / 2; a point at camera coordinates
+(forward x, left y, up z) projects to pixel u = cx - fx y / x, v = cy - fy z / x.
 """
 
 from __future__ import annotations
@@ -41,6 +41,8 @@ PALETTE = np.array(
     [[0, 0, 0], [120, 72, 36], [205, 133, 63], [60, 170, 60], [128, 128, 128]], dtype=np.uint8
 )
 AMBIENT = 0.35
+BYTES_PER_PIXEL = 12  # depth float32, semantic uint8, instance int32, rgb 3 x uint8
+MAX_FRAME_BYTES = 4 * 2**30  # a flight's frames held in memory at once
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,10 +58,21 @@ class Frame:
     rotation: np.ndarray
 
 
+def refuse_lidar_keys(table: dict, where) -> None:
+    """A ``[camera]`` table sets width, height, hfov and max_range; the depth camera's lidar
+    keys (``kind``, ``range_noise``) are refused by name, not silently ignored."""
+    for key in ("kind", "range_noise"):
+        if key in table:
+            raise UsdForestError(
+                f"{where}: camera.{key}: not a camera setting (width, height, hfov, max_range)"
+            )
+
+
 def intrinsics(cam: DepthCamera) -> np.ndarray:
-    """The 3x3 OpenCV camera matrix K."""
+    """The 3x3 OpenCV camera matrix K (pixel centres at integer coordinates)."""
     f = (cam.width / 2) / math.tan(math.radians(cam.hfov) / 2)
-    return np.array([[f, 0.0, cam.width / 2], [0.0, f, cam.height / 2], [0.0, 0.0, 1.0]])
+    cx, cy = (cam.width - 1) / 2, (cam.height - 1) / 2
+    return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
 
 
 def path_colours(stage_path: str | Path, paths: tuple[str, ...]) -> np.ndarray:
@@ -142,7 +155,8 @@ def write_frame(frame: Frame, cam: DepthCamera, out: str | Path) -> list[Path]:
     """``OUT.npz`` (depth in m, semantic, instance, rgb, K, position, rotation camera -> world,
     class names) and four PNGs
     beside it: ``OUT_rgb.png``, ``OUT_depth.png`` (16-bit millimetres, 0 where nothing),
-    ``OUT_semantic.png`` and ``OUT_instance.png`` (colour-coded for looking at)."""
+    ``OUT_semantic.png`` and ``OUT_instance.png`` (colour-coded for looking at). Depths
+    beyond 65.534 m are clipped to 65534 in the PNG (the npz keeps them)."""
     import json
 
     out = Path(out)
@@ -198,6 +212,23 @@ class Frames:
         return len(self.t)
 
 
+def frame_times(cam: DepthCamera, traj, rate: float) -> np.ndarray:
+    """The times of a flight's frames, refusing a camera whose frames would not fit in
+    memory (``MAX_FRAME_BYTES``) before any work is done."""
+    cam.check()
+    if not 0 < rate <= 120:
+        raise UsdForestError(f"--camera-rate: must be in (0, 120] frames per second, got {rate:g}")
+    times = traj.t[0] + np.arange(0.0, traj.duration + 1e-12, 1.0 / rate)
+    need = len(times) * cam.height * cam.width * BYTES_PER_PIXEL
+    if need > MAX_FRAME_BYTES:
+        raise UsdForestError(
+            f"--camera-rate: {len(times)} frames of {cam.width} x {cam.height} would hold "
+            f"{need / 2**30:.1f} GiB (at most {MAX_FRAME_BYTES / 2**30:.0f}); lower the rate or "
+            "the resolution, or fly in parts"
+        )
+    return times
+
+
 def fly_camera(
     scene: Scene,
     cam: DepthCamera,
@@ -208,23 +239,29 @@ def fly_camera(
 ) -> Frames:
     """Frames at ``rate`` per second along ``traj`` (a
     :class:`~usdforest.sensors.flight.Trajectory`), each from the pose at its time."""
-    cam.check()
-    if not 0 < rate <= 120:
-        raise UsdForestError(f"--camera-rate: must be in (0, 120] frames per second, got {rate:g}")
-    times = traj.t[0] + np.arange(0.0, traj.duration + 1e-12, 1.0 / rate)
+    times = frame_times(cam, traj, rate)
+    shape = (len(times), cam.height, cam.width)
     pos, rot, _ = traj.at(times)
     caster = caster or SceneCaster(scene)
-    frames = [render_at(scene, cam, p, r, colours, caster) for p, r in zip(pos, rot, strict=True)]
-    return Frames(
+    out = Frames(
         times,
         pos,
         rot,
-        np.stack([f.depth for f in frames]),
-        np.stack([f.semantic for f in frames]),
-        np.stack([f.instance for f in frames]).astype(np.int32),
-        np.stack([f.rgb for f in frames]),
+        np.empty(shape, np.float32),
+        np.empty(shape, np.uint8),
+        np.empty(shape, np.int32),
+        np.empty((*shape, 3), np.uint8),
         cam,
     )
+    for k, (p, r) in enumerate(zip(pos, rot, strict=True)):
+        f = render_at(scene, cam, p, r, colours, caster)
+        out.depth[k], out.semantic[k], out.instance[k], out.rgb[k] = (
+            f.depth,
+            f.semantic,
+            f.instance,
+            f.rgb,
+        )
+    return out
 
 
 def write_frames(f: Frames, out: Path) -> list[Path]:
@@ -232,7 +269,7 @@ def write_frames(f: Frames, out: Path) -> list[Path]:
     contact sheet of up to six frames (RGB, semantic, depth)."""
     import json
 
-    npz, png = out.with_suffix(".npz"), out.with_suffix(".png")
+    npz, png = out.with_name(out.name + ".npz"), out.with_name(out.name + ".png")
     save_npz(
         npz,
         t=f.t,

@@ -295,7 +295,7 @@ def write_flight_echo(f: FlightEcho, out: Path) -> list[Path]:
 
     from scipy.io import wavfile
 
-    npz, wav, png = out.with_suffix(".npz"), out.with_suffix(".wav"), out.with_suffix(".png")
+    npz, wav, png = (out.with_name(out.name + x) for x in (".npz", ".wav", ".png"))
     fs = f.config.sample_rate
     save_npz(
         npz,

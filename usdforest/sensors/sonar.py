@@ -159,7 +159,7 @@ class SonarConfig:
             raise UsdForestError(
                 f"sonar.ground_patch: {self.ground_patch:g} must be in [0.005, 1] m"
             )
-        if (2 * self.max_range / self.ground_patch) ** 2 > 4e7:
+        if self.ground and (2 * self.max_range / self.ground_patch) ** 2 > 4e7:
             raise UsdForestError(
                 f"sonar.ground_patch: {self.ground_patch:g} m over a {self.max_range:g} m range "
                 "makes more than 40 million facets a pulse; use a larger patch"
@@ -436,8 +436,8 @@ def _coherent(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Spectrum, impulse response and echo of reflectors at ``position (n, 3)`` whose
     band amplitudes and delay ranges ``amplitudes(indices)`` gives, plus each reflector's
-    band-mean energy (the coherent sum of module docstring; Doppler as in
-    :func:`echo_from_leaves`)."""
+    band-mean energy and delay range (the coherent sum of the module docstring; Doppler as
+    in :func:`echo_from_targets`)."""
     c = cfg.speed_of_sound
     d = position - pose.position
     r_all = np.linalg.norm(d, axis=1)
@@ -449,6 +449,7 @@ def _coherent(
     impulse = np.zeros(grid.n_out)  # per second (delta -> fs): the groups' sum (irfft is linear)
     echo = np.zeros(grid.n_out)
     energy = np.zeros(len(position))
+    ranges = np.zeros(len(position))
     for factor, group in _doppler_groups(eta, cfg.doppler_bins):
         part = np.zeros(grid.freqs.size, dtype=complex)
         delay = np.zeros(group.size)
@@ -456,6 +457,7 @@ def _coherent(
             sel = group[start : start + LEAF_CHUNK]
             amp, r = amplitudes(sel)
             delay[start : start + sel.size] = r
+            ranges[sel] = r
             energy[sel] = np.mean(np.abs(amp) ** 2, axis=1)
             tau = 2 * r / c
             pos = tau * grid.fs_base
@@ -490,7 +492,7 @@ def _coherent(
             tau = float(np.mean(2 * delay / c)) if delay.size else 0.0
             scaled = CubicSpline(grid.t, rest, extrapolate=False)(tau + factor * (grid.t - tau))
             echo += np.nan_to_num(scaled)  # outside the window: silence
-    return spectrum, impulse, echo, energy
+    return spectrum, impulse, echo, energy, ranges
 
 
 def echo_from_targets(
@@ -551,15 +553,21 @@ def echo_from_targets(
     parts: dict[str, np.ndarray] = {}
     labels, reflectors = [], {}
     for k, tree, position, amplitudes in sources:
-        sp, imp, ec, energy = _coherent(position, amplitudes, pose, cfg, grid, velocity)
+        sp, imp, ec, energy, r = _coherent(position, amplitudes, pose, cfg, grid, velocity)
         spectrum += sp
         impulse += imp
         echo += ec
         parts[CLASSES[k]] = ec
         reflectors[CLASSES[k]] = len(position)
         if len(position):
-            r = np.linalg.norm(position - pose.position, axis=1)
             labels.append(_labels(tree, np.full(len(position), k), energy, r))
+    # every class the sonar listens to has its echo, silent when nothing of it is in range
+    heard = (
+        ["leaf"] + (["trunk", "branch"] if cfg.wood else []) + (["ground"] if cfg.ground else [])
+    )
+    for name in heard:
+        parts.setdefault(name, np.zeros(grid.n_out))
+        reflectors.setdefault(name, 0)
     band = (grid.freqs >= cfg.f_min) & (grid.freqs <= cfg.f_max)
     return Echo(
         freqs=grid.freqs[band],
@@ -690,8 +698,15 @@ class SonarScene:
             lv = _leaf_subset(
                 lv, np.flatnonzero(_visible(lv.centre, 1.5 * lv.radius + 1e-3, pose, self.caster))
             )
+            # the line of sight to a centre crosses the cylinder's own wall a / cos(beta) before
+            # it: that much is no occluder
+            u = wood.centre - pose.position
+            u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
+            cos_b = np.sqrt(np.clip(1 - np.sum(u * wood.axis, axis=1) ** 2, 1e-6, 1))
             wood = wood.take(
-                np.flatnonzero(_visible(wood.centre, 1.05 * wood.radius + 0.01, pose, self.caster))
+                np.flatnonzero(
+                    _visible(wood.centre, 1.05 * wood.radius / cos_b + 0.01, pose, self.caster)
+                )
             )
             ground = ground.take(
                 np.flatnonzero(
@@ -774,7 +789,8 @@ def _plot(e: Echo, png: Path) -> None:
             )
     a1.set_ylim(-60, 3)
     a1.set_ylabel("echo envelope (dB)")
-    a1.legend(loc="upper right", fontsize=8)
+    if a1.lines:
+        a1.legend(loc="upper right", fontsize=8)
     heard = ", ".join(f"{n:,} {k}" for k, n in e.reflectors.items() if n)
     a1.set_title(f"echo within {e.config.max_range:g} m: {heard or 'nothing'}", fontsize=10)
     a2.specgram(

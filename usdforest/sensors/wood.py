@@ -5,8 +5,11 @@ Every wood prim (triangles labelled trunk or branch, grouped by prim path) is cu
 principal axis into segments no longer than ``segment`` metres. Each segment becomes one
 cylinder fitted to points spread over the prim's side wall: a circle through them in the plane
 across the principal axis gives its centre and radius (so a bent branch keeps its bend), and
-its own axis joins its neighbours' centres. Nothing here depends on how the tree was made:
-L-system trees, whole-tree CAD decompositions and a user's own meshes are fitted alike.
+its own axis joins its neighbours' centres. A slice whose points do not lie on a circle (rms
+misfit over 15 % of the radius: the two limbs of a fork in one prim, a stump cut across its
+axis) is left out rather than fitted as a phantom cylinder. Nothing here depends on how the
+tree was made: L-system trees, whole-tree CAD decompositions and a user's own meshes are
+fitted alike.
 
 Tree prototypes are fitted once in their own space and placed by each instance's transform.
 """
@@ -20,6 +23,7 @@ import numpy as np
 from .scene import CLASS_ID, Scene
 
 WOOD = (CLASS_ID["trunk"], CLASS_ID["branch"])
+MAX_MISFIT = 0.15  # a slice's rms distance from its circle, as a share of the radius
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,7 +158,15 @@ def _fit_prim(v: np.ndarray, normal: np.ndarray, segment: float, cls: int, tree:
         local = axis[None, :]
     # a slice of a bend is slanted: its length along its own axis is longer
     length = step / np.maximum(np.abs(local @ axis), 0.5)
-    ok &= (radius > 1e-4) & (radius < span + step)
+    # a slice that is no circle (a fork's two limbs, a stump cut across) is no cylinder: the
+    # points' rms distance from the fitted circle must stay within MAX_MISFIT of its radius
+    slot = np.full(n, -1)
+    slot[used] = np.arange(len(used))
+    k = slot[b]
+    inside = k >= 0
+    miss = np.hypot(x[inside] - cx[k[inside]], y[inside] - cy[k[inside]]) - radius[k[inside]]
+    rms = np.sqrt(np.bincount(k[inside], miss * miss, minlength=len(used)) / count[used])
+    ok &= (radius > 1e-4) & (radius < span + step) & (rms <= MAX_MISFIT * radius)
     m = int(ok.sum())
     return Cylinders(
         centre[ok],
