@@ -7,6 +7,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from usdforest.sensors.lidar import SpinningLidar, scan
 from usdforest.sensors.pose import Pose
 from usdforest.sensors.raycast import SceneCaster
@@ -81,8 +83,57 @@ def lidar_forest_scan() -> tuple[int, str, str]:
     )
 
 
+def _forest_floor(kind: str) -> tuple[int, str, str]:
+    """Rays cast into the default forest's instances (15 m around a pose) against Embree on
+    the same trees' triangles copied into one scene: the floor, and the ratio to it."""
+    import timeit
+
+    from usdforest.recipe import default_recipe_path, read_recipe
+    from usdforest.sensors.lidar import PRESETS, DepthCamera
+    from usdforest.sensors.raycast import RayCaster
+    from usdforest.usd.forest import write_forest
+
+    if "forest" not in _CACHE:
+        write_forest(read_recipe(default_recipe_path()), WORK / "forest.usda", thumbnail=False)
+        _CACHE["forest"] = WORK / "forest.usda"
+    pose, reach = Pose(30.0, 70.0, 1.5), 15.0
+    if "floor" not in _CACHE:
+        inst = extract_scene(_CACHE["forest"], centre=pose.position, radius=reach)
+        flat = extract_scene(_CACHE["forest"], centre=pose.position, radius=reach, instancing=False)
+        _CACHE["floor"] = (inst, SceneCaster(inst), flat, RayCaster(flat.triangles))
+    inst, caster, flat, floor = _CACHE["floor"]
+    sensor = (
+        replace(PRESETS["vlp-16"], max_range=reach)
+        if kind == "lidar"
+        else DepthCamera(640, 480, 90.0, reach)
+    )
+    dirs = sensor.directions() @ pose.rotation().T
+    o = np.ascontiguousarray(np.broadcast_to(pose.position, dirs.shape))
+    caster.first_hit(o, dirs, reach)  # Embree builds its trees on the first cast
+    floor.first_hit(o, dirs, reach)
+    ours = min(timeit.repeat(lambda: caster.first_hit(o, dirs, reach), number=1, repeat=3))
+    base = min(timeit.repeat(lambda: floor.first_hit(o, dirs, reach), number=1, repeat=3))
+    return (
+        len(dirs),
+        "rays",
+        f"{ours * 1e3:.0f} ms instanced vs {base * 1e3:.0f} ms Embree on the "
+        f"{len(flat.triangles):,} triangles copied: {ours / base:.1f}x the floor "
+        f"({len(inst.instances)} trees)",
+    )
+
+
+def lidar_forest_floor() -> tuple[int, str, str]:
+    return _forest_floor("lidar")
+
+
+def camera_forest_floor() -> tuple[int, str, str]:
+    return _forest_floor("camera")
+
+
 BENCHMARKS = {
     "lidar: 1M rays, pine tree": lidar_1m_rays,
     "sonar: echo of ~100k leaves": sonar_100k_leaves,
     "lidar: default forest, VLP-16 at 30 m, end to end": lidar_forest_scan,
+    "lidar: default forest 15 m, VLP-16 vs Embree on copied triangles": lidar_forest_floor,
+    "camera: default forest 15 m, 640 x 480 vs Embree on copied triangles": camera_forest_floor,
 }

@@ -380,3 +380,36 @@ def test_scan_pose_checks(stand, tmp_path, runner):
         app, ["scan", str(out), "--sensor", "lidar", "--pose", "1,2", "-o", str(tmp_path / "z.npz")]
     )
     assert r.exit_code == 2 and "expected 3 to 6 numbers" in r.stderr
+
+
+@pytest.mark.parametrize("pose", [Pose(5.0, -3.0, 1.2, yaw=90), Pose(5.25, 5.25, 2.0, pitch=10)])
+def test_instanced_casting_equals_casting_the_copied_triangles(stand, pose):
+    """The top level (rays binned by direction, instances visited nearest first) returns
+    what Embree returns on every tree's triangles copied into one scene: the same hits, the
+    same distances, classes and tree ids, for a spinning lidar and a camera's rays, from
+    outside the stand and from between its trees."""
+    from usdforest.sensors.raycast import RayCaster, SceneCaster
+
+    out, _ = stand
+    inst = extract_scene(out)
+    flat = extract_scene(out, instancing=False)
+    assert len(inst.instances) == 2 and len(flat.instances) == 0
+    rays = (
+        np.concatenate(
+            [
+                SpinningLidar(
+                    channels=32, vfov_min=-30, vfov_max=30, azimuth_step=0.5
+                ).directions(),
+                DepthCamera(160, 120, 90.0).directions(),
+            ]
+        )
+        @ pose.rotation().T
+    )
+    origins = np.broadcast_to(pose.position, rays.shape)
+    h = SceneCaster(inst).first_hit(origins, rays, 50.0)
+    t, prim = RayCaster(flat.triangles).first_hit(origins, rays, 50.0)
+    assert h.hit.sum() > 500
+    np.testing.assert_array_equal(h.hit, prim >= 0)
+    np.testing.assert_allclose(h.t[h.hit], t[prim >= 0], atol=1e-5)
+    np.testing.assert_array_equal(h.cls[h.hit], flat.cls[prim[prim >= 0]])
+    np.testing.assert_array_equal(h.tree[h.hit], flat.tree[prim[prim >= 0]])

@@ -49,9 +49,12 @@ class RayCaster:
             t[sl] = tt
             prim[sl] = np.where(hit, res["primID"], -1)
 
-        workers = max(1, min(os.cpu_count() or 1, 8))
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(run, range(0, n, CHUNK)))
+        if n <= CHUNK:
+            run(0)
+        else:
+            workers = max(1, min(os.cpu_count() or 1, 8))
+            with ThreadPoolExecutor(workers) as pool:
+                list(pool.map(run, range(0, n, CHUNK)))
         far = t > max_range
         t[far] = np.inf
         prim[far] = -1
@@ -83,10 +86,18 @@ class SceneCaster:
     """First hits on a :class:`~usdforest.sensors.scene.Scene`, following tree instances.
 
     World-space triangles go into one Embree scene; each tree prototype gets its own, built
-    once. For every instance, the rays that pass through its bounding sphere (and could still
-    beat the best hit so far) are moved into the prototype's space and cast there; the ray
-    parameter is the same in both spaces, so distances compare directly.
+    once. The instances' bounding spheres are the top level: every ray's candidate instances
+    (the spheres it enters before ``max_range`` and before its hit among the world
+    triangles) are found at once, rays binned by direction and each sphere's cone of
+    directions looked up in the bins (:meth:`_cone_pairs`). Instances are then visited
+    nearest first, each with one Embree call for its candidate rays that still enter its
+    sphere before their best hit so far, moved into its space (the ray parameter is the same
+    in both spaces, so distances compare directly): a ray that meets a near trunk is not cast
+    into the trees behind it, and no step costs time for rays an instance cannot meet.
     """
+
+    BIN = np.radians(1.0)  # direction cells of the top level
+    SPREAD = 5.0  # m: rays from origins further apart than this test every instance
 
     def __init__(self, scene):
         self.scene = scene
@@ -103,6 +114,8 @@ class SceneCaster:
             self.radius = radii[inst.proto] * np.linalg.norm(self.rot, axis=2).max(axis=1)
         else:
             self.centre, self.radius = np.zeros((0, 3)), np.zeros(0)
+        # a hair wider: a pair kept by rounding only costs a cast that misses
+        self._reach = self.radius * (1 + 1e-9) + 1e-9
 
     def first_hit(
         self, origins: np.ndarray, directions: np.ndarray, max_range: float = np.inf
@@ -117,28 +130,111 @@ class SceneCaster:
         h.t[ok] = t[ok]
         h.cls[ok], h.tree[ok], h.path[ok] = sc.cls[prim[ok]], sc.tree[prim[ok]], sc.path[prim[ok]]
         h.normal[ok] = _normals(sc.triangles[prim[ok]])
-        inst = sc.instances
-        for k in range(len(inst)):
-            oc = self.centre[k] - o
-            tca = np.sum(oc * d, axis=1)
-            d2 = np.sum(oc * oc, axis=1) - tca**2
-            r2 = self.radius[k] ** 2
-            near = (d2 <= r2) & (tca + self.radius[k] >= 0)
-            near &= tca - np.sqrt(np.maximum(r2 - d2, 0)) < np.minimum(h.t, max_range)
-            idx = np.flatnonzero(near)
-            if idx.size == 0:
-                continue
-            p = sc.protos[inst.proto[k]]
-            lo = (o[idx] - self.shift[k]) @ self.inv[k]
-            ld = d[idx] @ self.inv[k]
-            tl, pl = self.protos[inst.proto[k]].first_hit(lo, ld)
-            better = (pl >= 0) & (tl < h.t[idx])
-            j, q = idx[better], pl[better]
-            h.t[j] = tl[better]
-            h.cls[j], h.path[j] = p.cls[q], p.path[q]
-            h.tree[j] = inst.tree[k]
-            h.normal[j] = _normals(p.triangles[q]) @ self.inv[k].T
+        if len(sc.instances) and len(o):
+            self._instances(o, d, h, max_range)
         far = h.t > max_range
         h.t[far] = np.inf
         h.cls[far], h.tree[far], h.path[far] = 0, -1, -1
         return h
+
+    def _cone_pairs(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(ray, instance) pairs that may meet: rays binned by direction on a grid of
+        ``BIN`` radians; each instance's sphere, seen from the rays' mean origin (widened by
+        their spread), covers a cone of directions, whose cells' rays are its candidates (a
+        superset; the exact test follows). Rays from origins far apart (beyond ``SPREAD``)
+        are paired with every instance."""
+        n, m = len(o), len(self.centre)
+        origin = o.mean(axis=0)
+        spread = float(np.sqrt(np.max(np.einsum("ij,ij->i", o - origin, o - origin))))
+        if spread > self.SPREAD or n * m <= 4096:
+            return np.repeat(np.arange(n), m), np.tile(np.arange(m), n)
+        b = self.BIN
+        naz, nel = int(np.ceil(2 * np.pi / b)), int(np.ceil(np.pi / b))
+        az = np.arctan2(d[:, 1], d[:, 0])
+        el = np.arcsin(np.clip(d[:, 2], -1.0, 1.0))
+        cell = np.minimum(((el + np.pi / 2) / b).astype(np.int64), nel - 1) * naz + np.minimum(
+            ((az + np.pi) / b).astype(np.int64), naz - 1
+        )
+        by_cell = np.argsort(cell, kind="stable")
+        sorted_cells = cell[by_cell]
+        v = self.centre - origin
+        dist = np.linalg.norm(v, axis=1)
+        reach = self._reach + spread
+        near = dist <= reach  # the origin may be inside: every direction
+        half = np.arcsin(np.clip(reach / np.maximum(dist, 1e-300), 0.0, 1.0)) + b
+        c_el = np.arcsin(np.clip(v[:, 2] / np.maximum(dist, 1e-300), -1.0, 1.0))
+        c_az = np.arctan2(v[:, 1], v[:, 0])
+        e0 = np.clip(((c_el - half + np.pi / 2) / b).astype(np.int64), 0, nel - 1)
+        e1 = np.clip(((c_el + half + np.pi / 2) / b).astype(np.int64), 0, nel - 1)
+        top = np.abs(c_el) + half
+        spin = np.where(
+            top < np.pi / 2 - b,
+            np.arcsin(np.clip(np.sin(half) / np.cos(np.minimum(top, np.pi / 2 - b)), 0, 1)) + b,
+            np.pi,
+        )
+        full = near | (spin >= np.pi)
+        e0[near], e1[near] = 0, nel - 1
+        # (instance, row) spans of cells; an azimuth range that wraps is two spans
+        rows = e1 - e0 + 1
+        k = np.repeat(np.arange(m), rows)
+        row = e0[k] + (np.arange(k.size) - np.repeat(np.cumsum(rows) - rows, rows))
+        a0 = np.floor((c_az[k] - spin[k] + np.pi) / b).astype(np.int64)
+        a1 = np.floor((c_az[k] + spin[k] + np.pi) / b).astype(np.int64)
+        a0[full[k]], a1[full[k]] = 0, naz - 1
+        wrap_lo, wrap_hi = a0 < 0, a1 >= naz
+        spans = [
+            (k, row, np.maximum(a0, 0), np.minimum(a1, naz - 1)),
+            (k[wrap_lo], row[wrap_lo], a0[wrap_lo] + naz, np.full(wrap_lo.sum(), naz - 1)),
+            (k[wrap_hi], row[wrap_hi], np.zeros(wrap_hi.sum(), np.int64), a1[wrap_hi] - naz),
+        ]
+        ks, lo, hi = [], [], []
+        for kk, rr, x0, x1 in spans:
+            ks.append(kk)
+            lo.append(np.searchsorted(sorted_cells, rr * naz + x0, side="left"))
+            hi.append(np.searchsorted(sorted_cells, rr * naz + x1, side="right"))
+        ks, lo, hi = np.concatenate(ks), np.concatenate(lo), np.concatenate(hi)
+        count = np.maximum(hi - lo, 0)
+        inst = np.repeat(ks, count)
+        pos = np.repeat(lo - np.cumsum(count) + count, count) + np.arange(count.sum())
+        return by_cell[pos], inst
+
+    def _instances(self, o: np.ndarray, d: np.ndarray, h: Hits, max_range: float) -> None:
+        """Cast into the instances, nearest first, each with its candidate rays that still
+        enter its sphere before their best hit so far (updating ``h``)."""
+        sc = self.scene
+        ray, inst = self._cone_pairs(o, d)
+        order = np.argsort(inst, kind="stable")
+        ray, inst = ray[order], inst[order]
+        starts = np.searchsorted(inst, np.arange(len(self.centre) + 1))
+        gap = np.linalg.norm(self.centre - o.mean(axis=0), axis=1) - self.radius
+        limit = np.minimum(h.t, max_range)
+        shared = bool(np.all(o == o[0]))  # a scan or a frame: one origin for every ray
+        for k in np.argsort(gap, kind="stable"):
+            rays = ray[starts[k] : starts[k + 1]]
+            if rays.size == 0:
+                continue
+            dd = d[rays]
+            r = self._reach[k]
+            if shared:
+                oc = self.centre[k] - o[0]
+                tca = dd @ oc
+                inside = r * r - (oc @ oc - tca * tca)
+            else:
+                oc = self.centre[k] - o[rays]
+                tca = np.einsum("ij,ij->i", oc, dd)
+                inside = r * r - (np.einsum("ij,ij->i", oc, oc) - tca * tca)
+            enter = tca - np.sqrt(np.maximum(inside, 0.0))
+            idx = rays[(inside >= 0) & (tca + r >= 0) & (enter < limit[rays])]
+            if idx.size == 0:
+                continue
+            lo = (o[idx] - self.shift[k]) @ self.inv[k]
+            ld = d[idx] @ self.inv[k]
+            pk = sc.instances.proto[k]
+            tl, pl = self.protos[pk].first_hit(lo, ld)
+            better = (pl >= 0) & (tl < h.t[idx])
+            j, q = idx[better], pl[better]
+            p = sc.protos[pk]
+            h.t[j] = limit[j] = tl[better]
+            h.cls[j], h.path[j] = p.cls[q], p.path[q]
+            h.tree[j] = sc.instances.tree[k]
+            h.normal[j] = _normals(p.triangles[q]) @ self.inv[k].T
