@@ -413,3 +413,17 @@ def test_instanced_casting_equals_casting_the_copied_triangles(stand, pose):
     np.testing.assert_allclose(h.t[h.hit], t[prim >= 0], atol=1e-5)
     np.testing.assert_array_equal(h.cls[h.hit], flat.cls[prim[prim >= 0]])
     np.testing.assert_array_equal(h.tree[h.hit], flat.tree[prim[prim >= 0]])
+
+
+@pytest.mark.parametrize("sensor", ["sonar", "camera"])
+def test_a_pose_inside_a_lone_trees_trunk_is_refused(tmp_path, runner, sensor):
+    """A tree stage that is not instanced: the check casts into its trunk alone (a sonar
+    builds no acceleration structure for the leaves), and still finds the pose inside."""
+    out = tmp_path / "t.usda"
+    write_tree(get_species("broadleaf"), out, seed=4)
+    r = runner.invoke(
+        app,
+        ["scan", str(out), "--sensor", sensor, "--pose", "0,0,1", "-o", str(tmp_path / "x.npz")],
+    )
+    assert r.exit_code == 2 and "inside a trunk" in r.stderr, r.output
+    assert not list(tmp_path.glob("x*"))

@@ -656,8 +656,9 @@ def scan_cmd(
     for w in [*pose_warnings(scene, p, settings.max_range), unseen_warning(scene)]:
         if w:
             err.print(f"warning: {w}", highlight=False)
-    caster = SceneCaster(scene)
-    check_not_inside_wood(scene, p, caster)
+    check_not_inside_wood(scene, p)
+    # a sonar without occlusion casts no rays into the trees: build nothing for them
+    caster = SceneCaster(scene) if sensor != "sonar" or settings.occlusion else None
     if sensor == "lidar":
         r = lidar.scan(scene, settings, p, seed=seed, caster=caster)
         lidar.write_returns(r, output)

@@ -6,7 +6,7 @@ import numpy as np
 
 from ..errors import UsdForestError
 from .pose import Pose
-from .raycast import SceneCaster
+from .raycast import RayCaster
 from .scene import CLASS_ID, Scene
 
 AXES = np.array([[1.0, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
@@ -47,12 +47,34 @@ def unseen_warning(scene: Scene, shown: int = 3) -> str | None:
     )
 
 
-def check_not_inside_wood(scene: Scene, pose: Pose, caster: SceneCaster | None = None) -> None:
-    """Refuse a pose inside a trunk: (almost) every axis ray first meets a trunk from inside."""
-    caster = caster or SceneCaster(scene)
-    h = caster.first_hit(np.broadcast_to(pose.position, AXES.shape), AXES, 5.0)
-    backface = np.sum(h.normal * AXES, axis=1) > 0
-    inside = h.hit & backface & (h.cls == CLASS_ID["trunk"])
+def check_not_inside_wood(scene: Scene, pose: Pose) -> None:
+    """Refuse a pose inside a trunk: (almost) every axis ray first meets a trunk from inside.
+
+    Only the trunks that could hold the pose are cast into (the scene's own and those of the
+    tree instances whose bounds contain it), so the check never builds the acceleration
+    structure of a whole tree's leaves."""
+    trunk = CLASS_ID["trunk"]
+    parts = [scene.triangles[scene.cls == trunk]]
+    inst = scene.instances
+    for k, proto in enumerate(scene.protos):
+        which = np.flatnonzero(inst.proto == k)
+        if which.size == 0:
+            continue
+        m = inst.matrix[which]
+        centre = np.einsum("j,njk->nk", proto.centre, m[:, :3, :3]) + m[:, 3, :3]
+        scale = np.linalg.norm(m[:, :3, :3], axis=2).max(axis=1)
+        near = which[np.linalg.norm(centre - pose.position, axis=1) <= proto.radius * scale]
+        tri = proto.triangles[proto.cls == trunk].astype(np.float64)
+        for i in near:
+            mi = inst.matrix[i]
+            parts.append((tri.reshape(-1, 3) @ mi[:3, :3] + mi[3, :3]).reshape(-1, 3, 3))
+    tri = np.concatenate(parts).astype(np.float32)
+    if len(tri) == 0:
+        return
+    _, prim = RayCaster(tri).first_hit(np.broadcast_to(pose.position, AXES.shape), AXES, 5.0)
+    hit = prim >= 0
+    normal = np.cross(tri[prim, 1] - tri[prim, 0], tri[prim, 2] - tri[prim, 0])
+    inside = hit & (np.sum(normal * AXES, axis=1) > 0)
     if np.count_nonzero(inside) >= len(AXES) - 1:
         raise UsdForestError(
             f"pose ({pose.x:g}, {pose.y:g}, {pose.z:g}) is inside a trunk; move the sensor out"

@@ -102,7 +102,7 @@ class SceneCaster:
     def __init__(self, scene):
         self.scene = scene
         self.base = RayCaster(scene.triangles)
-        self.protos = [RayCaster(p.triangles) for p in scene.protos]
+        self._protos: list[RayCaster | None] = [None] * len(scene.protos)
         inst = scene.instances
         self.rot = inst.matrix[:, :3, :3]
         self.shift = inst.matrix[:, 3, :3]
@@ -198,6 +198,12 @@ class SceneCaster:
         pos = np.repeat(lo - np.cumsum(count) + count, count) + np.arange(count.sum())
         return by_cell[pos], inst
 
+    def _proto(self, k: int) -> RayCaster:
+        """Prototype ``k``'s Embree scene, built the first time a ray is cast into it."""
+        if self._protos[k] is None:
+            self._protos[k] = RayCaster(self.scene.protos[k].triangles)
+        return self._protos[k]
+
     def _instances(self, o: np.ndarray, d: np.ndarray, h: Hits, max_range: float) -> None:
         """Cast into the instances, nearest first, each with its candidate rays that still
         enter its sphere before their best hit so far (updating ``h``)."""
@@ -230,7 +236,7 @@ class SceneCaster:
             lo = (o[idx] - self.shift[k]) @ self.inv[k]
             ld = d[idx] @ self.inv[k]
             pk = sc.instances.proto[k]
-            tl, pl = self.protos[pk].first_hit(lo, ld)
+            tl, pl = self._proto(pk).first_hit(lo, ld)
             better = (pl >= 0) & (tl < h.t[idx])
             j, q = idx[better], pl[better]
             p = sc.protos[pk]
