@@ -47,7 +47,7 @@ def main() -> None:
     )
     caster = SceneCaster(scene)
     rows.append(
-        ("scene: extract + Embree build", time.perf_counter() - t,
+        ("scene: extract (Embree builds on first cast)", time.perf_counter() - t,
          f"{len(scene.instances)} trees, {len(scene):,} triangles, {len(scene.leaves):,} leaves")
     )  # fmt: skip
     t = time.perf_counter()

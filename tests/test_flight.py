@@ -138,3 +138,46 @@ def test_bad_paths_are_refused(tmp_path, text, fragment):
     p.write_text(text)
     with pytest.raises(UsdForestError, match=fragment):
         read_path(p)
+
+
+def test_a_short_flight_through_the_default_forest_writes_every_output(tmp_path, runner):
+    """The embedded default forest, 4 m at 4 m/s and 2 m up with all three sensors: a LAS
+    that laspy reads with one point per return, sonar pulses whose class echoes add up, a
+    WAV, an echogram, camera frames and a contact sheet."""
+    import laspy
+
+    forest = tmp_path / "forest.usda"
+    write_forest(read_recipe(default_recipe_path()), forest, thumbnail=False)
+    cfg = tmp_path / "sensors.toml"
+    cfg.write_text("[sonar]\npulse_rate = 4.0\nbands = 16\n[camera]\nwidth = 64\nheight = 48\n")
+    out = tmp_path / "run"
+    r = runner.invoke(
+        app,
+        ["fly", str(forest), "--line", "26,68,2:30,68,2", "--speed", "4", "-o", str(out),
+         "--camera", "pinhole-640", "--camera-rate", "2", "--config", str(cfg), "--json"],
+    )  # fmt: skip
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.stdout.strip().splitlines()[-1])
+    names = sorted(p.name for p in tmp_path.glob("run*"))
+    assert names == [
+        "run.las",
+        "run_camera.npz",
+        "run_camera.png",
+        "run_sonar.npz",
+        "run_sonar.png",
+        "run_sonar.wav",
+    ]
+    las = laspy.read(str(tmp_path / "run.las"))
+    assert len(las.points) == summary["lidar"]["returns"] > 10_000
+    assert len(np.unique(np.asarray(las.tree_id)[np.asarray(las.tree_id) >= 0])) > 5
+    sonar = np.load(tmp_path / "run_sonar.npz")
+    assert sonar["echoes"].shape[0] == summary["sonar"]["pulses"] == 5
+    parts = [k for k in sonar.files if k.startswith("echoes_")]
+    assert {"echoes_leaf", "echoes_trunk", "echoes_branch", "echoes_ground"} == set(parts)
+    np.testing.assert_allclose(
+        sum(sonar[k].astype(float) for k in parts),
+        sonar["echoes"],
+        atol=1e-6 * np.abs(sonar["echoes"]).max(),
+    )
+    frames = np.load(tmp_path / "run_camera.npz")
+    assert frames["depth"].shape == (3, 48, 64) == (summary["camera"]["frames"], 48, 64)
