@@ -58,6 +58,7 @@ figures: $(STAMP)
 bench: $(STAMP) $(BLENDER_STAMP)
 	$(BIN)/python benchmarks/run.py
 	USDFOREST_BLENDER_PYTHON=$(abspath $(BLENDER))/bin/python $(BIN)/python benchmarks/bench_lod.py
+	$(BIN)/python benchmarks/bench_startup.py
 	$(BIN)/python benchmarks/bench_flight.py
 
 clean:

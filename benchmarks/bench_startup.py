@@ -1,0 +1,45 @@
+"""Start-up as a user sees it: whole ``usdforest`` processes, best of five, against the
+targets of issue 14 (``--help`` under 0.3 s, a small ``tree`` under 0.8 s).
+
+Usage: ``python benchmarks/bench_startup.py`` (``make bench`` runs it). Prints a Markdown
+table. Byte-code caching is on, as after any install (the first run writes the caches).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+EXE = Path(sys.executable).with_name("usdforest")
+CASES = (
+    ("usdforest --help", ["--help"], 0.3),
+    (
+        "usdforest tree (paper-rule-1)",
+        ["tree", "{tmp}/t.usda", "--species", "paper-rule-1", "--force"],
+        0.8,
+    ),
+)
+
+
+def main() -> None:
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    print("| command | best of 5 | target | ratio |")
+    print("| --- | --- | --- | --- |")
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, args, target in CASES:
+            argv = [str(EXE), *(a.format(tmp=tmp) for a in args)]
+            subprocess.run(argv, env=env, capture_output=True, check=True)  # warm the caches
+            best = float("inf")
+            for _ in range(5):
+                t = time.perf_counter()
+                subprocess.run(argv, env=env, capture_output=True, check=True)
+                best = min(best, time.perf_counter() - t)
+            print(f"| {name} | {best:.2f} s | {target:g} s | {best / target:.2f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
