@@ -248,3 +248,33 @@ def test_a_forests_echoes_are_labelled_by_class_and_tree(tmp_path, runner):
     assert {CLASS_ID["leaf"], CLASS_ID["trunk"], CLASS_ID["ground"]} <= classes
     assert np.all(labels["range_min"] <= labels["range_max"])
     assert np.all(labels["range_max"] <= 10.0 + 1e-9)
+
+
+def test_the_echo_envelope_is_the_analytic_signals():
+    from scipy.signal import hilbert
+
+    from usdforest.sensors.sonar import envelope
+
+    rng = np.random.default_rng(3)
+    for n in (1000, 1001):
+        x = rng.normal(size=n)
+        np.testing.assert_allclose(envelope(x), np.abs(hilbert(x)), rtol=1e-10, atol=1e-12)
+
+
+def test_a_sonar_scan_without_occlusion_skips_leaf_triangles(tmp_path):
+    """The leaves as reflectors are the same with or without their triangles, so a sonar
+    that casts no rays (no occlusion) hears the same echo from a scene without them."""
+    from usdforest.species import get_species
+    from usdforest.usd.tree import write_tree
+
+    out = tmp_path / "t.usda"
+    write_tree(get_species("broadleaf"), out, seed=2)
+    full = extract_scene(out)
+    light = extract_scene(out, leaf_triangles=False)
+    assert len(light) < len(full) / 5  # the leaves were most of the triangles
+    for f in ("centre", "normal", "area", "tree"):
+        np.testing.assert_array_equal(getattr(light.leaves, f), getattr(full.leaves, f))
+    pose = Pose(-6.0, 0.0, 4.0)
+    a = sonar_scan(full, pose, SonarConfig())
+    b = sonar_scan(light, pose, SonarConfig())
+    np.testing.assert_array_equal(a.echo, b.echo)

@@ -652,7 +652,12 @@ def scan_cmd(
     except UsdForestError as exc:
         raise UsdForestError(f"{config}: {exc}" if config is not None else str(exc)) from None
     t0 = time.perf_counter()
-    scene = extract_scene(stage, centre=p.position, radius=settings.max_range)
+    scene = extract_scene(
+        stage,
+        centre=p.position,
+        radius=settings.max_range,
+        leaf_triangles=sensor != "sonar" or settings.occlusion,
+    )
     for w in [*pose_warnings(scene, p, settings.max_range), unseen_warning(scene)]:
         if w:
             err.print(f"warning: {w}", highlight=False)
@@ -847,8 +852,12 @@ def fly_cmd(
     t0 = time.perf_counter()
     reach = max(c.max_range for c in (lidar_cfg, sonar_cfg, camera_cfg) if c is not None)
     lo, hi = traj.position.min(axis=0), traj.position.max(axis=0)
+    casts = lidar_cfg is not None or camera_cfg is not None
     scene = extract_scene(
-        stage, centre=(lo + hi) / 2, radius=float(np.linalg.norm(hi - lo) / 2 + reach)
+        stage,
+        centre=(lo + hi) / 2,
+        radius=float(np.linalg.norm(hi - lo) / 2 + reach),
+        leaf_triangles=casts or bool(sonar_cfg is not None and sonar_cfg.occlusion),
     )
     if (w := unseen_warning(scene)) is not None:
         err.print(f"warning: {w}", highlight=False)

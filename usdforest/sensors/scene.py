@@ -190,8 +190,11 @@ def _leaf_area_unit(proto, tri: np.ndarray) -> float:
     return float(0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum())
 
 
-def _realise(b: _LeafBatch, centre: np.ndarray | None, radius: float | None):
-    """Leaf reflectors and triangles of a batch, keeping leaves within reach of the sensor."""
+def _realise(
+    b: _LeafBatch, centre: np.ndarray | None, radius: float | None, triangles: bool = True
+):
+    """Leaf reflectors and triangles of a batch (no triangles unless ``triangles``), keeping
+    leaves within reach of the sensor."""
     rot = b.xf[:, :3, :3]
     c = np.einsum("j,njk->nk", b.centre, rot) + b.xf[:, 3, :3]
     scale = np.cbrt(np.abs(np.linalg.det(rot)))
@@ -205,6 +208,8 @@ def _realise(b: _LeafBatch, centre: np.ndarray | None, radius: float | None):
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
     n, t = len(xf), len(b.tri)
     leaves = Leaves(c, normal, b.unit_area * scale**2, np.full(n, b.tree, np.int64))
+    if not triangles:
+        return leaves, _Part.concat([])
     tri = (
         np.einsum("tvj,njk->ntvk", b.tri, rot.astype(np.float32))
         + xf[:, None, None, 3, :3].astype(np.float32)
@@ -240,6 +245,7 @@ def extract_scene(
     centre: np.ndarray | None = None,
     radius: float | None = None,
     instancing: bool = True,
+    leaf_triangles: bool = True,
 ) -> Scene:
     """Triangles and leaf reflectors of a stage, culled to a sphere around ``centre``.
 
@@ -251,6 +257,9 @@ def extract_scene(
         Keep only tree instances and leaves within ``radius`` of ``centre`` (all when omitted).
     instancing
         Keep tree instances as transforms of their prototypes (default) or copy triangles.
+    leaf_triangles
+        Expand every leaf into triangles (default: rays meet leaves). A sonar that casts no
+        ray needs the leaves as reflectors only: ``False`` skips millions of triangles.
     """
     from pxr import Usd, UsdGeom
 
@@ -271,7 +280,7 @@ def extract_scene(
         key = prim.GetPath()
         if key not in proto_of:
             part = subtree(prim)
-            realised = [_realise(b, None, None) for b in part.batches]
+            realised = [_realise(b, None, None, leaf_triangles) for b in part.batches]
             whole = _Part.concat([replace(part, batches=()), *(r[1] for r in realised)])
             pts = whole.tri.reshape(-1, 3).astype(float)
             lo, hi = (pts.min(axis=0), pts.max(axis=0)) if len(pts) else (np.zeros(3),) * 2
@@ -411,7 +420,7 @@ def extract_scene(
         else np.zeros((2, 3))
     )
     part = subtree(root, top=True)
-    realised = [_realise(b, centre, radius) for b in part.batches]
+    realised = [_realise(b, centre, radius, leaf_triangles) for b in part.batches]
     whole = _Part.concat([part, *(r[1] for r in realised)])
     inst = Instances(
         np.array([k for k, _, _ in placed], dtype=np.int64),

@@ -64,7 +64,6 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 from scipy.special import j1
 
 from ..atomic import atomic_path, save_npz
@@ -490,6 +489,8 @@ def _coherent(
             echo += rest
         else:  # the echo at rest, time-compressed by the factor about the group's delay
             tau = float(np.mean(2 * delay / c)) if delay.size else 0.0
+            from scipy.interpolate import CubicSpline
+
             scaled = CubicSpline(grid.t, rest, extrapolate=False)(tau + factor * (grid.t - tau))
             echo += np.nan_to_num(scaled)  # outside the window: silence
     return spectrum, impulse, echo, energy, ranges
@@ -769,21 +770,32 @@ def write_echo(e: Echo, out: str | Path) -> list[Path]:
     return [out, wav, png]
 
 
+def envelope(x: np.ndarray) -> np.ndarray:
+    """|analytic signal| of a real series (the FFT's negative frequencies dropped)."""
+    n = len(x)
+    spectrum = np.fft.fft(x)
+    h = np.zeros(n)
+    h[0] = 1.0
+    h[1 : (n + 1) // 2] = 2.0
+    if n % 2 == 0:
+        h[n // 2] = 1.0
+    return np.abs(np.fft.ifft(spectrum * h))
+
+
 def _plot(e: Echo, png: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from scipy.signal import hilbert
 
     c = e.config.speed_of_sound
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 6), dpi=100, sharex=True)
     rng = e.t * c / 2
-    top = max(float(np.abs(hilbert(e.echo)).max()), 1e-30)
+    top = max(float(envelope(e.echo).max()), 1e-30)
     colours = {"leaf": "tab:green", "trunk": "saddlebrown", "branch": "peru", "ground": "0.4"}
     for name, part in e.parts.items():
         if np.any(part):
-            env = np.abs(hilbert(part))
+            env = envelope(part)
             a1.plot(
                 rng, 20 * np.log10(env / top + 1e-6), lw=0.6, label=name, color=colours.get(name)
             )
