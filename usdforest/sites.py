@@ -65,22 +65,25 @@ def sample_sites(recipe: Recipe, replicate: int = 0) -> Sites:
 
 def write_sites_csv(path: str | Path, replicates: list[Sites]) -> None:
     """``replicate,x,y,species,variant,yaw,scale`` rows, written atomically."""
-    with atomic_path(path) as tmp, tmp.open("w", newline="") as f:
-        f.write("replicate,x,y,species,variant,yaw,scale\n")
+    from . import csvtext
+
+    with atomic_path(path) as tmp, tmp.open("wb") as f:
+        f.write(b"replicate,x,y,species,variant,yaw,scale\n")
         for r, s in enumerate(replicates):
-            names = np.asarray(s.names, dtype=object)[s.species]
-            rows = zip(
-                s.xy[:, 0].tolist(),
-                s.xy[:, 1].tolist(),
-                names.tolist(),
-                s.variant.tolist(),
-                s.yaw.tolist(),
-                s.scale.tolist(),
-                strict=True,
-            )
-            f.writelines(
-                f"{r},{x:.4f},{y:.4f},{sp},{v},{yaw:.3f},{sc:.4f}\n"
-                for x, y, sp, v, yaw, sc in rows
+            if len(s) == 0:
+                continue
+            f.write(
+                csvtext.rows(
+                    [
+                        csvtext.integers(np.full(len(s), r)),
+                        csvtext.fixed(s.xy[:, 0], 4),
+                        csvtext.fixed(s.xy[:, 1], 4),
+                        csvtext.labels(s.species, s.names),
+                        csvtext.integers(s.variant),
+                        csvtext.fixed(s.yaw, 3),
+                        csvtext.fixed(s.scale, 4),
+                    ]
+                )
             )
 
 

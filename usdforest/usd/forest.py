@@ -216,26 +216,24 @@ def _extents_hint(build: ForestBuild, recipe: Recipe) -> np.ndarray:
 def _write_csv(
     path: Path, sites: Sites, heights: np.ndarray, proto_index: np.ndarray, z: np.ndarray
 ) -> None:
-    names = np.asarray(sites.names, dtype=object)[sites.species].tolist()
-    h = (heights[proto_index] * sites.scale).tolist()
-    rows = zip(
-        range(len(sites)),
-        sites.xy[:, 0].tolist(),
-        sites.xy[:, 1].tolist(),
-        z.tolist(),
-        names,
-        sites.variant.tolist(),
-        sites.yaw.tolist(),
-        sites.scale.tolist(),
-        h,
-        strict=True,
-    )
-    with path.open("w", newline="") as f:
-        f.write("id,x,y,z,species,variant,yaw,scale,height\n")
-        f.writelines(
-            f"{i},{x:.4f},{y:.4f},{zz:.4f},{sp},{v},{yaw:.3f},{s:.4f},{hh:.3f}\n"
-            for i, x, y, zz, sp, v, yaw, s, hh in rows
+    from .. import csvtext
+
+    body = b""
+    if len(sites):
+        body = csvtext.rows(
+            [
+                csvtext.integers(np.arange(len(sites))),
+                csvtext.fixed(sites.xy[:, 0], 4),
+                csvtext.fixed(sites.xy[:, 1], 4),
+                csvtext.fixed(z, 4),
+                csvtext.labels(sites.species, sites.names),
+                csvtext.integers(sites.variant),
+                csvtext.fixed(sites.yaw, 3),
+                csvtext.fixed(sites.scale, 4),
+                csvtext.fixed(heights[proto_index] * sites.scale, 3),
+            ]
         )
+    path.write_bytes(b"id,x,y,z,species,variant,yaw,scale,height\n" + body)
 
 
 def write_forest(
