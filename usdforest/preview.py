@@ -170,6 +170,7 @@ def stage_cloud(
         xf = np.asarray(xf, dtype=float).reshape(-1, 4, 4)
         idx = np.asarray(idx)
         protos = pi.GetPrototypesRel().GetTargets()
+        placed = int(np.count_nonzero((idx >= 0) & (idx < len(protos))))
         parts = []
         for k, path in enumerate(protos):
             sel = np.flatnonzero(idx == k)
@@ -184,9 +185,7 @@ def stage_cloud(
             local = local.transformed(own)
             per = len(local)
             # cap: every instance gets the same share of its prototype's samples
-            share = max(
-                1, min(per, budget // max(1, sum((idx == j).sum() for j in range(len(protos)))))
-            )
+            share = max(1, min(per, budget // max(1, placed)))
             pick = rng.permutation(per)[:share]
             pts, nrm = local.points[pick], local.normals[pick]
             m = xf[sel]
@@ -275,12 +274,14 @@ def splat(
     ok = (row >= 0) & (row < h) & (col >= 0) & (col < w)
     row, col, depth, src = row[ok], col[ok], depth[ok], src[ok]
     key = row * w + col
-    order = np.lexsort((depth, key))
-    key, src = key[order], src[order]
-    first = np.ones(key.size, dtype=bool)
-    first[1:] = key[1:] != key[:-1]
+    # per pixel, the nearest splat (the first of them in input order on a tie): a depth buffer
+    # by minimum, then one pick among the few that reach it
+    zbuf = np.full(w * h, np.inf)
+    np.minimum.at(zbuf, key, depth)
+    front = np.flatnonzero(depth == zbuf[key])
+    pixels, first = np.unique(key[front], return_index=True)
     flat = img.reshape(-1, 3)
-    flat[key[first]] = rgb[src[first]]
+    flat[pixels] = rgb[src[front[first]]]
     return img, window
 
 
