@@ -199,15 +199,22 @@ class SceneCaster:
         return by_cell[pos], inst
 
     def _proto(self, k: int) -> RayCaster:
-        """Prototype ``k``'s Embree scene, built the first time a ray is cast into it."""
+        """Prototype ``k``'s Embree scene, built (and its BVH committed, by one ray) the first
+        time a ray is cast into it."""
         if self._protos[k] is None:
-            self._protos[k] = RayCaster(self.scene.protos[k].triangles)
+            caster = RayCaster(self.scene.protos[k].triangles)
+            caster.first_hit(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]))
+            self._protos[k] = caster
         return self._protos[k]
 
     def _instances(self, o: np.ndarray, d: np.ndarray, h: Hits, max_range: float) -> None:
         """Cast into the instances, nearest first, each with its candidate rays that still
-        enter its sphere before their best hit so far (updating ``h``)."""
-        sc = self.scene
+        enter its sphere before their best hit so far (updating ``h``).
+
+        Instances go in waves, the casts of a wave on all cores (Embree releases the GIL)
+        against the best hits before the wave, their results merged in order with a strict
+        ``<``: the same hits as one instance at a time (a ray a wave casts needlessly only
+        finds a hit no nearer than the one it keeps)."""
         ray, inst = self._cone_pairs(o, d)
         order = np.argsort(inst, kind="stable")
         ray, inst = ray[order], inst[order]
@@ -215,10 +222,12 @@ class SceneCaster:
         gap = np.linalg.norm(self.centre - o.mean(axis=0), axis=1) - self.radius
         limit = np.minimum(h.t, max_range)
         shared = bool(np.all(o == o[0]))  # a scan or a frame: one origin for every ray
-        for k in np.argsort(gap, kind="stable"):
+        visit = [k for k in np.argsort(gap, kind="stable") if starts[k + 1] > starts[k]]
+        workers = max(1, min(os.cpu_count() or 1, 8))
+        wave = 2 * workers
+
+        def cast(k: int):
             rays = ray[starts[k] : starts[k + 1]]
-            if rays.size == 0:
-                continue
             dd = d[rays]
             r = self._reach[k]
             if shared:
@@ -232,15 +241,29 @@ class SceneCaster:
             enter = tca - np.sqrt(np.maximum(inside, 0.0))
             idx = rays[(inside >= 0) & (tca + r >= 0) & (enter < limit[rays])]
             if idx.size == 0:
-                continue
+                return None
             lo = (o[idx] - self.shift[k]) @ self.inv[k]
             ld = d[idx] @ self.inv[k]
-            pk = sc.instances.proto[k]
-            tl, pl = self._proto(pk).first_hit(lo, ld)
-            better = (pl >= 0) & (tl < h.t[idx])
-            j, q = idx[better], pl[better]
-            p = sc.protos[pk]
-            h.t[j] = limit[j] = tl[better]
-            h.cls[j], h.path[j] = p.cls[q], p.path[q]
-            h.tree[j] = sc.instances.tree[k]
-            h.normal[j] = _normals(p.triangles[q]) @ self.inv[k].T
+            return idx, *self._protos[self.scene.instances.proto[k]].first_hit(lo, ld)
+
+        with ThreadPoolExecutor(workers) as pool:
+            for w in range(0, len(visit), wave):
+                ks = visit[w : w + wave]
+                for k in ks:  # Embree builds a scene on its first cast: one thread at a time
+                    self._proto(self.scene.instances.proto[k])
+                for k, res in zip(ks, pool.map(cast, ks), strict=True):
+                    if res is not None:
+                        self._merge(h, limit, k, *res)
+
+    def _merge(
+        self, h: Hits, limit: np.ndarray, k: int, idx: np.ndarray, tl: np.ndarray, pl: np.ndarray
+    ) -> None:
+        """Keep instance ``k``'s hits that are nearer than the best so far."""
+        sc = self.scene
+        better = (pl >= 0) & (tl < h.t[idx])
+        j, q = idx[better], pl[better]
+        p = sc.protos[sc.instances.proto[k]]
+        h.t[j] = limit[j] = tl[better]
+        h.cls[j], h.path[j] = p.cls[q], p.path[q]
+        h.tree[j] = sc.instances.tree[k]
+        h.normal[j] = _normals(p.triangles[q]) @ self.inv[k].T
