@@ -801,32 +801,25 @@ def fly_cmd(
     if config is not None:
         tables = load_toml(config)
         check_keys(tables, {"lidar", "sonar", "camera"}, str(config))
-    lidar_cfg = sonar_cfg = camera_cfg = None
-    if lidar_preset != "none":
-        if lidar_preset not in lidar.PRESETS or lidar.PRESETS[lidar_preset].kind != "spinning":
-            names = [n for n, v in lidar.PRESETS.items() if v.kind == "spinning"]
-            raise UsdForestError(f"--lidar: {lidar_preset!r} is not one of {', '.join(names)}")
-        lidar_cfg = override(
-            lidar.PRESETS[lidar_preset], dict(tables.get("lidar", {})), f"{config}: lidar"
-        )
-        lidar_cfg.check()
-    if sonar_preset != "none":
-        if sonar_preset not in sonar.PRESETS:
-            raise UsdForestError(
-                f"--sonar: {sonar_preset!r} is not one of {', '.join(sonar.PRESETS)} or none"
-            )
-        sonar_cfg = override(
-            sonar.PRESETS[sonar_preset], dict(tables.get("sonar", {})), f"{config}: sonar"
-        )
-        sonar_cfg.check()
-    if camera_preset != "none":
-        if camera_preset not in camera.PRESETS:
-            raise UsdForestError(
-                f"--camera: {camera_preset!r} is not one of {', '.join(camera.PRESETS)} or none"
-            )
-        table = dict(tables.get("camera", {}))
-        camera.refuse_lidar_keys(table, config)
-        camera_cfg = override(camera.PRESETS[camera_preset], table, f"{config}: camera")
+
+    def settings(sensor: str, name: str, presets: dict):
+        """The preset ``name`` (or None for ``none``) overridden by the config's table."""
+        if name == "none":
+            return None
+        if name not in presets:
+            raise UsdForestError(f"--{sensor}: {name!r} is not one of {', '.join(presets)} or none")
+        table = dict(tables.get(sensor, {}))
+        if sensor == "camera":
+            camera.refuse_lidar_keys(table, config)
+        chosen = override(presets[name], table, f"{config}: {sensor}")
+        chosen.check()
+        return chosen
+
+    spinning = {n: v for n, v in lidar.PRESETS.items() if v.kind == "spinning"}
+    lidar_cfg = settings("lidar", lidar_preset, spinning)
+    sonar_cfg = settings("sonar", sonar_preset, sonar.PRESETS)
+    camera_cfg = settings("camera", camera_preset, camera.PRESETS)
+    if camera_cfg is not None:
         camera.frame_times(camera_cfg, traj, camera_rate)  # checks the rate and the memory
     if lidar_cfg is None and sonar_cfg is None and camera_cfg is None:
         raise UsdForestError("nothing to fly: --lidar none, --sonar none and --camera none")

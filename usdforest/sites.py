@@ -70,8 +70,6 @@ def write_sites_csv(path: str | Path, replicates: list[Sites]) -> None:
     with atomic_path(path) as tmp, tmp.open("wb") as f:
         f.write(b"replicate,x,y,species,variant,yaw,scale\n")
         for r, s in enumerate(replicates):
-            if len(s) == 0:
-                continue
             f.write(
                 csvtext.rows(
                     [

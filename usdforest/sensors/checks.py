@@ -56,18 +56,12 @@ def check_not_inside_wood(scene: Scene, pose: Pose) -> None:
     trunk = CLASS_ID["trunk"]
     parts = [scene.triangles[scene.cls == trunk]]
     inst = scene.instances
-    for k, proto in enumerate(scene.protos):
-        which = np.flatnonzero(inst.proto == k)
-        if which.size == 0:
-            continue
-        m = inst.matrix[which]
-        centre = np.einsum("j,njk->nk", proto.centre, m[:, :3, :3]) + m[:, 3, :3]
-        scale = np.linalg.norm(m[:, :3, :3], axis=2).max(axis=1)
-        near = which[np.linalg.norm(centre - pose.position, axis=1) <= proto.radius * scale]
+    centre, radius = scene.instance_spheres()
+    for i in np.flatnonzero(np.linalg.norm(centre - pose.position, axis=1) <= radius):
+        proto = scene.protos[inst.proto[i]]
         tri = proto.triangles[proto.cls == trunk].astype(np.float64)
-        for i in near:
-            mi = inst.matrix[i]
-            parts.append((tri.reshape(-1, 3) @ mi[:3, :3] + mi[3, :3]).reshape(-1, 3, 3))
+        m = inst.matrix[i]
+        parts.append((tri.reshape(-1, 3) @ m[:3, :3] + m[3, :3]).reshape(-1, 3, 3))
     tri = np.concatenate(parts).astype(np.float32)
     if len(tri) == 0:
         return

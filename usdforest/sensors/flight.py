@@ -251,12 +251,9 @@ def fly_sonar(
         e = prepared.echo(Pose(*p, yaw, pitch), cfg, velocity=v)
         echoes.append(e.echo)
         counts.append(e.leaves_in_range)
+        # every pulse has the same classes: those the sonar listens to
         for name, part in e.parts.items():
-            parts.setdefault(name, [np.zeros(len(e.echo), np.float32)] * k).append(
-                part.astype(np.float32)
-            )
-        for name in parts.keys() - e.parts.keys():
-            parts[name].append(np.zeros(len(e.echo), np.float32))
+            parts.setdefault(name, []).append(part.astype(np.float32))
         rows = np.zeros(len(e.labels), _PULSE_LABEL)
         for f in e.labels.dtype.names:
             rows[f] = e.labels[f]

@@ -107,13 +107,7 @@ class SceneCaster:
         self.rot = inst.matrix[:, :3, :3]
         self.shift = inst.matrix[:, 3, :3]
         self.inv = np.linalg.inv(self.rot) if len(inst) else np.zeros((0, 3, 3))
-        centres = np.array([p.centre for p in scene.protos]).reshape(-1, 3)
-        radii = np.array([p.radius for p in scene.protos])
-        if len(inst):
-            self.centre = np.einsum("nj,njk->nk", centres[inst.proto], self.rot) + self.shift
-            self.radius = radii[inst.proto] * np.linalg.norm(self.rot, axis=2).max(axis=1)
-        else:
-            self.centre, self.radius = np.zeros((0, 3)), np.zeros(0)
+        self.centre, self.radius = scene.instance_spheres()
         # a hair wider: a pair kept by rounding only costs a cast that misses
         self._reach = self.radius * (1 + 1e-9) + 1e-9
 

@@ -105,6 +105,18 @@ class Scene:
     )
     unseen: tuple[str, ...] = ()  # geometry prims the scene cannot hold (curves, points...)
 
+    def instance_spheres(self) -> tuple[np.ndarray, np.ndarray]:
+        """World-space bounding spheres (centres ``(n, 3)``, radii ``(n,)``) of the tree
+        instances: each prototype's sphere placed by its instance's transform."""
+        inst = self.instances
+        if not len(inst):
+            return np.zeros((0, 3)), np.zeros(0)
+        rot = inst.matrix[:, :3, :3]
+        centres = np.array([p.centre for p in self.protos]).reshape(-1, 3)
+        radii = np.array([p.radius for p in self.protos])
+        centre = np.einsum("nj,njk->nk", centres[inst.proto], rot) + inst.matrix[:, 3, :3]
+        return centre, radii[inst.proto] * np.linalg.norm(rot, axis=2).max(axis=1)
+
     def __len__(self) -> int:
         """Triangles in the scene, every instance counted."""
         per = np.array([len(p.triangles) for p in self.protos], dtype=np.int64)

@@ -372,7 +372,8 @@ class _Grid:
     n_fine: int
     fs_fine: float
     freqs: np.ndarray
-    bands: tuple  # per band: (fine bin indices, hat values there, baseband bins, f0 in Hz)
+    bands: tuple  # per band: (fine bin indices, hat values there, baseband bins, centre bin)
+    duration: float  # of the delay grid: bin j of the spectrum is j / duration Hz
     n_base: int
     fs_base: float
     weight: np.ndarray
@@ -404,7 +405,7 @@ class _Grid:
             idx = np.arange(lo, hi + 1)
             # hat functions: a partition of unity on [f_min, f_max], 0 one step outside
             hat = np.clip(1 - np.abs(freqs[idx] - ck) / step, 0, None)
-            bands.append((idx, hat, (idx - j0) % n_base, j0 / duration))
+            bands.append((idx, hat, (idx - j0) % n_base, j0))
         weight = np.ones(freqs.size)
         if cfg.window == "hann":
             u = np.clip((freqs - cfg.f_min) / (cfg.f_max - cfg.f_min), 0, 1)
@@ -416,6 +417,7 @@ class _Grid:
             fs_fine,
             freqs,
             tuple(bands),
+            duration,
             n_base,
             n_base / duration,
             weight,
@@ -432,7 +434,7 @@ def _coherent(
     cfg: SonarConfig,
     grid: _Grid,
     velocity: np.ndarray | None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Spectrum, impulse response and echo of reflectors at ``position (n, 3)`` whose
     band amplitudes and delay ranges ``amplitudes(indices)`` gives, plus each reflector's
     band-mean energy and delay range (the coherent sum of the module docstring; Doppler as
@@ -451,11 +453,9 @@ def _coherent(
     ranges = np.zeros(len(position))
     for factor, group in _doppler_groups(eta, cfg.doppler_bins):
         part = np.zeros(grid.freqs.size, dtype=complex)
-        delay = np.zeros(group.size)
         for start in range(0, group.size, LEAF_CHUNK):
             sel = group[start : start + LEAF_CHUNK]
             amp, r = amplitudes(sel)
-            delay[start : start + sel.size] = r
             ranges[sel] = r
             energy[sel] = np.mean(np.abs(amp) ** 2, axis=1)
             tau = 2 * r / c
@@ -464,13 +464,13 @@ def _coherent(
             frac = pos - i0
             # exp(-i 2 pi f0 tau) band after band: each centre is the last one's plus a whole
             # number of bins, one of (at most) two numbers, so one product a band
-            phasor = np.exp(-2j * math.pi * grid.bands[0][3] * tau)
+            phasor = np.exp(-2j * math.pi * (grid.bands[0][3] / grid.duration) * tau)
             turns: dict[int, np.ndarray] = {}
-            for k, (idx, hat, base, f0) in enumerate(grid.bands):
-                # the band's share of H: sum_l a_lk exp(-i 2 pi f tau_l) near f0, as the
-                # spectrum of a delay histogram of the amplitudes moved to baseband at f0
+            for k, (idx, hat, base, j0) in enumerate(grid.bands):
+                # the band's share of H: sum_l a_lk exp(-i 2 pi f tau_l) near its centre f0,
+                # as the spectrum of a delay histogram of the amplitudes moved to baseband
                 if k:
-                    bins = round((f0 - grid.bands[k - 1][3]) * grid.n_fine / grid.fs_fine)
+                    bins = j0 - grid.bands[k - 1][3]
                     if bins not in turns:
                         turns[bins] = np.exp(
                             -2j * math.pi * bins * grid.fs_fine / grid.n_fine * tau
@@ -488,7 +488,7 @@ def _coherent(
         if factor == 1.0:
             echo += rest
         else:  # the echo at rest, time-compressed by the factor about the group's delay
-            tau = float(np.mean(2 * delay / c)) if delay.size else 0.0
+            tau = float(np.mean(2 * ranges[group] / c)) if group.size else 0.0
             from scipy.interpolate import CubicSpline
 
             scaled = CubicSpline(grid.t, rest, extrapolate=False)(tau + factor * (grid.t - tau))
@@ -649,19 +649,6 @@ def _visible(points: np.ndarray, tolerance: np.ndarray, pose: Pose, caster) -> n
     return h.t >= r - tolerance
 
 
-def visible_leaves(scene: Scene, pose: Pose, cfg: SonarConfig, caster=None) -> np.ndarray:
-    """``bool[L]``: leaves whose centre the sonar sees (no wood or other leaf in between)."""
-    from .raycast import SceneCaster
-
-    lv = scene.leaves
-    near = np.flatnonzero(np.linalg.norm(lv.centre - pose.position, axis=1) <= cfg.max_range)
-    out = np.zeros(len(lv), dtype=bool)
-    if near.size:
-        caster = caster or SceneCaster(scene)
-        out[near] = _visible(lv.centre[near], 1.5 * lv.radius[near] + 1e-3, pose, caster)
-    return out
-
-
 class SonarScene:
     """A scene prepared for the sonar once: its leaves, its wood fitted as cylinders and its
     ground ready to be sampled as facets (when ``cfg.wood`` and ``cfg.ground`` are on), for
@@ -683,18 +670,24 @@ class SonarScene:
 
     def targets(self, pose: Pose, cfg: SonarConfig) -> Targets:
         """Reflectors within range of ``pose`` (hidden ones dropped when ``cfg.occlusion``)."""
+        return self._unseen_dropped(self._in_range(pose, cfg), pose, cfg)
 
+    def _in_range(self, pose: Pose, cfg: SonarConfig) -> Targets:
         def near(points: np.ndarray) -> np.ndarray:
             return np.flatnonzero(np.linalg.norm(points - pose.position, axis=1) <= cfg.max_range)
 
-        lv = self.scene.leaves
-        lv = _leaf_subset(lv, near(lv.centre))
-        wood = self.wood.take(near(self.wood.centre))
         ground = (
             self.ground.facets(pose.position, cfg.max_range)
             if self.ground is not None
             else Facets.empty()
         )
+        lv = self.scene.leaves
+        return Targets(
+            _leaf_subset(lv, near(lv.centre)), self.wood.take(near(self.wood.centre)), ground
+        )
+
+    def _unseen_dropped(self, targets: Targets, pose: Pose, cfg: SonarConfig) -> Targets:
+        lv, wood, ground = targets.leaves, targets.wood, targets.ground
         if cfg.occlusion:
             lv = _leaf_subset(
                 lv, np.flatnonzero(_visible(lv.centre, 1.5 * lv.radius + 1e-3, pose, self.caster))
@@ -718,12 +711,9 @@ class SonarScene:
 
     def echo(self, pose: Pose, cfg: SonarConfig, velocity: np.ndarray | None = None) -> Echo:
         """The echo at ``pose``; ``leaves_in_range`` counts leaves before occlusion."""
-        lv = self.scene.leaves
-        in_range = int(
-            np.count_nonzero(np.linalg.norm(lv.centre - pose.position, axis=1) <= cfg.max_range)
-        )
-        e = echo_from_targets(self.targets(pose, cfg), pose, cfg, velocity)
-        return replace(e, leaves_in_range=in_range)
+        near = self._in_range(pose, cfg)
+        e = echo_from_targets(self._unseen_dropped(near, pose, cfg), pose, cfg, velocity)
+        return replace(e, leaves_in_range=len(near.leaves))
 
 
 def sonar_scan(scene: Scene, pose: Pose, cfg: SonarConfig, caster=None, *, seed: int = 0) -> Echo:

@@ -218,21 +218,19 @@ def _write_csv(
 ) -> None:
     from .. import csvtext
 
-    body = b""
-    if len(sites):
-        body = csvtext.rows(
-            [
-                csvtext.integers(np.arange(len(sites))),
-                csvtext.fixed(sites.xy[:, 0], 4),
-                csvtext.fixed(sites.xy[:, 1], 4),
-                csvtext.fixed(z, 4),
-                csvtext.labels(sites.species, sites.names),
-                csvtext.integers(sites.variant),
-                csvtext.fixed(sites.yaw, 3),
-                csvtext.fixed(sites.scale, 4),
-                csvtext.fixed(heights[proto_index] * sites.scale, 3),
-            ]
-        )
+    body = csvtext.rows(
+        [
+            csvtext.integers(np.arange(len(sites))),
+            csvtext.fixed(sites.xy[:, 0], 4),
+            csvtext.fixed(sites.xy[:, 1], 4),
+            csvtext.fixed(z, 4),
+            csvtext.labels(sites.species, sites.names),
+            csvtext.integers(sites.variant),
+            csvtext.fixed(sites.yaw, 3),
+            csvtext.fixed(sites.scale, 4),
+            csvtext.fixed(heights[proto_index] * sites.scale, 3),
+        ]
+    )
     path.write_bytes(b"id,x,y,z,species,variant,yaw,scale,height\n" + body)
 
 
