@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import ConvexHull
 
-from usdforest.bounds import instances_bounds
+from usdforest.bounds import instances_bounds, yawed_extent
 from usdforest.rotations import matrix_from_quat
 
 
@@ -65,3 +65,25 @@ def test_a_million_leaves_transform_only_those_near_the_boundary(monkeypatch):
     pts = (hull[None] + translate[:, None]).reshape(-1, 3)
     np.testing.assert_array_equal(b.extent, [pts.min(axis=0), pts.max(axis=0)])
     assert sum(seen) < n // 5  # a shell, not the ball
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 5000))
+def test_yawed_extent_equals_every_footprint_vertex_turned(seed, n):
+    rng = np.random.default_rng(seed)
+    feet = [rng.normal(size=(rng.integers(3, 40), 2)) * rng.uniform(0.5, 5) for _ in range(4)]
+    z_ranges = np.sort(rng.normal(size=(4, 2)) * 5, axis=1)
+    proto = rng.integers(0, 4, n)
+    xy = rng.uniform(0, rng.choice([5.0, 100.0, 1000.0]), (n, 2))
+    yaw = rng.uniform(0, 2 * np.pi, n)
+    scale = rng.lognormal(0, 0.2, n)
+    base = rng.normal(size=n)
+    e = yawed_extent(feet, z_ranges, proto, xy, (np.cos(yaw), np.sin(yaw)), scale, base)
+    x, y, z = [], [], []
+    for i in range(n):  # one tree at a time, in the same arithmetic
+        f, c, s = feet[proto[i]], np.cos(yaw[i]), np.sin(yaw[i])
+        x.append((c * f[:, 0] - s * f[:, 1]) * scale[i] + xy[i, 0])
+        y.append((s * f[:, 0] + c * f[:, 1]) * scale[i] + xy[i, 1])
+        z.append(z_ranges[proto[i]] * scale[i] + base[i])
+    x, y, z = (np.concatenate(v) for v in (x, y, z))
+    np.testing.assert_array_equal(e, [[x.min(), y.min(), z.min()], [x.max(), y.max(), z.max()]])

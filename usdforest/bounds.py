@@ -227,11 +227,30 @@ def yawed_extent(
     ``k`` has footprint ``footprints[k]`` and z range ``z_ranges[k] = (zmin, zmax)``."""
     if len(proto) == 0:
         return EMPTY_EXTENT.copy()
+    c, s = turn
+    # every turned, scaled footprint lies within its reach of its anchor (x, y): only the
+    # instances within reach of the extent of the extreme ones can widen it
+    radius = np.array([np.sqrt((f * f).sum(axis=1)).max() if len(f) else 0.0 for f in footprints])
+    reach = radius[proto] * np.sqrt(c * c + s * s) * scale * (1 + 1e-9) + 1e-9
+    seed = np.unique(np.concatenate([xy.argmin(axis=0), xy.argmax(axis=0)]))
+    inner = _yawed(footprints, z_ranges, proto, xy, turn, scale, base_z, seed)
+    near = (xy - reach[:, None] <= inner[0, :2]) | (xy + reach[:, None] >= inner[1, :2])
+    near = np.flatnonzero(np.any(near, axis=1))
+    rest = _yawed(footprints, z_ranges, proto, xy, turn, scale, base_z, near)
+    z = np.asarray(z_ranges)[proto] * scale[:, None] + base_z[:, None]
+    lo = np.minimum(inner[0], rest[0])
+    hi = np.maximum(inner[1], rest[1])
+    lo[2], hi[2] = z.min(), z.max()
+    return np.stack([lo, hi])
+
+
+def _yawed(footprints, z_ranges, proto, xy, turn, scale, base_z, which) -> np.ndarray:
+    """:func:`yawed_extent` of the instances ``which``, every footprint vertex turned."""
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     c, s = turn
     for k, f in enumerate(footprints):
-        sel = np.flatnonzero(proto == k)
+        sel = which[proto[which] == k]
         if len(sel) == 0:
             continue
         step = max(1, CHUNK // max(len(f), 1))
