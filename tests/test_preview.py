@@ -56,9 +56,15 @@ def test_views_differ_and_top_view_is_round(pine):
     assert 0.7 < np.ptp(xs) / max(np.ptp(ys), 1) < 1.4
 
 
-def test_forest_render_has_ground_and_trees(tmp_path):
-    out = tmp_path / "f.usda"
+@pytest.fixture(scope="module")
+def default_forest(tmp_path_factory):
+    out = tmp_path_factory.mktemp("df") / "f.usda"
     write_forest(read_recipe(default_recipe_path()), out, thumbnail=False)
+    return out
+
+
+def test_forest_render_has_ground_and_trees(default_forest):
+    out = default_forest
     img, _, kind = render_stage(out, view="top", size=(200, 200))
     assert kind == "forest"
     # the stage's own ground, in its material's colour, lit from above (no stand-in drawn)
@@ -119,3 +125,47 @@ def test_site_plots_from_pipeline_and_csv(tmp_path, runner):
     csv.write_text("a,b\n1,2\n")
     r = runner.invoke(app, ["plot-sites", str(tmp_path / "c.png"), "--sites", str(csv)])
     assert r.exit_code == 2 and "expected columns replicate,x,y" in r.stderr
+
+
+def _not_ground(img: np.ndarray, stage_path) -> np.ndarray:
+    stage = Usd.Stage.Open(str(stage_path))
+    shader = stage.GetPrimAtPath("/Forest/Ground/Looks/Ground/PreviewSurface")
+    colour = np.array(shader.GetAttribute("inputs:diffuseColor").Get())
+    sky = np.abs(img - [0.93, 0.95, 0.98]).sum(axis=2) < 0.02
+    return ~sky & (np.abs(img - colour * 1.04).sum(axis=2) >= 0.05)
+
+
+def test_forest_sprites_show_every_tree_where_trees_csv_puts_it(default_forest):
+    """Seen from above, each tree's row of trees.csv lands on tree pixels (its crown or its
+    trunk), not on the ground."""
+    img, (u0, u1, _, v1), _ = render_stage(default_forest, view="top", size=(400, 400))
+    px = (u1 - u0) / 400
+    trees = np.genfromtxt(
+        default_forest.parent / "f_assets" / "trees.csv", delimiter=",", names=True
+    )
+    col = np.floor((trees["x"] - u0) / px).astype(int)
+    row = np.floor((v1 - trees["y"]) / px).astype(int)
+    tree = _not_ground(img, default_forest)
+    # the 3 x 3 pixels around each site (a site may fall between a trunk's pixels)
+    hit = np.zeros(len(trees), dtype=bool)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            hit |= tree[np.clip(row + dr, 0, 399), np.clip(col + dc, 0, 399)]
+    assert len(trees) > 50 and hit.all(), np.flatnonzero(~hit)
+
+
+def test_forest_sprites_cover_what_expanding_every_tree_covers(default_forest):
+    """The stamped sprites against every tree's samples transformed and splatted: the same
+    pixels are trees, to within the sprites' half-pixel placement."""
+    from usdforest.preview import splat, stage_cloud, view_basis
+
+    img, window, _ = render_stage(default_forest, view="iso", size=(300, 300), ground=False)
+    stage = Usd.Stage.Open(str(default_forest))
+    px = (window[1] - window[0]) / 300
+    cloud = stage_cloud(stage, spacing=px * 0.7, budget=12 * 300 * 300)
+    ref, _ = splat(cloud, view_basis("iso"), (300, 300), window=window)
+    sky = [0.93, 0.95, 0.98]
+    a = np.abs(img - sky).sum(axis=2) >= 0.02
+    b = np.abs(ref - sky).sum(axis=2) >= 0.02
+    assert a.sum() > 3000
+    assert (a & b).sum() / (a | b).sum() > 0.85

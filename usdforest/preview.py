@@ -113,15 +113,40 @@ def _sample_mesh(prim, to_root: np.ndarray, spacing: float, rng: np.random.Gener
     return Cloud(p, fn[which], np.array(color), np.maximum(local_spacing, 1e-6))
 
 
+def _times3(x: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """``x @ a`` for rows of 3 and a 3x3 ``a``, summed column by column (numpy's matmul of
+    millions of 3-vectors is ten times slower)."""
+    return x[..., 0, None] * a[0] + x[..., 1, None] * a[1] + x[..., 2, None] * a[2]
+
+
 def _matrix(m) -> np.ndarray:
     return np.array(m, dtype=float).reshape(4, 4)
 
 
+@dataclass(frozen=True, eq=False)
+class Stamps:
+    """Instances left unexpanded: ``protos[k]`` (samples in prototype space) placed by the
+    row-vector world transforms ``xf (n, 4, 4)``, each a yaw about +Z and a uniform scale,
+    as prototype ``proto[i]``."""
+
+    protos: tuple[Cloud, ...]
+    xf: np.ndarray
+    proto: np.ndarray
+
+
 def stage_cloud(
-    stage, root=None, *, spacing: float = 0.01, budget: int = MAX_POINTS, seed: int = 0
+    stage,
+    root=None,
+    *,
+    spacing: float = 0.01,
+    budget: int = MAX_POINTS,
+    seed: int = 0,
+    stamps: list[Stamps] | None = None,
 ) -> Cloud:
     """Surface samples of everything under ``root`` (default prim) that renders (no proxy or
-    guide purpose), instancers expanded."""
+    guide purpose), instancers expanded; given a ``stamps`` list, the instancers directly
+    under ``root`` whose instances only turn about +Z and scale uniformly (a forest's trees)
+    are appended to it instead, to be drawn as sprites (:func:`splat`)."""
     from pxr import Usd, UsdGeom
 
     from .usd.layers import rendered
@@ -131,12 +156,13 @@ def stage_cloud(
     cache = UsdGeom.XformCache()
     memo: dict = {}
 
-    def subtree(prim, spacing: float) -> Cloud:
+    def subtree(prim, spacing: float, defer: list[Stamps] | None = None) -> Cloud:
         """Samples under ``prim`` in ``prim``'s own local space."""
         key = (prim.GetPath(), round(spacing, 9))
         if key in memo:
             return memo[key]
-        inv = np.linalg.inv(_matrix(cache.GetLocalToWorldTransform(prim)))
+        prim_to_world = _matrix(cache.GetLocalToWorldTransform(prim))
+        inv = np.linalg.inv(prim_to_world)
         parts = []
         it = iter(Usd.PrimRange(prim, Usd.TraverseInstanceProxies()))
         for p in it:
@@ -156,33 +182,72 @@ def stage_cloud(
             elif p.IsA(UsdGeom.PointInstancer):
                 it.PruneChildren()
                 to_root = _matrix(cache.GetLocalToWorldTransform(p)) @ inv
-                parts.append(_instances(p, spacing).transformed(to_root))
+                deferred = defer is not None and _defer(p, spacing, to_root @ prim_to_world, defer)
+                if not deferred:
+                    parts.append(_instances(p, spacing).transformed(to_root))
         out = Cloud.concat(parts)
         memo[key] = out
         return out
 
-    def _instances(p, spacing: float) -> Cloud:
+    def _transforms(p) -> tuple[np.ndarray, np.ndarray, list]:
         pi = UsdGeom.PointInstancer(p)
         xf = pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
         idx = pi.GetProtoIndicesAttr().Get()
         if xf is None or idx is None or len(idx) == 0:
-            return Cloud.concat([])
-        xf = np.asarray(xf, dtype=float).reshape(-1, 4, 4)
-        idx = np.asarray(idx)
+            return np.zeros((0, 4, 4)), np.zeros(0, dtype=int), []
         protos = pi.GetPrototypesRel().GetTargets()
+        return np.asarray(xf, dtype=float).reshape(-1, 4, 4), np.asarray(idx), protos
+
+    def _prototype(p, path, scales: np.ndarray, spacing: float) -> Cloud:
+        """A prototype's samples in the instancer's space (before the instance transform),
+        as dense as its instances' (uniform) ``scales`` need."""
+        proto = p.GetStage().GetPrimAtPath(path)
+        local = subtree(proto, spacing / max(float(np.median(scales)), 1e-6))
+        own = _matrix(cache.GetLocalTransformation(proto)[0])
+        return local.transformed(own)
+
+    def _defer(p, spacing: float, to_world: np.ndarray, out: list[Stamps]) -> bool:
+        xf, idx, protos = _transforms(p)
+        if len(xf) == 0:
+            return False
+        w = np.zeros_like(xf)
+        w[:, :3, :3] = _times3(xf[:, :3, :3], to_world[:3, :3])
+        w[:, 3, :3] = _times3(xf[:, 3, :3], to_world[:3, :3]) + to_world[3, :3]
+        w[:, 3, 3] = 1.0
+        lin = w[:, :3, :3]
+        s = np.hypot(lin[:, 0, 0], lin[:, 0, 1])
+        # a yaw and a uniform scale, up to what half-precision quaternions make of them
+        yaw_only = (
+            np.all(np.abs(lin[:, 2, :2]) <= 1e-6 * s[:, None])
+            and np.all(np.abs(lin[:, :2, 2]) <= 1e-6 * s[:, None])
+            and np.allclose(lin[:, 2, 2], s, rtol=1e-2)
+            and np.allclose(lin[:, 1, 1], lin[:, 0, 0], rtol=1e-6, atol=1e-9)
+        )
+        if not yaw_only:
+            return False
+        clouds = []
+        for k, path in enumerate(protos):
+            sel = idx == k
+            clouds.append(_prototype(p, path, s[sel], spacing) if sel.any() else Cloud.concat([]))
+        ok = (idx >= 0) & (idx < len(protos))
+        out.append(Stamps(tuple(clouds), w[ok], idx[ok]))
+        return True
+
+    def _instances(p, spacing: float) -> Cloud:
+        xf_all, idx, protos = _transforms(p)
+        if len(xf_all) == 0:
+            return Cloud.concat([])
         placed = int(np.count_nonzero((idx >= 0) & (idx < len(protos))))
         parts = []
         for k, path in enumerate(protos):
             sel = np.flatnonzero(idx == k)
             if sel.size == 0:
                 continue
-            proto = p.GetStage().GetPrimAtPath(path)
-            scales = np.cbrt(np.abs(np.linalg.det(xf[sel, :3, :3])))
-            local = subtree(proto, spacing / max(float(np.median(scales)), 1e-6))
+            scales = np.cbrt(np.abs(np.linalg.det(xf_all[sel, :3, :3])))
+            local = _prototype(p, path, scales, spacing)
             if len(local) == 0:
                 continue
-            own = _matrix(cache.GetLocalTransformation(proto)[0])
-            local = local.transformed(own)
+            xf = xf_all
             per = len(local)
             # cap: every instance gets the same share of its prototype's samples
             share = max(1, min(per, budget // max(1, placed)))
@@ -204,7 +269,7 @@ def stage_cloud(
         return Cloud.concat(parts)
 
     world = _matrix(cache.GetLocalToWorldTransform(root))
-    return subtree(root, spacing).transformed(world)
+    return subtree(root, spacing, stamps).transformed(world)
 
 
 # --------------------------------------------------------------------------- camera and splat
@@ -226,6 +291,20 @@ def view_basis(view: str) -> np.ndarray:
     raise UsdForestError(f"unknown view {view!r}; use side, top or iso")
 
 
+def view_window(
+    uv: np.ndarray, size: tuple[int, int], margin: float = 0.04
+) -> tuple[float, float, float, float]:
+    """The (u0, u1, v0, v1) window that frames screen points ``uv (n, 2)`` with square
+    pixels and a ``margin`` on each side."""
+    w, h = size
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    span = np.maximum(hi - lo, 1e-6) * (1 + 2 * margin)
+    c = (lo + hi) / 2
+    px = max(span[0] / w, span[1] / h)
+    u0, v0 = c[0] - px * w / 2, c[1] - px * h / 2
+    return (u0, u0 + px * w, v0, v0 + px * h)
+
+
 def splat(
     cloud: Cloud,
     basis: np.ndarray,
@@ -234,30 +313,44 @@ def splat(
     background: np.ndarray | None = None,
     margin: float = 0.04,
     window: tuple[float, float, float, float] | None = None,
+    stamps: Iterable[Stamps] = (),
 ) -> tuple[np.ndarray, tuple[float, float, float, float]]:
-    """Z-buffer splatting of ``cloud``; returns the RGB image and its (u0, u1, v0, v1) window."""
+    """Z-buffer splatting of ``cloud`` and of ``stamps`` (each prototype drawn once per yaw
+    and scale bin as a sprite, then stamped at its instances); returns the RGB image and its
+    (u0, u1, v0, v1) window."""
     w, h = size
     img = np.empty((h, w, 3))
     img[:] = SKY if background is None else background
-    if len(cloud) == 0:
+    if len(cloud) == 0 and window is None:
         return img, (0.0, 1.0, 0.0, 1.0)
-    uvd = cloud.points @ basis.T
     if window is None:
-        lo, hi = uvd[:, :2].min(axis=0), uvd[:, :2].max(axis=0)
-        span = np.maximum(hi - lo, 1e-6) * (1 + 2 * margin)
-        c = (lo + hi) / 2
-        px = max(span[0] / w, span[1] / h)
-        u0, v0 = c[0] - px * w / 2, c[1] - px * h / 2
-        window = (u0, u0 + px * w, v0, v0 + px * h)
-    u0, u1, v0, v1 = window
+        window = view_window(cloud.points @ basis[:2].T, size, margin)
+    u0, u1, _, v1 = window
     px = (u1 - u0) / w
-    col = np.floor((uvd[:, 0] - u0) / px).astype(np.int64)
-    row = np.floor((v1 - uvd[:, 1]) / px).astype(np.int64)
-    depth = uvd[:, 2]
+    zb = _ZBuffer(img)
+    if len(cloud):
+        uvd = cloud.points @ basis.T
+        col = np.floor((uvd[:, 0] - u0) / px).astype(np.int64)
+        row = np.floor((v1 - uvd[:, 1]) / px).astype(np.int64)
+        zb.add(*_expand(row, col, uvd[:, 2], _radius(cloud.spacing, px)), _shaded(cloud))
+    for s in stamps:
+        _stamp(zb, s, basis, window, px)
+    return img, window
+
+
+def _shaded(cloud: Cloud) -> np.ndarray:
     shade = 0.3 + 0.7 * np.abs(cloud.normals @ LIGHT)
-    rgb = np.clip(cloud.colors * shade[:, None] * 1.25, 0, 1)
-    radius = np.clip(np.round(cloud.spacing / px * 0.6).astype(np.int64), 0, 4)
-    rows, cols, deps, cs = [row], [col], [depth], [np.arange(len(cloud))]
+    return np.clip(cloud.colors * shade[:, None] * 1.25, 0, 1)
+
+
+def _radius(spacing: np.ndarray, px: float) -> np.ndarray:
+    return np.clip(np.round(spacing / px * 0.6).astype(np.int64), 0, 4)
+
+
+def _expand(row, col, depth, radius) -> tuple[np.ndarray, ...]:
+    """Each point as a square of ``2 radius + 1`` pixels: rows, columns, depths and the
+    index of the point each comes from, the points' own pixels first."""
+    rows, cols, cs = [row], [col], [np.arange(len(row))]
     for r in range(1, 5):
         sel = np.flatnonzero(radius >= r)
         if sel.size == 0:
@@ -268,21 +361,137 @@ def splat(
                     continue
                 rows.append(row[sel] + dy)
                 cols.append(col[sel] + dx)
-                deps.append(depth[sel])
                 cs.append(sel)
-    row, col, depth, src = (np.concatenate(a) for a in (rows, cols, deps, cs))
-    ok = (row >= 0) & (row < h) & (col >= 0) & (col < w)
-    row, col, depth, src = row[ok], col[ok], depth[ok], src[ok]
-    key = row * w + col
-    # per pixel, the nearest splat (the first of them in input order on a tie): a depth buffer
-    # by minimum, then one pick among the few that reach it
-    zbuf = np.full(w * h, np.inf)
+    src = np.concatenate(cs)
+    return np.concatenate(rows), np.concatenate(cols), depth[src], src
+
+
+def _front(key: np.ndarray, depth: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per distinct ``key`` (in ``range(n)``), the index of its nearest entry (the first of
+    them in input order on a tie): a depth buffer by minimum, then the least index among
+    those that reach it. Returns the keys (sorted) and those indices."""
+    zbuf = np.full(n, np.inf)
     np.minimum.at(zbuf, key, depth)
     front = np.flatnonzero(depth == zbuf[key])
-    pixels, first = np.unique(key[front], return_index=True)
-    flat = img.reshape(-1, 3)
-    flat[pixels] = rgb[src[front[first]]]
-    return img, window
+    first = np.full(n, len(key))
+    np.minimum.at(first, key[front], front)
+    keys = np.flatnonzero(first < len(key))
+    return keys, first[keys]
+
+
+class _ZBuffer:
+    """An image and its depths, drawn into batch by batch: a later batch wins a pixel only
+    when strictly nearer, so the result is the same as one batch in the same order."""
+
+    def __init__(self, img: np.ndarray):
+        self.h, self.w = img.shape[:2]
+        self.flat = img.reshape(-1, 3)
+        self.depth = np.full(self.h * self.w, np.inf)
+
+    def add(self, row, col, depth, src, palette) -> None:
+        """Draw entries at ``row``, ``col``, ``depth``, coloured ``palette[src]``."""
+        ok = (row >= 0) & (row < self.h) & (col >= 0) & (col < self.w)
+        key = row[ok] * self.w + col[ok]
+        depth, src = depth[ok], src[ok]
+        pixels, pick = _front(key, depth, self.h * self.w)
+        nearer = depth[pick] < self.depth[pixels]
+        pixels, pick = pixels[nearer], pick[nearer]
+        self.depth[pixels] = depth[pick]
+        self.flat[pixels] = palette[src[pick]]
+
+
+STAMP_BATCH = 4_000_000  # stamped pixels drawn at once
+
+
+def _bins(cloud: Cloud, scale: np.ndarray, px: float) -> tuple[int, float]:
+    """Yaw bins and scale step for sprites of ``cloud`` that stay within half a pixel of
+    the instance they stand for: as many yaws as its widest point's circle has half pixels
+    (up to 64), a scale step of half a pixel over its reach (at least 1 %)."""
+    if len(cloud) == 0 or len(scale) == 0:
+        return 1, 2.0
+    p = cloud.points
+    reach = float(np.sqrt((p * p).sum(axis=1)).max()) * float(np.median(scale)) / px
+    yaws = int(np.clip(np.ceil(4 * np.pi * reach), 1, 64))
+    return yaws, 1.0 + max(0.5 / max(reach, 1e-9), 0.01)
+
+
+def _stamp(zb: _ZBuffer, s: Stamps, basis: np.ndarray, window, px: float) -> None:
+    """Draw instances as sprites: each prototype at each used (yaw, scale) bin splatted once
+    around its origin, then copied at every instance's pixel, its depth offset by the
+    instance's."""
+    u0, _, _, v1 = window
+    lin = s.xf[:, :3, :3]
+    scale = np.hypot(lin[:, 0, 0], lin[:, 0, 1])
+    yaw = np.arctan2(lin[:, 0, 1], lin[:, 0, 0])
+    ybin = np.zeros(len(scale), dtype=np.int64)
+    sbin = np.zeros(len(scale), dtype=np.int64)
+    steps = []
+    for k, cloud in enumerate(s.protos):
+        sel = s.proto == k
+        yaws, step = _bins(cloud, scale[sel], px)
+        ybin[sel] = np.round(yaw[sel] / (2 * np.pi) * yaws).astype(np.int64) % yaws
+        sbin[sel] = np.round(np.log(np.maximum(scale[sel], 1e-12)) / np.log(step))
+        steps.append((yaws, step))
+    origin = _times3(s.xf[:, 3, :3], basis.T)
+    col = np.floor((origin[:, 0] - u0) / px).astype(np.int64)
+    row = np.floor((v1 - origin[:, 1]) / px).astype(np.int64)
+    # one integer key per (prototype, yaw bin, scale bin); instances grouped by one sort
+    smin = int(sbin.min())
+    key = (s.proto.astype(np.int64) * 64 + ybin) * (int(sbin.max()) - smin + 1) + sbin - smin
+    order = np.argsort(key, kind="stable")
+    first = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1]])
+    bounds = np.r_[first, len(key)]
+    sprites = []
+    for b in range(len(first)):
+        i = order[bounds[b]]
+        yaws, step = steps[s.proto[i]]
+        sprites.append(
+            _sprite(s.protos[s.proto[i]], ybin[i] * 2 * np.pi / yaws, step ** sbin[i], basis, px)
+        )
+    palette = np.concatenate([sp[3] for sp in sprites]) if sprites else np.zeros((0, 3))
+    offset = np.r_[0, np.cumsum([len(sp[0]) for sp in sprites])]
+    batch: list[tuple[np.ndarray, ...]] = []
+    held = 0
+    for b, (dr, dc, dd, _) in enumerate(sprites):
+        if len(dr) == 0:
+            continue
+        inst = order[bounds[b] : bounds[b + 1]]
+        per = max(1, STAMP_BATCH // len(dr))
+        for start in range(0, len(inst), per):
+            i = inst[start : start + per]
+            batch.append(
+                (
+                    (row[i, None] + dr).ravel(),
+                    (col[i, None] + dc).ravel(),
+                    (origin[i, 2, None] + dd).ravel(),
+                    np.tile(np.arange(offset[b], offset[b + 1]), len(i)),
+                )
+            )
+            held += len(i) * len(dr)
+            if held >= STAMP_BATCH:
+                zb.add(*(np.concatenate(a) for a in zip(*batch, strict=True)), palette)
+                batch, held = [], 0
+    if batch:
+        zb.add(*(np.concatenate(a) for a in zip(*batch, strict=True)), palette)
+
+
+def _sprite(cloud: Cloud, yaw: float, scale: float, basis: np.ndarray, px: float):
+    """``cloud`` turned by ``yaw`` about +Z and scaled, splatted on the pixel grid around
+    its origin: the row and column offsets, depth offsets and colours of its front pixels."""
+    if len(cloud) == 0:
+        return (np.zeros(0, dtype=np.int64),) * 2 + (np.zeros(0), np.zeros((0, 3)))
+    c, sn = np.cos(yaw), np.sin(yaw)
+    m = np.eye(4)
+    m[:3, :3] = np.array([[c, sn, 0.0], [-sn, c, 0.0], [0.0, 0.0, 1.0]]) * scale
+    turned = cloud.transformed(m)
+    uvd = turned.points @ basis.T
+    col = np.floor(uvd[:, 0] / px + 0.5).astype(np.int64)
+    row = np.floor(-uvd[:, 1] / px + 0.5).astype(np.int64)
+    row, col, depth, src = _expand(row, col, uvd[:, 2], _radius(turned.spacing, px))
+    r0, c0 = row.min(), col.min()
+    hh, ww = row.max() - r0 + 1, col.max() - c0 + 1
+    keys, pick = _front((row - r0) * ww + (col - c0), depth, int(hh * ww))
+    return keys // ww + r0, keys % ww + c0, depth[pick], _shaded(turned)[src[pick]]
 
 
 # --------------------------------------------------------------------------- public API
@@ -342,10 +551,15 @@ def render_stage(
         else "tree"
     )
     budget = budget or min(MAX_POINTS, 12 * size[0] * size[1])
-    cloud = stage_cloud(stage, root, spacing=max(extent * 0.7, 1e-4), budget=budget)
-    if ground and kind == "forest":
-        cloud = Cloud.concat([_ground(lo, hi, extent, _ground_meshes(stage)), cloud])
-    img, window = splat(cloud, basis, size)
+    # a forest's trees are stamped as sprites, framed by the stage's bounds
+    stamps: list[Stamps] | None = [] if kind == "forest" else None
+    cloud = stage_cloud(stage, root, spacing=max(extent * 0.7, 1e-4), budget=budget, stamps=stamps)
+    window = None
+    if kind == "forest":
+        window = view_window(uv, size)
+        if ground:
+            cloud = Cloud.concat([_ground(lo, hi, extent, _ground_meshes(stage)), cloud])
+    img, window = splat(cloud, basis, size, window=window, stamps=stamps or ())
     return img, window, kind
 
 
