@@ -40,3 +40,18 @@ def test_integers_labels_and_rows():
     codes = np.array([2, 0, 1, 1])
     got = rows([integers(np.arange(4)), labels(codes, names), fixed(np.array([1.5, -2, 0, 3]), 1)])
     assert got == "0,bouleau-é,1.5\n1,pine,-2.0\n2,broadleaf,0.0\n3,broadleaf,3.0\n".encode()
+
+
+def test_rows_written_a_chunk_at_a_time_are_the_same_bytes(monkeypatch):
+    import io
+
+    from usdforest import csvtext
+
+    rng = np.random.default_rng(2)
+    x = np.concatenate([rng.uniform(-1e4, 1e4, 997), [1e20, 0.5]])  # widths differ by chunk
+    ids = np.arange(len(x)) * 1001
+    whole = rows([integers(ids), fixed(x, 4)])
+    monkeypatch.setattr(csvtext, "CHUNK", 10)
+    f = io.BytesIO()
+    csvtext.write_rows(f, len(x), lambda i: [integers(ids[i]), fixed(x[i], 4)])
+    assert f.getvalue() == whole

@@ -8,7 +8,8 @@ blocks are joined with commas and newlines and the padding dropped in one pass.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import BinaryIO
 
 import numpy as np
 
@@ -92,3 +93,13 @@ def rows(blocks: Sequence[np.ndarray]) -> bytes:
     parts.append(np.full((n, 1), 10, np.uint8))
     flat = np.concatenate(parts, axis=1).ravel()
     return flat[flat != 0].tobytes()
+
+
+CHUNK = 200_000  # rows formatted at once: the byte blocks are several times the text
+
+
+def write_rows(f: BinaryIO, n: int, blocks: Callable[[slice], Sequence[np.ndarray]]) -> None:
+    """Write ``n`` rows to ``f``, formatting them a chunk at a time: ``blocks(s)`` gives the
+    column blocks of rows ``s`` (the same bytes as :func:`rows` of all of them at once)."""
+    for start in range(0, n, CHUNK):
+        f.write(rows(blocks(slice(start, min(start + CHUNK, n)))))

@@ -125,12 +125,14 @@ def _matrix(m) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class Stamps:
-    """Instances left unexpanded: ``protos[k]`` (samples in prototype space) placed by the
-    row-vector world transforms ``xf (n, 4, 4)``, each a yaw about +Z and a uniform scale,
-    as prototype ``proto[i]``."""
+    """Instances left unexpanded: ``protos[k]`` (samples in prototype space) placed in the
+    world as prototype ``proto[i]``, scaled uniformly by ``scale[i]``, turned by ``yaw[i]``
+    (radians) about +Z and moved to ``origin[i]``."""
 
     protos: tuple[Cloud, ...]
-    xf: np.ndarray
+    scale: np.ndarray
+    yaw: np.ndarray
+    origin: np.ndarray
     proto: np.ndarray
 
 
@@ -210,27 +212,33 @@ def stage_cloud(
         xf, idx, protos = _transforms(p)
         if len(xf) == 0:
             return False
-        w = np.zeros_like(xf)
-        w[:, :3, :3] = _times3(xf[:, :3, :3], to_world[:3, :3])
-        w[:, 3, :3] = _times3(xf[:, 3, :3], to_world[:3, :3]) + to_world[3, :3]
-        w[:, 3, 3] = 1.0
-        lin = w[:, :3, :3]
-        s = np.hypot(lin[:, 0, 0], lin[:, 0, 1])
-        # a yaw and a uniform scale, up to what half-precision quaternions make of them
-        yaw_only = (
-            np.all(np.abs(lin[:, 2, :2]) <= 1e-6 * s[:, None])
-            and np.all(np.abs(lin[:, :2, 2]) <= 1e-6 * s[:, None])
-            and np.allclose(lin[:, 2, 2], s, rtol=1e-2)
-            and np.allclose(lin[:, 1, 1], lin[:, 0, 0], rtol=1e-6, atol=1e-9)
-        )
-        if not yaw_only:
-            return False
+        n = len(xf)
+        scale, yaw, origin = np.empty(n), np.empty(n), np.empty((n, 3))
+        for a in range(0, n, 250_000):  # in chunks: a million 3x3 temporaries add up
+            lin = _times3(xf[a : a + 250_000, :3, :3], to_world[:3, :3])
+            s = np.hypot(lin[:, 0, 0], lin[:, 0, 1])
+            # a yaw and a uniform scale, up to what half-precision quaternions make of them
+            if not (
+                np.all(np.abs(lin[:, 2, :2]) <= 1e-6 * s[:, None])
+                and np.all(np.abs(lin[:, :2, 2]) <= 1e-6 * s[:, None])
+                and np.allclose(lin[:, 2, 2], s, rtol=1e-2)
+                and np.allclose(lin[:, 1, 1], lin[:, 0, 0], rtol=1e-6, atol=1e-9)
+            ):
+                return False
+            scale[a : a + len(s)] = s
+            yaw[a : a + len(s)] = np.arctan2(lin[:, 0, 1], lin[:, 0, 0])
+            origin[a : a + len(s)] = (
+                _times3(xf[a : a + 250_000, 3, :3], to_world[:3, :3]) + to_world[3, :3]
+            )
+        del xf
         clouds = []
         for k, path in enumerate(protos):
             sel = idx == k
-            clouds.append(_prototype(p, path, s[sel], spacing) if sel.any() else Cloud.concat([]))
+            clouds.append(
+                _prototype(p, path, scale[sel], spacing) if sel.any() else Cloud.concat([])
+            )
         ok = (idx >= 0) & (idx < len(protos))
-        out.append(Stamps(tuple(clouds), w[ok], idx[ok]))
+        out.append(Stamps(tuple(clouds), scale[ok], yaw[ok], origin[ok], idx[ok]))
         return True
 
     def _instances(p, spacing: float) -> Cloud:
@@ -400,7 +408,7 @@ class _ZBuffer:
         self.flat[pixels] = palette[src[pick]]
 
 
-STAMP_BATCH = 4_000_000  # stamped pixels drawn at once
+STAMP_BATCH = 2_000_000  # stamped pixels drawn at once
 
 
 def _bins(cloud: Cloud, scale: np.ndarray, px: float) -> tuple[int, float]:
@@ -420,9 +428,7 @@ def _stamp(zb: _ZBuffer, s: Stamps, basis: np.ndarray, window, px: float) -> Non
     around its origin, then copied at every instance's pixel, its depth offset by the
     instance's."""
     u0, _, _, v1 = window
-    lin = s.xf[:, :3, :3]
-    scale = np.hypot(lin[:, 0, 0], lin[:, 0, 1])
-    yaw = np.arctan2(lin[:, 0, 1], lin[:, 0, 0])
+    scale, yaw = s.scale, s.yaw
     ybin = np.zeros(len(scale), dtype=np.int64)
     sbin = np.zeros(len(scale), dtype=np.int64)
     steps = []
@@ -432,7 +438,7 @@ def _stamp(zb: _ZBuffer, s: Stamps, basis: np.ndarray, window, px: float) -> Non
         ybin[sel] = np.round(yaw[sel] / (2 * np.pi) * yaws).astype(np.int64) % yaws
         sbin[sel] = np.round(np.log(np.maximum(scale[sel], 1e-12)) / np.log(step))
         steps.append((yaws, step))
-    origin = _times3(s.xf[:, 3, :3], basis.T)
+    origin = _times3(s.origin, basis.T)
     col = np.floor((origin[:, 0] - u0) / px).astype(np.int64)
     row = np.floor((v1 - origin[:, 1]) / px).astype(np.int64)
     # one integer key per (prototype, yaw bin, scale bin); instances grouped by one sort

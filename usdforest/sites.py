@@ -70,18 +70,18 @@ def write_sites_csv(path: str | Path, replicates: list[Sites]) -> None:
     with atomic_path(path) as tmp, tmp.open("wb") as f:
         f.write(b"replicate,x,y,species,variant,yaw,scale\n")
         for r, s in enumerate(replicates):
-            f.write(
-                csvtext.rows(
-                    [
-                        csvtext.integers(np.full(len(s), r)),
-                        csvtext.fixed(s.xy[:, 0], 4),
-                        csvtext.fixed(s.xy[:, 1], 4),
-                        csvtext.labels(s.species, s.names),
-                        csvtext.integers(s.variant),
-                        csvtext.fixed(s.yaw, 3),
-                        csvtext.fixed(s.scale, 4),
-                    ]
-                )
+            csvtext.write_rows(
+                f,
+                len(s),
+                lambda i, r=r, s=s: [
+                    csvtext.integers(np.full(len(s.xy[i]), r)),
+                    csvtext.fixed(s.xy[i, 0], 4),
+                    csvtext.fixed(s.xy[i, 1], 4),
+                    csvtext.labels(s.species[i], s.names),
+                    csvtext.integers(s.variant[i]),
+                    csvtext.fixed(s.yaw[i], 3),
+                    csvtext.fixed(s.scale[i], 4),
+                ],
             )
 
 

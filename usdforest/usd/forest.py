@@ -23,6 +23,7 @@ from __future__ import annotations
 import re
 import shutil
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -218,20 +219,24 @@ def _write_csv(
 ) -> None:
     from .. import csvtext
 
-    body = csvtext.rows(
-        [
-            csvtext.integers(np.arange(len(sites))),
-            csvtext.fixed(sites.xy[:, 0], 4),
-            csvtext.fixed(sites.xy[:, 1], 4),
-            csvtext.fixed(z, 4),
-            csvtext.labels(sites.species, sites.names),
-            csvtext.integers(sites.variant),
-            csvtext.fixed(sites.yaw, 3),
-            csvtext.fixed(sites.scale, 4),
-            csvtext.fixed(heights[proto_index] * sites.scale, 3),
-        ]
-    )
-    path.write_bytes(b"id,x,y,z,species,variant,yaw,scale,height\n" + body)
+    height = heights[proto_index] * sites.scale
+    with path.open("wb") as f:
+        f.write(b"id,x,y,z,species,variant,yaw,scale,height\n")
+        csvtext.write_rows(
+            f,
+            len(sites),
+            lambda i: [
+                csvtext.integers(np.arange(len(sites))[i]),
+                csvtext.fixed(sites.xy[i, 0], 4),
+                csvtext.fixed(sites.xy[i, 1], 4),
+                csvtext.fixed(z[i], 4),
+                csvtext.labels(sites.species[i], sites.names),
+                csvtext.integers(sites.variant[i]),
+                csvtext.fixed(sites.yaw[i], 3),
+                csvtext.fixed(sites.scale[i], 4),
+                csvtext.fixed(height[i], 3),
+            ],
+        )
 
 
 def write_forest(
@@ -346,28 +351,37 @@ def write_forest(
                 staged / "ground.usdc",
             )
             sublayers.append(f"./{assets.name}/ground.usdc")
-        _write_csv(staged / "trees.csv", sites, heights, proto_index, ground_z)
-        (staged / "pipeline.toml").write_text(
-            "# The resolved recipe of this forest: usdforest build OUT.usda --pipeline this\n"
-            + tomli_w.dumps(resolved_toml(recipe, assets))
-        )
-        save_layer(
-            interface_layer(
-                build,
-                recipe,
-                sublayers,
-                f"./{assets.name}/{THUMBNAIL}" if thumbnail else None,
-            ),
-            tmp / out.name,
-        )
-        tick("writing instances", 1, 1)
-        if thumbnail:
-            from ..preview import preview
+        # the ground truth is written while the thumbnail renders (numpy lets go of the GIL);
+        # leaving the block waits for it, also on an error
+        with ThreadPoolExecutor(1) as pool:
+            csv = pool.submit(
+                _write_csv, staged / "trees.csv", sites, heights, proto_index, ground_z
+            )
+            (staged / "pipeline.toml").write_text(
+                "# The resolved recipe of this forest: usdforest build OUT.usda --pipeline this\n"
+                + tomli_w.dumps(resolved_toml(recipe, assets))
+            )
+            save_layer(
+                interface_layer(
+                    build,
+                    recipe,
+                    sublayers,
+                    f"./{assets.name}/{THUMBNAIL}" if thumbnail else None,
+                ),
+                tmp / out.name,
+            )
+            tick("writing instances", 1, 1)
+            if thumbnail:
+                from ..preview import preview
 
-            tick("thumbnail", 0, 1)
-            # the thumbnail lives in the assets folder, so it moves (and packs) with the forest
-            preview(tmp / out.name, staged / THUMBNAIL, view="iso", size=(256, 256), annotate=False)
-            tick("thumbnail", 1, 1)
+                tick("thumbnail", 0, 1)
+                # the thumbnail lives in the assets folder, so it moves (and packs) with the
+                # forest
+                preview(
+                    tmp / out.name, staged / THUMBNAIL, view="iso", size=(256, 256), annotate=False
+                )
+                tick("thumbnail", 1, 1)
+            csv.result()
         publish(tmp, out, tmp / out.name, [(staged, assets)])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
