@@ -13,11 +13,10 @@ import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from math import erf
 from pathlib import Path
 
 import numpy as np
-from matplotlib.path import Path as MplPath
-from scipy.special import erf
 
 from .errors import RecipeError, UsdForestError
 from .expr import Expression, compile_expression
@@ -68,7 +67,7 @@ class Polygon:
     """A simple polygon (no self-intersections), vertices in order, metres."""
 
     vertices: tuple[tuple[float, float], ...]
-    _path: MplPath = field(init=False, repr=False, compare=False)
+    _path: object = field(init=False, repr=False, compare=False)  # matplotlib's Path
 
     def __post_init__(self) -> None:
         v = np.asarray(self.vertices, dtype=float)
@@ -87,6 +86,8 @@ class Polygon:
         if abs(_shoelace(v)) <= 1e-12:
             raise RecipeError("region.vertices: the polygon has zero area")
         object.__setattr__(self, "vertices", tuple(map(tuple, v.tolist())))
+        from matplotlib.path import Path as MplPath  # imported only where a polygon is used
+
         object.__setattr__(self, "_path", MplPath(np.vstack([v, v[:1]]), closed=True))
 
     @property
@@ -428,22 +429,32 @@ def thin(
         x = rng.uniform(x0, x1, m)
         y = rng.uniform(y0, y1, m)
         u = rng.uniform(0.0, 1.0, m)
-        inside = region.contains(x, y)
-        x, y, u = x[inside], y[inside], u[inside]
+        if not isinstance(region, Rectangle):  # a rectangle holds every draw from its box
+            inside = region.contains(x, y)
+            x, y, u = x[inside], y[inside], u[inside]
         lam = intensity.evaluate(x, y)
-        if not np.all(np.isfinite(lam)) or np.any(lam < 0):
-            raise RecipeError("intensity is negative or not finite at a sampled site")
-        over = lam > lam_star * (1 + 1e-9)
-        if over.any():
-            k = int(np.argmax(over))
-            raise UsdForestError(
-                f"intensity {float(lam[k]):.6g} at ({x[k]:.2f}, {y[k]:.2f}) exceeds the bound "
-                f"lambda* = {lam_star:.6g}; thinning would be biased. Give a larger "
-                "'bound' in [intensity]"
-            )
+        # two reductions check it all (a NaN makes both fail); the message is worked out
+        # only when one does
+        if len(lam) and not (lam.min() >= 0 and lam.max() <= lam_star * (1 + 1e-9)):
+            _refuse(x, y, lam, lam_star)
         keep = u * lam_star < lam
         out.append(np.column_stack([x[keep], y[keep]]))
+    if len(out) == 1:
+        return out[0]
     return np.concatenate(out) if out else np.zeros((0, 2))
+
+
+def _refuse(x: np.ndarray, y: np.ndarray, lam: np.ndarray, lam_star: float) -> None:
+    """Raise the error for intensities ``lam`` at candidates ``x, y`` that thinning cannot
+    use: negative or not finite, or above the bound ``lam_star``."""
+    if not np.all(np.isfinite(lam)) or np.any(lam < 0):
+        raise RecipeError("intensity is negative or not finite at a sampled site")
+    k = int(np.argmax(lam > lam_star * (1 + 1e-9)))
+    raise UsdForestError(
+        f"intensity {float(lam[k]):.6g} at ({x[k]:.2f}, {y[k]:.2f}) exceeds the bound "
+        f"lambda* = {lam_star:.6g}; thinning would be biased. Give a larger "
+        "'bound' in [intensity]"
+    )
 
 
 def matern_ii(sites: np.ndarray, radius: float, rng: np.random.Generator) -> np.ndarray:
