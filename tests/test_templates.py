@@ -269,3 +269,23 @@ def test_templates_folder_is_self_contained_when_copied(tmp_path):
         shutil.copy(p, tmp_path / p.name)
         layer = Sdf.Layer.FindOrOpen(str(tmp_path / p.name))
         assert not layer.GetExternalReferences()
+
+
+def test_a_template_is_read_once_until_its_file_changes(tmp_path, monkeypatch):
+    import usdforest.usd.template as template
+
+    path = tmp_path / "t.usdc"
+    shutil.copyfile(template_dir() / "trunk.usdc", path)
+    reads = []
+    real = template._read_template
+    monkeypatch.setattr(template, "_read_template", lambda p: reads.append(p) or real(p))
+    first = read_template(path)
+    assert read_template(path) is first and len(reads) == 1
+    # the same file by another spelling of its path: the same reading, under that path
+    other = read_template(tmp_path / "." / "t.usdc")
+    assert other.path == tmp_path / "." / "t.usdc" and np.array_equal(other.hull, first.hull)
+    assert len(reads) == 1
+    # replaced by another template: read again
+    shutil.copyfile(template_dir() / "twig.usdc", path)
+    os.utime(path, ns=(0, path.stat().st_mtime_ns + 10**9))
+    assert read_template(path).name == "twig" and len(reads) == 2

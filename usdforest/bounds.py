@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 CHUNK = 400_000  # transformed points held at once
+SMALL = 20_000  # transformed points below which every instance is transformed
 
 
 def hull_vertices(points: np.ndarray) -> np.ndarray:
@@ -124,6 +125,9 @@ def instances_bounds(
     proto = np.asarray(proto)
     if len(proto) == 0:
         return EMPTY
+    sizes = np.array([len(h) for h in hulls])
+    if int(sizes[proto].sum()) <= SMALL:  # few enough that filtering costs more
+        return _transformed(hulls, proto, rows, translate, np.arange(len(proto)))
     centre = np.array([h.mean(axis=0) if len(h) else np.zeros(3) for h in hulls])
     radius = np.array(
         [

@@ -19,6 +19,7 @@ pairs, branch radius 0.7 x the trunk's, the right branch of a pair lifted 0.2-0.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -123,7 +124,13 @@ class Species:
     clumps: Clumps | None = None
 
     def lsystem(self) -> LSystem:
-        return make_lsystem(self.axiom, self.rules)
+        return _parsed(self.axiom, tuple(self.rules))
+
+
+@functools.lru_cache(maxsize=256)
+def _parsed(axiom: str, rules: tuple[str, ...]) -> LSystem:
+    """A species' L-system, parsed once per process (an LSystem is immutable)."""
+    return make_lsystem(axiom, rules)
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -164,9 +164,28 @@ class TemplateInfo:
         return WoodShape(max(self.base_radius, 1e-6), self.centreline, max(self.tip_radius, 0.0))
 
 
+_READ: dict[tuple[str, int, int], TemplateInfo] = {}
+
+
 def read_template(path: str | Path) -> TemplateInfo:
-    """Read a template layer's part type, normalised radii, centreline and convex hull."""
+    """Read a template layer's part type, normalised radii, centreline and convex hull; once
+    per process while the file is unchanged (same size and modification time)."""
     path = Path(path)
+    try:
+        st = path.stat()
+        key = (str(path.resolve()), st.st_mtime_ns, st.st_size)
+    except OSError:
+        key = None
+    if key is not None and key in _READ:
+        info = _READ[key]
+        return info if info.path == path else replace(info, path=path)
+    info = _read_template(path)
+    if key is not None:
+        _READ[key] = info
+    return info
+
+
+def _read_template(path: Path) -> TemplateInfo:
     layer = Sdf.Layer.FindOrOpen(str(path))
     if layer is None:
         raise UsdForestError(f"{path}: cannot open the template layer")
