@@ -29,10 +29,16 @@ class RayCaster:
             )
 
     def first_hit(
-        self, origins: np.ndarray, directions: np.ndarray, max_range: float = np.inf
+        self,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        max_range: float = np.inf,
+        *,
+        beyond: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Distance along each unit direction to the first triangle (inf if none within
-        ``max_range``) and that triangle's index (-1 if none)."""
+        ``max_range``) and that triangle's index (-1 if none). ``beyond`` (per ray): hits
+        farther than this are not looked for (Embree stops there; they may be missed)."""
         n = len(origins)
         t = np.full(n, np.inf)
         prim = np.full(n, -1, dtype=np.int64)
@@ -40,10 +46,16 @@ class RayCaster:
             return t, prim
         o = np.ascontiguousarray(origins, dtype=np.float32)
         d = np.ascontiguousarray(directions, dtype=np.float32)
+        far = None
+        if beyond is not None:  # float32, rounded up: never below the float64 limit
+            b = np.asarray(beyond, dtype=np.float64)
+            far = b.astype(np.float32)
+            far = np.where(far < b, np.nextafter(far, np.float32(np.inf)), far)
 
         def run(start: int) -> None:
             sl = slice(start, min(start + CHUNK, n))
-            res = self._scene.run(o[sl], d[sl], output=1)
+            dists = None if far is None else np.ascontiguousarray(far[sl])
+            res = self._scene.run(o[sl], d[sl], dists=dists, output=1)
             hit = res["geomID"] >= 0
             tt = np.where(hit, res["tfar"], np.inf).astype(float)
             t[sl] = tt
@@ -233,12 +245,18 @@ class SceneCaster:
                 tca = np.einsum("ij,ij->i", oc, dd)
                 inside = r * r - (np.einsum("ij,ij->i", oc, oc) - tca * tca)
             enter = tca - np.sqrt(np.maximum(inside, 0.0))
-            idx = rays[(inside >= 0) & (tca + r >= 0) & (enter < limit[rays])]
+            keep = (inside >= 0) & (tca + r >= 0) & (enter < limit[rays])
+            idx = rays[keep]
             if idx.size == 0:
                 return None
-            lo = (o[idx] - self.shift[k]) @ self.inv[k]
-            ld = d[idx] @ self.inv[k]
-            return idx, *self._protos[self.scene.instances.proto[k]].first_hit(lo, ld)
+            if shared:  # one origin: moved into the instance's space once
+                lo = np.broadcast_to((o[:1] - self.shift[k]) @ self.inv[k], (idx.size, 3))
+            else:
+                lo = (o[idx] - self.shift[k]) @ self.inv[k]
+            ld = dd[keep] @ self.inv[k]
+            # Embree stops at each ray's best hit so far: a crown behind it is not walked
+            caster = self._protos[self.scene.instances.proto[k]]
+            return idx, *caster.first_hit(lo, ld, beyond=limit[idx])
 
         with ThreadPoolExecutor(workers) as pool:
             for w in range(0, len(visit), wave):
