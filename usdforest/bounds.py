@@ -56,12 +56,15 @@ def _outside_octagon_mask(p: np.ndarray) -> np.ndarray:
     """Mask of the ``(n, 2)`` points not strictly inside their extreme octagon."""
     if len(p) < 64:
         return np.ones(len(p), dtype=bool)
-    keys = np.stack([p[:, 0], p[:, 0] + p[:, 1], p[:, 1], p[:, 1] - p[:, 0]], axis=1)
-    ext = np.concatenate([np.argmax(keys, axis=0), np.argmin(keys, axis=0)])
+    x, y = p[:, 0].copy(), p[:, 1].copy()
+    keys = (x, x + y, y, y - x)
+    ext = [int(np.argmax(k)) for k in keys] + [int(np.argmin(k)) for k in keys]
     ring = p[ext]  # east, north-east, north, north-west, west, ...: counter-clockwise
     edge = np.roll(ring, -1, axis=0) - ring
-    cross = edge[:, 0] * (p[:, None, 1] - ring[:, 1]) - edge[:, 1] * (p[:, None, 0] - ring[:, 0])
-    return ~np.all(cross > 0, axis=1)
+    inside = np.ones(len(p), dtype=bool)
+    for (ex, ey), (rx, ry) in zip(edge, ring, strict=True):  # an edge at a time, in place
+        inside &= ex * (y - ry) - ey * (x - rx) > 0
+    return ~inside
 
 
 @dataclass(frozen=True)

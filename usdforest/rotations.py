@@ -19,17 +19,15 @@ def quat_from_matrix(rot: np.ndarray) -> np.ndarray:
     q = np.empty((len(m), 4))
     for i in range(3):
         j, k = (i + 1) % 3, (i + 2) % 3
-        sel = choice == i
-        s = m[sel]
-        q[sel, i] = 1 - trace[sel] + 2 * s[:, i, i]
-        q[sel, j] = s[:, j, i] + s[:, i, j]
-        q[sel, k] = s[:, k, i] + s[:, i, k]
-        q[sel, 3] = s[:, k, j] - s[:, j, k]
-    sel = choice == 3
-    s = m[sel]
-    q[sel, 0] = s[:, 2, 1] - s[:, 1, 2]
-    q[sel, 1] = s[:, 0, 2] - s[:, 2, 0]
-    q[sel, 2] = s[:, 1, 0] - s[:, 0, 1]
+        sel = np.flatnonzero(choice == i)
+        q[sel, i] = 1 - trace[sel] + 2 * m[sel, i, i]
+        q[sel, j] = m[sel, j, i] + m[sel, i, j]
+        q[sel, k] = m[sel, k, i] + m[sel, i, k]
+        q[sel, 3] = m[sel, k, j] - m[sel, j, k]
+    sel = np.flatnonzero(choice == 3)
+    q[sel, 0] = m[sel, 2, 1] - m[sel, 1, 2]
+    q[sel, 1] = m[sel, 0, 2] - m[sel, 2, 0]
+    q[sel, 2] = m[sel, 1, 0] - m[sel, 0, 1]
     q[sel, 3] = 1 + trace[sel]
     return q / _norm4(q)[:, None]
 

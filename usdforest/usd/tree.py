@@ -156,9 +156,21 @@ def gf_rotation_rows(q: np.ndarray) -> np.ndarray:
     quaternion gives the matrix a reader computes."""
     i, j, k, r = (q[:, n] for n in range(4))
     m = np.empty((len(q), 3, 3))
-    m[:, 0] = np.stack([1 - 2 * (j * j + k * k), 2 * (i * j + k * r), 2 * (i * k - j * r)], 1)
-    m[:, 1] = np.stack([2 * (i * j - k * r), 1 - 2 * (k * k + i * i), 2 * (j * k + i * r)], 1)
-    m[:, 2] = np.stack([2 * (i * k + j * r), 2 * (j * k - i * r), 1 - 2 * (j * j + i * i)], 1)
+    m[:, 0, 0], m[:, 0, 1], m[:, 0, 2] = (
+        1 - 2 * (j * j + k * k),
+        2 * (i * j + k * r),
+        2 * (i * k - j * r),
+    )
+    m[:, 1, 0], m[:, 1, 1], m[:, 1, 2] = (
+        2 * (i * j - k * r),
+        1 - 2 * (k * k + i * i),
+        2 * (j * k + i * r),
+    )
+    m[:, 2, 0], m[:, 2, 1], m[:, 2, 2] = (
+        2 * (i * k + j * r),
+        2 * (j * k - i * r),
+        1 - 2 * (j * j + i * i),
+    )
     return m
 
 
