@@ -7,7 +7,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from usdforest.species import get_species
-from usdforest.usd.tree import write_tree
+from usdforest.usd.tree import build_tree, write_tree
 
 BROADLEAF = get_species("broadleaf")
 OUT = Path(tempfile.mkdtemp(prefix="usdforest-bench-"))
@@ -19,8 +19,18 @@ def _tree(leaves_per_site: float) -> tuple[int, str]:
     return b.placement.n_leaves, "leaves"
 
 
+def _preset(name: str) -> tuple[int, str, str]:
+    """A preset grown, placed and bounded with its levels of detail (no file written)."""
+    b = build_tree(get_species(name), seed=1)
+    return b.placement.n_leaves, "leaves", "built in memory"
+
+
 BENCHMARKS = {
     "tree: broadleaf, ~1k leaves, written": lambda: _tree(3.0),
     "tree: broadleaf, ~10k leaves, written": lambda: _tree(28.0),
     "tree: broadleaf, ~100k leaves, written": lambda: _tree(285.0),
+    "tree: broadleaf, ~1M leaves, written": lambda: _tree(2850.0),
+    "tree: paper-rule-1 preset, built": lambda: _preset("paper-rule-1"),
+    "tree: paper-rule-3 preset, built": lambda: _preset("paper-rule-3"),
+    "tree: pine preset, built": lambda: _preset("pine"),
 }

@@ -158,6 +158,7 @@ def stands(out: Path, work: Path) -> None:
         ("paper-two-tree-stand", "iso", (700, 600)),
         ("default", "iso", (900, 700)),
         ("stand-1ha", "top", (560, 560)),
+        ("stress-1m", "iso", (700, 520)),
     ):
         path = work / f"{name}.usda"
         write_forest(read_recipe(PIPELINES / f"{name}.toml"), path, thumbnail=False)
