@@ -24,6 +24,7 @@ Pure numpy (no pxr): the USD writer (:mod:`usdforest.usd.tree`) only copies thes
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -35,6 +36,7 @@ from .skeleton import Skeleton
 from .species import Clumps, Geometry
 
 CENTRELINE_SAMPLES = 33
+LEAF_CHUNK = 50_000  # leaves placed per task
 MAX_BEND_EXAGGERATION = 1.5
 
 
@@ -398,6 +400,45 @@ def _leaves(sk: Skeleton, g: Geometry, rng: np.random.Generator) -> dict[str, np
     count = 1 + extra
     site = np.repeat(np.arange(sites), count)
     k = np.arange(site.size) - np.repeat(np.cumsum(count) - count, count)  # index within site
+    n = site.size
+    # the random draws first, in the order they have always been drawn; the geometry, the
+    # same arithmetic leaf by leaf, then runs in chunks on every core (numpy lets go of the GIL)
+    spread = rng.uniform(0.0, g.leaf_spread, n)
+    turn = rng.uniform(-20.0, 20.0, n)
+    lean = rng.uniform(-g.leaf_angle_jitter, g.leaf_angle_jitter, n)
+    tilt = rng.uniform(-35.0, 35.0, n)
+    grow = rng.standard_normal(n)
+    terminal_seg = sk.is_terminal()
+
+    def chunk(sl: slice) -> dict[str, np.ndarray]:
+        return _leaf_frames(
+            sk, g, terminal_seg, site[sl], k[sl], spread[sl], turn[sl], lean[sl], tilt[sl], grow[sl]
+        )
+
+    parts = [slice(a, min(a + LEAF_CHUNK, n)) for a in range(0, n, LEAF_CHUNK)]
+    if len(parts) == 1:
+        return chunk(parts[0])
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(min(len(parts), os.cpu_count() or 1)) as pool:
+        done = list(pool.map(chunk, parts))
+    return {key: np.concatenate([d[key] for d in done]) for key in done[0]}
+
+
+def _leaf_frames(
+    sk: Skeleton,
+    g: Geometry,
+    terminal_seg: np.ndarray,
+    site: np.ndarray,
+    k: np.ndarray,
+    spread: np.ndarray,
+    turn: np.ndarray,
+    lean: np.ndarray,
+    tilt_deg: np.ndarray,
+    grow: np.ndarray,
+) -> dict[str, np.ndarray]:
+    """Positions, orientations and sizes of the leaves at ``site`` (their index ``k`` within
+    it), from their random draws."""
     seg = sk.leaf_segment[site]
     has_seg = seg >= 0
     segc = np.maximum(seg, 0)
@@ -406,9 +447,9 @@ def _leaves(sk: Skeleton, g: Geometry, rng: np.random.Generator) -> dict[str, np
     seg_dir = np.where(
         has_seg[:, None], seg_dir / np.maximum(seg_len, 1e-300)[:, None], sk.leaf_frame[site, 0]
     )
-    terminal = sk.is_terminal()[segc] & has_seg
+    terminal = terminal_seg[segc] & has_seg
     # spread back from the tip of terminal segments; leaves of inner nodes stay at the node
-    along = np.where(terminal, rng.uniform(0.0, g.leaf_spread, site.size) * seg_len, 0.0)
+    along = np.where(terminal, spread * seg_len, 0.0)
     along = np.where(k == 0, 0.0, along)
     pos = sk.leaf_position[site] - seg_dir * along[:, None]
 
@@ -419,11 +460,9 @@ def _leaves(sk: Skeleton, g: Geometry, rng: np.random.Generator) -> dict[str, np
     e1[bad] = frame[bad, 2]
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
     e2 = np.cross(seg_dir, e1)
-    phi = np.radians(k * g.phyllotaxis + rng.uniform(-20.0, 20.0, site.size))
+    phi = np.radians(k * g.phyllotaxis + turn)
     out = np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2
-    alpha = np.radians(
-        g.leaf_angle + rng.uniform(-g.leaf_angle_jitter, g.leaf_angle_jitter, site.size)
-    )
+    alpha = np.radians(g.leaf_angle + lean)
     blade = np.cos(alpha)[:, None] * seg_dir + np.sin(alpha)[:, None] * out
     blade /= np.linalg.norm(blade, axis=1, keepdims=True)
     # offset to the twig's surface
@@ -436,16 +475,12 @@ def _leaves(sk: Skeleton, g: Geometry, rng: np.random.Generator) -> dict[str, np
     flat = np.linalg.norm(n, axis=1) < 1e-6
     n[flat] = out[flat]
     n /= np.linalg.norm(n, axis=1, keepdims=True)
-    tilt = np.radians(rng.uniform(-35.0, 35.0, site.size))
+    tilt = np.radians(tilt_deg)
     side = np.cross(n, blade)
     n = np.cos(tilt)[:, None] * n + np.sin(tilt)[:, None] * side
     y = np.cross(n, blade)
     rot = np.stack([blade, y, n], axis=2)  # template +X -> blade, +Z -> normal
-    size = (
-        g.leaf_size
-        * sk.leaf_size[site]
-        * np.clip(1.0 + g.leaf_size_jitter * rng.standard_normal(site.size), 0.4, 1.8)
-    )
+    size = g.leaf_size * sk.leaf_size[site] * np.clip(1.0 + g.leaf_size_jitter * grow, 0.4, 1.8)
     return {
         "leaf_position": pos,
         "leaf_orient": quat_from_matrix(rot),

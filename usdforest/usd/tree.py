@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -130,8 +131,7 @@ def build_tree(
         stream(seed, species.name, variant, "place"),
         clumps=species.clumps,
     )
-    lv = levels(placement)
-    bounds = _level_bounds(placement, infos, lv)
+    lv, bounds = _levels_and_bounds(placement, infos)
     return TreeBuild(
         grown,
         placement,
@@ -193,16 +193,30 @@ def instances_bounds_as_stored(
     return instances_bounds([infos[t].hull for t in templates], proto, rows, pos)
 
 
-def _level_bounds(p: Placement, infos: Mapping[str, TemplateInfo], lv: Levels) -> dict[str, Bounds]:
-    wood = _wood_bounds(p, infos)
-    leaves = instances_bounds_as_stored(
-        p.leaf_position, p.leaf_orient, p.leaf_scale, p.leaf_proto, p.leaf_templates, infos
-    )
-    c = lv.clusters
-    clusters = instances_bounds_as_stored(
-        c["position"], c["orient"], c["scale"], c["proto"], p.leaf_templates, infos
-    )
-    return {
+def _levels_and_bounds(
+    p: Placement, infos: Mapping[str, TemplateInfo]
+) -> tuple[Levels, dict[str, Bounds]]:
+    """The lighter levels of detail and every level's exact bounds; the crown hull (qhull)
+    and the leaves' bounds (numpy) let go of the GIL, so they run beside the rest."""
+    with ThreadPoolExecutor(2) as pool:
+        lv_done = pool.submit(levels, p)
+        leaves_done = pool.submit(
+            instances_bounds_as_stored,
+            p.leaf_position,
+            p.leaf_orient,
+            p.leaf_scale,
+            p.leaf_proto,
+            p.leaf_templates,
+            infos,
+        )
+        wood = _wood_bounds(p, infos)
+        lv = lv_done.result()
+        c = lv.clusters
+        clusters = instances_bounds_as_stored(
+            c["position"], c["orient"], c["scale"], c["proto"], p.leaf_templates, infos
+        )
+        leaves = leaves_done.result()
+    return lv, {
         "full": Bounds.union([wood, leaves]),
         "medium": Bounds.union([wood, clusters]),
         "proxy": Bounds.of_points(lv.proxy_vertices()),
