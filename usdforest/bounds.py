@@ -56,6 +56,14 @@ def _outside_octagon_mask(p: np.ndarray) -> np.ndarray:
     """Mask of the ``(n, 2)`` points not strictly inside their extreme octagon."""
     if len(p) < 64:
         return np.ones(len(p), dtype=bool)
+    if len(p) < 20_000:  # few points: one broadcast beats eight passes
+        keys = np.stack([p[:, 0], p[:, 0] + p[:, 1], p[:, 1], p[:, 1] - p[:, 0]], axis=1)
+        ring = p[np.concatenate([np.argmax(keys, axis=0), np.argmin(keys, axis=0)])]
+        edge = np.roll(ring, -1, axis=0) - ring
+        cross = edge[:, 0] * (p[:, None, 1] - ring[:, 1]) - edge[:, 1] * (
+            p[:, None, 0] - ring[:, 0]
+        )
+        return ~np.all(cross > 0, axis=1)
     x, y = p[:, 0].copy(), p[:, 1].copy()
     keys = (x, x + y, y, y - x)
     ext = [int(np.argmax(k)) for k in keys] + [int(np.argmin(k)) for k in keys]
@@ -154,8 +162,12 @@ def _transformed(
     translate: np.ndarray,
     which: np.ndarray,
 ) -> Bounds:
-    """Bounds of the instances ``which``, every hull vertex transformed."""
-    parts = []
+    """Bounds of the instances ``which``, every hull vertex transformed (up to ``CHUNK``
+    points held at once, of every prototype: one footprint hull per batch, not per
+    prototype)."""
+    parts: list[Bounds] = []
+    batch: list[np.ndarray] = []
+    held = 0
     for k, hull in enumerate(hulls):
         sel = which[proto[which] == k]
         if len(sel) == 0 or len(hull) == 0:
@@ -164,8 +176,14 @@ def _transformed(
         for start in range(0, len(sel), step):
             i = sel[start : start + step]
             pts = np.einsum("cj,njk->nck", hull, rows[i]) + translate[i, None, :]
-            parts.append(Bounds.of_points(pts))
-    return Bounds.union(parts)
+            batch.append(pts.reshape(-1, 3))
+            held += len(batch[-1])
+            if held >= CHUNK:
+                parts.append(Bounds.of_points(np.concatenate(batch)))
+                batch, held = [], 0
+    if batch:
+        parts.append(Bounds.of_points(np.concatenate(batch)))
+    return parts[0] if len(parts) == 1 else Bounds.union(parts)
 
 
 def _extreme_anchors(anchor: np.ndarray) -> np.ndarray:

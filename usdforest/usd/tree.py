@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Mapping
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -193,12 +193,28 @@ def instances_bounds_as_stored(
     return instances_bounds([infos[t].hull for t in templates], proto, rows, pos)
 
 
+class _InPlace:
+    """An executor that runs each task when it is submitted."""
+
+    def __enter__(self) -> _InPlace:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    def submit(self, fn, *args):
+        done: Future = Future()
+        done.set_result(fn(*args))
+        return done
+
+
 def _levels_and_bounds(
     p: Placement, infos: Mapping[str, TemplateInfo]
 ) -> tuple[Levels, dict[str, Bounds]]:
-    """The lighter levels of detail and every level's exact bounds; the crown hull (qhull)
-    and the leaves' bounds (numpy) let go of the GIL, so they run beside the rest."""
-    with ThreadPoolExecutor(2) as pool:
+    """The lighter levels of detail and every level's exact bounds; for a large tree the
+    crown hull (qhull) and the leaves' bounds (numpy) run beside the rest (both let go of
+    the GIL; a small tree is quicker without the threads)."""
+    with ThreadPoolExecutor(2) if p.n_leaves >= 20_000 else _InPlace() as pool:
         lv_done = pool.submit(levels, p)
         leaves_done = pool.submit(
             instances_bounds_as_stored,
