@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -267,36 +267,36 @@ def place(
     every = np.arange(len(base))
     tip = translate + vec + lateral(every, np.ones(len(base)))
 
-    if clumps is not None:
-        leaves = _clump_instances(clumps, rng)
-        seg = leaves["leaf_segment"][:0]
-    else:
-        leaves = _leaves(sk, geometry, rng)
-        seg = leaves["leaf_segment"]
-        leaves["leaf_templates"] = (geometry.leaf,)
-        leaves["leaf_proto"] = np.zeros(len(seg), dtype=np.int32)
-        leaves["leaf_scale"] = np.repeat(leaves["leaf_scale"][:, None], 3, axis=1)
-    out = leaves.pop("leaf_out")
-    if seg.size:
+    rt = np.array(
+        [
+            rn_t[i] if shapes[n].tip_radius is None else shapes[n].tip_radius
+            for i, n in enumerate(templates)
+        ]
+    )
+
+    def on_surface(position: np.ndarray, seg: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """Leaves moved onto the placed template's surface: its bent centreline, its
+        tapered radius (leaf by leaf, so a chunk at a time gives the same numbers)."""
         on = seg >= 0
         r = run_of[seg[on]]
         u = np.clip(
-            np.einsum("ij,ij->i", leaves["leaf_position"][on] - base[r], vec[r]) / length[r] ** 2,
-            0.0,
-            1.0,
-        )
-        # onto the placed template's surface: its bent centreline, its tapered radius
-        rt = np.array(
-            [
-                rn_t[i] if shapes[n].tip_radius is None else shapes[n].tip_radius
-                for i, n in enumerate(templates)
-            ]
+            np.einsum("ij,ij->i", position[on] - base[r], vec[r]) / length[r] ** 2, 0.0, 1.0
         )
         t = template[r]
         surface = scale[r, 0] * (rn_t[t] + u * (rt[t] - rn_t[t]))
-        leaves["leaf_position"][on] = (
+        position[on] = (
             translate[r] + u[:, None] * vec[r] + lateral(r, u) + out[on] * surface[:, None]
         )
+        return position
+
+    if clumps is not None:
+        leaves = _clump_instances(clumps, rng)
+    else:
+        leaves = _leaves(sk, geometry, rng, on_surface)
+        leaves["leaf_templates"] = (geometry.leaf,)
+        leaves["leaf_proto"] = np.zeros(len(leaves["leaf_segment"]), dtype=np.int32)
+        leaves["leaf_scale"] = np.repeat(leaves["leaf_scale"][:, None], 3, axis=1)
+    leaves.pop("leaf_out")
     return Placement(
         templates=templates,
         translate=translate,
@@ -385,7 +385,12 @@ def _clump_instances(c: Clumps, rng: np.random.Generator) -> dict:
     }
 
 
-def _leaves(sk: Skeleton, g: Geometry, rng: np.random.Generator) -> dict[str, np.ndarray]:
+def _leaves(
+    sk: Skeleton, g: Geometry, rng: np.random.Generator, finish: Callable | None = None
+) -> dict[str, np.ndarray]:
+    """Leaves at the skeleton's leaf sites; ``finish(position, segment, out)`` moves each
+    chunk's positions onto the placed wood."""
+
     sites = sk.n_leaves
     if sites == 0:
         empty = np.zeros((0, 3))
@@ -411,9 +416,14 @@ def _leaves(sk: Skeleton, g: Geometry, rng: np.random.Generator) -> dict[str, np
     terminal_seg = sk.is_terminal()
 
     def chunk(sl: slice) -> dict[str, np.ndarray]:
-        return _leaf_frames(
+        leaves = _leaf_frames(
             sk, g, terminal_seg, site[sl], k[sl], spread[sl], turn[sl], lean[sl], tilt[sl], grow[sl]
         )
+        if finish is not None and len(leaves["leaf_segment"]):
+            leaves["leaf_position"] = finish(
+                leaves["leaf_position"], leaves["leaf_segment"], leaves["leaf_out"]
+            )
+        return leaves
 
     parts = [slice(a, min(a + LEAF_CHUNK, n)) for a in range(0, n, LEAF_CHUNK)]
     if len(parts) == 1:
