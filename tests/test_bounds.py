@@ -87,3 +87,67 @@ def test_yawed_extent_equals_every_footprint_vertex_turned(seed, n):
         z.append(z_ranges[proto[i]] * scale[i] + base[i])
     x, y, z = (np.concatenate(v) for v in (x, y, z))
     np.testing.assert_array_equal(e, [[x.min(), y.min(), z.min()], [x.max(), y.max(), z.max()]])
+
+
+def test_rounding_of_a_rank_one_map_is_allowed_for():
+    """A map of rank one and a two-point hull: the transformed points round away from their
+    anchor by an ulp; the filter's reach leaves room for it (found by a review fuzzer)."""
+    rng = np.random.default_rng(5)
+    for _ in range(200_000):  # an instance whose top point rounds above anchor + reach
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        c = rng.normal(size=3) * rng.choice([1, 100, 1e4])
+        r = rng.uniform(0.1, 3)
+        hull = np.stack([c - r * u, c + r * u])
+        rows = np.zeros((1, 3, 3))
+        rows[0, :, 2] = u * rng.uniform(0.3, 3)
+        shift = np.array([[0.0, 0.0, rng.normal() * 10]])
+        top = (np.einsum("cj,njk->nck", hull, rows) + shift[:, None])[0, :, 2].max()
+        anchor = (hull.mean(axis=0) @ rows[0] + shift[0])[2]
+        if anchor + np.linalg.norm(rows[0]) * r < np.nextafter(top, -np.inf):
+            break
+    below = np.nextafter(top, -np.inf)
+    n = 21_000  # enough to take the filtered path, all but one reaching exactly `below`
+    hulls = [hull, np.zeros((1, 3))]
+    proto = np.r_[0, np.ones(n, dtype=int)]
+    maps = np.concatenate([rows, np.repeat(np.eye(3)[None], n, axis=0)])
+    t = np.zeros((n + 1, 3))
+    t[0] = shift[0]
+    a = rng.uniform(0, 2 * np.pi, n)
+    t[1:, 0], t[1:, 1] = 1e3 * np.cos(a), 1e3 * np.sin(a)
+    t[1:, 2] = rng.uniform(-1e3, below - 1, n)
+    t[1, 2] = below
+    b = instances_bounds(hulls, proto, maps, t)
+    assert b.extent[1, 2] == top
+
+
+def test_yawed_extent_with_negative_and_zero_scales():
+    rng = np.random.default_rng(3)
+    feet = [rng.normal(size=(12, 2)) * 3 for _ in range(2)]
+    z_ranges = np.array([[0.0, 10.0], [-1.0, 4.0]])
+    n = 400
+    proto = rng.integers(0, 2, n)
+    xy = rng.uniform(0, 50, (n, 2))
+    yaw = rng.uniform(0, 2 * np.pi, n)
+    scale = rng.lognormal(0, 0.3, n) * rng.choice([-1.0, 1.0], n)
+    scale[:20] = 0.0
+    base = rng.normal(size=n)
+    e = yawed_extent(feet, z_ranges, proto, xy, (np.cos(yaw), np.sin(yaw)), scale, base)
+    x = np.concatenate(
+        [
+            (np.cos(yaw[i]) * feet[proto[i]][:, 0] - np.sin(yaw[i]) * feet[proto[i]][:, 1])
+            * scale[i]
+            + xy[i, 0]
+            for i in range(n)
+        ]
+    )
+    y = np.concatenate(
+        [
+            (np.sin(yaw[i]) * feet[proto[i]][:, 0] + np.cos(yaw[i]) * feet[proto[i]][:, 1])
+            * scale[i]
+            + xy[i, 1]
+            for i in range(n)
+        ]
+    )
+    z = np.concatenate([z_ranges[proto[i]] * scale[i] + base[i] for i in range(n)])
+    np.testing.assert_array_equal(e, [[x.min(), y.min(), z.min()], [x.max(), y.max(), z.max()]])

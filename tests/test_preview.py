@@ -169,3 +169,29 @@ def test_forest_sprites_cover_what_expanding_every_tree_covers(default_forest):
     b = np.abs(ref - sky).sum(axis=2) >= 0.02
     assert a.sum() > 3000
     assert (a & b).sum() / (a | b).sum() > 0.85
+
+
+def test_a_sheared_or_squashed_forest_is_not_drawn_as_sprites(default_forest, tmp_path):
+    """Sprites stand only for trees turned about +Z and scaled uniformly: under a shear (or
+    a scale that differs across x and y) every tree's samples are transformed instead."""
+    from pxr import Gf, UsdGeom
+
+    from usdforest.preview import stage_cloud
+
+    for name, row in (("shear", (0.8, 1.0, 0.0, 0.0)), ("squash", (0.0, 3.0, 0.0, 0.0))):
+        wrap = tmp_path / f"{name}.usda"
+        st = Usd.Stage.CreateNew(str(wrap))
+        UsdGeom.SetStageUpAxis(st, UsdGeom.Tokens.z)
+        x = UsdGeom.Xform.Define(st, "/W")
+        m = Gf.Matrix4d(1.0)
+        m.SetRow(1, Gf.Vec4d(*row))
+        x.AddTransformOp().Set(m)
+        st.SetDefaultPrim(x.GetPrim())
+        x.GetPrim().GetReferences().AddReference(str(default_forest))
+        st.GetRootLayer().Save()
+        stamps = []
+        cloud = stage_cloud(Usd.Stage.Open(str(wrap)), spacing=1.0, stamps=stamps)
+        assert stamps == [] and len(cloud) > 1000, name
+    stamps = []
+    stage_cloud(Usd.Stage.Open(str(default_forest)), spacing=1.0, stamps=stamps)
+    assert len(stamps) == 1 and len(stamps[0].scale) > 50

@@ -408,3 +408,23 @@ def test_species_from_extracted_profile(cad_samples, tmp_path, runner):
     assert validate(tmp_path / "t.usda") == []
     used = stage_info(tmp_path / "t.usda")["layers"]
     assert "t_assets/templates/trunk.usdc" in used and "t_assets/templates/branch.usdc" in used
+
+
+def test_leaves_placed_in_chunks_are_the_leaves_placed_at_once(monkeypatch):
+    """The thread pool's chunks give the same bits as one pass over every leaf."""
+    from dataclasses import replace
+
+    import usdforest.placement as placement
+    from usdforest.species import get_species
+    from usdforest.usd.tree import build_tree
+
+    sp = get_species("broadleaf")
+    sp = replace(sp, geometry=replace(sp.geometry, leaves_per_site=30.0))
+    monkeypatch.setattr(placement, "LEAF_CHUNK", 997)
+    chunked = build_tree(sp, seed=4)
+    monkeypatch.setattr(placement, "LEAF_CHUNK", 10**9)
+    whole = build_tree(sp, seed=4)
+    assert chunked.placement.n_leaves > 5 * 997
+    for f in ("leaf_position", "leaf_orient", "leaf_scale", "leaf_segment"):
+        assert np.array_equal(getattr(chunked.placement, f), getattr(whole.placement, f)), f
+    assert np.array_equal(chunked.extent, whole.extent)

@@ -147,7 +147,11 @@ def instances_bounds(
         ]
     )
     anchor = np.einsum("nj,njk->nk", centre[proto], rows) + translate
-    reach = np.sqrt(np.einsum("nij,nij->n", rows, rows)) * radius[proto]  # Frobenius
+    norm = np.sqrt(np.einsum("nij,nij->n", rows, rows))  # Frobenius >= largest singular value
+    # and room for the rounding of the transformed points against their anchor's
+    size = np.abs(centre[proto]).max(axis=1) + radius[proto]
+    room = 8 * np.finfo(float).eps * (size * norm + np.abs(translate).max(axis=1))
+    reach = norm * radius[proto] * (1 + 1e-9) + room
     seed = _extreme_anchors(anchor)
     inner = _transformed(hulls, proto, rows, translate, seed)
     keep = _may_reach_boundary(anchor, reach, inner)
@@ -256,7 +260,9 @@ def yawed_extent(
     # every turned, scaled footprint lies within its reach of its anchor (x, y): only the
     # instances within reach of the extent of the extreme ones can widen it
     radius = np.array([np.sqrt((f * f).sum(axis=1)).max() if len(f) else 0.0 for f in footprints])
-    reach = radius[proto] * np.sqrt(c * c + s * s) * scale * (1 + 1e-9) + 1e-9
+    sc = np.abs(scale)
+    room = 8 * np.finfo(float).eps * (radius[proto] * sc + np.abs(xy).max(axis=1))
+    reach = radius[proto] * np.sqrt(c * c + s * s) * sc * (1 + 1e-9) + room
     seed = np.unique(np.concatenate([xy.argmin(axis=0), xy.argmax(axis=0)]))
     inner = _yawed(footprints, z_ranges, proto, xy, turn, scale, base_z, seed)
     near = (xy - reach[:, None] <= inner[0, :2]) | (xy + reach[:, None] >= inner[1, :2])

@@ -430,7 +430,8 @@ def _leaves(
         return chunk(parts[0])
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(min(len(parts), os.cpu_count() or 1)) as pool:
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    with ThreadPoolExecutor(min(len(parts), cores or 1)) as pool:
         done = list(pool.map(chunk, parts))
     return {key: np.concatenate([d[key] for d in done]) for key in done[0]}
 

@@ -224,7 +224,8 @@ def stage_cloud(
                 np.all(np.abs(lin[:, 2, :2]) <= 1e-6 * s[:, None])
                 and np.all(np.abs(lin[:, :2, 2]) <= 1e-6 * s[:, None])
                 and np.allclose(lin[:, 2, 2], s, rtol=1e-2)
-                and np.allclose(lin[:, 1, 1], lin[:, 0, 0], rtol=1e-6, atol=1e-9)
+                and np.allclose(lin[:, 1, 1], lin[:, 0, 0], rtol=1e-6, atol=1e-9 * s.max())
+                and np.allclose(lin[:, 1, 0], -lin[:, 0, 1], rtol=1e-6, atol=1e-9 * s.max())
             ):
                 return False
             scale[a : a + len(s)] = s
@@ -411,17 +412,18 @@ class _ZBuffer:
 
 
 STAMP_BATCH = 2_000_000  # stamped pixels drawn at once
+MAX_YAW_BINS = 256  # half a pixel of turn up to a tree 20 pixels in radius
 
 
 def _bins(cloud: Cloud, scale: np.ndarray, px: float) -> tuple[int, float]:
     """Yaw bins and scale step for sprites of ``cloud`` that stay within half a pixel of
     the instance they stand for: as many yaws as its widest point's circle has half pixels
-    (up to 64), a scale step of half a pixel over its reach (at least 1 %)."""
+    (up to ``MAX_YAW_BINS``), a scale step of half a pixel over its reach (at least 1 %)."""
     if len(cloud) == 0 or len(scale) == 0:
         return 1, 2.0
     p = cloud.points
     reach = float(np.sqrt((p * p).sum(axis=1)).max()) * float(np.median(scale)) / px
-    yaws = int(np.clip(np.ceil(4 * np.pi * reach), 1, 64))
+    yaws = int(np.clip(np.ceil(4 * np.pi * reach), 1, MAX_YAW_BINS))
     return yaws, 1.0 + max(0.5 / max(reach, 1e-9), 0.01)
 
 

@@ -226,7 +226,7 @@ def _write_csv(
             f,
             len(sites),
             lambda i: [
-                csvtext.integers(np.arange(len(sites))[i]),
+                csvtext.integers(np.arange(i.start, i.stop)),
                 csvtext.fixed(sites.xy[i, 0], 4),
                 csvtext.fixed(sites.xy[i, 1], 4),
                 csvtext.fixed(z[i], 4),

@@ -164,16 +164,17 @@ class TemplateInfo:
         return WoodShape(max(self.base_radius, 1e-6), self.centreline, max(self.tip_radius, 0.0))
 
 
-_READ: dict[tuple[str, int, int], TemplateInfo] = {}
+_READ: dict[tuple, TemplateInfo] = {}
 
 
 def read_template(path: str | Path) -> TemplateInfo:
     """Read a template layer's part type, normalised radii, centreline and convex hull; once
-    per process while the file is unchanged (same size and modification time)."""
+    per process while the file is unchanged (same inode, size, and modification and change
+    times)."""
     path = Path(path)
     try:
         st = path.stat()
-        key = (str(path.resolve()), st.st_mtime_ns, st.st_size)
+        key = (str(path.resolve()), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
     except OSError:
         key = None
     if key is not None and key in _READ:
