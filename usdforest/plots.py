@@ -65,6 +65,9 @@ def draw_sites(
 
 
 def _outline(region) -> np.ndarray:
+    if hasattr(region, "rings"):  # polygons from a file: every ring, NaN between them
+        gap = np.full((1, 2), np.nan)
+        return np.concatenate([x for r in region.rings for x in (r, gap)])[:-1]
     if hasattr(region, "vertices"):
         v = np.asarray(region.vertices)
     else:

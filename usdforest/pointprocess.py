@@ -113,7 +113,88 @@ class Polygon:
         return {"kind": "polygon", "vertices": [list(p) for p in self.vertices]}
 
 
-Region = Rectangle | Polygon
+@dataclass(frozen=True, eq=False)
+class Shape:
+    """A region read from a vector file: one or more polygons, holes allowed (shapely), in
+    the file's coordinates (``crs``, when the file names one)."""
+
+    geometry: object  # shapely Polygon or MultiPolygon
+    source: str
+    crs: str | None = None
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        return tuple(float(b) for b in self.geometry.bounds)
+
+    @property
+    def area(self) -> float:
+        return float(self.geometry.area)
+
+    @property
+    def rings(self) -> list[np.ndarray]:
+        """Every exterior and interior ring, as ``(k, 2)`` closed outlines."""
+        polys = getattr(self.geometry, "geoms", [self.geometry])
+        return [np.asarray(r.coords)[:, :2] for p in polys for r in (p.exterior, *p.interiors)]
+
+    def contains(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        import shapely
+
+        return shapely.intersects_xy(self.geometry, np.asarray(x), np.asarray(y))
+
+    def describe(self) -> dict:
+        return {"kind": "file", "file": self.source}
+
+
+def read_shape(path: Path, where: str) -> Shape:
+    """The polygons of a GeoJSON file (a geometry, feature or feature collection) as one
+    region; a legacy ``crs`` member (``urn:ogc:def:crs:EPSG::32633``) names its CRS."""
+    import json
+
+    import shapely
+    from shapely.geometry import shape as to_shape
+    from shapely.validation import explain_validity
+
+    from .paths import require_file
+
+    try:
+        require_file(path, "vector file", RecipeError)
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except RecipeError as exc:
+        raise RecipeError(f"{where}: {exc}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise RecipeError(f"{where}: {path.name} is not GeoJSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise RecipeError(f"{where}: {path.name} is not a GeoJSON object")
+    if data.get("type") == "FeatureCollection":
+        geoms = [f.get("geometry") for f in data.get("features") or [] if isinstance(f, dict)]
+    elif data.get("type") == "Feature":
+        geoms = [data.get("geometry")]
+    else:
+        geoms = [data]
+    polys = []
+    for g in geoms:
+        if isinstance(g, dict) and g.get("type") in ("Polygon", "MultiPolygon"):
+            try:
+                polys.append(to_shape(g))
+            except Exception as exc:
+                raise RecipeError(f"{where}: {path.name} has a malformed polygon: {exc}") from None
+    if not polys:
+        raise RecipeError(f"{where}: {path.name} has no Polygon or MultiPolygon geometry")
+    for p in polys:
+        if not p.is_valid:
+            raise RecipeError(f"{where}: {path.name}: invalid polygon ({explain_validity(p)})")
+    geometry = shapely.union_all(polys)
+    if geometry.is_empty or geometry.area <= 0:
+        raise RecipeError(f"{where}: {path.name}: the polygons have zero area")
+    crs = None
+    name = ((data.get("crs") or {}).get("properties") or {}).get("name")
+    if isinstance(name, str):
+        parts = name.split(":")
+        crs = f"EPSG:{parts[-1]}" if "EPSG" in name.upper() and parts[-1].isdigit() else name
+    return Shape(geometry, path.name, crs)
+
+
+Region = Rectangle | Polygon | Shape
 
 
 def _shoelace(v: np.ndarray) -> float:
@@ -307,6 +388,7 @@ class Raster:
     values: np.ndarray
     bounds: tuple[float, float, float, float]
     source: str = "array"
+    crs: str | None = None  # a GeoTIFF's coordinate reference system
 
     def __post_init__(self) -> None:
         raw = np.asarray(self.values)
@@ -364,9 +446,20 @@ def _grid_integral(intensity: Intensity, region: Region, n: int = GRID) -> float
 def load_raster(
     path: Path, bounds: tuple[float, float, float, float], peak: float | None
 ) -> Raster:
-    """A raster intensity from ``.npy`` (trees/m^2) or an image (grey 0..1 scaled by ``peak``)."""
-    from .rasters import read_grey, read_npy
+    """A raster intensity from ``.npy`` (trees/m^2, over the region's ``bounds``), a GeoTIFF
+    (trees/m^2 times ``peak`` if given, over its own georeferenced cells, which must cover the
+    region; no-data cells hold no trees) or an image (grey 0..1 scaled by ``peak``)."""
+    from .rasters import GEOTIFF, covers, read_geotiff, read_grey, read_npy
 
+    geo = read_geotiff(path, "intensity.file") if path.suffix.lower() in GEOTIFF else None
+    if geo is not None:
+        if not covers(geo.bounds, bounds):
+            raise RecipeError(
+                f"intensity.file: {path.name} covers {list(geo.bounds)}, not the region "
+                f"{list(bounds)} (coordinates in the raster's CRS, {geo.crs or 'none given'})"
+            )
+        values = np.nan_to_num(geo.values, nan=0.0) * (1.0 if peak is None else peak)
+        return Raster(values, geo.bounds, path.name, geo.crs)
     if path.suffix.lower() == ".npy":
         values = np.asarray(read_npy(path, "intensity.file"))
         if peak is not None:

@@ -1,4 +1,4 @@
-"""Reading grids from files: ``.npy`` arrays and grey images (PNG, JPEG, TIFF...).
+"""Reading grids from files: ``.npy`` arrays, grey images (PNG, JPEG, TIFF...) and GeoTIFFs.
 
 Shared by the intensity raster and the ground's height field; errors are
 :class:`~usdforest.errors.RecipeError` naming the recipe key.
@@ -6,6 +6,7 @@ Shared by the intensity raster and the ground's height field; errors are
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -61,3 +62,82 @@ def read_grey(path: Path, where: str) -> np.ndarray:
     if grey.ndim == 3:
         grey = grey[..., :3].mean(axis=2)
     return grey
+
+
+GEOTIFF = (".tif", ".tiff")
+
+
+@dataclass(frozen=True, eq=False)
+class GeoGrid:
+    """A georeferenced raster: ``values (rows, cols)`` (NaN where the file has no data, row 0
+    north) over the cells' outer edges ``bounds = (x0, y0, x1, y1)`` in the file's ``crs``
+    (a string such as ``EPSG:32633``; None when the file names none)."""
+
+    values: np.ndarray
+    bounds: tuple[float, float, float, float]
+    crs: str | None
+
+    @property
+    def centres(self) -> tuple[float, float, float, float]:
+        """The bounds of the cells' centres (where a DEM's elevations stand)."""
+        x0, y0, x1, y1 = self.bounds
+        rows, cols = self.values.shape
+        dx, dy = (x1 - x0) / cols, (y1 - y0) / rows
+        return (x0 + dx / 2, y0 + dy / 2, x1 - dx / 2, y1 - dy / 2)
+
+
+def read_geotiff(path: Path, where: str) -> GeoGrid | None:
+    """Band 1 of a GeoTIFF with its georeferencing (rasterio), or None for a TIFF that has
+    none (a plain image: read it with :func:`read_grey`)."""
+    _require(path, where)
+    try:
+        import rasterio
+    except ImportError:
+        raise RecipeError(
+            f"{where}: reading the GeoTIFF {path.name} needs rasterio: pip install 'usdforest[geo]'"
+        ) from None
+    import warnings
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            with rasterio.open(path) as ds:
+                t = ds.transform
+                if ds.crs is None and t.is_identity:
+                    return None
+                if t.b != 0 or t.d != 0 or t.a <= 0 or t.e >= 0:
+                    raise RecipeError(
+                        f"{where}: {path.name} is rotated or flipped (transform {tuple(t)[:6]}); "
+                        "usdforest reads north-up rasters only"
+                    )
+                band = ds.read(1, masked=True)
+                b = ds.bounds
+                crs = ds.crs.to_string() if ds.crs is not None else None
+    except RecipeError:
+        raise
+    except Exception as exc:
+        raise RecipeError(f"{where}: cannot read {path.name}: {exc}") from None
+    if band.dtype.kind not in "biuf":
+        raise RecipeError(f"{where}: {path.name} holds {band.dtype} values, not numbers")
+    values = np.ma.filled(band.astype(np.float64), np.nan)
+    return GeoGrid(values, (b.left, b.bottom, b.right, b.top), crs)
+
+
+def covers(outer: tuple[float, ...], inner: tuple[float, ...]) -> bool:
+    """Whether the box ``outer`` (x0, y0, x1, y1) holds the box ``inner``."""
+    return (
+        outer[0] <= inner[0]
+        and outer[1] <= inner[1]
+        and outer[2] >= inner[2]
+        and outer[3] >= inner[3]
+    )
+
+
+def geotiff_extent(path: Path) -> tuple[tuple[float, float, float, float], str | None]:
+    """The outer edges of a GeoTIFF's cells (x0, y0, x1, y1) and the CRS it names (None if
+    none)."""
+    import rasterio
+
+    with rasterio.open(path) as ds:
+        b = ds.bounds
+        return (b.left, b.bottom, b.right, b.top), (ds.crs.to_string() if ds.crs else None)

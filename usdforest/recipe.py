@@ -186,7 +186,7 @@ __all__ = [
 
 # --------------------------------------------------------------------------- forest recipes
 
-TOP_KEYS = {"seed", "region", "intensity", "sites", "mix", "species", "forest", "ground"}
+TOP_KEYS = {"seed", "crs", "region", "intensity", "sites", "mix", "species", "forest", "ground"}
 GROUND_KEYS = {"kind", "margin", "color", "file", "max", "bounds"}
 FOREST_KEYS = {
     "variants",
@@ -235,6 +235,7 @@ class Recipe:
     ground: dict | None = None  # {"kind", "margin", "color", "field": terrain.HeightField}
     origin: str = "corner"  # "corner": recipe coordinates; "centre": the plot's centre at 0, 0
     lod: str = "full"  # the tree assets' lod variant the forest selects: full, medium, proxy
+    crs: str | None = None  # the projected CRS of the recipe's coordinates, when one is named
 
     @property
     def species_names(self) -> tuple[str, ...]:
@@ -261,8 +262,8 @@ def _under(where: str, exc: Exception) -> RecipeError:
     return RecipeError(msg if msg.startswith(where) else f"{where}: {msg}")
 
 
-def parse_region(t: Any, where: str) -> Any:
-    from .pointprocess import Polygon, Rectangle
+def parse_region(t: Any, where: str, base: Path = Path(".")) -> Any:
+    from .pointprocess import Polygon, Rectangle, read_shape
 
     if not isinstance(t, Mapping):
         raise RecipeError(f"{where}: expected a table")
@@ -288,7 +289,10 @@ def parse_region(t: Any, where: str) -> Any:
             return Polygon(pts)
         except RecipeError as exc:
             raise _under(where, exc) from None
-    raise RecipeError(f"{where}.kind: {kind!r} is not one of rectangle, polygon")
+    if kind == "file":
+        check_keys(t, {"kind", "file"}, where)
+        return read_shape(base / coerce(t.get("file"), str, f"{where}.file"), f"{where}.file")
+    raise RecipeError(f"{where}.kind: {kind!r} is not one of rectangle, polygon, file")
 
 
 def parse_intensity(t: Any, region: Any, base: Path, where: str) -> Any:
@@ -389,7 +393,7 @@ def parse_recipe(
             raise RecipeError(f"seed: must be an integer from 0 to 2**64-1, got {s}")
         if "region" not in data:
             raise RecipeError("region: missing (e.g. [region] bounds = [0, 0, 100, 100])")
-        region = parse_region(data["region"], "region")
+        region = parse_region(data["region"], "region", base)
         species_tables = data.get("species")
         if not isinstance(species_tables, Mapping) or not species_tables:
             raise RecipeError("species: no [species.NAME] tables")
@@ -455,6 +459,14 @@ def parse_recipe(
                 raise RecipeError("intensity: missing (or give explicit [[sites]])")
             sites = None
             intensity = parse_intensity(data["intensity"], region, base, "intensity")
+        crs = _common_crs(
+            [
+                ("crs", None if "crs" not in data else coerce(data["crs"], str, "crs")),
+                ("region.file", getattr(region, "crs", None)),
+                ("intensity.file", getattr(intensity, "crs", None)),
+                ("ground.file", (ground or {}).get("crs")),
+            ]
+        )
     except RecipeError as exc:
         raise fail(exc) from None
     recipe = Recipe(
@@ -476,6 +488,7 @@ def parse_recipe(
         ground,
         origin,
         lod,
+        crs,
     )
     try:
         expected = recipe.expected_trees()
@@ -491,11 +504,38 @@ def parse_recipe(
     return recipe
 
 
+def _common_crs(named: list[tuple[str, str | None]]) -> str | None:
+    """The one CRS the recipe and its georeferenced files agree on (None if none names one):
+    the first named; any other that differs is an error naming both."""
+    given = [(k, c) for k, c in named if c]
+    if not given:
+        return None
+    key, crs = given[0]
+    for k, c in given[1:]:
+        if not _same_crs(crs, c):
+            raise RecipeError(f"{k}: the file is in {c}, but {key} says {crs}")
+    return crs
+
+
+def _same_crs(a: str, b: str) -> bool:
+    if a == b:
+        return True
+    try:
+        from rasterio.crs import CRS
+    except ImportError:
+        return False
+    try:
+        return CRS.from_user_input(a) == CRS.from_user_input(b)
+    except Exception as exc:  # rasterio's CRSError
+        raise RecipeError(f"crs: cannot read {a!r} or {b!r} as a CRS: {exc}") from None
+
+
 def _parse_ground(t: Any, region: Any, base: Path) -> dict | None:
     """``[ground]``: ``kind = "plane"``, ``"raster"`` or ``"none"``; ``margin`` metres around
     the region, ``color`` linear RGB in 0..1; a raster takes ``file`` (``.npy`` metres, or an
     image with ``max`` metres for white), optional ``max`` and ``bounds`` (default: the
     region's bounds grown by ``margin``), and must cover the region."""
+    from .rasters import covers, geotiff_extent
     from .terrain import HeightField, load_height_field
 
     if t is None:
@@ -514,6 +554,7 @@ def _parse_ground(t: Any, region: Any, base: Path) -> dict | None:
         raise RecipeError(f"ground.color: {list(color)} is outside 0..1 (linear RGB)")
     x0, y0, x1, y1 = region.bounds
     grown = (x0 - margin, y0 - margin, x1 + margin, y1 + margin)
+    crs = None
     if kind == "plane":
         for key in ("file", "max", "bounds"):
             if key in t:
@@ -531,12 +572,22 @@ def _parse_ground(t: Any, region: Any, base: Path) -> dict | None:
                     f"{list(region.bounds)}; trees there would have no ground height"
                 )
         peak = t.get("max")
-        field = load_height_field(
-            base / coerce(t.get("file"), str, "ground.file"),
-            bounds,
-            None if peak is None else _num(peak, "ground.max"),
-        )
-    return {"kind": kind, "margin": margin, "color": color, "field": field}
+        path = base / coerce(t.get("file"), str, "ground.file")
+        field = load_height_field(path, bounds, None if peak is None else _num(peak, "ground.max"))
+        if field.bounds != bounds:  # a GeoTIFF: placed by its own georeferencing
+            if "bounds" in t:
+                raise RecipeError(
+                    f"ground.bounds: {path.name} is georeferenced; it is placed where it says"
+                )
+            # its cells must cover the region (within half a cell of the edge the height is
+            # the edge cell's)
+            outer, crs = geotiff_extent(path)
+            if not covers(outer, region.bounds):
+                raise RecipeError(
+                    f"ground.file: {path.name}'s cells span {list(outer)}, which does not cover "
+                    f"the region {list(region.bounds)}; trees there would have no ground height"
+                )
+    return {"kind": kind, "margin": margin, "color": color, "field": field, "crs": crs}
 
 
 def _parse_scale(t: Any) -> ScaleSpec:
@@ -591,7 +642,7 @@ def resolved_toml(recipe: Recipe, to_dir: Path) -> dict:
         src = (recipe.base / p).resolve()
         return os.path.relpath(src, to_dir.resolve())
 
-    for table in ("intensity", "ground"):
+    for table in ("intensity", "ground", "region"):
         t = data.get(table)
         if isinstance(t, dict) and "file" in t:
             t["file"] = rebase(t["file"])

@@ -79,12 +79,18 @@ def load_height_field(
     bounds: tuple[float, float, float, float],
     peak: float | None = None,
 ) -> HeightField:
-    """A height field from ``.npy`` (metres; times ``peak`` if given) or an image (grey 0..1
-    times ``peak`` metres), decimated to at most ``MAX_NODES`` nodes per side."""
-    from .rasters import read_grey, read_npy
+    """A height field from ``.npy`` (metres; times ``peak`` if given, over ``bounds``), a
+    GeoTIFF DEM (metres, times ``peak`` if given, each elevation at its cell's centre: over
+    its own georeferenced extent, ``bounds`` ignored) or an image (grey 0..1 times ``peak``
+    metres), decimated to at most ``MAX_NODES`` nodes per side."""
+    from .rasters import GEOTIFF, read_geotiff, read_grey, read_npy
 
     where = "ground.file"
-    if path.suffix.lower() == ".npy":
+    geo = read_geotiff(path, where) if path.suffix.lower() in GEOTIFF else None
+    if geo is not None:
+        z = geo.values
+        bounds = geo.centres
+    elif path.suffix.lower() == ".npy":
         z = read_npy(path, where)
     else:
         if peak is None:

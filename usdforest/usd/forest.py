@@ -24,7 +24,7 @@ import re
 import shutil
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +36,7 @@ from ..bounds import EMPTY_EXTENT, yawed_extent
 from ..errors import UsdForestError
 from ..recipe import Recipe, resolved_toml
 from ..sites import Sites, sample_sites
+from ..terrain import HeightField
 from .ground import ground_layer
 from .layers import T, attr, extents, new_layer, prim, save_layer, vec3f
 from .physics import add_physics_scene, collision_layer, instance_capsules
@@ -66,6 +67,9 @@ class ForestBuild:
     out: Path
     assets: Path
     ground_z: np.ndarray  # (n,) the ground's height under each tree (0 on a plane)
+    # recipe x, y at the layers' origin: (0, 0), or for a recipe in a projected CRS its
+    # region's south-west corner in whole metres, so float32 positions keep their millimetres
+    anchor: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
     @property
     def n_trees(self) -> int:
@@ -157,8 +161,18 @@ def interface_layer(
     layer = new_layer("Forest", comment="usdforest forest")
     for sub in sublayers:
         layer.subLayerPaths.append(sub)
+    data = {}
     if thumbnail:
-        layer.customLayerData = {"thumbnail": Sdf.AssetPath(thumbnail)}
+        data["thumbnail"] = Sdf.AssetPath(thumbnail)
+    if recipe.crs:
+        # where the stage's origin is in the real world: the recipe's coordinates are the
+        # CRS's, moved by the plot's centre when the forest is centred
+        x0, y0, x1, y1 = recipe.region.bounds
+        centre = recipe.origin == "centre"
+        data["crs"] = recipe.crs
+        data["crsOrigin"] = Gf.Vec2d((x0 + x1) / 2, (y0 + y1) / 2) if centre else Gf.Vec2d(0, 0)
+    if data:
+        layer.customLayerData = data
     with Sdf.ChangeBlock():
         forest = prim(layer, "Forest", "Xform")
         forest.kind = "assembly"
@@ -166,12 +180,13 @@ def interface_layer(
             "name": build.out.stem,
             "identifier": Sdf.AssetPath(f"./{build.out.name}"),
         }
-        if recipe.origin == "centre":
+        ax, ay = (float(a) for a in build.anchor)
+        if recipe.origin == "centre" or ax or ay:
             # recipe coordinates stay in trees.csv; the stage puts the plot's centre at 0, 0
+            # (or, about an anchor, the recipe's origin)
             x0, y0, x1, y1 = recipe.region.bounds
-            attr(
-                forest, "xformOp:translate", T.Double3, Gf.Vec3d(-(x0 + x1) / 2, -(y0 + y1) / 2, 0)
-            )
+            cx, cy = ((x0 + x1) / 2, (y0 + y1) / 2) if recipe.origin == "centre" else (0, 0)
+            attr(forest, "xformOp:translate", T.Double3, Gf.Vec3d(ax - cx, ay - cy, 0))
             attr(
                 forest,
                 "xformOpOrder",
@@ -198,15 +213,32 @@ def interface_layer(
     return layer
 
 
+def _anchor(recipe: Recipe) -> np.ndarray:
+    """Where the layers' origin is in recipe coordinates (see :class:`ForestBuild`)."""
+    if recipe.crs is None:
+        return np.zeros(2)
+    x0, y0, _, _ = recipe.region.bounds
+    return np.floor([x0, y0])
+
+
+def _shifted(ground: HeightField, anchor: np.ndarray) -> HeightField:
+    """``ground`` with its bounds moved to the layers' frame."""
+    if not anchor.any():
+        return ground
+    x0, y0, x1, y1 = ground.bounds
+    ax, ay = (float(a) for a in anchor)
+    return HeightField(ground.z, (x0 - ax, y0 - ay, x1 - ax, y1 - ay))
+
+
 def _extents_hint(build: ForestBuild, recipe: Recipe) -> np.ndarray:
     """``/Forest``'s extentsHint: one box, for the default purpose, holding the ground and
     the trees (``/Forest/Trees`` is a default-purpose prim: its whole extent, proxies
     included, counts there, as ``UsdGeomModelAPI.ComputeExtentsHint`` finds)."""
     boxes = []
     if recipe.ground is not None:
-        field = recipe.ground["field"]
-        x0, y0, x1, y1 = field.bounds
-        boxes.append(np.array([[x0, y0, field.z.min()], [x1, y1, field.z.max()]]))
+        ground = _shifted(recipe.ground["field"], build.anchor)
+        x0, y0, x1, y1 = ground.bounds
+        boxes.append(np.array([[x0, y0, ground.z.min()], [x1, y1, ground.z.max()]]))
     if build.n_trees:
         boxes.append(build.extent)
     if not boxes:
@@ -291,9 +323,14 @@ def write_forest(
     ordered = [trees[p] for p in prototypes]
     # each tree stands on the ground mesh (its height on the mesh's triangles, float32 as
     # positions store it)
+    # the layers are written about an anchor (see ForestBuild); trees.csv keeps the recipe's
+    # coordinates
+    anchor = _anchor(recipe)
+    csv_sites, sites = sites, replace(sites, xy=sites.xy - anchor)
+    ground = _shifted(recipe.ground["field"], anchor) if recipe.ground is not None else None
     ground_z = (
-        recipe.ground["field"].height(sites.xy[:, 0], sites.xy[:, 1]).astype(np.float32)
-        if recipe.ground is not None
+        ground.height(sites.xy[:, 0], sites.xy[:, 1]).astype(np.float32)
+        if ground is not None
         else np.zeros(len(sites), dtype=np.float32)
     ) + np.float32(0.0)
     # a PointInstancer's extent bounds its prototypes' default, render and proxy purposes:
@@ -313,6 +350,7 @@ def write_forest(
         out,
         assets,
         ground_z,
+        anchor,
     )
 
     tmp = staging_folder(out)
@@ -347,7 +385,7 @@ def write_forest(
             sublayers.append(f"./{assets.name}/colliders.usdc")
         if recipe.ground is not None:
             save_layer(
-                ground_layer(recipe.ground["field"], recipe.ground["color"]),
+                ground_layer(ground, recipe.ground["color"]),
                 staged / "ground.usdc",
             )
             sublayers.append(f"./{assets.name}/ground.usdc")
@@ -355,7 +393,7 @@ def write_forest(
         # leaving the block waits for it, also on an error
         with ThreadPoolExecutor(1) as pool:
             csv = pool.submit(
-                _write_csv, staged / "trees.csv", sites, heights, proto_index, ground_z
+                _write_csv, staged / "trees.csv", csv_sites, heights, proto_index, ground_z
             )
             (staged / "pipeline.toml").write_text(
                 "# The resolved recipe of this forest: usdforest build OUT.usda --pipeline this\n"

@@ -1,0 +1,188 @@
+"""Real-world site data: GeoTIFF intensity and elevation rasters (rasterio), GeoJSON stand
+boundaries (shapely) and the projected CRS recorded in the forest's root layer."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+from matplotlib.path import Path as MplPath
+from pxr import Sdf, Usd, UsdGeom
+
+from usdforest.errors import RecipeError
+from usdforest.recipe import parse_recipe
+from usdforest.sites import sample_sites
+from usdforest.usd.forest import write_forest
+from usdforest.validate import validate
+
+rasterio = pytest.importorskip("rasterio", reason="GeoTIFF inputs need rasterio (usdforest[geo])")
+from rasterio.transform import from_origin  # noqa: E402
+
+E0, N0 = 500_000.0, 5_000_000.0  # a UTM 33N corner (EPSG:32633)
+
+
+def _tiff(path, values, west, north, pixel, crs="EPSG:32633", **kw):
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        height=values.shape[0],
+        width=values.shape[1],
+        count=1,
+        dtype="float64",
+        crs=crs,
+        transform=from_origin(west, north, pixel, pixel),
+        **kw,
+    ) as ds:
+        ds.write(values, 1)
+
+
+def _plane(x, y):
+    return 100.0 + 0.05 * (x - E0) + 0.02 * (y - N0)
+
+
+def _dem(path, pixel=5.0, cells=40, **kw):
+    """Elevations of a tilted plane at the centres of ``cells`` x ``cells`` cells."""
+    xs = E0 + (np.arange(cells) + 0.5) * pixel
+    ys = N0 + cells * pixel - (np.arange(cells) + 0.5) * pixel  # row 0 = north
+    gx, gy = np.meshgrid(xs, ys)
+    _tiff(path, _plane(gx, gy), E0, N0 + cells * pixel, pixel, **kw)
+
+
+def _recipe(tmp_path, **tables):
+    data = {
+        "seed": 7,
+        "region": {"bounds": [E0 + 20, N0 + 20, E0 + 180, N0 + 180]},
+        "intensity": {"kind": "constant", "value": 0.01},
+        "species": {"paper-rule-1": {}},
+        "forest": {"variants": 1, "origin": "centre", "colliders": "none"},
+        **tables,
+    }
+    return parse_recipe(data, tmp_path, str(tmp_path / "recipe.toml"))
+
+
+def test_a_geotiff_dem_sets_tree_z_and_the_ground(tmp_path):
+    _dem(tmp_path / "dem.tif")
+    recipe = _recipe(tmp_path, crs="EPSG:32633", ground={"kind": "raster", "file": "dem.tif"})
+    out = tmp_path / "f.usda"
+    build = write_forest(recipe, out, thumbnail=False)
+    assert build.n_trees > 150
+    assert validate(out) == []
+    stage = Usd.Stage.Open(str(out))
+    # the root layer says where its origin is on the map
+    data = Sdf.Layer.FindOrOpen(str(out)).customLayerData
+    assert data["crs"] == "EPSG:32633"
+    assert tuple(data["crsOrigin"]) == (E0 + 100, N0 + 100)
+    # each tree, composed, stands on the plane at its map position (the plane is linear,
+    # so the ground mesh's triangles hold it exactly; float32 positions)
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+    xf = np.asarray(
+        pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
+    )
+    to_world = np.asarray(
+        UsdGeom.Xformable(pi.GetPrim()).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    )
+    world = xf[:, 3, :3] @ to_world[:3, :3] + to_world[3, :3]
+    east, north = world[:, 0] + E0 + 100, world[:, 1] + N0 + 100
+    np.testing.assert_allclose(world[:, 2], _plane(east, north), atol=2e-3)
+    with open(build.assets / "trees.csv") as f:
+        rows = list(csv.DictReader(f))
+    xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
+    np.testing.assert_allclose(np.column_stack([east, north]), xy, atol=2e-3)
+    # the ground mesh spans the DEM's cell centres, at the DEM's heights
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Forest/Ground/Mesh"))
+    m = np.asarray(UsdGeom.Xformable(mesh).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+    pts = np.asarray(mesh.GetPointsAttr().Get(), dtype=float) @ m[:3, :3] + m[3, :3]
+    e, n = pts[:, 0] + E0 + 100, pts[:, 1] + N0 + 100
+    assert e.min() == pytest.approx(E0 + 2.5) and e.max() == pytest.approx(E0 + 197.5)
+    np.testing.assert_allclose(pts[:, 2], _plane(e, n), atol=2e-3)
+
+
+def _feature(rings):
+    return {
+        "type": "Feature",
+        "properties": {},
+        "geometry": {"type": "Polygon", "coordinates": rings},
+    }
+
+
+def test_a_geojson_boundary_clips_the_sites(tmp_path):
+    outer = [[E0, N0], [E0 + 300, N0], [E0 + 300, N0 + 200], [E0 + 60, N0 + 260], [E0, N0]]
+    hole = [[E0 + 100, N0 + 50], [E0 + 180, N0 + 50], [E0 + 180, N0 + 120], [E0 + 100, N0 + 50]]
+    far = [[E0 + 400, N0], [E0 + 450, N0], [E0 + 450, N0 + 50], [E0 + 400, N0 + 50], [E0 + 400, N0]]
+    doc = {
+        "type": "FeatureCollection",
+        "crs": {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::32633"}},
+        "features": [_feature([outer, hole]), _feature([far])],
+    }
+    (tmp_path / "stand.geojson").write_text(json.dumps(doc))
+    recipe = _recipe(
+        tmp_path,
+        region={"kind": "file", "file": "stand.geojson"},
+        intensity={"kind": "constant", "value": 0.05},
+    )
+    assert recipe.crs == "EPSG:32633"
+    xy = sample_sites(recipe).xy
+    inside = (MplPath(outer).contains_points(xy) & ~MplPath(hole).contains_points(xy)) | MplPath(
+        far
+    ).contains_points(xy)
+    assert inside.all()
+
+    def shoelace(ring):
+        x, y = np.asarray(ring, dtype=float).T - [[E0], [N0]]
+        return abs(np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1])) / 2
+
+    area = shoelace(outer) - shoelace(hole) + shoelace(far)
+    assert area == pytest.approx(recipe.region.area)
+    expected = 0.05 * area
+    assert abs(len(xy) - expected) < 5 * np.sqrt(expected)
+    assert np.count_nonzero(MplPath(far).contains_points(xy)) > 0.5 * 0.05 * 2500
+
+
+def test_a_geotiff_intensity_places_trees_where_it_is_high(tmp_path):
+    lam = np.zeros((20, 40))
+    lam[:, 20:] = 0.08  # the east half
+    lam[0, 0] = np.nan  # no data: no trees
+    _tiff(tmp_path / "lambda.tif", lam, E0, N0 + 200, 10.0, nodata=np.nan)
+    recipe = _recipe(
+        tmp_path,
+        region={"bounds": [E0, N0, E0 + 400, N0 + 200]},
+        intensity={"kind": "raster", "file": "lambda.tif"},
+    )
+    assert recipe.crs == "EPSG:32633"
+    xy = sample_sites(recipe).xy
+    assert np.all(xy[:, 0] >= E0 + 200)
+    expected = 0.08 * 200 * 200
+    assert abs(len(xy) - expected) < 5 * np.sqrt(expected)
+
+
+def test_geo_inputs_that_cannot_be_used_are_named(tmp_path):
+    _dem(tmp_path / "dem.tif")
+    _dem(tmp_path / "small.tif", cells=10)
+    _dem(tmp_path / "dem32.tif", crs="EPSG:32632")
+    dem = {"kind": "raster", "file": "dem.tif"}
+    cases = [
+        (dict(ground={**dem, "file": "small.tif"}), "small.tif's cells span"),
+        (dict(crs="EPSG:32632", ground=dem), "ground.file: the file is in EPSG:32633, but crs"),
+        (dict(ground={**dem, "bounds": [E0, N0, E0 + 400, N0 + 400]}), "dem.tif is georef"),
+        (dict(region={"kind": "file", "file": "none.geojson"}), "region.file"),
+        (
+            dict(intensity={**dem, "file": "dem32.tif"}, ground=dem),
+            "ground.file: the file is in EPSG:32633, but intensity.file says EPSG:32632",
+        ),
+    ]
+    for tables, fragment in cases:
+        with pytest.raises(RecipeError, match=None) as err:
+            _recipe(tmp_path, **tables)
+        assert fragment in str(err.value), (fragment, str(err.value))
+    (tmp_path / "line.geojson").write_text(
+        json.dumps({"type": "LineString", "coordinates": [[0, 0], [1, 1]]})
+    )
+    with pytest.raises(RecipeError, match="no Polygon or MultiPolygon"):
+        _recipe(tmp_path, region={"kind": "file", "file": "line.geojson"})
+    bow = [[0, 0], [10, 10], [10, 0], [0, 10], [0, 0]]
+    (tmp_path / "bow.geojson").write_text(json.dumps({"type": "Polygon", "coordinates": [bow]}))
+    with pytest.raises(RecipeError, match=r"invalid polygon \(Self-intersection"):
+        _recipe(tmp_path, region={"kind": "file", "file": "bow.geojson"})
