@@ -177,6 +177,12 @@ def test_geo_inputs_that_cannot_be_used_are_named(tmp_path):
         with pytest.raises(RecipeError, match=None) as err:
             _recipe(tmp_path, **tables)
         assert fragment in str(err.value), (fragment, str(err.value))
+    (tmp_path / "junk.tif").write_bytes(b"II*\x00" + bytes(range(256)) * 4)  # a torn TIFF
+    with pytest.raises(RecipeError, match="ground.file: cannot read junk.tif"):
+        _recipe(tmp_path, ground={"kind": "raster", "file": "junk.tif"})
+    (tmp_path / "torn.geojson").write_text('{"type": "Polygon", "coordinates": [[')
+    with pytest.raises(RecipeError, match="region.file: torn.geojson is not GeoJSON"):
+        _recipe(tmp_path, region={"kind": "file", "file": "torn.geojson"})
     (tmp_path / "line.geojson").write_text(
         json.dumps({"type": "LineString", "coordinates": [[0, 0], [1, 1]]})
     )
