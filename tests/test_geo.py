@@ -91,12 +91,14 @@ def test_a_geotiff_dem_sets_tree_z_and_the_ground(tmp_path):
         rows = list(csv.DictReader(f))
     xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
     np.testing.assert_allclose(np.column_stack([east, north]), xy, atol=2e-3)
-    # the ground mesh spans the DEM's cell centres, at the DEM's heights
+    # the ground mesh spans the centres of the DEM's cells over the region and one more each
+    # side (not the whole DEM), at the DEM's heights
     mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Forest/Ground/Mesh"))
     m = np.asarray(UsdGeom.Xformable(mesh).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
     pts = np.asarray(mesh.GetPointsAttr().Get(), dtype=float) @ m[:3, :3] + m[3, :3]
     e, n = pts[:, 0] + E0 + 100, pts[:, 1] + N0 + 100
-    assert e.min() == pytest.approx(E0 + 2.5) and e.max() == pytest.approx(E0 + 197.5)
+    assert e.min() == pytest.approx(E0 + 17.5) and e.max() == pytest.approx(E0 + 182.5)
+    assert n.min() == pytest.approx(N0 + 17.5) and n.max() == pytest.approx(N0 + 182.5)
     np.testing.assert_allclose(pts[:, 2], _plane(e, n), atol=2e-3)
 
 
@@ -178,10 +180,10 @@ def test_geo_inputs_that_cannot_be_used_are_named(tmp_path):
             _recipe(tmp_path, **tables)
         assert fragment in str(err.value), (fragment, str(err.value))
     (tmp_path / "junk.tif").write_bytes(b"II*\x00" + bytes(range(256)) * 4)  # a torn TIFF
-    with pytest.raises(RecipeError, match="ground.file: cannot read junk.tif"):
+    with pytest.raises(RecipeError, match=r"ground\.file: cannot read junk\.tif"):
         _recipe(tmp_path, ground={"kind": "raster", "file": "junk.tif"})
     (tmp_path / "torn.geojson").write_text('{"type": "Polygon", "coordinates": [[')
-    with pytest.raises(RecipeError, match="region.file: torn.geojson is not GeoJSON"):
+    with pytest.raises(RecipeError, match=r"region\.file: torn\.geojson is not GeoJSON"):
         _recipe(tmp_path, region={"kind": "file", "file": "torn.geojson"})
     (tmp_path / "line.geojson").write_text(
         json.dumps({"type": "LineString", "coordinates": [[0, 0], [1, 1]]})
@@ -192,3 +194,99 @@ def test_geo_inputs_that_cannot_be_used_are_named(tmp_path):
     (tmp_path / "bow.geojson").write_text(json.dumps({"type": "Polygon", "coordinates": [bow]}))
     with pytest.raises(RecipeError, match=r"invalid polygon \(Self-intersection"):
         _recipe(tmp_path, region={"kind": "file", "file": "bow.geojson"})
+
+
+def test_a_corner_origin_forest_is_written_about_its_corner(tmp_path):
+    """Composed coordinates stay small (float32 consumers: renderers, physics, sensors);
+    crsOrigin says where the stage's origin is on the map."""
+    _dem(tmp_path / "dem.tif")
+    recipe = _recipe(tmp_path, ground={"kind": "raster", "file": "dem.tif"})
+    recipe = parse_recipe(
+        {**recipe.data, "forest": {"variants": 1, "colliders": "trunk"}},
+        tmp_path,
+        str(tmp_path / "recipe.toml"),
+    )
+    out = tmp_path / "c.usda"
+    build = write_forest(recipe, out, thumbnail=False)
+    data = Sdf.Layer.FindOrOpen(str(out)).customLayerData
+    assert tuple(data["crsOrigin"]) == (E0 + 20, N0 + 20)
+    stage = Usd.Stage.Open(str(out))
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+    xf = np.asarray(
+        pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
+    )
+    local = xf[:, 3, :3]
+    assert np.abs(local[:, :2]).max() < 200  # metres from the corner, not 5e6
+    with open(build.assets / "trees.csv") as f:
+        xy = np.array([[float(r["x"]), float(r["y"])] for r in csv.DictReader(f)])
+    np.testing.assert_allclose(local[:, :2] + [E0 + 20, N0 + 20], xy, atol=1e-4)
+    # the trunk colliders stand where the trees do
+    caps = [
+        p
+        for p in stage.Traverse()
+        if p.IsA(UsdGeom.Capsule) and p.GetPath().pathString.startswith("/Forest/Colliders")
+    ]
+    assert len(caps) >= build.n_trees
+    base = np.array(
+        [
+            UsdGeom.Xformable(p)
+            .ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+            .ExtractTranslation()
+            for p in caps[: build.n_trees]
+        ]
+    )
+    near = np.min(np.linalg.norm(base[:, None, :2] - local[None, :, :2], axis=2), axis=1)
+    assert near.max() < 0.5
+
+
+def test_geojson_collections_and_what_is_refused(tmp_path):
+    sq = [[E0, N0], [E0 + 100, N0], [E0 + 100, N0 + 100], [E0, N0 + 100], [E0, N0]]
+    sq2 = [[x + 200, y] for x, y in sq]
+    crs = {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::32633"}}
+    doc = {
+        "type": "Feature",
+        "crs": crs,
+        "geometry": {
+            "type": "GeometryCollection",
+            "geometries": [
+                {"type": "Polygon", "coordinates": [sq]},
+                {"type": "Polygon", "coordinates": [sq2]},
+            ],
+        },
+    }
+    (tmp_path / "gc.geojson").write_text(json.dumps(doc))
+    r = _recipe(tmp_path, region={"kind": "file", "file": "gc.geojson"})
+    assert r.region.area == pytest.approx(20_000)
+    lonlat = {"type": "Polygon", "coordinates": [[[15, 45], [15.01, 45], [15.01, 45.01], [15, 45]]]}
+    (tmp_path / "ll.geojson").write_text(json.dumps(lonlat))
+    with pytest.raises(RecipeError, match="look like degrees"):
+        _recipe(tmp_path, region={"kind": "file", "file": "ll.geojson"})
+    (tmp_path / "badcrs.geojson").write_text(json.dumps({**doc, "crs": "EPSG:32633"}))
+    with pytest.raises(RecipeError, match="crs member is not"):
+        _recipe(tmp_path, region={"kind": "file", "file": "badcrs.geojson"})
+    with pytest.raises(RecipeError, match="geographic CRS"):
+        _recipe(tmp_path, crs="EPSG:4326")
+    _dem(tmp_path / "wgs.tif", crs="EPSG:4326")
+    with pytest.raises(RecipeError, match=r"wgs\.tif is in EPSG:4326, a geographic CRS"):
+        _recipe(tmp_path, ground={"kind": "raster", "file": "wgs.tif"})
+
+
+def test_a_plain_tiff_is_an_image_without_rasterio(tmp_path, monkeypatch):
+    import builtins
+
+    from PIL import Image
+
+    from usdforest.terrain import load_height_field
+
+    Image.fromarray(np.arange(64, dtype=np.uint16).reshape(8, 8) * 1000).save(tmp_path / "p.tif")
+    real = builtins.__import__
+
+    def no_rasterio(name, *a, **k):
+        if name.startswith("rasterio"):
+            raise ImportError(name)
+        return real(name, *a, **k)
+
+    monkeypatch.setattr(builtins, "__import__", no_rasterio)
+    field = load_height_field(tmp_path / "p.tif", (0.0, 0.0, 70.0, 70.0), peak=10.0)
+    assert field.bounds == (0.0, 0.0, 70.0, 70.0)
+    assert field.z.max() == pytest.approx(10 * 63_000 / 65_535, rel=1e-6)

@@ -165,19 +165,28 @@ def read_shape(path: Path, where: str) -> Shape:
         raise RecipeError(f"{where}: {path.name} is not GeoJSON: {exc}") from None
     if not isinstance(data, dict):
         raise RecipeError(f"{where}: {path.name} is not a GeoJSON object")
-    if data.get("type") == "FeatureCollection":
-        geoms = [f.get("geometry") for f in data.get("features") or [] if isinstance(f, dict)]
-    elif data.get("type") == "Feature":
-        geoms = [data.get("geometry")]
-    else:
-        geoms = [data]
     polys = []
-    for g in geoms:
-        if isinstance(g, dict) and g.get("type") in ("Polygon", "MultiPolygon"):
+
+    def walk(g) -> None:
+        """Every Polygon and MultiPolygon in features, collections and geometry collections."""
+        if not isinstance(g, dict):
+            return
+        kind = g.get("type")
+        if kind == "FeatureCollection":
+            for f in g.get("features") or []:
+                walk(f)
+        elif kind == "Feature":
+            walk(g.get("geometry"))
+        elif kind == "GeometryCollection":
+            for part in g.get("geometries") or []:
+                walk(part)
+        elif kind in ("Polygon", "MultiPolygon"):
             try:
                 polys.append(to_shape(g))
             except Exception as exc:
                 raise RecipeError(f"{where}: {path.name} has a malformed polygon: {exc}") from None
+
+    walk(data)
     if not polys:
         raise RecipeError(f"{where}: {path.name} has no Polygon or MultiPolygon geometry")
     for p in polys:
@@ -186,12 +195,31 @@ def read_shape(path: Path, where: str) -> Shape:
     geometry = shapely.union_all(polys)
     if geometry.is_empty or geometry.area <= 0:
         raise RecipeError(f"{where}: {path.name}: the polygons have zero area")
-    crs = None
-    name = ((data.get("crs") or {}).get("properties") or {}).get("name")
-    if isinstance(name, str):
-        parts = name.split(":")
-        crs = f"EPSG:{parts[-1]}" if "EPSG" in name.upper() and parts[-1].isdigit() else name
+    crs = _geojson_crs(data.get("crs"), path, where)
+    x0, y0, x1, y1 = geometry.bounds
+    if crs is None and -180 <= x0 <= x1 <= 180 and -90 <= y0 <= y1 <= 90 and x1 - x0 < 5:
+        raise RecipeError(
+            f"{where}: {path.name} names no CRS and its coordinates look like degrees "
+            "(GeoJSON without a crs member is longitude/latitude, RFC 7946); usdforest needs "
+            "projected metres: reproject it (e.g. ogr2ogr -t_srs EPSG:32633) and name the CRS"
+        )
     return Shape(geometry, path.name, crs)
+
+
+def _geojson_crs(member, path: Path, where: str) -> str | None:
+    """The CRS a legacy GeoJSON ``crs`` member names (``urn:ogc:def:crs:EPSG::32633`` ->
+    ``EPSG:32633``), None without one."""
+    if member is None:
+        return None
+    props = member.get("properties") if isinstance(member, dict) else None
+    name = props.get("name") if isinstance(props, dict) else None
+    if not isinstance(name, str) or not name:
+        raise RecipeError(
+            f"{where}: {path.name}'s crs member is not "
+            '{"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::32633"}}'
+        )
+    parts = name.split(":")
+    return f"EPSG:{parts[-1]}" if "EPSG" in name.upper() and parts[-1].isdigit() else name
 
 
 Region = Rectangle | Polygon | Shape
@@ -449,14 +477,16 @@ def load_raster(
     """A raster intensity from ``.npy`` (trees/m^2, over the region's ``bounds``), a GeoTIFF
     (trees/m^2 times ``peak`` if given, over its own georeferenced cells, which must cover the
     region; no-data cells hold no trees) or an image (grey 0..1 scaled by ``peak``)."""
-    from .rasters import GEOTIFF, covers, read_geotiff, read_grey, read_npy
+    from .rasters import GEOTIFF, covers, geotiff_extent, read_geotiff, read_grey, read_npy
 
-    geo = read_geotiff(path, "intensity.file") if path.suffix.lower() in GEOTIFF else None
-    if geo is not None:
+    where = "intensity.file"
+    geo = read_geotiff(path, where, box=bounds) if path.suffix.lower() in GEOTIFF else None
+    if geo is not None:  # the region's window of it
         if not covers(geo.bounds, bounds):
+            outer, crs = geotiff_extent(path, where)
             raise RecipeError(
-                f"intensity.file: {path.name} covers {list(geo.bounds)}, not the region "
-                f"{list(bounds)} (coordinates in the raster's CRS, {geo.crs or 'none given'})"
+                f"{where}: {path.name} covers {list(outer)}, not the region {list(bounds)} "
+                f"(coordinates in the raster's CRS, {crs or 'none given'})"
             )
         values = np.nan_to_num(geo.values, nan=0.0) * (1.0 if peak is None else peak)
         return Raster(values, geo.bounds, path.name, geo.crs)

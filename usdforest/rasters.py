@@ -86,16 +86,19 @@ class GeoGrid:
         return (x0 + dx / 2, y0 + dy / 2, x1 - dx / 2, y1 - dy / 2)
 
 
-def read_geotiff(path: Path, where: str) -> GeoGrid | None:
-    """Band 1 of a GeoTIFF with its georeferencing (rasterio), or None for a TIFF that has
-    none (a plain image: read it with :func:`read_grey`)."""
+def read_geotiff(
+    path: Path, where: str, box: tuple[float, float, float, float] | None = None
+) -> GeoGrid | None:
+    """Band 1 of a GeoTIFF with its georeferencing (rasterio): only the cells that meet
+    ``box`` (x0, y0, x1, y1) and one more on each side when a box is given. None for a TIFF
+    that has no georeferencing, or when rasterio is not installed (read it as an image with
+    :func:`read_grey`)."""
     _require(path, where)
     try:
         import rasterio
+        from rasterio.windows import Window
     except ImportError:
-        raise RecipeError(
-            f"{where}: reading the GeoTIFF {path.name} needs rasterio: pip install 'usdforest[geo]'"
-        ) from None
+        return None
     import warnings
 
     try:
@@ -107,12 +110,26 @@ def read_geotiff(path: Path, where: str) -> GeoGrid | None:
                     return None
                 if t.b != 0 or t.d != 0 or t.a <= 0 or t.e >= 0:
                     raise RecipeError(
-                        f"{where}: {path.name} is rotated or flipped (transform {tuple(t)[:6]}); "
-                        "usdforest reads north-up rasters only"
+                        f"{where}: {path.name} is not a north-up grid (transform "
+                        f"{tuple(t)[:6]}); warp it north-up first (e.g. gdalwarp)"
                     )
-                band = ds.read(1, masked=True)
-                b = ds.bounds
                 crs = ds.crs.to_string() if ds.crs is not None else None
+                if ds.crs is not None and ds.crs.is_geographic:
+                    raise RecipeError(
+                        f"{where}: {path.name} is in {crs}, a geographic CRS (degrees); "
+                        "usdforest needs a projected CRS in metres (e.g. UTM): reproject it"
+                    )
+                c0, r0, c1, r1 = 0, 0, ds.width, ds.height
+                if box is not None:  # the cells meeting the box, plus one on each side
+                    c0 = max(int(np.floor((box[0] - t.c) / t.a)) - 1, 0)
+                    c1 = min(int(np.ceil((box[2] - t.c) / t.a)) + 1, ds.width)
+                    r0 = max(int(np.floor((box[3] - t.f) / t.e)) - 1, 0)
+                    r1 = min(int(np.ceil((box[1] - t.f) / t.e)) + 1, ds.height)
+                    if c1 <= c0 or r1 <= r0:
+                        c0, r0, c1, r1 = 0, 0, 1, 1  # outside: the coverage check says so
+                band = ds.read(1, window=Window(c0, r0, c1 - c0, r1 - r0), masked=True)
+                x0, y1 = t.c + c0 * t.a, t.f + r0 * t.e
+                x1, y0 = t.c + c1 * t.a, t.f + r1 * t.e
     except RecipeError:
         raise
     except Exception as exc:
@@ -120,7 +137,24 @@ def read_geotiff(path: Path, where: str) -> GeoGrid | None:
     if band.dtype.kind not in "biuf":
         raise RecipeError(f"{where}: {path.name} holds {band.dtype} values, not numbers")
     values = np.ma.filled(band.astype(np.float64), np.nan)
-    return GeoGrid(values, (b.left, b.bottom, b.right, b.top), crs)
+    return GeoGrid(values, (float(x0), float(y0), float(x1), float(y1)), crs)
+
+
+def geotiff_extent(
+    path: Path, where: str
+) -> tuple[tuple[float, float, float, float], str | None] | None:
+    """The outer edges of a GeoTIFF's cells (x0, y0, x1, y1) and the CRS it names (None if
+    none); None when the file is not georeferenced or rasterio is not installed."""
+    if path.suffix.lower() not in GEOTIFF:
+        return None
+    grid = read_geotiff(path, where, box=(0.0, 0.0, 0.0, 0.0))  # one cell: the checks only
+    if grid is None:
+        return None
+    import rasterio
+
+    with rasterio.open(path) as ds:
+        b = ds.bounds
+        return (b.left, b.bottom, b.right, b.top), grid.crs
 
 
 def covers(outer: tuple[float, ...], inner: tuple[float, ...]) -> bool:
@@ -131,13 +165,3 @@ def covers(outer: tuple[float, ...], inner: tuple[float, ...]) -> bool:
         and outer[2] >= inner[2]
         and outer[3] >= inner[3]
     )
-
-
-def geotiff_extent(path: Path) -> tuple[tuple[float, float, float, float], str | None]:
-    """The outer edges of a GeoTIFF's cells (x0, y0, x1, y1) and the CRS it names (None if
-    none)."""
-    import rasterio
-
-    with rasterio.open(path) as ds:
-        b = ds.bounds
-        return (b.left, b.bottom, b.right, b.top), (ds.crs.to_string() if ds.crs else None)

@@ -514,6 +514,19 @@ def _common_crs(named: list[tuple[str, str | None]]) -> str | None:
     for k, c in given[1:]:
         if not _same_crs(crs, c):
             raise RecipeError(f"{k}: the file is in {c}, but {key} says {crs}")
+    try:
+        from rasterio.crs import CRS
+    except ImportError:
+        return crs
+    try:
+        geographic = CRS.from_user_input(crs).is_geographic
+    except Exception as exc:  # rasterio's CRSError
+        raise RecipeError(f"{key}: {crs!r} is not a CRS rasterio knows: {exc}") from None
+    if geographic:
+        raise RecipeError(
+            f"{key}: {crs} is a geographic CRS (degrees); usdforest works in projected metres "
+            "(e.g. a UTM zone): reproject the inputs and name that CRS"
+        )
     return crs
 
 
@@ -573,20 +586,21 @@ def _parse_ground(t: Any, region: Any, base: Path) -> dict | None:
                 )
         peak = t.get("max")
         path = base / coerce(t.get("file"), str, "ground.file")
-        field = load_height_field(path, bounds, None if peak is None else _num(peak, "ground.max"))
-        if field.bounds != bounds:  # a GeoTIFF: placed by its own georeferencing
+        geo = geotiff_extent(path, "ground.file")
+        if geo is not None:  # a GeoTIFF, placed by its own georeferencing
             if "bounds" in t:
                 raise RecipeError(
                     f"ground.bounds: {path.name} is georeferenced; it is placed where it says"
                 )
             # its cells must cover the region (within half a cell of the edge the height is
             # the edge cell's)
-            outer, crs = geotiff_extent(path)
+            outer, crs = geo
             if not covers(outer, region.bounds):
                 raise RecipeError(
                     f"ground.file: {path.name}'s cells span {list(outer)}, which does not cover "
                     f"the region {list(region.bounds)}; trees there would have no ground height"
                 )
+        field = load_height_field(path, bounds, None if peak is None else _num(peak, "ground.max"))
     return {"kind": kind, "margin": margin, "color": color, "field": field, "crs": crs}
 
 

@@ -80,13 +80,13 @@ def load_height_field(
     peak: float | None = None,
 ) -> HeightField:
     """A height field from ``.npy`` (metres; times ``peak`` if given, over ``bounds``), a
-    GeoTIFF DEM (metres, times ``peak`` if given, each elevation at its cell's centre: over
-    its own georeferenced extent, ``bounds`` ignored) or an image (grey 0..1 times ``peak``
-    metres), decimated to at most ``MAX_NODES`` nodes per side."""
+    GeoTIFF DEM (metres, times ``peak`` if given, each elevation at its cell's centre: the
+    cells over ``bounds`` and one more each side, placed by its georeferencing) or an image
+    (grey 0..1 times ``peak`` metres), decimated to at most ``MAX_NODES`` nodes per side."""
     from .rasters import GEOTIFF, read_geotiff, read_grey, read_npy
 
     where = "ground.file"
-    geo = read_geotiff(path, where) if path.suffix.lower() in GEOTIFF else None
+    geo = read_geotiff(path, where, box=bounds) if path.suffix.lower() in GEOTIFF else None
     if geo is not None:
         z = geo.values
         bounds = geo.centres

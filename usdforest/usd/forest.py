@@ -164,13 +164,9 @@ def interface_layer(
     data = {}
     if thumbnail:
         data["thumbnail"] = Sdf.AssetPath(thumbnail)
-    if recipe.crs:
-        # where the stage's origin is in the real world: the recipe's coordinates are the
-        # CRS's, moved by the plot's centre when the forest is centred
-        x0, y0, x1, y1 = recipe.region.bounds
-        centre = recipe.origin == "centre"
+    if recipe.crs:  # where the stage's origin is on the map
         data["crs"] = recipe.crs
-        data["crsOrigin"] = Gf.Vec2d((x0 + x1) / 2, (y0 + y1) / 2) if centre else Gf.Vec2d(0, 0)
+        data["crsOrigin"] = Gf.Vec2d(*(float(v) for v in _stage_origin(build, recipe)))
     if data:
         layer.customLayerData = data
     with Sdf.ChangeBlock():
@@ -180,13 +176,10 @@ def interface_layer(
             "name": build.out.stem,
             "identifier": Sdf.AssetPath(f"./{build.out.name}"),
         }
-        ax, ay = (float(a) for a in build.anchor)
-        if recipe.origin == "centre" or ax or ay:
+        if recipe.origin == "centre":
             # recipe coordinates stay in trees.csv; the stage puts the plot's centre at 0, 0
-            # (or, about an anchor, the recipe's origin)
-            x0, y0, x1, y1 = recipe.region.bounds
-            cx, cy = ((x0 + x1) / 2, (y0 + y1) / 2) if recipe.origin == "centre" else (0, 0)
-            attr(forest, "xformOp:translate", T.Double3, Gf.Vec3d(ax - cx, ay - cy, 0))
+            cx, cy = _stage_origin(build, recipe) - build.anchor
+            attr(forest, "xformOp:translate", T.Double3, Gf.Vec3d(-cx, -cy, 0))
             attr(
                 forest,
                 "xformOpOrder",
@@ -211,6 +204,15 @@ def interface_layer(
         if recipe.physics_scene:
             add_physics_scene(forest)
     return layer
+
+
+def _stage_origin(build: ForestBuild, recipe: Recipe) -> np.ndarray:
+    """The recipe x, y at the stage's origin: the plot's centre (``origin = "centre"``), else
+    the layers' anchor (the recipe's own origin, or a georeferenced region's corner)."""
+    if recipe.origin == "centre":
+        x0, y0, x1, y1 = recipe.region.bounds
+        return np.array([(x0 + x1) / 2, (y0 + y1) / 2])
+    return np.asarray(build.anchor, dtype=float)
 
 
 def _anchor(recipe: Recipe) -> np.ndarray:
