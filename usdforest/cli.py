@@ -394,6 +394,7 @@ def build_cmd(
         "expected_trees": round(recipe.expected_trees(), 3),
         "trees_by_species": {n: int(c) for n, c in zip(b.sites.names, counts, strict=True)},
         "prototypes": len(b.prototypes),
+        "tiles": b.n_tiles,
         "extent": b.extent.tolist(),
         "seconds": round(secs, 3),
     }
@@ -404,7 +405,9 @@ def build_cmd(
         out.print(
             f"{output}: {b.n_trees:,} trees (expected {summary['expected_trees']:,.0f}{note}) of "
             + ", ".join(f"{n} {c:,}" for n, c in summary["trees_by_species"].items())
-            + f"; {len(b.prototypes)} tree assets in {b.assets}/ ({secs:.1f} s)",
+            + f"; {len(b.prototypes)} tree assets"
+            + (f", {b.n_tiles} tiles" if b.n_tiles else "")
+            + f" in {b.assets}/ ({secs:.1f} s)",
             highlight=False,
         )
 

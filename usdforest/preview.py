@@ -159,6 +159,7 @@ def stage_cloud(
     root = root or stage.GetDefaultPrim() or stage.GetPseudoRoot()
     cache = UsdGeom.XformCache()
     memo: dict = {}
+    shared: dict = {}  # prototype samples by what they compose from (see _prototype)
 
     def subtree(prim, spacing: float, defer: list[Stamps] | None = None) -> Cloud:
         """Samples under ``prim`` in ``prim``'s own local space."""
@@ -206,7 +207,22 @@ def stage_cloud(
         """A prototype's samples in the instancer's space (before the instance transform),
         as dense as its instances' (uniform) ``scales`` need."""
         proto = p.GetStage().GetPrimAtPath(path)
-        local = subtree(proto, spacing / max(float(np.median(scales)), 1e-6))
+        # (on a grid of half octaves, so that instancers of the same trees share samples)
+        sp = float(
+            2.0 ** (np.round(2 * np.log2(spacing / max(float(np.median(scales)), 1e-6))) / 2)
+        )
+        # the same tree asset under several instancers (a tiled forest's tiles) is sampled
+        # once: keyed by the specs it composes from outside its own layer and its variants
+        stack = proto.GetPrimStack()
+        key = (
+            tuple((s.layer.identifier, str(s.path)) for s in stack if s.layer != stack[0].layer),
+            tuple(sorted(proto.GetVariantSets().GetAllVariantSelections().items())),
+            round(sp, 9),
+        )
+        if key[0] and key in shared:
+            local = shared[key]
+        else:
+            local = shared[key] = subtree(proto, sp)
         own = _matrix(cache.GetLocalTransformation(proto)[0])
         return local.transformed(own)
 

@@ -186,7 +186,18 @@ __all__ = [
 
 # --------------------------------------------------------------------------- forest recipes
 
-TOP_KEYS = {"seed", "crs", "region", "intensity", "sites", "mix", "species", "forest", "ground"}
+TOP_KEYS = {
+    "seed",
+    "crs",
+    "region",
+    "intensity",
+    "sites",
+    "mix",
+    "species",
+    "forest",
+    "ground",
+    "tiles",
+}
 GROUND_KEYS = {"kind", "margin", "color", "file", "max", "bounds"}
 FOREST_KEYS = {
     "variants",
@@ -236,6 +247,7 @@ class Recipe:
     origin: str = "corner"  # "corner": recipe coordinates; "centre": the plot's centre at 0, 0
     lod: str = "full"  # the tree assets' lod variant the forest selects: full, medium, proxy
     crs: str | None = None  # the projected CRS of the recipe's coordinates, when one is named
+    tiles: float | None = None  # tile side in metres: the forest as payload tiles
 
     @property
     def species_names(self) -> tuple[str, ...]:
@@ -467,6 +479,7 @@ def parse_recipe(
                 ("ground.file", (ground or {}).get("crs")),
             ]
         )
+        tiles = _parse_tiles(data.get("tiles"))
     except RecipeError as exc:
         raise fail(exc) from None
     recipe = Recipe(
@@ -489,6 +502,7 @@ def parse_recipe(
         origin,
         lod,
         crs,
+        tiles,
     )
     try:
         expected = recipe.expected_trees()
@@ -502,6 +516,18 @@ def parse_recipe(
             "mean it"
         )
     return recipe
+
+
+def _parse_tiles(t: Any) -> float | None:
+    """``[tiles] size = 500``: the side of each payload tile in metres (None: no tiles)."""
+    if t is None:
+        return None
+    if not isinstance(t, Mapping):
+        raise RecipeError("tiles: expected a table, e.g. [tiles] size = 500")
+    check_keys(t, {"size"}, "tiles")
+    if "size" not in t:
+        raise RecipeError("tiles.size: missing (the side of a tile in metres)")
+    return _num(t["size"], "tiles.size", positive=True)
 
 
 def _common_crs(named: list[tuple[str, str | None]]) -> str | None:

@@ -39,7 +39,8 @@ from ..sites import Sites, sample_sites
 from ..terrain import HeightField
 from .ground import ground_layer
 from .layers import T, attr, extents, new_layer, prim, save_layer, vec3f
-from .physics import add_physics_scene, collision_layer, instance_capsules
+from .physics import add_physics_scene, author_capsules, collision_layer, instance_capsules
+from .tiles import author_tiles, partition
 from .tree import TreeBuild, build_tree, copy_templates, tree_layer
 
 THUMBNAIL = "thumbnail.png"  # inside the assets folder
@@ -70,6 +71,7 @@ class ForestBuild:
     # recipe x, y at the layers' origin: (0, 0), or for a recipe in a projected CRS its
     # region's south-west corner in whole metres, so float32 positions keep their millimetres
     anchor: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    n_tiles: int = 0  # payload tiles (0: one instancer layer)
 
     @property
     def n_trees(self) -> int:
@@ -110,15 +112,22 @@ def yaw_quaternions(yaw_deg: np.ndarray) -> np.ndarray:
 
 
 def instancer_layer(
-    sites: Sites, build: ForestBuild, tree_assets: list[str], lod: str = "full"
+    sites: Sites,
+    build: ForestBuild,
+    tree_assets: list[str],
+    lod: str = "full",
+    *,
+    root: str = "Forest",
+    ids: np.ndarray | None = None,
 ) -> Sdf.Layer:
-    """``/Forest/Trees`` PointInstancer over the sites, one prototype per tree asset, each
-    selecting the tree's ``lod`` variant (switch it on a prototype without rebuilding)."""
-    layer = new_layer("Forest", comment="usdforest forest instances")
+    """``/<root>/Trees`` PointInstancer over the sites, one prototype per tree asset, each
+    selecting the tree's ``lod`` variant (switch it on a prototype without rebuilding);
+    ``ids``: the trees' ids in ``trees.csv`` (default 0..n-1)."""
+    layer = new_layer(root, comment="usdforest forest instances")
     n = len(sites)
     with Sdf.ChangeBlock():
-        forest = prim(layer, "Forest", "Xform")
-        forest.kind = "assembly"
+        forest = prim(layer, root, "Xform")
+        forest.kind = "assembly" if root == "Forest" else "group"
         trees = prim(forest, "Trees", "PointInstancer")
         trees.kind = "group"
         protos = prim(trees, "Prototypes", "Scope")
@@ -148,16 +157,22 @@ def instancer_layer(
             T.IntArray,
             Vt.IntArray.FromNumpy(build.proto_index.astype(np.int32)),
         )
-        attr(trees, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(np.arange(n, dtype=np.int64)))
+        ids = np.arange(n, dtype=np.int64) if ids is None else np.asarray(ids, dtype=np.int64)
+        attr(trees, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(ids))
         attr(trees, "extent", T.Float3Array, extents(build.extent))
     return layer
 
 
 def interface_layer(
-    build: ForestBuild, recipe: Recipe, sublayers: list[str], thumbnail: str | None = None
+    build: ForestBuild,
+    recipe: Recipe,
+    sublayers: list[str],
+    thumbnail: str | None = None,
+    tiles: list | None = None,
 ) -> Sdf.Layer:
-    """``forest.usda``: ``/Forest`` (assembly) over the instancer and collision sublayers,
-    with a physics scene only when the recipe asks for one."""
+    """``forest.usda``: ``/Forest`` (assembly) over the instancer and collision sublayers
+    (or the ``tiles``' payloads, see :func:`usdforest.usd.tiles.author_tiles`), with a
+    physics scene only when the recipe asks for one."""
     layer = new_layer("Forest", comment="usdforest forest")
     for sub in sublayers:
         layer.subLayerPaths.append(sub)
@@ -201,6 +216,8 @@ def interface_layer(
             }
         }
         attr(forest, "extentsHint", T.Float3Array, extents(_extents_hint(build, recipe)))
+        if tiles:
+            author_tiles(forest, tiles)
         if recipe.physics_scene:
             add_physics_scene(forest)
     return layer
@@ -248,8 +265,80 @@ def _extents_hint(build: ForestBuild, recipe: Recipe) -> np.ndarray:
     return np.stack([np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)])
 
 
+def _write_tiles(
+    staged: Path,
+    build: ForestBuild,
+    recipe: Recipe,
+    csv_sites: Sites,
+    heights: np.ndarray,
+    tree_assets: list[str],
+    trees: list[TreeBuild],
+) -> list:
+    """Each tile's layer (``tiles/Tile_i_j.usdc``: its trees about its corner, their trunk
+    colliders) and CSV; returns ``(tile, asset, extent)`` for the root's payloads."""
+    folder = staged / "tiles"
+    folder.mkdir()
+    x0, y0, _, _ = recipe.region.bounds
+    corner = np.array([x0, y0]) - build.anchor
+    assets = ["." + a for a in tree_assets]  # ./trees/x.usdc, seen from tiles/
+    out = []
+    for tile in partition(build.sites.xy, corner, recipe.tiles):
+        i = tile.index
+        s = build.sites
+        local = Sites(
+            s.names, s.xy[i] - tile.origin, s.species[i], s.variant[i], s.yaw[i], s.scale[i]
+        )
+        z = build.ground_z[i]
+        extent = _level_extent(local, build.proto_index[i], trees, recipe.lod, z)
+        part = replace(
+            build, sites=local, proto_index=build.proto_index[i], ground_z=z, extent=extent
+        )
+        layer = instancer_layer(local, part, assets, recipe.lod, root="Tile", ids=i)
+        if recipe.colliders != "none":
+            caps, names = instance_capsules(
+                [t.colliders for t in trees],
+                part.proto_index,
+                np.column_stack([local.xy, z]),
+                local.yaw,
+                local.scale,
+            )
+            with Sdf.ChangeBlock():
+                author_capsules(
+                    prim(layer.GetPrimAtPath("/Tile"), "Colliders", "Scope"), caps, names
+                )
+        save_layer(layer, folder / f"{tile.name}.usdc")
+        c = csv_sites
+        _write_csv(
+            folder / f"{tile.name}.csv",
+            Sites(c.names, c.xy[i], c.species[i], c.variant[i], c.yaw[i], c.scale[i]),
+            heights,
+            part.proto_index,
+            z,
+            ids=i,
+        )
+        out.append((tile, f"./{build.assets.name}/tiles/{tile.name}.usdc", extent))
+    return out
+
+
+def _level_extent(
+    sites: Sites, proto_index: np.ndarray, trees: list[TreeBuild], lod: str, ground_z: np.ndarray
+) -> np.ndarray:
+    """The instancer extent of ``sites`` at level ``lod`` and their proxies (see
+    :func:`instancer_extent`)."""
+    proxy = instancer_extent(sites, proto_index, trees, "proxy", ground_z)
+    if lod == "proxy" or len(sites) == 0:
+        return proxy
+    selected = instancer_extent(sites, proto_index, trees, lod, ground_z)
+    return np.stack([np.minimum(selected[0], proxy[0]), np.maximum(selected[1], proxy[1])])
+
+
 def _write_csv(
-    path: Path, sites: Sites, heights: np.ndarray, proto_index: np.ndarray, z: np.ndarray
+    path: Path,
+    sites: Sites,
+    heights: np.ndarray,
+    proto_index: np.ndarray,
+    z: np.ndarray,
+    ids: np.ndarray | None = None,
 ) -> None:
     from .. import csvtext
 
@@ -260,7 +349,7 @@ def _write_csv(
             f,
             len(sites),
             lambda i: [
-                csvtext.integers(np.arange(i.start, i.stop)),
+                csvtext.integers(np.arange(i.start, i.stop) if ids is None else ids[i]),
                 csvtext.fixed(sites.xy[i, 0], 4),
                 csvtext.fixed(sites.xy[i, 1], 4),
                 csvtext.fixed(z[i], 4),
@@ -337,12 +426,7 @@ def write_forest(
     ) + np.float32(0.0)
     # a PointInstancer's extent bounds its prototypes' default, render and proxy purposes:
     # the selected level and, beside a full or medium tree, its proxy
-    proxy = instancer_extent(sites, proto_index, ordered, "proxy", ground_z)
-    if recipe.lod == "proxy" or len(sites) == 0:
-        extent = proxy
-    else:
-        selected = instancer_extent(sites, proto_index, ordered, recipe.lod, ground_z)
-        extent = np.stack([np.minimum(selected[0], proxy[0]), np.maximum(selected[1], proxy[1])])
+    extent = _level_extent(sites, proto_index, ordered, recipe.lod, ground_z)
     build = ForestBuild(
         sites,
         tuple(prototypes),
@@ -371,11 +455,23 @@ def write_forest(
             tree_assets.append(f"./trees/{stem}.usdc")
         tick("writing trees", len(prototypes), len(prototypes))
         tick("writing instances", 0, 1)
-        save_layer(
-            instancer_layer(sites, build, tree_assets, recipe.lod), staged / "instances.usdc"
-        )
-        sublayers = [f"./{assets.name}/instances.usdc"]
-        if recipe.colliders != "none":
+        sublayers, tiles = [], None
+        if recipe.tiles is not None:
+            tiles = _write_tiles(
+                staged,
+                build,
+                recipe,
+                csv_sites,
+                heights,
+                tree_assets,
+                [trees[k] for k in prototypes],
+            )
+        else:
+            save_layer(
+                instancer_layer(sites, build, tree_assets, recipe.lod), staged / "instances.usdc"
+            )
+            sublayers.append(f"./{assets.name}/instances.usdc")
+        if recipe.colliders != "none" and recipe.tiles is None:
             caps, names = instance_capsules(
                 [trees[key].colliders for key in prototypes],
                 proto_index,
@@ -407,6 +503,7 @@ def write_forest(
                     recipe,
                     sublayers,
                     f"./{assets.name}/{THUMBNAIL}" if thumbnail else None,
+                    tiles,
                 ),
                 tmp / out.name,
             )
@@ -425,4 +522,4 @@ def write_forest(
         publish(tmp, out, tmp / out.name, [(staged, assets)])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return build
+    return replace(build, n_tiles=len(tiles or ()))

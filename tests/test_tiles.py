@@ -1,0 +1,131 @@
+"""Tiled forests: payload tiles composed back into the untiled forest, loaded one at a time."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+from pxr import Usd, UsdGeom
+
+from usdforest.errors import RecipeError
+from usdforest.recipe import default_recipe_path, load_toml, parse_recipe
+from usdforest.usd.forest import write_forest
+from usdforest.validate import validate
+
+
+def _recipe(tmp_path, **extra):
+    data = {**load_toml(default_recipe_path()), **extra}
+    return parse_recipe(data, default_recipe_path().parent, str(tmp_path / "r.toml"))
+
+
+def _trees(stage: Usd.Stage) -> dict[int, tuple[np.ndarray, int]]:
+    """Every composed tree by id: its world position and its prototype's name (the forest's
+    instancers, not the leaves' inside the trees)."""
+    out = {}
+    for p in stage.Traverse():
+        if not p.IsA(UsdGeom.PointInstancer) or Usd.ModelAPI(p).GetKind() != "group":
+            continue
+        pi = UsdGeom.PointInstancer(p)
+        xf = np.asarray(
+            pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
+        )
+        w = np.asarray(UsdGeom.Xformable(p).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+        pos = xf[:, 3, :3] @ w[:3, :3] + w[3, :3]
+        names = [t.name for t in pi.GetPrototypesRel().GetTargets()]
+        idx = np.asarray(pi.GetProtoIndicesAttr().Get())
+        for i, x, k in zip(np.asarray(pi.GetIdsAttr().Get()), pos, idx, strict=True):
+            out[int(i)] = (x, names[k])
+    return out
+
+
+def _rows(path) -> dict[int, np.ndarray]:
+    with open(path) as f:
+        return {int(r["id"]): np.array([float(r[k]) for k in "xyz"]) for r in csv.DictReader(f)}
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("tiles")
+    flat = tmp / "flat.usda"
+    tiled = tmp / "tiled.usda"
+    write_forest(_recipe(tmp), flat, thumbnail=False)
+    write_forest(_recipe(tmp, tiles={"size": 40.0}), tiled, thumbnail=False)
+    return flat, tiled
+
+
+def test_tiles_compose_into_the_untiled_forest(built):
+    flat, tiled = built
+    assert validate(tiled) == []
+    a = _trees(Usd.Stage.Open(str(flat)))
+    b = _trees(Usd.Stage.Open(str(tiled)))
+    assert len(a) > 100 and sorted(a) == sorted(b)
+    for i, (x, name) in a.items():
+        assert b[i][1] == name
+        np.testing.assert_allclose(b[i][0], x, atol=1e-4)
+    # the same trunk colliders
+    stages = [Usd.Stage.Open(str(f)) for f in (flat, tiled)]
+    caps = [
+        sorted(
+            tuple(
+                np.round(
+                    UsdGeom.Xformable(p)
+                    .ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+                    .ExtractTranslation(),
+                    3,
+                )
+            )
+            for p in s.Traverse()
+            if p.IsA(UsdGeom.Capsule) and "/Prototypes/" not in p.GetPath().pathString
+        )
+        for s in stages
+    ]
+    assert len(caps[0]) == len(caps[1]) > 100
+    np.testing.assert_allclose(caps[0], caps[1], atol=2e-3)
+    # every tree where trees.csv puts it
+    rows = _rows(tiled.parent / "tiled_assets" / "trees.csv")
+    for i, (x, _) in b.items():
+        np.testing.assert_allclose(x, rows[i], atol=1e-3)
+
+
+def test_a_tile_loads_alone(built):
+    _, tiled = built
+    stage = Usd.Stage.Open(str(tiled), Usd.Stage.LoadNone)
+    tiles = stage.GetPrimAtPath("/Forest/Tiles").GetAllChildren()  # unloaded ones too
+    assert len(tiles) == 9
+    assert not any(p.IsA(UsdGeom.PointInstancer) for p in stage.Traverse())
+    # the unloaded tiles still bound their trees
+    hints = {p.GetName(): UsdGeom.ModelAPI(p).GetExtentsHint() for p in tiles}
+    assert all(len(h) == 2 for h in hints.values())
+    stage.Load("/Forest/Tiles/Tile_1_1")
+    loaded = [
+        p.GetPath().pathString
+        for p in stage.Traverse()
+        if p.IsA(UsdGeom.PointInstancer) and Usd.ModelAPI(p).GetKind() == "group"
+    ]
+    assert loaded == ["/Forest/Tiles/Tile_1_1/Trees"]
+    trees = _trees(stage)
+    rows = _rows(tiled.parent / "tiled_assets" / "tiles" / "Tile_1_1.csv")
+    assert sorted(trees) == sorted(rows) and len(rows) > 5
+    for i, (x, _) in trees.items():
+        np.testing.assert_allclose(x, rows[i], atol=1e-3)
+        assert 40 <= rows[i][0] < 80 and 40 <= rows[i][1] < 80
+    # and inside the extent its unloaded prim announced (tile-local, moved by its translate)
+    lo, hi = (np.array(v) for v in hints["Tile_1_1"])
+    pos = np.array([x for x, _ in trees.values()]) - [40, 40, 0]
+    assert np.all(pos >= lo - 1e-4) and np.all(pos <= hi + 1e-4)
+
+
+@pytest.mark.parametrize(
+    ("tiles", "fragment"),
+    [
+        ({"size": 0}, "tiles.size: must be > 0"),
+        ({"size": 50, "shape": "hex"}, "tiles: unknown key 'shape'"),
+        ({}, "tiles.size: missing"),
+        (5, "tiles: expected a table"),
+    ],
+)
+def test_bad_tiles_are_named(tmp_path, tiles, fragment):
+    with pytest.raises(RecipeError) as err:
+        _recipe(tmp_path, tiles=tiles)
+    assert fragment in str(err.value)
