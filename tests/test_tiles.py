@@ -129,3 +129,44 @@ def test_bad_tiles_are_named(tmp_path, tiles, fragment):
     with pytest.raises(RecipeError) as err:
         _recipe(tmp_path, tiles=tiles)
     assert fragment in str(err.value)
+
+
+def test_two_dask_workers_write_the_same_bytes_as_one(tmp_path):
+    """A 4-tile forest on a 2-worker LocalCluster: every file byte for byte the one-process
+    build's (the tasks finish in any order; the root lists the tiles in tile order)."""
+    pytest.importorskip("distributed", reason="Dask tiles need dask.distributed (usdforest[dask])")
+    recipe = _recipe(tmp_path, tiles={"size": 50.0})
+    one, two = tmp_path / "one" / "f.usda", tmp_path / "two" / "f.usda"
+    one.parent.mkdir()
+    two.parent.mkdir()
+    a = write_forest(recipe, one, thumbnail=False)
+    b = write_forest(recipe, two, thumbnail=False, workers=2)
+    assert a.n_tiles == b.n_tiles == 4
+    files = sorted(p.relative_to(one.parent) for p in one.parent.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(two.parent) for p in two.parent.rglob("*") if p.is_file())
+    assert len([f for f in files if f.suffix == ".usdc" and "tiles" in f.parts]) == 4
+    for f in files:
+        assert (one.parent / f).read_bytes() == (two.parent / f).read_bytes(), f
+    assert validate(two) == []
+    # an existing cluster, by its address
+    from distributed import LocalCluster
+
+    three = tmp_path / "three" / "f.usda"
+    three.parent.mkdir()
+    with LocalCluster(n_workers=1, processes=False, dashboard_address=None) as cluster:
+        write_forest(recipe, three, thumbnail=False, scheduler=cluster.scheduler_address)
+    for f in files:
+        assert (one.parent / f).read_bytes() == (three.parent / f).read_bytes(), f
+
+
+def test_an_unreachable_scheduler_is_named(tmp_path, runner):
+    from usdforest.cli import app
+
+    p = tmp_path / "t.toml"
+    p.write_text(default_recipe_path().read_text() + "\n[tiles]\nsize = 50\n", encoding="utf-8")
+    out = tmp_path / "f.usda"
+    r = runner.invoke(
+        app, ["build", str(out), "-p", str(p), "-q", "--scheduler", "tcp://127.0.0.1:9"]
+    )
+    assert r.exit_code == 2 and "--scheduler tcp://127.0.0.1:9: cannot connect" in r.stderr
+    assert not out.exists() and not (tmp_path / "f_assets").exists()

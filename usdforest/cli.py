@@ -347,6 +347,23 @@ def build_cmd(
     no_thumbnail: Annotated[
         bool, typer.Option("--no-thumbnail", help="Do not render OUT_assets/thumbnail.png.")
     ] = False,
+    workers: Annotated[
+        int,
+        typer.Option(
+            "--workers",
+            min=1,
+            max=256,
+            help="Dask worker processes writing a tiled forest's tiles (a local cluster).",
+        ),
+    ] = 1,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            "--scheduler",
+            metavar="ADDRESS",
+            help="Write the tiles on this Dask cluster (tcp://host:8786; shared disk).",
+        ),
+    ] = None,
 ) -> None:
     """Build a forest: sample tree sites, grow tree variants, write the USD layers."""
     import numpy as np
@@ -383,7 +400,15 @@ def build_cmd(
                 last[0] = now
                 err.print(f"{stage}: {done:,}/{total:,} ({now - t0:.0f} s)", highlight=False)
 
-        b = write_forest(recipe, output, force=force, progress=tick, thumbnail=not no_thumbnail)
+        b = write_forest(
+            recipe,
+            output,
+            force=force,
+            progress=tick,
+            thumbnail=not no_thumbnail,
+            workers=workers,
+            scheduler=scheduler,
+        )
     secs = time.perf_counter() - t0
     counts = np.bincount(b.sites.species, minlength=len(b.sites.names))
     summary = {

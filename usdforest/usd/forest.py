@@ -22,8 +22,9 @@ from __future__ import annotations
 
 import re
 import shutil
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -32,7 +33,8 @@ import tomli_w
 from pxr import Gf, Sdf, Vt
 
 from ..atomic import publish, refuse_overwrite, staging_folder
-from ..bounds import EMPTY_EXTENT, yawed_extent
+from ..bounds import EMPTY_EXTENT, Bounds, yawed_extent
+from ..colliders import Capsules
 from ..errors import UsdForestError
 from ..recipe import Recipe, resolved_toml
 from ..sites import Sites, sample_sites
@@ -265,6 +267,14 @@ def _extents_hint(build: ForestBuild, recipe: Recipe) -> np.ndarray:
     return np.stack([np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)])
 
 
+@dataclass(frozen=True, eq=False)
+class _Proto:
+    """What a tile needs of a tree prototype: its levels' bounds and its colliders."""
+
+    bounds: Mapping[str, Bounds]
+    colliders: Capsules
+
+
 def _write_tiles(
     staged: Path,
     build: ForestBuild,
@@ -273,51 +283,118 @@ def _write_tiles(
     heights: np.ndarray,
     tree_assets: list[str],
     trees: list[TreeBuild],
+    client=None,
+    tick: Progress | None = None,
 ) -> list:
     """Each tile's layer (``tiles/Tile_i_j.usdc``: its trees about its corner, their trunk
-    colliders) and CSV; returns ``(tile, asset, extent)`` for the root's payloads."""
+    colliders) and CSV, as tasks on ``client`` (a dask.distributed Client) or one after
+    another; returns ``(tile, asset, extent)`` for the root's payloads, in tile order."""
     folder = staged / "tiles"
     folder.mkdir()
     x0, y0, _, _ = recipe.region.bounds
     corner = np.array([x0, y0]) - build.anchor
     assets = ["." + a for a in tree_assets]  # ./trees/x.usdc, seen from tiles/
-    out = []
-    for tile in partition(build.sites.xy, corner, recipe.tiles):
+    protos = [_Proto(t.bounds, t.colliders) for t in trees]
+    tiles = partition(build.sites.xy, corner, recipe.tiles)
+    jobs = []
+    for tile in tiles:
         i = tile.index
-        s = build.sites
+        s, c = build.sites, csv_sites
         local = Sites(
             s.names, s.xy[i] - tile.origin, s.species[i], s.variant[i], s.yaw[i], s.scale[i]
         )
-        z = build.ground_z[i]
-        extent = _level_extent(local, build.proto_index[i], trees, recipe.lod, z)
         part = replace(
-            build, sites=local, proto_index=build.proto_index[i], ground_z=z, extent=extent
+            build,
+            sites=local,
+            proto_index=build.proto_index[i],
+            ground_z=build.ground_z[i],
+            trees={},
         )
-        layer = instancer_layer(local, part, assets, recipe.lod, root="Tile", ids=i)
-        if recipe.colliders != "none":
-            caps, names = instance_capsules(
-                [t.colliders for t in trees],
-                part.proto_index,
-                np.column_stack([local.xy, z]),
-                local.yaw,
-                local.scale,
-            )
-            with Sdf.ChangeBlock():
-                author_capsules(
-                    prim(layer.GetPrimAtPath("/Tile"), "Colliders", "Scope"), caps, names
-                )
-        save_layer(layer, folder / f"{tile.name}.usdc")
-        c = csv_sites
-        _write_csv(
-            folder / f"{tile.name}.csv",
-            Sites(c.names, c.xy[i], c.species[i], c.variant[i], c.yaw[i], c.scale[i]),
-            heights,
+        rows = Sites(c.names, c.xy[i], c.species[i], c.variant[i], c.yaw[i], c.scale[i])
+        jobs.append((folder, tile, part, rows, heights, assets, recipe.lod, recipe.colliders))
+    tick = tick or (lambda stage, done, total: None)
+    if client is None:
+        extents = []
+        for k, job in enumerate(jobs):
+            tick("writing tiles", k, len(jobs))
+            extents.append(_tile_job(*job, protos))
+    else:
+        from distributed import as_completed
+
+        shared = client.scatter(protos, broadcast=True)
+        futures = [client.submit(_tile_job, *job, shared, pure=False) for job in jobs]
+        for k, _ in enumerate(as_completed(futures)):
+            tick("writing tiles", k, len(jobs))
+        extents = client.gather(futures)
+    tick("writing tiles", len(jobs), len(jobs))
+    return [
+        (tile, f"./{build.assets.name}/tiles/{tile.name}.usdc", extent)
+        for tile, extent in zip(tiles, extents, strict=True)
+    ]
+
+
+def _tile_job(
+    folder: Path,
+    tile,
+    part: ForestBuild,
+    rows: Sites,
+    heights: np.ndarray,
+    assets: list[str],
+    lod: str,
+    colliders: str,
+    protos: list[_Proto],
+) -> np.ndarray:
+    """Write one tile's layer and CSV (a task: every input travels with it); its extent."""
+    local, z = part.sites, part.ground_z
+    extent = _level_extent(local, part.proto_index, protos, lod, z)
+    part = replace(part, extent=extent)
+    layer = instancer_layer(local, part, assets, lod, root="Tile", ids=tile.index)
+    if colliders != "none":
+        caps, names = instance_capsules(
+            [p.colliders for p in protos],
             part.proto_index,
-            z,
-            ids=i,
+            np.column_stack([local.xy, z]),
+            local.yaw,
+            local.scale,
         )
-        out.append((tile, f"./{build.assets.name}/tiles/{tile.name}.usdc", extent))
-    return out
+        with Sdf.ChangeBlock():
+            author_capsules(prim(layer.GetPrimAtPath("/Tile"), "Colliders", "Scope"), caps, names)
+    save_layer(layer, folder / f"{tile.name}.usdc")
+    _write_csv(folder / f"{tile.name}.csv", rows, heights, part.proto_index, z, ids=tile.index)
+    return extent
+
+
+@contextmanager
+def _dask_client(workers: int, scheduler: str | None):
+    """A dask.distributed client for a tiled build: the cluster at ``scheduler``, a local
+    cluster of ``workers`` processes, or None (tiles written here) for one worker."""
+    if scheduler is None and workers <= 1:
+        yield None
+        return
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise UsdForestError(
+            "building tiles on Dask needs dask.distributed: pip install 'usdforest[dask]'"
+        ) from None
+    import logging
+
+    logging.getLogger("distributed").setLevel(logging.ERROR)
+    if scheduler is not None:
+        try:
+            client = Client(scheduler, timeout="10s")
+        except OSError as exc:
+            raise UsdForestError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+        with client:
+            yield client
+        return
+    with (
+        LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        Client(cluster) as client,
+    ):
+        yield client
 
 
 def _level_extent(
@@ -369,6 +446,8 @@ def write_forest(
     force: bool = False,
     progress: Progress | None = None,
     thumbnail: bool = True,
+    workers: int = 1,
+    scheduler: str | None = None,
 ) -> ForestBuild:
     """Build the forest of ``recipe`` at ``out`` (see the module docstring for the layout).
 
@@ -457,15 +536,18 @@ def write_forest(
         tick("writing instances", 0, 1)
         sublayers, tiles = [], None
         if recipe.tiles is not None:
-            tiles = _write_tiles(
-                staged,
-                build,
-                recipe,
-                csv_sites,
-                heights,
-                tree_assets,
-                [trees[k] for k in prototypes],
-            )
+            with _dask_client(workers, scheduler) as client:
+                tiles = _write_tiles(
+                    staged,
+                    build,
+                    recipe,
+                    csv_sites,
+                    heights,
+                    tree_assets,
+                    [trees[k] for k in prototypes],
+                    client,
+                    tick,
+                )
         else:
             save_layer(
                 instancer_layer(sites, build, tree_assets, recipe.lod), staged / "instances.usdc"
