@@ -49,8 +49,9 @@ def built(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("tiles")
     flat = tmp / "flat.usda"
     tiled = tmp / "tiled.usda"
-    write_forest(_recipe(tmp), flat, thumbnail=False)
-    write_forest(_recipe(tmp, tiles={"size": 40.0}), tiled, thumbnail=False)
+    recipe = _recipe(tmp, tiles={"size": 40.0})
+    write_forest(recipe, flat, thumbnail=False, untiled=True)
+    write_forest(recipe, tiled, thumbnail=False)
     return flat, tiled
 
 

@@ -364,6 +364,12 @@ def build_cmd(
             help="Write the tiles on this Dask cluster (tcp://host:8786; shared disk).",
         ),
     ] = None,
+    untiled: Annotated[
+        bool,
+        typer.Option(
+            "--untiled", help="Write a tiled recipe's trees (the same sites) as one layer."
+        ),
+    ] = False,
 ) -> None:
     """Build a forest: sample tree sites, grow tree variants, write the USD layers."""
     import numpy as np
@@ -408,6 +414,7 @@ def build_cmd(
             thumbnail=not no_thumbnail,
             workers=workers,
             scheduler=scheduler,
+            untiled=untiled,
         )
     secs = time.perf_counter() - t0
     counts = np.bincount(b.sites.species, minlength=len(b.sites.names))

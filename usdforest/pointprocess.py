@@ -588,12 +588,20 @@ def matern_ii(sites: np.ndarray, radius: float, rng: np.random.Generator) -> np.
     ``radius`` was born earlier. The result keeps a minimum spacing and is no longer Poisson:
     its intensity is lower than lambda, most where lambda is high.
     """
+    n = len(sites)
+    if radius <= 0 or n < 2:
+        return np.ones(n, dtype=bool)
+    return matern_keep(sites, radius, rng.uniform(size=n))
+
+
+def matern_keep(sites: np.ndarray, radius: float, birth: np.ndarray) -> np.ndarray:
+    """Matérn II with the given birth times: ``bool[n]``, a site dropped when a site within
+    ``radius`` was born earlier."""
     from scipy.spatial import cKDTree
 
     n = len(sites)
     if radius <= 0 or n < 2:
         return np.ones(n, dtype=bool)
-    birth = rng.uniform(size=n)
     pairs = cKDTree(sites).query_pairs(radius, output_type="ndarray")
     keep = np.ones(n, dtype=bool)
     if len(pairs):

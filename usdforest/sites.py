@@ -29,13 +29,18 @@ class Sites:
         return int(self.xy.shape[0])
 
 
-def sample_sites(recipe: Recipe, replicate: int = 0) -> Sites:
+def sample_sites(recipe: Recipe, replicate: int = 0, client=None) -> Sites:
     """Sites of one replicate: thinning (or the explicit sites), hard-core, marks.
 
     Replicate 0 is what ``usdforest build`` places. Each replicate draws from its own stream
-    seeded by (seed, "sites", replicate) and (seed, "marks", replicate).
+    seeded by (seed, "sites", replicate) and (seed, "marks", replicate); a tiled recipe's
+    cell by cell (:mod:`usdforest.cells`; on a dask.distributed ``client`` if given).
     """
     names = recipe.species_names
+    if recipe.tiles is not None and recipe.sites is None:
+        from .cells import sample_cells
+
+        return sample_cells(recipe, replicate, client)
     if recipe.sites is not None:
         xy = np.array([[s["x"], s["y"]] for s in recipe.sites], dtype=float)
     else:

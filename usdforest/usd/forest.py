@@ -24,7 +24,7 @@ import re
 import shutil
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -448,21 +448,38 @@ def write_forest(
     thumbnail: bool = True,
     workers: int = 1,
     scheduler: str | None = None,
+    untiled: bool = False,
 ) -> ForestBuild:
     """Build the forest of ``recipe`` at ``out`` (see the module docstring for the layout).
 
     Everything is written into a temporary folder beside ``out`` and moved into place at the
-    end; a failure leaves nothing behind. Refuses to overwrite without ``force``.
+    end; a failure leaves nothing behind. Refuses to overwrite without ``force``. A tiled
+    recipe samples and writes its tiles as tasks on Dask (``workers`` local processes, or the
+    cluster at ``scheduler``) when asked, else here: the same bytes either way. ``untiled``
+    writes a tiled recipe's trees (the same sites) as one instancer layer.
     """
     out = Path(out)
     if out.suffix != ".usda":
         raise UsdForestError(f"{out}: the forest's interface layer must end in .usda")
+    refuse_overwrite(out, out.parent / f"{out.stem}_assets", force=force)
+    tiled = recipe.tiles is not None
+    with _dask_client(workers, scheduler) if tiled else nullcontext() as client:
+        return _write_forest(recipe, out, progress, thumbnail, client, tiled and not untiled)
+
+
+def _write_forest(
+    recipe: Recipe,
+    out: Path,
+    progress: Progress | None,
+    thumbnail: bool,
+    client,
+    tiled: bool,
+) -> ForestBuild:
     assets = out.parent / f"{out.stem}_assets"
-    refuse_overwrite(out, assets, force=force)
     tick = progress or (lambda stage, done, total: None)
 
     tick("sampling sites", 0, 1)
-    sites = sample_sites(recipe, 0)
+    sites = sample_sites(recipe, 0, client)
     tick("sampling sites", 1, 1)
 
     prototypes = [(n, v) for n in recipe.species_names for v in range(recipe.variants[n])]
@@ -535,25 +552,24 @@ def write_forest(
         tick("writing trees", len(prototypes), len(prototypes))
         tick("writing instances", 0, 1)
         sublayers, tiles = [], None
-        if recipe.tiles is not None:
-            with _dask_client(workers, scheduler) as client:
-                tiles = _write_tiles(
-                    staged,
-                    build,
-                    recipe,
-                    csv_sites,
-                    heights,
-                    tree_assets,
-                    [trees[k] for k in prototypes],
-                    client,
-                    tick,
-                )
+        if tiled:
+            tiles = _write_tiles(
+                staged,
+                build,
+                recipe,
+                csv_sites,
+                heights,
+                tree_assets,
+                [trees[k] for k in prototypes],
+                client,
+                tick,
+            )
         else:
             save_layer(
                 instancer_layer(sites, build, tree_assets, recipe.lod), staged / "instances.usdc"
             )
             sublayers.append(f"./{assets.name}/instances.usdc")
-        if recipe.colliders != "none" and recipe.tiles is None:
+        if recipe.colliders != "none" and not tiled:
             caps, names = instance_capsules(
                 [trees[key].colliders for key in prototypes],
                 proto_index,

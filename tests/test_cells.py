@@ -1,0 +1,64 @@
+"""Cell-by-cell sampling of tiled recipes: sites that do not depend on how the work is cut."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import usdforest.cells as cells
+from usdforest.recipe import parse_recipe
+from usdforest.sites import sample_sites
+
+
+def _recipe(tmp_path, tiles=500.0, hard_core=0.0, side=1100.0, **extra):
+    data = {
+        "seed": 11,
+        "region": {"bounds": [0.0, 0.0, side, 0.8 * side]},
+        "intensity": {"kind": "expression", "expr": "0.002 + 0.004 * (x / 1100) ** 2"},
+        "species": {"pine": {}, "broadleaf": {}},
+        "forest": {"variants": 2, "hard_core": hard_core},
+        "tiles": {"size": tiles},
+        **extra,
+    }
+    return parse_recipe(data, tmp_path, str(tmp_path / "r.toml"))
+
+
+def _same(a, b) -> None:
+    for f in ("xy", "species", "variant", "yaw", "scale"):
+        assert np.array_equal(getattr(a, f), getattr(b, f)), f
+
+
+@pytest.mark.parametrize("hard_core", [0.0, 6.0, 260.0])
+def test_sites_do_not_depend_on_tiles_or_blocks(tmp_path, monkeypatch, hard_core):
+    """Other tile sizes, and sampling tasks of 1 or 4 cells a side (a hard core wider than a
+    cell reaches two rings of cells), give the same sites in the same order."""
+    base = sample_sites(_recipe(tmp_path, hard_core=hard_core))
+    assert len(base) > (3 if hard_core > 100 else 100)
+    _same(base, sample_sites(_recipe(tmp_path, tiles=37.0, hard_core=hard_core)))
+    monkeypatch.setattr(cells, "BLOCK", 1)
+    _same(base, sample_sites(_recipe(tmp_path, hard_core=hard_core)))
+    if hard_core:  # and no two sites closer than the hard core, across every cell edge
+        pairs = cKDTree(base.xy).query_pairs(hard_core * (1 - 1e-12))
+        assert not pairs
+
+
+def test_cell_sampling_is_the_process_it_says(tmp_path):
+    """Counts over replicates against the integral of lambda (mean and variance of a Poisson
+    count), and the density rising with x as lambda does."""
+    r = _recipe(tmp_path, side=600.0)
+    counts, xs = [], []
+    for k in range(60):
+        s = sample_sites(r, k)
+        counts.append(len(s))
+        xs.append(s.xy[:, 0])
+    expected = r.expected_trees()
+    counts = np.array(counts)
+    assert abs(counts.mean() - expected) < 4 * np.sqrt(expected / len(counts))
+    assert 0.6 < counts.var(ddof=1) / expected < 1.5
+    x = np.concatenate(xs)
+    # lambda = 0.002 + 0.004 (x / 1100)^2: the share of sites east of x = 300 on [0, 600]
+    east = (0.002 * 300 + 0.004 * (600**3 - 300**3) / 3 / 1100**2) / (
+        0.002 * 600 + 0.004 * 600**3 / 3 / 1100**2
+    )
+    assert abs(np.mean(x > 300) - east) < 0.02
