@@ -159,7 +159,8 @@ def instancer_layer(
             T.IntArray,
             Vt.IntArray.FromNumpy(build.proto_index.astype(np.int32)),
         )
-        ids = np.arange(n, dtype=np.int64) if ids is None else np.asarray(ids, dtype=np.int64)
+        # (a copy: an array unpickled from a Dask task's buffers has a format Vt refuses)
+        ids = np.arange(n, dtype=np.int64) if ids is None else np.array(ids, dtype=np.int64)
         attr(trees, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(ids))
         attr(trees, "extent", T.Float3Array, extents(build.extent))
     return layer
