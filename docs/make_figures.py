@@ -16,8 +16,8 @@ import matplotlib.pyplot as plt
 
 from usdforest.library import template_dir
 from usdforest.plots import draw_sites, draw_skeleton, image_panel, save_figure
-from usdforest.preview import preview
-from usdforest.recipe import read_recipe
+from usdforest.preview import preview, render_stage
+from usdforest.recipe import parse_recipe, read_recipe
 from usdforest.sites import sample_sites
 from usdforest.species import get_species
 from usdforest.usd.forest import write_forest
@@ -286,8 +286,6 @@ def terrain(out: Path, work: Path) -> None:
     """The default stand on a height field (a slope, a hill and a hollow), seen from the side."""
     import numpy as np
 
-    from usdforest.recipe import parse_recipe
-
     x = np.linspace(-5, 105, 56)
     gx, gy = np.meshgrid(x, x[::-1])
     z = (
@@ -303,6 +301,32 @@ def terrain(out: Path, work: Path) -> None:
     preview(path, out / "terrain-side.png", view="side", size=(900, 420))
 
 
+def landscape(out: Path, work: Path) -> None:
+    """A 4 km² landscape in 500 m payload tiles, seen from above, the tile grid drawn over."""
+    data = {
+        "seed": 15,
+        "region": {"bounds": [0.0, 0.0, 2000.0, 2000.0]},
+        "intensity": {"kind": "expression", "expr": "0.025 + 0.024 * sin(x / 300) * cos(y / 240)"},
+        "mix": {"pine": 0.55, "broadleaf": 0.45},
+        "species": {"pine": {}, "broadleaf": {}},
+        "forest": {"variants": 2, "colliders": "none"},
+        "ground": {"kind": "plane"},
+        "tiles": {"size": 500.0},
+    }
+    path = work / "landscape.usda"
+    build = write_forest(parse_recipe(data, work, "landscape.toml"), path, thumbnail=False)
+    img, (u0, u1, v0, v1), _ = render_stage(path, view="top", size=(700, 700))
+    fig, ax = plt.subplots(figsize=(7.4, 7.4), dpi=100)
+    ax.imshow(img, extent=(u0, u1, v0, v1), interpolation="nearest")
+    for k in range(5):
+        ax.axvline(500 * k, color="k", lw=0.6, alpha=0.6)
+        ax.axhline(500 * k, color="k", lw=0.6, alpha=0.6)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"{build.n_trees:,} trees in {build.n_tiles} payload tiles of 500 m", fontsize=10)
+    save_figure(fig, out / "landscape-tiles.png")
+
+
 def main(out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
@@ -316,6 +340,7 @@ def main(out: Path) -> None:
         sensors(out, work)
         forest_sensors(out, work)
         terrain(out, work)
+        landscape(out, work)
     for p in sorted(out.glob("*.png")):
         print(f"wrote {p}")
 
