@@ -171,3 +171,64 @@ def test_an_unreachable_scheduler_is_named(tmp_path, runner):
     )
     assert r.exit_code == 2 and "--scheduler tcp://127.0.0.1:9: cannot connect" in r.stderr
     assert not out.exists() and not (tmp_path / "f_assets").exists()
+
+
+def test_each_tile_has_the_ground_its_trees_stand_on(tmp_path):
+    """A raster ground cut per tile: every tree on its own tile's ground mesh (a ray cast
+    down that mesh alone, in the composed stage), the tiles' grounds together as wide as the
+    untiled ground (region plus margin)."""
+    import trimesh
+
+    x = np.linspace(-5.0, 85.0, 46)
+    y = np.linspace(55.0, -5.0, 31)
+    gx, gy = np.meshgrid(x, y)
+    np.save(tmp_path / "dem.npy", 0.1 * gx + 6.0 * np.exp(-((gx - 40) ** 2 + (gy - 25) ** 2) / 200))
+    data = {
+        "seed": 3,
+        "region": {"bounds": [0.0, 0.0, 80.0, 50.0]},
+        "intensity": {"kind": "constant", "value": 0.03},
+        "species": {"paper-rule-1": {}},
+        "forest": {"variants": 1, "colliders": "none"},
+        "ground": {"kind": "raster", "file": "dem.npy", "bounds": [-5, -5, 85, 55]},
+        "tiles": {"size": 30.0},
+    }
+    out = tmp_path / "g.usda"
+    build = write_forest(parse_recipe(data, tmp_path, str(tmp_path / "g.toml")), out)
+    assert build.n_tiles == 6 and validate(out) == []
+    stage = Usd.Stage.Open(str(out))
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
+    checked = 0
+    for tile in stage.GetPrimAtPath("/Forest/Tiles").GetChildren():
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(tile.GetPath().AppendPath("Ground/Mesh")))
+        m = np.asarray(UsdGeom.Xformable(mesh).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+        pts = np.asarray(mesh.GetPointsAttr().Get(), dtype=float) @ m[:3, :3] + m[3, :3]
+        tri = np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+        lo, hi = np.minimum(lo, pts[:, :2].min(axis=0)), np.maximum(hi, pts[:, :2].max(axis=0))
+        ground = trimesh.Trimesh(pts, tri, process=False)
+        trees = {
+            i: x for i, (x, _) in _trees_under(stage, tile.GetPath().AppendPath("Trees")).items()
+        }
+        origins = np.array([[x[0], x[1], 1e3] for x in trees.values()])
+        hits, rays, _ = ground.ray.intersects_location(
+            origins, np.tile([0, 0, -1.0], (len(origins), 1))
+        )
+        z = np.full(len(origins), np.nan)
+        z[rays] = hits[:, 2]
+        np.testing.assert_allclose(z, [x[2] for x in trees.values()], atol=1e-4)
+        checked += len(trees)
+    assert checked == build.n_trees
+    np.testing.assert_allclose(lo, [-5, -5], atol=1e-9)
+    np.testing.assert_allclose(hi, [85, 55], atol=1e-9)
+
+
+def _trees_under(stage: Usd.Stage, path) -> dict:
+    return {
+        i: v
+        for i, v in _trees(stage).items()
+        if i
+        in set(
+            np.asarray(
+                UsdGeom.PointInstancer(stage.GetPrimAtPath(path)).GetIdsAttr().Get()
+            ).tolist()
+        )
+    }

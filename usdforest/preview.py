@@ -628,8 +628,11 @@ def _ground(lo: np.ndarray, hi: np.ndarray, px: float, meshes: list) -> Cloud:
         ).reshape(-1, 3)
         if len(corners):
             # interpolate on the ground's own triangles (a height field: one z per x, y)
-            pts, tri = np.unique(corners, axis=0, return_inverse=True)
-            mesh = Triangulation(pts[:, 0], pts[:, 1], tri.reshape(-1, 3))
+            # (a tiled forest's grounds share their border cells: the same triangles, to
+            # float32 rounding, are kept once)
+            pts, tri = np.unique(np.round(corners, 4), axis=0, return_inverse=True)
+            tri = np.unique(np.sort(tri.reshape(-1, 3), axis=1), axis=0)
+            mesh = Triangulation(pts[:, 0], pts[:, 1], tri)
             z = np.ma.filled(LinearTriInterpolator(mesh, pts[:, 2])(gx, gy), np.nan)
             if min(z.shape) > 1:  # shade the relief: normals from the height's gradient
                 dzdy, dzdx = np.gradient(z, step)

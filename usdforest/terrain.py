@@ -46,6 +46,29 @@ class HeightField:
         r = np.minimum(fy.astype(np.int64), rows - 2)
         return r, c, fx - c, fy - r
 
+    def window(self, box: tuple[float, float, float, float]) -> HeightField:
+        """The part of the field over ``box`` (x0, y0, x1, y1), on the same triangles: the
+        grid's cells that meet the box (a plane: exactly the box)."""
+        x0, y0, x1, y1 = self.bounds
+        rows, cols = self.z.shape
+        if (
+            rows == 2
+            and cols == 2
+            and np.isclose(
+                self.z[0, 0] + self.z[1, 1], self.z[0, 1] + self.z[1, 0], rtol=0, atol=1e-9
+            )
+        ):  # a plane: any box of it is a plane
+            b = (max(box[0], x0), max(box[1], y0), min(box[2], x1), min(box[3], y1))
+            gx, gy = np.array([[b[0], b[2]], [b[0], b[2]]]), np.array([[b[3], b[3]], [b[1], b[1]]])
+            return HeightField(self.height(gx, gy), b)
+        dx, dy = (x1 - x0) / (cols - 1), (y1 - y0) / (rows - 1)
+        c0 = int(np.clip(np.floor((box[0] - x0) / dx), 0, cols - 2))
+        c1 = int(np.clip(np.ceil((box[2] - x0) / dx), c0 + 1, cols - 1))
+        r0 = int(np.clip(np.floor((y1 - box[3]) / dy), 0, rows - 2))
+        r1 = int(np.clip(np.ceil((y1 - box[1]) / dy), r0 + 1, rows - 1))
+        xs, ys = np.linspace(x0, x1, cols), np.linspace(y1, y0, rows)
+        return HeightField(self.z[r0 : r1 + 1, c0 : c1 + 1], (xs[c0], ys[r1], xs[c1], ys[r0]))
+
     def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Heights at ``x, y`` on the ground mesh's triangles (clamped to the bounds)."""
         r, c, u, v = self._cell(x, y)

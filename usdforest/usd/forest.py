@@ -39,7 +39,7 @@ from ..errors import UsdForestError
 from ..recipe import Recipe, resolved_toml
 from ..sites import Sites, sample_sites
 from ..terrain import HeightField
-from .ground import ground_layer
+from .ground import add_ground, ground_layer
 from .layers import T, attr, extents, new_layer, prim, save_layer, vec3f
 from .physics import add_physics_scene, author_capsules, collision_layer, instance_capsules
 from .tiles import author_tiles, partition
@@ -312,7 +312,12 @@ def _write_tiles(
             trees={},
         )
         rows = Sites(c.names, c.xy[i], c.species[i], c.variant[i], c.yaw[i], c.scale[i])
-        jobs.append((folder, tile, part, rows, heights, assets, recipe.lod, recipe.colliders))
+        ground = None
+        if recipe.ground is not None:
+            ground = (_tile_ground(recipe, build, tile), recipe.ground["color"])
+        jobs.append(
+            (folder, tile, part, rows, heights, assets, recipe.lod, recipe.colliders, ground)
+        )
     tick = tick or (lambda stage, done, total: None)
     if client is None:
         extents = []
@@ -343,6 +348,7 @@ def _tile_job(
     assets: list[str],
     lod: str,
     colliders: str,
+    ground: tuple[HeightField, Sequence[float]] | None,
     protos: list[_Proto],
 ) -> np.ndarray:
     """Write one tile's layer and CSV (a task: every input travels with it); its extent."""
@@ -360,9 +366,31 @@ def _tile_job(
         )
         with Sdf.ChangeBlock():
             author_capsules(prim(layer.GetPrimAtPath("/Tile"), "Colliders", "Scope"), caps, names)
+    if ground is not None:
+        with Sdf.ChangeBlock():
+            add_ground(layer.GetPrimAtPath("/Tile"), ground[0], color=ground[1])
     save_layer(layer, folder / f"{tile.name}.usdc")
     _write_csv(folder / f"{tile.name}.csv", rows, heights, part.proto_index, z, ids=tile.index)
     return extent
+
+
+def _tile_ground(recipe: Recipe, build: ForestBuild, tile) -> HeightField:
+    """The ground under a tile, about its corner: the cells of the forest's ground that meet
+    its square (the same triangles its trees stand on), out to the ground's edge for a tile
+    on the region's edge (the margin)."""
+    ground = _shifted(recipe.ground["field"], build.anchor)
+    x0, y0, x1, y1 = (np.array(recipe.region.bounds) - np.tile(build.anchor, 2)).tolist()
+    size = recipe.tiles
+    ox, oy = (float(v) for v in tile.origin)
+    box = (
+        -np.inf if ox <= x0 else ox,
+        -np.inf if oy <= y0 else oy,
+        np.inf if ox + size >= x1 else ox + size,
+        np.inf if oy + size >= y1 else oy + size,
+    )
+    part = ground.window(box)
+    bx0, by0, bx1, by1 = part.bounds
+    return HeightField(part.z, (bx0 - ox, by0 - oy, bx1 - ox, by1 - oy))
 
 
 @contextmanager
@@ -580,7 +608,7 @@ def _write_forest(
             )
             save_layer(collision_layer(caps, names), staged / "colliders.usdc")
             sublayers.append(f"./{assets.name}/colliders.usdc")
-        if recipe.ground is not None:
+        if recipe.ground is not None and not tiled:  # (tiled: each tile has its own)
             save_layer(
                 ground_layer(ground, recipe.ground["color"]),
                 staged / "ground.usdc",
