@@ -60,6 +60,7 @@ bench: $(STAMP) $(BLENDER_STAMP)
 	USDFOREST_BLENDER_PYTHON=$(abspath $(BLENDER))/bin/python $(BIN)/python benchmarks/bench_lod.py
 	$(BIN)/python benchmarks/bench_startup.py
 	$(BIN)/python benchmarks/bench_flight.py
+	$(BIN)/python benchmarks/bench_tiles.py 1 10
 
 clean:
 	rm -rf $(VENV) $(PHYS) $(CHECK) $(BLENDER) build *.egg-info .pytest_cache forest.usda forest_assets
