@@ -186,3 +186,26 @@ def test_image_rasters_keep_their_scale_whatever_their_bit_depth(tmp_path):
     # the intensity raster reads images the same way
     r = load_raster(tmp_path / "dem16.tif", (0, 0, 30, 20), 0.5)
     np.testing.assert_allclose(r.values, grey * 0.5, atol=1e-5)
+
+
+def test_species_mix_on_the_ground_height(tmp_path):
+    """Mix weights in z, the ground's height at the site: pines up the slope."""
+    from usdforest.sites import sample_sites
+
+    x = np.linspace(0.0, 100.0, 11)
+    np.save(tmp_path / "slope.npy", np.tile(0.1 * x, (6, 1)))  # z = x / 10, 0 to 10 m
+    data = {
+        "seed": 2,
+        "region": {"bounds": [0.0, 0.0, 100.0, 50.0]},
+        "intensity": {"kind": "constant", "value": 0.2},
+        "mix": {"pine": "z", "broadleaf": "10 - z"},
+        "species": {"pine": {}, "broadleaf": {}},
+        "ground": {"kind": "raster", "file": "slope.npy", "bounds": [0, 0, 100, 50]},
+    }
+    s = sample_sites(parse_recipe(data, tmp_path, str(tmp_path / "r.toml")))
+    pine = s.species == s.names.index("pine")
+    for lo, hi in ((0, 20), (40, 60), (80, 100)):
+        band = (s.xy[:, 0] >= lo) & (s.xy[:, 0] < hi)
+        expected = (lo + hi) / 2 / 100  # the mean of z / 10 over the band
+        assert band.sum() > 150
+        assert abs(pine[band].mean() - expected) < 0.08, (lo, pine[band].mean())

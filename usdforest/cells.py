@@ -103,6 +103,7 @@ def sample_block(recipe, replicate: int, block: tuple[int, int, int, int]) -> di
                 [recipe.variants[n] for n in names],
                 recipe.scale.as_tuple(),
                 stream(recipe.seed, "marks", replicate, "cell", int(c % nx), int(c // nx)),
+                recipe.ground["field"].height if recipe.ground is not None else None,
             )
         )
     out = {"cell": cell, "xy": pts}

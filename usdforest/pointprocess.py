@@ -622,13 +622,18 @@ class Marks:
 
 
 def species_weights(
-    weights: Sequence[float | Expression], x: np.ndarray, y: np.ndarray
+    weights: Sequence[float | Expression],
+    x: np.ndarray,
+    y: np.ndarray,
+    z: np.ndarray | None = None,
 ) -> np.ndarray:
-    """``(n, k)`` non-negative species weights at each site (numbers or expressions in x, y)."""
+    """``(n, k)`` non-negative species weights at each site (numbers or expressions in x, y
+    and z, the ground's height there: 0 without one)."""
+    env = {"x": x, "y": y, "z": np.zeros(np.shape(x)) if z is None else z}
     cols = []
     for w in weights:
         if isinstance(w, Expression):
-            v = np.broadcast_to(np.asarray(w.evaluate({"x": x, "y": y}), float), np.shape(x))
+            v = np.broadcast_to(np.asarray(w.evaluate(env), float), np.shape(x))
         else:
             v = np.full(np.shape(x), float(w))
         cols.append(v)
@@ -644,10 +649,15 @@ def draw_marks(
     variants: Sequence[int],
     scale: tuple[str, float, float],
     rng: np.random.Generator,
+    height=None,
 ) -> Marks:
-    """Species (from the mixture at each site), variant, yaw in [0, 360) and scale."""
+    """Species (from the mixture at each site, which may use the ground's ``height(x, y)``
+    as ``z``), variant, yaw in [0, 360) and scale."""
     n = len(sites)
-    w = species_weights(weights, sites[:, 0], sites[:, 1])
+    x, y = sites[:, 0], sites[:, 1]
+    uses_z = any(isinstance(w, Expression) and "z" in w.variables for w in weights)
+    z = height(x, y) if uses_z and height is not None else None
+    w = species_weights(weights, x, y, z)
     total = w.sum(axis=1)
     if n and np.any(total <= 0):
         k = int(np.argmax(total <= 0))

@@ -419,7 +419,7 @@ def parse_recipe(
                 raise RecipeError(f"mix.{n}: no [species.{n}] table defines it")
             if isinstance(w, str):
                 try:
-                    mix.append((n, compile_expression(w, ("x", "y"), what=f"mix.{n}")))
+                    mix.append((n, compile_expression(w, ("x", "y", "z"), what=f"mix.{n}")))
                 except UsdForestError as exc:
                     raise RecipeError(str(exc)) from None
             else:

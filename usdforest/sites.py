@@ -54,6 +54,7 @@ def sample_sites(recipe: Recipe, replicate: int = 0, client=None) -> Sites:
         [recipe.variants[n] for n in names],
         recipe.scale.as_tuple(),
         stream(recipe.seed, "marks", replicate),
+        recipe.ground["field"].height if recipe.ground is not None else None,
     )
     species, yaw, scale = marks.species.copy(), marks.yaw.copy(), marks.scale.copy()
     if recipe.sites is not None:
