@@ -8,9 +8,11 @@ peak resident set: the client's, and the largest worker's.
 
 from __future__ import annotations
 
+import json
 import math
 import resource
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -95,9 +97,6 @@ def main(areas: list[float]) -> None:
     for km2 in areas:
         for workers in (1, 2):
             # each run in its own process, so peaks are that run's
-            import json
-            import subprocess
-
             r = subprocess.run(
                 [sys.executable, __file__, "--one", str(km2), str(workers)],
                 capture_output=True,
@@ -116,8 +115,6 @@ def main(areas: list[float]) -> None:
 
 if __name__ == "__main__":
     if len(sys.argv) == 4 and sys.argv[1] == "--one":
-        import json
-
         print(json.dumps(run(float(sys.argv[2]), int(sys.argv[3]))))
     else:
         main([float(a) for a in sys.argv[1:]] or [1.0, 10.0])
