@@ -290,3 +290,29 @@ def test_a_plain_tiff_is_an_image_without_rasterio(tmp_path, monkeypatch):
     field = load_height_field(tmp_path / "p.tif", (0.0, 0.0, 70.0, 70.0), peak=10.0)
     assert field.bounds == (0.0, 0.0, 70.0, 70.0)
     assert field.z.max() == pytest.approx(10 * 63_000 / 65_535, rel=1e-6)
+
+
+def test_a_geopackage_stand(tmp_path):
+    """Any vector file GDAL reads: a GeoPackage with a polygon and a multipolygon, its CRS
+    from the file."""
+    pyogrio = pytest.importorskip("pyogrio", reason="vector files need pyogrio (usdforest[geo])")
+    import shapely
+
+    a = shapely.box(E0, N0, E0 + 200, N0 + 100)
+    b = shapely.MultiPolygon([shapely.box(E0 + 300, N0, E0 + 350, N0 + 50)])
+    pyogrio.raw.write(
+        tmp_path / "stand.gpkg",
+        geometry=np.array([shapely.to_wkb(a), shapely.to_wkb(b)], dtype=object),
+        field_data=[],
+        fields=[],
+        crs="EPSG:32633",
+        geometry_type="Unknown",
+        driver="GPKG",
+    )
+    r = _recipe(tmp_path, region={"kind": "file", "file": "stand.gpkg"})
+    assert r.crs == "EPSG:32633" and r.region.area == pytest.approx(200 * 100 + 50 * 50)
+    xy = sample_sites(r).xy
+    assert np.all(shapely.contains_xy(a, xy[:, 0], xy[:, 1]) | shapely.contains_xy(b, *xy.T))
+    (tmp_path / "junk.gpkg").write_bytes(b"not a geopackage")
+    with pytest.raises(RecipeError, match=r"region\.file: cannot read junk\.gpkg"):
+        _recipe(tmp_path, region={"kind": "file", "file": "junk.gpkg"})

@@ -146,8 +146,9 @@ class Shape:
 
 
 def read_shape(path: Path, where: str) -> Shape:
-    """The polygons of a GeoJSON file (a geometry, feature or feature collection) as one
-    region; a legacy ``crs`` member (``urn:ogc:def:crs:EPSG::32633``) names its CRS."""
+    """The polygons of a vector file as one region: GeoJSON (a geometry, feature or feature
+    collection; a legacy ``crs`` member such as ``urn:ogc:def:crs:EPSG::32633`` names its
+    CRS) read here, any other format GDAL reads (Shapefile, GeoPackage, ...) with pyogrio."""
     import json
 
     import shapely
@@ -156,6 +157,8 @@ def read_shape(path: Path, where: str) -> Shape:
 
     from .paths import require_file
 
+    if path.suffix.lower() not in (".geojson", ".json"):
+        return _read_vector(path, where)
     try:
         require_file(path, "vector file", RecipeError)
         data = json.loads(path.read_text(encoding="utf-8"))
@@ -204,6 +207,47 @@ def read_shape(path: Path, where: str) -> Shape:
             "projected metres: reproject it (e.g. ogr2ogr -t_srs EPSG:32633) and name the CRS"
         )
     return Shape(geometry, path.name, crs)
+
+
+def _read_vector(path: Path, where: str) -> Shape:
+    """A Shapefile, GeoPackage or any vector file GDAL reads (pyogrio): its polygons."""
+    import shapely
+    from shapely.validation import explain_validity
+
+    from .paths import require_file
+
+    try:
+        require_file(path, "vector file", RecipeError)
+    except RecipeError as exc:
+        raise RecipeError(f"{where}: {exc}") from None
+    try:
+        from pyogrio.raw import read
+    except ImportError:
+        raise RecipeError(
+            f"{where}: reading {path.name} needs pyogrio: pip install 'usdforest[geo]' "
+            "(or give the stand as GeoJSON)"
+        ) from None
+    try:
+        meta, _, wkb, _ = read(path)
+        geoms = shapely.from_wkb(wkb)
+    except Exception as exc:
+        raise RecipeError(f"{where}: cannot read {path.name}: {exc}") from None
+    polys = [
+        p
+        for g in geoms
+        if g is not None
+        for p in getattr(g, "geoms", [g])
+        if p.geom_type in ("Polygon", "MultiPolygon")
+    ]
+    if not polys:
+        raise RecipeError(f"{where}: {path.name} has no Polygon or MultiPolygon geometry")
+    for p in polys:
+        if not p.is_valid:
+            raise RecipeError(f"{where}: {path.name}: invalid polygon ({explain_validity(p)})")
+    geometry = shapely.union_all(polys)
+    if geometry.is_empty or geometry.area <= 0:
+        raise RecipeError(f"{where}: {path.name}: the polygons have zero area")
+    return Shape(geometry, path.name, meta.get("crs") or None)
 
 
 def _geojson_crs(member, path: Path, where: str) -> str | None:
