@@ -232,3 +232,78 @@ def _trees_under(stage: Usd.Stage, path) -> dict:
             ).tolist()
         )
     }
+
+
+def test_empty_tiles_keep_their_ground_and_hints_hold_it(tmp_path):
+    """A clearing leaves tiles without trees: they still carry their ground (a robot drives
+    across them), and every tile's extentsHint holds what it composes, ground included."""
+    recipe = _recipe(
+        tmp_path,
+        intensity={
+            "kind": "gaussian-mixture",
+            "base": 0.03,
+            "bumps": [{"x": 50.0, "y": 50.0, "sigma": 12.0, "peak": -0.2}],
+        },
+        tiles={"size": 20.0},
+    )
+    out = tmp_path / "c.usda"
+    build = write_forest(recipe, out, thumbnail=False)
+    stage = Usd.Stage.Open(str(out))
+    tiles = stage.GetPrimAtPath("/Forest/Tiles").GetChildren()
+    assert build.n_tiles == len(tiles) == 25
+    empty = [t for t in tiles if not UsdGeom.PointInstancer(t.GetChild("Trees")).GetIdsAttr().Get()]
+    assert empty, "the clearing should leave a tile without trees"
+    cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render", "proxy"], True)
+    boxes = []
+    for t in tiles:
+        assert t.GetChild("Ground").GetChild("Mesh").IsValid()
+        lo, hi = (np.array(v) for v in UsdGeom.ModelAPI(t).GetExtentsHint())
+        got = cache.ComputeUntransformedBound(t).ComputeAlignedRange()
+        assert np.all(np.array(got.GetMin()) >= lo - 1e-4) and np.all(
+            np.array(got.GetMax()) <= hi + 1e-4
+        )
+        shift = np.array(t.GetAttribute("xformOp:translate").Get())
+        boxes.append((lo + shift, hi + shift))
+    # the tiles' grounds cover the plot and its 5 m margin
+    for x in np.linspace(-4.9, 104.9, 12):
+        for y in np.linspace(-4.9, 104.9, 12):
+            assert any(b[0][0] <= x <= b[1][0] and b[0][1] <= y <= b[1][1] for b in boxes), (x, y)
+
+
+def test_a_failing_tile_task_is_an_error_and_leaves_nothing(tmp_path, monkeypatch):
+    pytest.importorskip("distributed", reason="Dask tiles need dask.distributed (usdforest[dask])")
+    from distributed import LocalCluster
+
+    import usdforest.usd.forest as forest
+    from usdforest.errors import UsdForestError
+
+    def full_disk(*args):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(forest, "_tile_job", full_disk)
+    out = tmp_path / "f.usda"
+    with LocalCluster(n_workers=1, processes=False, dashboard_address=None) as cluster:
+        with pytest.raises(UsdForestError, match=r"a tile task failed: OSError: .*No space left"):
+            write_forest(
+                _recipe(tmp_path, tiles={"size": 50.0}),
+                out,
+                thumbnail=False,
+                scheduler=cluster.scheduler_address,
+            )
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_a_tile_task_never_creates_its_folder(tmp_path):
+    from usdforest.errors import UsdForestError
+    from usdforest.usd.forest import _tile_job
+
+    with pytest.raises(UsdForestError, match="a shared disk is needed"):
+        _tile_job(tmp_path / "gone", None, None, None, None, None, "full", "none", None, [])
+    assert not (tmp_path / "gone").exists()
+
+
+def test_dask_options_need_a_tiled_recipe(tmp_path, runner):
+    from usdforest.cli import app
+
+    r = runner.invoke(app, ["build", str(tmp_path / "f.usda"), "--workers", "2", "-q"])
+    assert r.exit_code == 2 and "apply to a tiled recipe" in r.stderr

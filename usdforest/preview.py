@@ -214,11 +214,22 @@ def stage_cloud(
         # the same tree asset under several instancers (a tiled forest's tiles) is sampled
         # once: keyed by the specs it composes from outside its own layer and its variants
         stack = proto.GetPrimStack()
+        own = stack[0]
+        # shared only when its own spec says no more than what to reference and which
+        # variants (anything else authored there, e.g. visibility, makes it its own)
+        plain = (
+            not own.properties
+            and not own.nameChildren
+            and set(own.ListInfoKeys())
+            <= {"references", "variantSelection", "specifier", "typeName", "kind"}
+        )
         key = (
-            tuple((s.layer.identifier, str(s.path)) for s in stack if s.layer != stack[0].layer),
+            tuple((s.layer.identifier, str(s.path)) for s in stack if s.layer != own.layer),
             tuple(sorted(proto.GetVariantSets().GetAllVariantSelections().items())),
             round(sp, 9),
         )
+        if not plain:
+            key = (*key, own.layer.identifier, str(own.path))
         if key[0] and key in shared:
             local = shared[key]
         else:

@@ -20,6 +20,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 import shutil
 from collections.abc import Callable, Mapping, Sequence
@@ -296,7 +297,13 @@ def _write_tiles(
     corner = np.array([x0, y0]) - build.anchor
     assets = ["." + a for a in tree_assets]  # ./trees/x.usdc, seen from tiles/
     protos = [_Proto(t.bounds, t.colliders) for t in trees]
-    tiles = partition(build.sites.xy, corner, recipe.tiles)
+    x1, y1 = recipe.region.bounds[2:]
+    shape = (
+        max(1, math.ceil((x1 - x0) / recipe.tiles)),
+        max(1, math.ceil((y1 - y0) / recipe.tiles)),
+    )
+    # with a ground, every tile carries its part of it, trees or none
+    tiles = partition(build.sites.xy, corner, recipe.tiles, shape, empty=recipe.ground is not None)
     jobs = []
     for tile in tiles:
         i = tile.index
@@ -325,13 +332,13 @@ def _write_tiles(
             tick("writing tiles", k, len(jobs))
             extents.append(_tile_job(*job, protos))
     else:
-        from distributed import as_completed
-
-        shared = client.scatter(protos, broadcast=True)
-        futures = [client.submit(_tile_job, *job, shared, pure=False) for job in jobs]
-        for k, _ in enumerate(as_completed(futures)):
-            tick("writing tiles", k, len(jobs))
-        extents = client.gather(futures)
+        extents = _run_tasks(client, _tile_job, jobs, protos, tick)
+    missing = [t.name for t in tiles if not (folder / f"{t.name}.usdc").is_file()]
+    if missing:  # a worker wrote somewhere this process cannot see
+        raise UsdForestError(
+            f"tiles {', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''} were not "
+            f"written to {folder}: the Dask workers must share this disk"
+        )
     tick("writing tiles", len(jobs), len(jobs))
     return [
         (tile, f"./{build.assets.name}/tiles/{tile.name}.usdc", extent)
@@ -351,9 +358,18 @@ def _tile_job(
     ground: tuple[HeightField, Sequence[float]] | None,
     protos: list[_Proto],
 ) -> np.ndarray:
-    """Write one tile's layer and CSV (a task: every input travels with it); its extent."""
+    """Write one tile's layer and CSV (a task: every input travels with it); its extent,
+    trees and ground."""
+    if not folder.is_dir():  # never create it: on a worker that does not share the disk,
+        # or after the build was stopped and its staging folder removed
+        raise UsdForestError(f"{folder} is not there on this worker (a shared disk is needed)")
     local, z = part.sites, part.ground_z
     extent = _level_extent(local, part.proto_index, protos, lod, z)
+    if ground is not None:  # the tile's hint holds its ground too
+        gx0, gy0, gx1, gy1 = ground[0].bounds
+        gz = ground[0].z
+        box = np.array([[gx0, gy0, gz.min()], [gx1, gy1, gz.max()]])
+        extent = np.stack([np.minimum(extent[0], box[0]), np.maximum(extent[1], box[1])])
     part = replace(part, extent=extent)
     layer = instancer_layer(local, part, assets, lod, root="Tile", ids=tile.index)
     if colliders != "none":
@@ -393,6 +409,44 @@ def _tile_ground(recipe: Recipe, build: ForestBuild, tile) -> HeightField:
     return HeightField(part.z, (bx0 - ox, by0 - oy, bx1 - ox, by1 - oy))
 
 
+def _run_tasks(client, fn, jobs: list[tuple], shared_arg, tick: Progress) -> list:
+    """``fn(*job, shared_arg)`` for every job on ``client``, results in job order. The first
+    failure stops the rest and is reported as the task's error; so does an interruption,
+    after the running tasks have finished (they write into the staging folder)."""
+    from distributed import as_completed
+
+    shared = client.scatter(shared_arg, broadcast=True)
+    futures = [client.submit(fn, *job, shared, pure=False) for job in jobs]
+    try:
+        for k, f in enumerate(as_completed(futures)):
+            tick("writing tiles", k, len(jobs))
+            if f.status == "error":
+                exc = f.exception()
+                if isinstance(exc, UsdForestError):
+                    raise exc
+                raise UsdForestError(f"a tile task failed: {type(exc).__name__}: {exc}")
+        return client.gather(futures)
+    except BaseException:
+        client.cancel(futures, force=True)
+        _settle(client)
+        raise
+
+
+def _settle(client, timeout: float = 30.0) -> None:
+    """Wait (up to ``timeout`` s) until no worker is running a task."""
+    import time
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            busy = client.run(lambda dask_worker: len(dask_worker.state.executing))
+        except Exception:
+            return
+        if not any(busy.values()):
+            return
+        time.sleep(0.1)
+
+
 @contextmanager
 def _dask_client(workers: int, scheduler: str | None):
     """A dask.distributed client for a tiled build: the cluster at ``scheduler``, a local
@@ -407,12 +461,14 @@ def _dask_client(workers: int, scheduler: str | None):
             "building tiles on Dask needs dask.distributed: pip install 'usdforest[dask]'"
         ) from None
     import logging
+    import os
 
     logging.getLogger("distributed").setLevel(logging.ERROR)
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "error")  # (the workers too)
     if scheduler is not None:
         try:
             client = Client(scheduler, timeout="10s")
-        except OSError as exc:
+        except (OSError, ValueError, TypeError) as exc:
             raise UsdForestError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
         with client:
             yield client

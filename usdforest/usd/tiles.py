@@ -31,21 +31,25 @@ class Tile:
         return f"Tile_{self.i}_{self.j}"
 
 
-def partition(xy: np.ndarray, corner: np.ndarray, size: float) -> list[Tile]:
-    """The non-empty tiles of side ``size`` from ``corner`` holding the sites ``xy``, north
-    row by row; each site in exactly one (the tile whose half-open square holds it)."""
-    ij = np.floor((np.asarray(xy) - corner) / size).astype(np.int64)
-    key = ij[:, 1] * (int(ij[:, 0].max(initial=0)) + 1) + ij[:, 0]
+def partition(
+    xy: np.ndarray, corner: np.ndarray, size: float, shape: tuple[int, int], *, empty: bool
+) -> list[Tile]:
+    """The tiles of side ``size`` from ``corner`` on a grid of ``shape`` (columns, rows)
+    holding the sites ``xy``, row by row from the south; each site in exactly one (the tile
+    whose half-open square holds it; a site on the region's east or north edge in the last
+    one). ``empty``: also the tiles that hold no site."""
+    nx, ny = shape
+    ij = np.floor((np.asarray(xy).reshape(-1, 2) - corner) / size).astype(np.int64)
+    ij = np.clip(ij, 0, [nx - 1, ny - 1])
+    key = ij[:, 1] * nx + ij[:, 0]
     order = np.argsort(key, kind="stable")
-    if len(order) == 0:
-        return []
-    starts = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1]])
-    stops = np.r_[starts[1:], len(order)]
+    bounds = np.searchsorted(key[order], np.arange(nx * ny + 1))
     tiles = []
-    for a, b in zip(starts, stops, strict=True):
-        idx = np.sort(order[a:b])
-        i, j = (int(v) for v in ij[idx[0]])
-        tiles.append(Tile(i, j, idx, corner + np.array([i, j], dtype=float) * size))
+    for k in range(nx * ny):
+        idx = np.sort(order[bounds[k] : bounds[k + 1]])
+        if len(idx) or empty:
+            i, j = k % nx, k // nx
+            tiles.append(Tile(i, j, idx, corner + np.array([i, j], dtype=float) * size))
     return tiles
 
 
