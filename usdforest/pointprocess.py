@@ -151,9 +151,7 @@ def read_shape(path: Path, where: str) -> Shape:
     CRS) read here, any other format GDAL reads (Shapefile, GeoPackage, ...) with pyogrio."""
     import json
 
-    import shapely
     from shapely.geometry import shape as to_shape
-    from shapely.validation import explain_validity
 
     from .paths import require_file
 
@@ -190,14 +188,7 @@ def read_shape(path: Path, where: str) -> Shape:
                 raise RecipeError(f"{where}: {path.name} has a malformed polygon: {exc}") from None
 
     walk(data)
-    if not polys:
-        raise RecipeError(f"{where}: {path.name} has no Polygon or MultiPolygon geometry")
-    for p in polys:
-        if not p.is_valid:
-            raise RecipeError(f"{where}: {path.name}: invalid polygon ({explain_validity(p)})")
-    geometry = shapely.union_all(polys)
-    if geometry.is_empty or geometry.area <= 0:
-        raise RecipeError(f"{where}: {path.name}: the polygons have zero area")
+    geometry = _union(polys, path, where)
     crs = _geojson_crs(data.get("crs"), path, where)
     x0, y0, x1, y1 = geometry.bounds
     if crs is None and -180 <= x0 <= x1 <= 180 and -90 <= y0 <= y1 <= 90 and x1 - x0 < 5:
@@ -212,7 +203,6 @@ def read_shape(path: Path, where: str) -> Shape:
 def _read_vector(path: Path, where: str) -> Shape:
     """A Shapefile, GeoPackage or any vector file GDAL reads (pyogrio): its polygons."""
     import shapely
-    from shapely.validation import explain_validity
 
     from .paths import require_file
 
@@ -239,6 +229,14 @@ def _read_vector(path: Path, where: str) -> Shape:
         for p in getattr(g, "geoms", [g])
         if p.geom_type in ("Polygon", "MultiPolygon")
     ]
+    return Shape(_union(polys, path, where), path.name, meta.get("crs") or None)
+
+
+def _union(polys: list, path: Path, where: str):
+    """One region of a file's polygons: each valid, together of non-zero area."""
+    import shapely
+    from shapely.validation import explain_validity
+
     if not polys:
         raise RecipeError(f"{where}: {path.name} has no Polygon or MultiPolygon geometry")
     for p in polys:
@@ -247,7 +245,7 @@ def _read_vector(path: Path, where: str) -> Shape:
     geometry = shapely.union_all(polys)
     if geometry.is_empty or geometry.area <= 0:
         raise RecipeError(f"{where}: {path.name}: the polygons have zero area")
-    return Shape(geometry, path.name, meta.get("crs") or None)
+    return geometry
 
 
 def _geojson_crs(member, path: Path, where: str) -> str | None:
