@@ -195,3 +195,40 @@ def test_a_sheared_or_squashed_forest_is_not_drawn_as_sprites(default_forest, tm
     stamps = []
     stage_cloud(Usd.Stage.Open(str(default_forest)), spacing=1.0, stamps=stamps)
     assert len(stamps) == 1 and len(stamps[0].scale) > 50
+
+
+def test_each_instance_is_stamped_with_its_own_prototype():
+    """Sprites grouped by (prototype, yaw bin, scale bin): with up to 256 yaw bins a large
+    prototype's bins must not run into the next prototype's."""
+    from usdforest.preview import Cloud, Stamps, splat, view_basis
+
+    def disc(radius, colour):
+        a = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+        r = np.sqrt(np.linspace(0.01, 1, 400)) * radius
+        p = np.stack([r * np.cos(a * 7), r * np.sin(a * 7), np.zeros(400)], axis=1)
+        n = np.tile([0.0, 0.0, 1.0], (400, 1))
+        return Cloud(p, n, np.tile(colour, (400, 1)), np.full(400, 0.05))
+
+    red, blue = disc(20.0, [1.0, 0.0, 0.0]), disc(2.0, [0.0, 0.0, 1.0])
+    bins = 256  # the red disc spans 20 m at 0.1 m pixels: as many yaw bins as allowed
+    stamps = Stamps(
+        (red, blue),
+        np.ones(2),
+        np.array([64 * 2 * np.pi / bins, 0.0]),  # red in yaw bin 64, blue in bin 0
+        np.array([[0.0, 0.0, 0.0], [60.0, 0.0, 0.0]]),
+        np.array([0, 1]),
+    )
+    img, (u0, u1, _, v1) = splat(
+        Cloud.concat([]),
+        view_basis("top"),
+        (800, 300),
+        window=(-25, 75, -18.75, 18.75),
+        stamps=[stamps],
+    )
+    px = (u1 - u0) / 800
+    col = int((60.0 - u0) / px)
+    row = int((v1 - 0.0) / px)
+    around = img[row - 5 : row + 5, col - 5 : col + 5].reshape(-1, 3)
+    blue = (around[:, 2] > 0.5) & (around[:, 0] < 0.3)
+    red = (around[:, 0] > 0.5) & (around[:, 2] < 0.3)
+    assert blue.sum() > 10 and not red.any()  # the blue tree where it stands, no red there

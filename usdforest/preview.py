@@ -460,6 +460,8 @@ def _stamp(zb: _ZBuffer, s: Stamps, basis: np.ndarray, window, px: float) -> Non
     instance's."""
     u0, _, _, v1 = window
     scale, yaw = s.scale, s.yaw
+    if len(scale) == 0:
+        return
     ybin = np.zeros(len(scale), dtype=np.int64)
     sbin = np.zeros(len(scale), dtype=np.int64)
     steps = []
@@ -474,7 +476,8 @@ def _stamp(zb: _ZBuffer, s: Stamps, basis: np.ndarray, window, px: float) -> Non
     row = np.floor((v1 - origin[:, 1]) / px).astype(np.int64)
     # one integer key per (prototype, yaw bin, scale bin); instances grouped by one sort
     smin = int(sbin.min())
-    key = (s.proto.astype(np.int64) * 64 + ybin) * (int(sbin.max()) - smin + 1) + sbin - smin
+    key = (s.proto.astype(np.int64) * MAX_YAW_BINS + ybin) * (int(sbin.max()) - smin + 1)
+    key += sbin - smin
     order = np.argsort(key, kind="stable")
     first = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1]])
     bounds = np.r_[first, len(key)]
