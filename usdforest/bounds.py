@@ -35,35 +35,31 @@ def hull_vertices(points: np.ndarray) -> np.ndarray:
 def footprint_of(xy: np.ndarray) -> np.ndarray:
     """Vertices of the convex hull of ``(n, 2)`` points (all distinct points when
     degenerate)."""
+    p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    idx, flat = _hull_indices(p)
+    return np.unique(p[idx], axis=0) if flat else p[idx]
+
+
+def _hull_indices(xy: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Ascending indices of the vertices of the hull of ``(n, 2)`` points, and whether the
+    hull was degenerate (then the indices are every point that could be on it)."""
     from scipy.spatial import ConvexHull, QhullError
 
-    p = _outside_octagon(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
-    if len(p) <= 4:
-        return np.unique(p, axis=0)
+    cand = np.flatnonzero(_outside_octagon_mask(xy))
+    if len(cand) <= 4:
+        return cand, True
     try:
-        return p[np.sort(ConvexHull(p).vertices)]
+        return cand[np.sort(ConvexHull(xy[cand]).vertices)], False
     except QhullError:
-        return np.unique(p, axis=0)
-
-
-def _outside_octagon(p: np.ndarray) -> np.ndarray:
-    """Akl-Toussaint: drop the points strictly inside the polygon of the extreme points
-    along x, y and both diagonals (never a hull vertex), so qhull sees few of a million."""
-    return p[_outside_octagon_mask(p)]
+        return cand, True
 
 
 def _outside_octagon_mask(p: np.ndarray) -> np.ndarray:
-    """Mask of the ``(n, 2)`` points not strictly inside their extreme octagon."""
+    """Akl-Toussaint: the mask of the ``(n, 2)`` points not strictly inside the polygon of
+    their extreme points along x, y and both diagonals (never a hull vertex), so qhull sees
+    few of a million."""
     if len(p) < 64:
         return np.ones(len(p), dtype=bool)
-    if len(p) < 20_000:  # few points: one broadcast beats eight passes
-        keys = np.stack([p[:, 0], p[:, 0] + p[:, 1], p[:, 1], p[:, 1] - p[:, 0]], axis=1)
-        ring = p[np.concatenate([np.argmax(keys, axis=0), np.argmin(keys, axis=0)])]
-        edge = np.roll(ring, -1, axis=0) - ring
-        cross = edge[:, 0] * (p[:, None, 1] - ring[:, 1]) - edge[:, 1] * (
-            p[:, None, 0] - ring[:, 0]
-        )
-        return ~np.all(cross > 0, axis=1)
     x, y = p[:, 0].copy(), p[:, 1].copy()
     keys = (x, x + y, y, y - x)
     ext = [int(np.argmax(k)) for k in keys] + [int(np.argmin(k)) for k in keys]
@@ -197,25 +193,8 @@ def _extreme_anchors(anchor: np.ndarray) -> np.ndarray:
         [anchor, anchor[:, :1] + anchor[:, 1:2], anchor[:, 1:2] - anchor[:, :1]], 1
     )
     ext = np.concatenate([keys.argmin(axis=0), keys.argmax(axis=0)])
-    ring = np.flatnonzero(_on_hull(anchor[:, :2]))
+    ring, _ = _hull_indices(np.ascontiguousarray(anchor[:, :2]))
     return np.unique(np.concatenate([ext, ring]))
-
-
-def _on_hull(xy: np.ndarray) -> np.ndarray:
-    """Mask of the points that are vertices of the hull of ``(n, 2)`` points (all of them
-    when degenerate)."""
-    from scipy.spatial import ConvexHull, QhullError
-
-    mask = np.zeros(len(xy), dtype=bool)
-    cand = np.flatnonzero(_outside_octagon_mask(xy))
-    if len(cand) <= 4:
-        mask[cand] = True
-        return mask
-    try:
-        mask[cand[ConvexHull(xy[cand]).vertices]] = True
-    except QhullError:
-        mask[cand] = True
-    return mask
 
 
 def _may_reach_boundary(origin: np.ndarray, reach: np.ndarray, inner: Bounds) -> np.ndarray:
