@@ -519,16 +519,15 @@ def load_raster(
     """A raster intensity from ``.npy`` (trees/m^2, over the region's ``bounds``), a GeoTIFF
     (trees/m^2 times ``peak`` if given, over its own georeferenced cells, which must cover the
     region; no-data cells hold no trees) or an image (grey 0..1 scaled by ``peak``)."""
-    from .rasters import GEOTIFF, covers, geotiff_extent, read_geotiff, read_grey, read_npy
+    from .rasters import GEOTIFF, covers, read_geotiff, read_grey, read_npy
 
     where = "intensity.file"
     geo = read_geotiff(path, where, box=bounds) if path.suffix.lower() in GEOTIFF else None
     if geo is not None:  # the region's window of it
         if not covers(geo.bounds, bounds):
-            outer, crs = geotiff_extent(path, where)
             raise RecipeError(
-                f"{where}: {path.name} covers {list(outer)}, not the region {list(bounds)} "
-                f"(coordinates in the raster's CRS, {crs or 'none given'})"
+                f"{where}: {path.name} covers {list(geo.extent)}, not the region "
+                f"{list(bounds)} (coordinates in the raster's CRS, {geo.crs or 'none given'})"
             )
         values = np.nan_to_num(geo.values, nan=0.0) * (1.0 if peak is None else peak)
         return Raster(values, geo.bounds, path.name, geo.crs)

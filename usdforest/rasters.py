@@ -76,6 +76,7 @@ class GeoGrid:
     values: np.ndarray
     bounds: tuple[float, float, float, float]
     crs: str | None
+    extent: tuple[float, float, float, float]  # the whole file's cells, not only those read
 
     @property
     def centres(self) -> tuple[float, float, float, float]:
@@ -128,6 +129,7 @@ def read_geotiff(
                     if c1 <= c0 or r1 <= r0:
                         c0, r0, c1, r1 = 0, 0, 1, 1  # outside: the coverage check says so
                 band = ds.read(1, window=Window(c0, r0, c1 - c0, r1 - r0), masked=True)
+                b = ds.bounds
                 x0, y1 = t.c + c0 * t.a, t.f + r0 * t.e
                 x1, y0 = t.c + c1 * t.a, t.f + r1 * t.e
     except RecipeError:
@@ -137,7 +139,8 @@ def read_geotiff(
     if band.dtype.kind not in "biuf":
         raise RecipeError(f"{where}: {path.name} holds {band.dtype} values, not numbers")
     values = np.ma.filled(band.astype(np.float64), np.nan)
-    return GeoGrid(values, (float(x0), float(y0), float(x1), float(y1)), crs)
+    extent = (float(b.left), float(b.bottom), float(b.right), float(b.top))
+    return GeoGrid(values, (float(x0), float(y0), float(x1), float(y1)), crs, extent)
 
 
 def geotiff_extent(
@@ -148,13 +151,7 @@ def geotiff_extent(
     if path.suffix.lower() not in GEOTIFF:
         return None
     grid = read_geotiff(path, where, box=(0.0, 0.0, 0.0, 0.0))  # one cell: the checks only
-    if grid is None:
-        return None
-    import rasterio
-
-    with rasterio.open(path) as ds:
-        b = ds.bounds
-        return (b.left, b.bottom, b.right, b.top), grid.crs
+    return None if grid is None else (grid.extent, grid.crs)
 
 
 def covers(outer: tuple[float, ...], inner: tuple[float, ...]) -> bool:
