@@ -58,14 +58,37 @@ def refuse_overwrite(*paths: str | Path, force: bool) -> None:
 BUILD_MARK = ".build-"
 
 
-def staging_folder(out: Path) -> Path:
+@contextmanager
+def staging_folder(out: Path) -> Iterator[Path]:
     """A hidden folder beside ``out`` to build in (``.<stem>.build-XXXX``), holding a ``pid``
-    file; stale ones that a killed build left behind are removed first."""
+    file, removed when the block ends (moved files are gone from it by then); stale ones that
+    a killed build left behind are removed first.
+
+    Ctrl-C is held back from the folder's creation until the block that removes it is
+    entered, so an interrupt at any moment leaves nothing (SIGKILL leaves the folder, which
+    the next build sweeps away).
+    """
+    import shutil
+    import signal
+
     out.parent.mkdir(parents=True, exist_ok=True)
     sweep_stale_builds(out)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.stem}{BUILD_MARK}", dir=out.parent))
-    (tmp / "pid").write_text(str(os.getpid()))
-    return tmp
+    held = hasattr(signal, "pthread_sigmask")
+    if held:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    tmp = None
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.stem}{BUILD_MARK}", dir=out.parent))
+        (tmp / "pid").write_text(str(os.getpid()))
+        if held:
+            held = False
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+        yield tmp
+    finally:
+        if held:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _alive(pid: int) -> bool:

@@ -1,7 +1,10 @@
-"""The console script: Ctrl-C while the heavy modules load still ends in one line.
+"""The console script: a Ctrl-C at any moment once usdforest's code runs ends in one line.
 
-``usdforest.cli`` imports numpy, typer and rich before its own handler can catch an interrupt;
-this small module wraps that import.
+``usdforest.cli`` imports numpy, typer and rich before its own handler can catch an interrupt,
+and between that import and the handler there is a gap; this small module covers both.
+What it cannot cover is the interpreter's own start-up (``site`` and ``.pth`` files, the first
+10-30 ms): a Ctrl-C there is Python's, it may print Python's traceback, and nothing has been
+written yet.
 """
 
 from __future__ import annotations
@@ -9,13 +12,18 @@ from __future__ import annotations
 import sys
 
 
+def _interrupted() -> None:
+    sys.stderr.write("error: interrupted\n")
+    sys.exit(130)
+
+
 def main() -> None:
     try:
         from .cli import main as cli_main
+
+        cli_main()
     except KeyboardInterrupt:
-        sys.stderr.write("error: interrupted\n")
-        sys.exit(130)
-    cli_main()
+        _interrupted()
 
 
 if __name__ == "__main__":

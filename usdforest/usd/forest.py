@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import math
 import re
-import shutil
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager, nullcontext
@@ -620,8 +619,7 @@ def _write_forest(
         anchor,
     )
 
-    tmp = staging_folder(out)
-    try:
+    with staging_folder(out) as tmp:
         staged = tmp / assets.name
         (staged / "trees").mkdir(parents=True)
         (staged / "templates").mkdir()
@@ -703,6 +701,4 @@ def _write_forest(
                 tick("thumbnail", 1, 1)
             csv.result()
         publish(tmp, out, tmp / out.name, [(staged, assets)])
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return replace(build, n_tiles=len(tiles or ()))

@@ -562,8 +562,7 @@ def write_tree(
     assets = out.parent / f"{out.stem}_assets"
     refuse_overwrite(out, assets, force=force)
     build = build_tree(species, seed, variant, template_base=template_base, colliders=colliders)
-    tmp = staging_folder(out)
-    try:
+    with staging_folder(out) as tmp:
         if out.suffix == ".usdc":  # binary already: one layer
             refs = copy_templates(
                 build, tmp / "assets" / "templates", f"./{assets.name}/templates/"
@@ -581,6 +580,4 @@ def write_tree(
                 tmp / out.name,
             )
         publish(tmp, out, tmp / out.name, [(tmp / "assets", assets)])
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return build
