@@ -154,6 +154,76 @@ def needle_fascicle() -> trimesh.Trimesh:
     return trimesh.util.concatenate(parts)
 
 
+TRUNK_SECTIONS = 24  # the conical trunk's ring vertices (usdforest.architecture reads it)
+TRUNK_FOOT = 0.03  # its cylindrical foot, as a fraction of its length
+
+
+def trunk_cone() -> trimesh.Trimesh:
+    """A 10 m stem tapering from 0.15 m to a point (no cut top): a cylindrical foot over the
+    lowest 3 % (so the template's measured base radius is its true base radius), then a
+    straight taper to an apex vertex. Closed and manifold; ring vertices on the circle."""
+    length, r0 = 10.0, 0.15
+    z = np.concatenate([[0.0], np.linspace(TRUNK_FOOT, 0.98, 40)]) * length
+    r = np.where(z <= TRUNK_FOOT * length, r0, r0 * (1.0 - z / length) / (1.0 - TRUNK_FOOT))
+    ang = np.linspace(0.0, 2 * math.pi, TRUNK_SECTIONS, endpoint=False)
+    rings = np.concatenate(
+        [
+            np.stack([np.cos(ang) * ri, np.sin(ang) * ri, np.full_like(ang, zi)], 1)
+            for zi, ri in zip(z, r, strict=True)
+        ]
+    )
+    n, k = TRUNK_SECTIONS, len(z)
+    v = np.concatenate([rings, [[0.0, 0.0, 0.0], [0.0, 0.0, length]]])
+    bottom, apex = k * n, k * n + 1
+    faces = []
+    for i in range(k - 1):
+        for j in range(n):
+            a, b = i * n + j, i * n + (j + 1) % n
+            faces += [(a, b, b + n), (a, b + n, a + n)]
+    last = (k - 1) * n
+    for j in range(n):
+        faces.append((bottom, (j + 1) % n, j))
+        faces.append((apex, last + j, last + (j + 1) % n))
+    return trimesh.Trimesh(v, np.array(faces), process=False)
+
+
+def _needle(base: np.ndarray, direction: np.ndarray, length: float, radius: float):
+    s = np.linspace(0.0, 1.0, 3)
+    centre = base + direction[None] * (s[:, None] * length)
+    return tube(centre, radius * (1 - s) + radius * 0.15, sections=3)
+
+
+def shoot(kind: str) -> trimesh.Trimesh:
+    """A 15 cm conifer shoot (its axis along +X, a thin stem) clothed in needles: ``pine``
+    carries 24 two-needle fascicles of 5 cm (Scots pine), ``spruce`` 60 single 1.6 cm
+    needles (Norway spruce) spiralling round it. Needles lean forward from the stem."""
+    rng = np.random.default_rng(RNG_SEED + (1 if kind == "pine" else 2))
+    length = 0.15
+    stem = tube(
+        np.stack([np.linspace(0.0, length, 3), np.zeros(3), np.zeros(3)], axis=1),
+        np.linspace(0.0016, 0.0009, 3),
+        sections=4,
+    )
+    parts = [stem]
+    count, nlen, nrad, per = (24, 0.05, 0.0007, 2) if kind == "pine" else (60, 0.016, 0.0006, 1)
+    for i in range(count):
+        x = length * (0.06 + 0.9 * i / (count - 1))
+        phi = math.radians(137.5 * i) + rng.uniform(-0.2, 0.2)
+        radial = np.array([0.0, math.cos(phi), math.sin(phi)])
+        for j in range(per):
+            spread = (
+                radial
+                if per == 1
+                else radial * math.cos(0.35 * (2 * j - 1))
+                + np.cross([1.0, 0.0, 0.0], radial) * math.sin(0.35 * (2 * j - 1))
+            )
+            d = 0.55 * np.array([1.0, 0.0, 0.0]) + spread
+            d /= np.linalg.norm(d)
+            base = np.array([x, 0.0, 0.0]) + radial * 0.0012
+            parts.append(_needle(base, d, nlen * rng.uniform(0.85, 1.15), nrad))
+    return trimesh.util.concatenate(parts)
+
+
 FILES = {
     "trunk.obj": trunk,
     "branch_straight.stl": lambda: branch(2.0, 0.06, 0.018, 0.0),
@@ -162,6 +232,9 @@ FILES = {
     "twig.stl": lambda: branch(0.3, 0.008, 0.0025, math.radians(15), sections=6, rings=8),
     "leaf_broadleaf.obj": leaf,
     "needle_fascicle.stl": needle_fascicle,
+    "trunk_cone.obj": trunk_cone,
+    "shoot_pine.stl": lambda: shoot("pine"),
+    "shoot_spruce.stl": lambda: shoot("spruce"),
 }
 
 

@@ -102,7 +102,11 @@ def tip_errors(stage: Usd.Stage, root: str = "/Tree") -> np.ndarray:
         axis = (tip - base) / np.linalg.norm(tip - base)
         t = (m.vertices - base) @ axis
         cap = m.vertices[t >= t.max() - 0.02 * np.ptp(t)]
-        errors.append(float(np.linalg.norm(0.5 * (cap.min(0) + cap.max(0)) - tip)))
+        # the cap's middle across the axis, at the mesh's far end along it (a pointed trunk's
+        # apex; a cut end's cap)
+        mid = 0.5 * (cap.min(0) + cap.max(0))
+        end = mid + axis * (t.max() - (mid - base) @ axis)
+        errors.append(float(np.linalg.norm(end - tip)))
     return np.array(errors)
 
 

@@ -21,10 +21,11 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .architecture import Architecture, TreeSize, grammar
 from .errors import UsdForestError
 from .lsystem import DEFAULT_MAX_MODULES, Derivation, LSystem, derive, make_lsystem
 from .skeleton import Skeleton
@@ -122,6 +123,11 @@ class Species:
     kind: str = "tree"
     geometry: Geometry = field(default_factory=Geometry)
     clumps: Clumps | None = None
+    # allometric species: sized per tree from published equations (usdforest.allometry) and
+    # grown by a crown architecture (usdforest.architecture); the axiom above is a placeholder
+    allometry: str | None = None
+    architecture: Architecture | None = None
+    reference_dbh: float = 20.0  # cm: the DBH of a tree grown on its own (usdforest tree)
 
     def lsystem(self) -> LSystem:
         return _parsed(self.axiom, tuple(self.rules))
@@ -306,6 +312,166 @@ def _broadleaf() -> Species:
     )
 
 
+def _allometric(
+    name: str,
+    description: str,
+    arch: Architecture,
+    geometry: Geometry,
+    reference_dbh: float = 20.0,
+) -> Species:
+    """A species sized by :mod:`usdforest.allometry` and grown by ``arch``; its own grammar is
+    that of a tree of ``reference_dbh`` (each built tree is sized again from its seed)."""
+    sp = Species(
+        name=name,
+        description=description,
+        axiom="F(1)",
+        rules=(),
+        iterations=0,
+        turtle=TurtleConfig(angle=45.0, step=0.5, radius=0.1, draw="F", elasticity=arch.droop),
+        geometry=geometry,
+        allometry=name,
+        architecture=arch,
+        reference_dbh=reference_dbh,
+    )
+    rng = np.random.default_rng(0)
+    return sized(sp, tree_size(sp, rng), rng)
+
+
+def _allometric_presets() -> tuple[Species, ...]:
+    cone = "trunk_cone"
+    return (
+        _allometric(
+            "scots-pine",
+            "Scots pine sized by published allometry: whorls of 3-5 branches, a clear bole "
+            "below a rounded crown, needle shoots on the outer branches.",
+            Architecture(
+                True, (0.35, 0.6), (3, 5), (45.0, 80.0), 0.6, False, 0.3, (40.0, 60.0), 0.45, 0.05
+            ),
+            Geometry(
+                trunk=cone,
+                branches=("branch_straight", "branch_curved_a"),
+                branch_weights=(0.6, 0.4),
+                leaf="shoot_pine",
+                leaf_size=0.17,
+                leaf_size_jitter=0.12,
+                leaf_spread=1.0,
+                leaf_angle=35.0,
+                bark_color=(0.36, 0.22, 0.14),
+                leaf_color=(0.13, 0.3, 0.14),
+            ),
+        ),
+        _allometric(
+            "norway-spruce",
+            "Norway spruce sized by published allometry: a conical crown of whorled, drooping "
+            "branches down a long crown, needle shoots all along the outer branches.",
+            Architecture(
+                True, (0.3, 0.5), (4, 6), (60.0, 100.0), 1.0, False, 0.25, (50.0, 70.0), 0.5, 0.12
+            ),
+            Geometry(
+                trunk=cone,
+                branches=("branch_straight", "branch_curved_a"),
+                branch_weights=(0.5, 0.5),
+                leaf="shoot_spruce",
+                leaf_size=0.16,
+                leaf_size_jitter=0.12,
+                leaf_spread=1.0,
+                leaf_angle=30.0,
+                bark_color=(0.35, 0.25, 0.2),
+                leaf_color=(0.1, 0.26, 0.12),
+            ),
+        ),
+        _allometric(
+            "european-beech",
+            "European beech sized by published allometry: single branches on a spiral, "
+            "a domed crown, leaves through the outer crown.",
+            Architecture(
+                False, (0.35, 0.6), (1, 1), (35.0, 65.0), 0.8, True, 0.35, (35.0, 55.0), 0.6, 0.05
+            ),
+            Geometry(
+                trunk=cone,
+                leaf="leaf_broadleaf",
+                leaf_size=0.1,
+                leaf_spread=0.9,
+                bark_color=(0.45, 0.43, 0.4),
+                leaf_color=(0.25, 0.5, 0.17),
+            ),
+        ),
+        _allometric(
+            "sessile-oak",
+            "Sessile oak sized by published allometry: spreading, crooked branches, a broad "
+            "domed crown.",
+            Architecture(
+                False, (0.4, 0.7), (1, 1), (45.0, 80.0), 0.7, True, 0.4, (40.0, 70.0), 0.65, 0.04
+            ),
+            Geometry(
+                trunk=cone,
+                branches=("branch_curved_a", "branch_curved_b"),
+                branch_weights=(0.5, 0.5),
+                leaf="leaf_broadleaf",
+                leaf_size=0.12,
+                leaf_spread=0.9,
+                bark_color=(0.3, 0.27, 0.23),
+                leaf_color=(0.2, 0.42, 0.14),
+            ),
+        ),
+        _allometric(
+            "silver-birch",
+            "Silver birch sized by published allometry: steep branches with pendulous "
+            "shoots, a narrow crown, small leaves.",
+            Architecture(
+                False, (0.3, 0.5), (1, 1), (30.0, 50.0), 0.9, True, 0.3, (30.0, 50.0), 0.5, 0.2
+            ),
+            Geometry(
+                trunk=cone,
+                leaf="leaf_broadleaf",
+                leaf_size=0.06,
+                leaf_spread=0.9,
+                bark_color=(0.85, 0.83, 0.8),
+                leaf_color=(0.3, 0.55, 0.2),
+            ),
+            reference_dbh=15.0,
+        ),
+    )
+
+
+def tree_size(
+    species: Species,
+    rng: np.random.Generator,
+    dbh: float | None = None,
+    height: float | None = None,
+    bal: float = 0.0,
+    ccf: float = 100.0,
+) -> TreeSize:
+    """One tree's sizes from the species' allometry (DBH in cm, height in m).
+
+    Missing height: the height curve's mean times a lognormal residual; the crown radius
+    carries its own residual; crown base from the crown ratio at the stand's ``bal`` (m²/ha)
+    and ``ccf`` (%); leaf area from the foliage equation at the tree's DBH and height.
+    """
+    from .allometry import ALLOMETRY
+
+    a = ALLOMETRY[species.allometry or ""]
+    d = float(species.reference_dbh if dbh is None else dbh)
+    e_h, e_c = rng.standard_normal(2)
+    h = float(a.height(d)) * math.exp(a.height_sd * e_h) if height is None else float(height)
+    cr = float(a.crown_ratio_of(d, h, bal, ccf))
+    return TreeSize(
+        height=h,
+        dbh=d / 100.0,
+        crown_radius=float(a.crown_radius(d)) * math.exp(a.crown_sd * e_c),
+        crown_base=h * (1.0 - cr),
+        leaf_area=float(a.leaf_area(d, h)),
+    )
+
+
+def sized(species: Species, size: TreeSize, rng: np.random.Generator) -> Species:
+    """The species' grammar for one tree of ``size`` (:func:`usdforest.architecture.grammar`)."""
+    if species.architecture is None:
+        return species
+    axiom, rules, steps = grammar(size, species.architecture, rng)
+    return replace(species, axiom=axiom, rules=rules, iterations=steps)
+
+
 def _abop(name: str, description: str, axiom: str, rules: tuple[str, ...], n: int, angle: float):
     return Species(
         name=name,
@@ -326,6 +492,7 @@ PRESETS: dict[str, Species] = {
         _paper_rule(3),
         _pine(),
         _broadleaf(),
+        *_allometric_presets(),
         _abop("abop-1.24a", "ABOP Fig. 1.24a, edge rewriting", "F", ("F -> F[+F]F[-F]F",), 5, 25.7),
         _abop("abop-1.24b", "ABOP Fig. 1.24b", "F", ("F -> F[+F]F[-F][F]",), 5, 20.0),
         _abop("abop-1.24c", "ABOP Fig. 1.24c", "F", ("F -> FF-[-F+F+F]+[+F-F-F]",), 4, 22.5),

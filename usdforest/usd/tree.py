@@ -18,15 +18,17 @@ them. The instances of one template in one tree still share one prototype.
 
 from __future__ import annotations
 
+import math
 import shutil
 from collections.abc import Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 from pxr import Gf, Sdf, Vt
 
+from ..architecture import TreeSize
 from ..atomic import publish, refuse_overwrite, staging_folder
 from ..bounds import EMPTY, EMPTY_EXTENT, Bounds, instances_bounds
 from ..colliders import Capsules, tree_capsules
@@ -35,7 +37,7 @@ from ..library import template_path
 from ..placement import Placement, place
 from ..proxy import Levels, levels
 from ..seeds import stream
-from ..species import Grown, Species, grow
+from ..species import Geometry, Grown, Species, grow, sized, tree_size
 from .layers import (
     T,
     attr,
@@ -78,6 +80,7 @@ class TreeBuild:
     bounds: Mapping[str, Bounds]  # exact extent and footprint of each level of detail (and
     # of the leaf instancers: "leaves", "clusters")
     colliders: Capsules | None = None  # the wood's collider capsules
+    size: TreeSize | None = None  # an allometric tree's target sizes
 
     def used_templates(self) -> dict[str, TemplateInfo]:
         """The templates the placed wood and leaves reference, by name."""
@@ -106,9 +109,17 @@ def build_tree(
     *,
     template_base: Path | None = None,
     colliders: str = "trunk",
+    target: TreeSize | None = None,
 ) -> TreeBuild:
     """Grow a tree and place its templates (no files written); ``colliders`` is ``trunk``,
-    ``wood`` or ``none`` (see :mod:`usdforest.colliders`)."""
+    ``wood`` or ``none`` (see :mod:`usdforest.colliders`). An allometric species grows to
+    ``target`` (default: its allometry at its reference DBH with residuals drawn from the
+    seed) with as many leaves as carry the target's leaf area."""
+    size = None
+    if species.allometry is not None:
+        rng = stream(seed, species.name, variant, "size")
+        size = tree_size(species, rng) if target is None else target
+        species = sized(species, size, rng)
     g = species.geometry
     grown = grow(species, seed=int(stream(seed, species.name, variant, "lsystem").integers(2**63)))
     leaf_names = species.clumps.templates if species.clumps is not None else (g.leaf,)
@@ -124,6 +135,8 @@ def build_tree(
     for n in leaf_names:
         if infos[n].part != "leaf":
             raise UsdForestError(f"template {n!r} is a {infos[n].part}, not a leaf")
+    if size is not None:
+        g = foliage_for(g, size.leaf_area, grown.skeleton.n_leaves, infos[g.leaf].measurements)
     placement = place(
         grown.skeleton,
         g,
@@ -141,7 +154,21 @@ def build_tree(
         lv,
         bounds,
         tree_capsules(placement, colliders),
+        size,
     )
+
+
+def foliage_for(g: Geometry, leaf_area: float, sites: int, leaf: Mapping) -> Geometry:
+    """``g`` with as many leaves per site as carry ``leaf_area`` m² (one-sided) over ``sites``
+    leaf sites, given the leaf template's measurements; below one leaf a site, the leaves
+    shrink instead. The expected area of one leaf is its template's area at ``leaf_size``
+    times E[(1 + jitter z)²] = 1 + jitter² (the size scatter, z standard normal)."""
+    unit = float(leaf["leaf_area"]) / float(leaf["length"]) ** 2
+    one = unit * g.leaf_size**2 * (1.0 + g.leaf_size_jitter**2)
+    per_site = leaf_area / max(one * max(sites, 1), 1e-12)
+    if per_site >= 1.0:
+        return replace(g, leaves_per_site=float(per_site))
+    return replace(g, leaves_per_site=1.0, leaf_size=g.leaf_size * math.sqrt(per_site))
 
 
 def _wood_bounds(p: Placement, infos: Mapping[str, TemplateInfo]) -> Bounds:
@@ -342,6 +369,7 @@ def tree_layer(
                 "seed": build.grown.seed,
                 "variant": build.variant,
                 "lsystem": stats,
+                **({"size": build.size.as_dict()} if build.size is not None else {}),
             }
         }
         semantic_label(root, "tree")

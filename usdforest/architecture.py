@@ -1,0 +1,179 @@
+"""Crown architectures sized to one tree: a target height, DBH, crown and leaf area -> the
+L-system that grows it.
+
+An allometric species (:mod:`usdforest.allometry`) gives each tree its sizes; this module turns
+them and the species' :class:`Architecture` into an axiom and rules. The trunk is written out
+in the axiom, internode by internode from the ground to the tip (its radius set at every node
+so the conical trunk template tapers to a point), and carries, above the crown base, either
+whorls of branches (pine, spruce) or single branches on a spiral (beech, oak, birch). Every
+branch's length is set by the crown envelope at its height (a crown of radius
+``crown_radius`` between ``crown_base`` and the top, shaped by ``Architecture.shape``); branch
+counts, angles, spacings and lengths are drawn per tree. The rules grow each branch into a
+non-binary system: a main axis with alternating laterals, laterals with short shoots, foliage
+sites at every shoot tip and node of the outer crown.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+# the conical trunk template (templates/make_cad.py: trunk_cone): ring vertices and foot
+TRUNK_SECTIONS = 24
+TRUNK_FOOT = 0.03
+BREAST_HEIGHT = 1.3  # metres
+# a girth tape round the 24-gon reads its perimeter, short of the circle's by this factor
+_GIRTH = TRUNK_SECTIONS * math.sin(math.pi / TRUNK_SECTIONS) / math.pi
+
+
+@dataclass(frozen=True)
+class TreeSize:
+    """One tree's target sizes (metres, m²): height, DBH (over bark, at 1.3 m), crown radius
+    (mean horizontal reach), crown base height and one-sided leaf area."""
+
+    height: float
+    dbh: float
+    crown_radius: float
+    crown_base: float
+    leaf_area: float
+
+    def as_dict(self) -> dict[str, float]:
+        return {
+            "height": round(self.height, 4),
+            "dbh": round(self.dbh, 5),
+            "crownRadius": round(self.crown_radius, 4),
+            "crownBase": round(self.crown_base, 4),
+            "leafArea": round(self.leaf_area, 3),
+        }
+
+
+@dataclass(frozen=True)
+class Architecture:
+    """How a species branches. Ranges ``(lo, hi)`` are drawn uniformly per tree or per
+    branch; lengths in metres, angles in degrees from the parent axis.
+
+    Attributes
+    ----------
+    whorled
+        Branches in whorls at each annual node (conifers) or one per node on a spiral.
+    node_spacing
+        Distance between the trunk's branching nodes.
+    per_whorl
+        Branches per whorl (whorled only).
+    branch_angle
+        Insertion angle of first-order branches at the crown top and at the crown base (the
+        angle is interpolated between them down the crown).
+    shape
+        Crown envelope exponent: reach = crown_radius * t**shape with t the depth below the
+        top as a fraction of the crown length (1: a cone, 0.5: a paraboloid); ``dome``
+        lets the reach fall again below the crown's widest point (broadleaves: an ellipsoid).
+    lateral_spacing, lateral_angle, lateral_ratio
+        Laterals along a branch: their spacing, angle and length as a fraction of the
+        branch's remaining length.
+    droop
+        Turtle tropism elasticity (branches bend down under their weight).
+    """
+
+    whorled: bool
+    node_spacing: tuple[float, float]
+    per_whorl: tuple[int, int]
+    branch_angle: tuple[float, float]
+    shape: float
+    dome: bool
+    lateral_spacing: float
+    lateral_angle: tuple[float, float]
+    lateral_ratio: float
+    droop: float
+
+
+def trunk_base_radius(size: TreeSize) -> float:
+    """Radius the skeleton gives the trunk's base so that the conical trunk template, a girth
+    tape round it at 1.3 m reads ``size.dbh``."""
+    u = min(BREAST_HEIGHT / size.height, 0.95)
+    taper = 1.0 if u <= TRUNK_FOOT else (1.0 - u) / (1.0 - TRUNK_FOOT)
+    return 0.5 * size.dbh / (taper * _GIRTH)
+
+
+def _reach(size: TreeSize, arch: Architecture, z: np.ndarray) -> np.ndarray:
+    """Horizontal reach of the crown envelope at heights ``z``."""
+    crown = max(size.height - size.crown_base, 1e-3)
+    t = np.clip((size.height - z) / crown, 0.0, 1.0)
+    if arch.dome:  # an ellipsoid-like crown widest at 40 % of its length below the top
+        w = np.where(t < 0.4, t / 0.4, 1.0 - (t - 0.4) / 0.6 * 0.55)
+        return size.crown_radius * np.clip(w, 0.0, 1.0) ** arch.shape
+    return size.crown_radius * t**arch.shape
+
+
+def _f(x: float) -> str:
+    return f"{x:.5g}"
+
+
+def grammar(
+    size: TreeSize, arch: Architecture, rng: np.random.Generator
+) -> tuple[str, tuple[str, ...], int]:
+    """The axiom, rules and derivation steps that grow a tree of ``size``.
+
+    The trunk and each first-order branch's insertion are decided here with ``rng`` (node
+    spacing, branches per whorl, azimuths, angles, a 15 % scatter of branch lengths round the
+    envelope); the rules' own ``uniform`` draws shape the laterals.
+    """
+    h = size.height
+    r0 = trunk_base_radius(size)
+    parts = [f"!({_f(r0)})"]
+    z = 0.0
+    azimuth = float(rng.uniform(0.0, 360.0))
+    # the first node sits just above the crown base (or one spacing up, if that is higher)
+    spacing = rng.uniform(*arch.node_spacing)
+    first = max(size.crown_base, spacing)
+    nodes = []
+    longest = 0.0
+    zn = first
+    while zn < h - 0.5 * arch.node_spacing[0]:
+        nodes.append(zn)
+        zn += rng.uniform(*arch.node_spacing)
+    for zn in nodes:
+        parts.append(f"!({_f(r0 * _taper(zn, h))}) F({_f(zn - z)})")
+        z = zn
+        reach = float(_reach(size, arch, np.array([zn]))[0])
+        depth = (h - zn) / max(h - size.crown_base, 1e-3)
+        angle_mid = arch.branch_angle[0] + (arch.branch_angle[1] - arch.branch_angle[0]) * depth
+        k = int(rng.integers(arch.per_whorl[0], arch.per_whorl[1] + 1)) if arch.whorled else 1
+        r_trunk = r0 * _taper(zn, h)
+        for j in range(k):
+            angle = float(np.clip(angle_mid + rng.uniform(-8.0, 8.0), 10.0, 115.0))
+            length = reach * rng.uniform(0.85, 1.15) / max(math.sin(math.radians(angle)), 0.35)
+            if length < 0.15:
+                continue
+            phi = azimuth + j * 360.0 / k + rng.uniform(-12.0, 12.0)
+            longest = max(longest, length)
+            rb = min(0.012 * length**1.1 + 0.003, 0.6 * r_trunk)
+            parts.append(f"[/({_f(phi % 360.0)}) &({_f(angle)}) B({_f(length)},{_f(rb)})]")
+        azimuth += 137.5 if not arch.whorled else rng.uniform(20.0, 45.0)
+    parts.append(f"!({_f(r0 * _taper(z, h))}) F({_f(h - z)}) L(1)")
+    s = arch.lateral_spacing
+    a0, a1 = arch.lateral_angle
+    q = arch.lateral_ratio
+    rules = (
+        # a branch: a node every s metres with a lateral on alternating sides, rolled on by
+        # about 90 degrees, the branch thinning to its tip; the last metre carries leaves
+        f"B(l,r) : l > {_f(s)} -> !(r) F({_f(s)}) [&(uniform({_f(a0)},{_f(a1)}))"
+        f" C((l-{_f(s)})*{_f(q)}*uniform(0.7,1.1),r*0.55)] /(uniform(150,210))"
+        f" B(l-{_f(s)},r*max((l-{_f(s)})/l,0.3))",
+        "B(l,r) : l <= " + _f(s) + " -> !(r) F(l) L(1)",
+        # a lateral: short shoots from its nodes, leaves at every shoot tip and node
+        f"C(l,r) : l > {_f(0.6 * s)} -> !(r) F({_f(0.6 * s)}) L(1)"
+        f" [&(uniform({_f(a0)},{_f(a1)})) D(min(l*0.5,{_f(0.5 * s)}),r*0.5)]"
+        f" /(uniform(150,210)) C(l-{_f(0.6 * s)},r*0.8)",
+        "C(l,r) : l <= " + _f(0.6 * s) + " -> !(r) F(l) L(1)",
+        "D(l,r) -> !(r) F(l) L(1)",
+    )
+    steps = math.ceil(longest / s) + math.ceil(longest * q / (0.6 * s)) + 3
+    return " ".join(parts), rules, min(steps, 100)
+
+
+def _taper(z: float, h: float) -> float:
+    """The conical trunk template's radius at height z, as a fraction of its base radius."""
+    u = z / h
+    return 1.0 if u <= TRUNK_FOOT else max((1.0 - u) / (1.0 - TRUNK_FOOT), 0.0)
