@@ -96,6 +96,19 @@ def trunk_base_radius(size: TreeSize) -> float:
     return 0.5 * size.dbh / (taper * _GIRTH)
 
 
+def scaled_dbh(dbh: np.ndarray, height: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """DBH of a tree grown to ``dbh`` and ``height`` and then scaled by ``scale``: its breast
+    height falls at 1.3 / scale on the grown tree's conical trunk."""
+    h = np.asarray(height, dtype=float)
+    s = np.asarray(scale, dtype=float)
+
+    def taper(z):
+        u = np.minimum(z / h, 0.95)
+        return np.where(u <= TRUNK_FOOT, 1.0, (1.0 - u) / (1.0 - TRUNK_FOOT))
+
+    return s * np.asarray(dbh) * taper(BREAST_HEIGHT / s) / taper(BREAST_HEIGHT)
+
+
 def _reach(size: TreeSize, arch: Architecture, z: np.ndarray) -> np.ndarray:
     """Horizontal reach of the crown envelope at heights ``z``."""
     crown = max(size.height - size.crown_base, 1e-3)
@@ -134,7 +147,7 @@ def grammar(
         nodes.append(zn)
         zn += rng.uniform(*arch.node_spacing)
     for zn in nodes:
-        parts.append(f"!({_f(r0 * _taper(zn, h))}) F({_f(zn - z)})")
+        parts.append(f"!({_f(r0 * _taper(z, h))}) F({_f(zn - z)})")
         z = zn
         reach = float(_reach(size, arch, np.array([zn]))[0])
         depth = (h - zn) / max(h - size.crown_base, 1e-3)
@@ -144,6 +157,10 @@ def grammar(
         for j in range(k):
             angle = float(np.clip(angle_mid + rng.uniform(-8.0, 8.0), 10.0, 115.0))
             length = reach * rng.uniform(0.85, 1.15) / max(math.sin(math.radians(angle)), 0.35)
+            # no branch tip (nor its leaves) above the top: its rise stays under the apex
+            rise = math.cos(math.radians(angle))
+            if rise > 0:
+                length = min(length, 0.85 * (h - zn) / rise)
             if length < 0.15:
                 continue
             phi = azimuth + j * 360.0 / k + rng.uniform(-12.0, 12.0)

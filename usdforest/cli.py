@@ -328,6 +328,33 @@ def info_cmd(
     out.print(table)
 
 
+@app.command("stats")
+@handles_errors
+def stats_cmd(
+    stage: Annotated[Path, typer.Argument(help="A forest built by usdforest build.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print as JSON.")] = False,
+) -> None:
+    """Stand figures measured on the composed forest: stems/ha, basal area, DBH and height
+    distributions, slenderness, leaf area index, nadir canopy cover."""
+    from .usd.inventory import stand_figures
+
+    f = stand_figures(stage)
+    f.pop("per_tree")
+    if as_json:
+        sys.stdout.write(json.dumps(f) + "\n")
+        return
+    table = Table(box=None, show_header=False)
+    for k, v in f.items():
+        if isinstance(v, dict):
+            v = ", ".join(
+                f"{a} {b:.3g}" if isinstance(b, float) else f"{a} {b}" for a, b in v.items()
+            )
+        elif isinstance(v, float):
+            v = f"{v:.4g}"
+        table.add_row(k, str(v))
+    out.print(table)
+
+
 def _load_recipe(pipeline: Path | None, seed: int | None, hard_core: float | None = None):
     from .recipe import default_recipe_path, read_recipe
 

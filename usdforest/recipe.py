@@ -43,6 +43,7 @@ SPECIES_KEYS = {
     "turtle",
     "geometry",
     "description",
+    "stand",
 }
 
 
@@ -52,6 +53,7 @@ class SpeciesEntry:
 
     species: Species
     template_base: Path
+    stand: Any = None  # usdforest.stand.StandSpec of an allometric species, if given
 
 
 def parse_species(name: str, table: Mapping[str, Any], base: Path, where: str) -> SpeciesEntry:
@@ -108,7 +110,36 @@ def parse_species(name: str, table: Mapping[str, Any], base: Path, where: str) -
         sp.lsystem()
     except UsdForestError as exc:
         raise RecipeError(f"{where}: {exc}") from None
-    return SpeciesEntry(sp, template_base)
+    stand = None
+    if "stand" in table:
+        stand = _parse_stand(table["stand"], sp, f"{where}.stand")
+    return SpeciesEntry(sp, template_base, stand)
+
+
+def _parse_stand(t: Any, sp: Species, where: str) -> Any:
+    """``[species.NAME.stand]``: the DBH distribution of an allometric species (metres)."""
+    from .stand import StandSpec
+
+    if sp.allometry is None:
+        raise RecipeError(
+            f"{where}: only an allometric species (scots-pine, norway-spruce, european-beech, "
+            f"sessile-oak, silver-birch) takes a stand table; {sp.name} is not one"
+        )
+    if not isinstance(t, Mapping):
+        raise RecipeError(f"{where}: expected a table, e.g. {{ dbh_mean = 0.18, dbh_cv = 0.3 }}")
+    check_keys(t, {"dbh_mean", "dbh_cv", "dbh_min"}, where)
+    mean = _num(t.get("dbh_mean", sp.reference_dbh / 100), f"{where}.dbh_mean", positive=True)
+    cv = _num(t.get("dbh_cv", 0.3), f"{where}.dbh_cv", positive=True)
+    lo = _num(t.get("dbh_min", 0.04), f"{where}.dbh_min", lo=0)
+    if mean > 2.0:
+        raise RecipeError(
+            f"{where}.dbh_mean: {mean:g} looks like centimetres; DBH is in metres ({mean / 100:g})"
+        )
+    if not 0.02 <= cv <= 1.5:
+        raise RecipeError(f"{where}.dbh_cv: {cv:g} is outside 0.02..1.5")
+    if lo >= mean:
+        raise RecipeError(f"{where}.dbh_min: {lo:g} m is not below dbh_mean {mean:g} m")
+    return StandSpec(mean, cv, lo)
 
 
 def _check_geometry(g: Geometry, where: str) -> None:
@@ -210,6 +241,7 @@ FOREST_KEYS = {
     "lod",
 }
 DEFAULT_MAX_TREES = 2_000_000
+DEFAULT_SIZE_CLASSES = 24
 
 
 @dataclass(frozen=True)
@@ -355,9 +387,15 @@ def parse_intensity(t: Any, region: Any, base: Path, where: str) -> Any:
     )
 
 
-def _parse_sites(v: Any, names: tuple[str, ...], region: Any, where: str) -> tuple[dict, ...]:
+SITE_KEYS = {"x", "y", "species", "yaw", "scale", "dbh", "height", "crown_radius"}
+MIN_SLENDERNESS, MAX_SLENDERNESS = 20.0, 250.0  # height / DBH of any real tree
+
+
+def _parse_sites(
+    v: Any, names: tuple[str, ...], region: Any, where: str, species: dict | None = None
+) -> tuple[dict, ...]:
     out = []
-    for w, s in table_array(v, {"x", "y", "species", "yaw", "scale"}, where, required={"x", "y"}):
+    for w, s in table_array(v, SITE_KEYS, where, required={"x", "y"}):
         site = {"x": _num(s.get("x"), f"{w}.x"), "y": _num(s.get("y"), f"{w}.y")}
         if "species" in s:
             if s["species"] not in names:
@@ -367,10 +405,91 @@ def _parse_sites(v: Any, names: tuple[str, ...], region: Any, where: str) -> tup
             site["yaw"] = _num(s["yaw"], f"{w}.yaw")
         if "scale" in s:
             site["scale"] = _num(s["scale"], f"{w}.scale", positive=True)
+        _site_sizes(s, site, w, names, species)
         if not bool(region.contains(np.array([site["x"]]), np.array([site["y"]]))[0]):
             raise RecipeError(f"{w}: ({site['x']:g}, {site['y']:g}) is outside the region")
         out.append(site)
     return tuple(out)
+
+
+def _site_sizes(
+    s: Mapping, site: dict, w: str, names: tuple[str, ...], species: dict | None
+) -> None:
+    """An inventory row's dbh, height and crown radius (metres), checked."""
+    for key in ("dbh", "height", "crown_radius"):
+        if key in s:
+            site[key] = _num(s[key], f"{w}.{key}", positive=True)
+    if not {"dbh", "height", "crown_radius"} & set(site):
+        return
+    name = site.get("species", names[0] if len(names) == 1 else None)
+    if name is None:
+        raise RecipeError(f"{w}.species: a row with dbh or height must name its species")
+    if species is not None and species[name].species.allometry is None:
+        raise RecipeError(
+            f"{w}: dbh and height need an allometric species (scots-pine, norway-spruce, "
+            f"european-beech, sessile-oak, silver-birch); {name} is not one"
+        )
+    if "scale" in site:
+        raise RecipeError(f"{w}.scale: a row with dbh or height is sized by them, not scaled")
+    d, h = site.get("dbh"), site.get("height")
+    if d is not None and d > 2.0:
+        raise RecipeError(f"{w}.dbh: {d:g} looks like centimetres; DBH is in metres ({d / 100:g})")
+    if h is not None and not 1.5 <= h <= 120.0:
+        raise RecipeError(f"{w}.height: {h:g} m is not a tree height (1.5 to 120 m)")
+    if d is not None and h is not None:
+        slender = h / d
+        if not MIN_SLENDERNESS <= slender <= MAX_SLENDERNESS:
+            raise RecipeError(
+                f"{w}: height {h:g} m over DBH {d:g} m is a slenderness of {slender:.0f}; real "
+                f"trees lie between {MIN_SLENDERNESS:.0f} and {MAX_SLENDERNESS:.0f}"
+            )
+
+
+def read_stem_map(path: Path, where: str) -> list[dict]:
+    """A stem-map CSV (header ``x,y,species,dbh,height`` and optional ``crown_radius``,
+    ``yaw``; metres) as ``[[sites]]`` rows."""
+    import csv
+
+    from .paths import require_file
+
+    require_file(path, "stem map")
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RecipeError(f"{where}: cannot read {path} as UTF-8 text ({exc})") from None
+    reader = csv.DictReader(text.splitlines())
+    cols = [c.strip() for c in (reader.fieldnames or [])]
+    missing = [c for c in ("x", "y", "species") if c not in cols]
+    if missing or not {"dbh", "height"} & set(cols):
+        raise RecipeError(
+            f"{where}: {path.name} needs the columns x, y, species and dbh and/or height "
+            f"(metres); it has {', '.join(cols) or 'none'}"
+        )
+    unknown = set(cols) - SITE_KEYS
+    if unknown:
+        raise RecipeError(f"{where}: {path.name} has unknown columns {', '.join(sorted(unknown))}")
+    rows = []
+    for line, row in enumerate(reader, 2):
+        r: dict = {}
+        for k, v in row.items():
+            if k is None or v is None:
+                raise RecipeError(f"{where}: {path.name} line {line}: wrong number of fields")
+            k, v = k.strip(), v.strip()
+            if v == "":
+                continue
+            if k == "species":
+                r[k] = v
+                continue
+            try:
+                r[k] = float(v)
+            except ValueError:
+                raise RecipeError(
+                    f"{where}: {path.name} line {line}: {k} = {v!r} is not a number"
+                ) from None
+        rows.append(r)
+    if not rows:
+        raise RecipeError(f"{where}: {path.name} has no trees")
+    return rows
 
 
 def parse_recipe(
@@ -430,10 +549,14 @@ def parse_recipe(
         if not isinstance(forest, Mapping):
             raise RecipeError("forest: expected a table")
         check_keys(forest, FOREST_KEYS, "forest")
-        v = forest.get("variants", 3)
+        # an allometric species' variants are its size classes (at most this many)
+        default = {n: DEFAULT_SIZE_CLASSES if species[n].species.allometry else 3 for n, _ in mix}
+        v = forest.get("variants", default)
         if isinstance(v, Mapping):
             check_keys(v, set(species), "forest.variants")
-            variants = {n: coerce(v.get(n, 3), int, f"forest.variants.{n}") for n, _ in mix}
+            variants = {
+                n: coerce(v.get(n, default[n]), int, f"forest.variants.{n}") for n, _ in mix
+            }
         else:
             variants = {n: coerce(v, int, "forest.variants") for n, _ in mix}
         for n, k in variants.items():
@@ -464,7 +587,10 @@ def parse_recipe(
         if "sites" in data:
             if "intensity" in data:
                 raise RecipeError("sites: give either explicit sites or an intensity, not both")
-            sites = _parse_sites(data["sites"], names, region, "sites")
+            rows = data["sites"]
+            if isinstance(rows, str):
+                rows = read_stem_map(base / rows, "sites")
+            sites = _parse_sites(rows, names, region, "sites", species)
             intensity = None
         else:
             if "intensity" not in data:
@@ -682,6 +808,8 @@ def resolved_toml(recipe: Recipe, to_dir: Path) -> dict:
         src = (recipe.base / p).resolve()
         return os.path.relpath(src, to_dir.resolve())
 
+    if isinstance(data.get("sites"), str):
+        data["sites"] = rebase(data["sites"])
     for table in ("intensity", "ground", "region"):
         t = data.get(table)
         if isinstance(t, dict) and "file" in t:

@@ -32,6 +32,7 @@ import numpy as np
 import tomli_w
 from pxr import Gf, Sdf, Vt
 
+from ..architecture import scaled_dbh
 from ..atomic import publish, refuse_overwrite, staging_folder
 from ..bounds import EMPTY_EXTENT, Bounds, yawed_extent
 from ..colliders import Capsules
@@ -215,6 +216,7 @@ def interface_layer(
                 },
                 "prototypes": len(build.prototypes),
                 "regionBounds": Vt.DoubleArray([float(b) for b in recipe.region.bounds]),
+                "regionArea": round(float(recipe.region.area), 3),
                 "pipeline": "./" + f"{build.assets.name}/pipeline.toml",
             }
         }
@@ -481,6 +483,36 @@ def _dask_client(workers: int, scheduler: str | None):
         yield client
 
 
+def _sized_sites(recipe: Recipe, sites: Sites) -> tuple[Sites, dict]:
+    """Allometric species' trees sized one by one and grouped into size classes
+    (:mod:`usdforest.stand`): the sites with each tree's class as its variant and its height
+    over the class's as its scale, and the class targets by species."""
+    from ..stand import stand_sizes, with_sizes
+
+    allometric = {n for n in sites.names if recipe.species[n].species.allometry is not None}
+    if not allometric or len(sites) == 0:
+        return sites, {}
+    n = len(sites)
+    given = {k: np.full(n, np.nan) for k in ("dbh", "height")}
+    if recipe.sites is not None:
+        for i, row in enumerate(recipe.sites):
+            for k in given:
+                if k in row:
+                    given[k][i] = row[k]
+    sizes = stand_sizes(
+        {name: recipe.species[name].species for name in sites.names},
+        {name: e.stand for name, e in recipe.species.items() if e.stand is not None},
+        sites.names,
+        sites.species,
+        given["dbh"],
+        given["height"],
+        float(recipe.region.area),
+        {name: recipe.variants[name] for name in sites.names},
+        recipe.seed,
+    )
+    return with_sizes(sites, sizes, allometric), sizes.classes
+
+
 def _level_extent(
     sites: Sites, proto_index: np.ndarray, trees: list[TreeBuild], lod: str, ground_z: np.ndarray
 ) -> np.ndarray:
@@ -501,11 +533,15 @@ def _write_csv(
     z: np.ndarray,
     ids: np.ndarray | None = None,
 ) -> None:
+    """``trees.csv``: one row per tree; ``heights`` (P, 3) holds each prototype's height, and
+    an allometric prototype's DBH and target height (NaN for others): a tree's height is its
+    scale times its prototype's, its DBH measured at 1.3 m on the scaled trunk."""
     from .. import csvtext
 
-    height = heights[proto_index] * sites.scale
+    height = heights[proto_index, 0] * sites.scale
+    dbh = scaled_dbh(heights[proto_index, 1], heights[proto_index, 2], sites.scale)
     with path.open("wb") as f:
-        f.write(b"id,x,y,z,species,variant,yaw,scale,height\n")
+        f.write(b"id,x,y,z,species,variant,yaw,scale,height,dbh\n")
         csvtext.write_rows(
             f,
             len(sites),
@@ -519,6 +555,7 @@ def _write_csv(
                 csvtext.fixed(sites.yaw[i], 3),
                 csvtext.fixed(sites.scale[i], 4),
                 csvtext.fixed(height[i], 3),
+                csvtext.fixed(dbh[i], 4),
             ],
         )
 
@@ -566,11 +603,15 @@ def _write_forest(
     sites = sample_sites(recipe, 0, client)
     tick("sampling sites", 1, 1)
 
-    prototypes = [(n, v) for n in recipe.species_names for v in range(recipe.variants[n])]
+    sites, classes = _sized_sites(recipe, sites)
+    counts = {
+        n: len(classes[n]) if n in classes else recipe.variants[n] for n in recipe.species_names
+    }
+    prototypes = [(n, v) for n in recipe.species_names for v in range(counts[n])]
     proto_of = {p: i for i, p in enumerate(prototypes)}
     lookup = np.array(
         [
-            [proto_of.get((n, v), -1) for v in range(max(recipe.variants.values()))]
+            [proto_of.get((n, v), -1) for v in range(max([1, *counts.values()]))]
             for n in recipe.species_names
         ]
     )
@@ -586,11 +627,20 @@ def _write_forest(
             variant,
             template_base=entry.template_base,
             colliders=recipe.colliders,
+            target=classes[name][variant] if name in classes else None,
         )
     tick("growing trees", len(prototypes), len(prototypes))
 
     proto_extent = np.stack([trees[p].extent for p in prototypes])
-    heights = proto_extent[:, 1, 2] - proto_extent[:, 0, 2]
+    # per prototype: its height and (allometric trees) its DBH; a tree's are its scale times
+    heights = np.stack(
+        [
+            proto_extent[:, 1, 2] - proto_extent[:, 0, 2],
+            [trees[p].size.dbh if trees[p].size is not None else np.nan for p in prototypes],
+            [trees[p].size.height if trees[p].size is not None else np.nan for p in prototypes],
+        ],
+        axis=1,
+    ).reshape(-1, 3)
     ordered = [trees[p] for p in prototypes]
     # each tree stands on the ground mesh (its height on the mesh's triangles, float32 as
     # positions store it)

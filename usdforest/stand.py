@@ -1,0 +1,155 @@
+"""Stand structure: each tree's DBH and height, and the size classes a forest instances.
+
+Every tree of an allometric species gets its own size: a DBH drawn from the stand's Weibull
+distribution (``[species.NAME.stand]``: mean and coefficient of variation) or read from an
+inventory (``[[sites]]`` rows or a stem-map CSV with ``dbh`` and ``height``), and a height from
+the species' height curve with its residual scatter. Trees are grouped into size classes on a
+grid of log height (steps of 25 %) and log slenderness (steps of 8 %); each class is one tree
+asset grown to the class's mean size, and each tree instances its class scaled by its own
+height over the class's, so its height is exact and its DBH within half a slenderness step
+(4 %). Crown base comes from the crown-ratio model with each class's basal area of larger
+trees and the stand's crown competition factor, so it rises with density. Pure numpy.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .allometry import ALLOMETRY, basal_area_larger, weibull_for
+from .architecture import TreeSize
+from .seeds import stream
+from .species import Species, tree_size
+
+HEIGHT_STEP = math.log(1.25)
+SLENDERNESS_STEP = math.log(1.08)
+
+
+@dataclass(frozen=True)
+class StandSpec:
+    """A species' DBH distribution in a stand (metres): Weibull with this mean and CV, no tree
+    thinner than ``dbh_min``."""
+
+    dbh_mean: float
+    dbh_cv: float = 0.3
+    dbh_min: float = 0.04
+
+
+@dataclass(frozen=True, eq=False)
+class StandSizes:
+    """Per site: ``dbh`` (m) and ``height`` (m), NaN for trees of non-allometric species;
+    per species: the class targets (one tree asset each); ``variant`` and ``scale`` are the
+    sites' new marks."""
+
+    dbh: np.ndarray
+    height: np.ndarray
+    variant: np.ndarray
+    scale: np.ndarray
+    classes: dict[str, tuple[TreeSize, ...]]
+
+
+def draw_dbh(spec: StandSpec, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` DBHs (m) from the truncated Weibull of ``spec`` (inverse CDF above ``dbh_min``)."""
+    k, lam = weibull_for(spec.dbh_mean, spec.dbh_cv)
+    f0 = 1.0 - math.exp(-((spec.dbh_min / lam) ** k))
+    u = f0 + (1.0 - f0) * rng.uniform(size=n)
+    return lam * (-np.log1p(-u)) ** (1.0 / k)
+
+
+def stand_sizes(
+    species: dict[str, Species],
+    stands: dict[str, StandSpec],
+    names: tuple[str, ...],
+    site_species: np.ndarray,
+    given_dbh: np.ndarray,
+    given_height: np.ndarray,
+    area_m2: float,
+    max_classes: dict[str, int],
+    seed: int,
+) -> StandSizes:
+    """Sizes and size classes for every site (see the module docstring).
+
+    ``given_dbh`` / ``given_height`` (m, NaN where not given) come from an inventory.
+    """
+    n = len(site_species)
+    dbh = np.array(given_dbh, dtype=float, copy=True)
+    height = np.array(given_height, dtype=float, copy=True)
+    variant = np.zeros(n, dtype=np.int32)
+    scale = np.ones(n)
+    classes: dict[str, tuple[TreeSize, ...]] = {}
+    allometric = [s for s in names if species[s].allometry is not None]
+    for k, name in enumerate(names):
+        if name not in allometric:
+            continue
+        sp = species[name]
+        a = ALLOMETRY[sp.allometry or ""]
+        idx = np.flatnonzero(site_species == k)
+        rng = stream(seed, "stand", name)
+        spec = stands.get(name, StandSpec(sp.reference_dbh / 100.0))
+        drawn = draw_dbh(spec, len(idx), rng)
+        noise = rng.standard_normal(len(idx))
+        d = np.where(np.isnan(dbh[idx]), drawn, dbh[idx])
+        h_curve = a.height(d * 100.0) * np.exp(a.height_sd * noise)
+        # a tree of known height and unknown DBH takes the DBH whose mean height it has
+        d = np.where(np.isnan(dbh[idx]) & ~np.isnan(height[idx]), a.dbh(height[idx]) / 100, d)
+        dbh[idx] = d
+        height[idx] = np.where(np.isnan(height[idx]), h_curve, height[idx])
+    # competition: basal area of larger trees (all species) and the crown competition factor
+    known = ~np.isnan(dbh)
+    bal = np.zeros(n)
+    area_ha = area_m2 / 1e4
+    bal[known] = basal_area_larger(dbh[known] * 100.0, area_ha)
+    open_area = 0.0
+    for k, name in enumerate(names):
+        if name in allometric:
+            sel = site_species == k
+            r = ALLOMETRY[species[name].allometry or ""].crown_radius(dbh[sel] * 100.0)
+            open_area += float(np.sum(math.pi * r**2))
+    ccf = 100.0 * open_area / max(area_m2, 1e-9) if n else 100.0
+    for k, name in enumerate(names):
+        if name not in allometric:
+            continue
+        idx = np.flatnonzero(site_species == k)
+        if len(idx) == 0:
+            classes[name] = ()
+            continue
+        lh = np.log(height[idx])
+        ls = np.log(height[idx] / dbh[idx])
+        hs, ss = HEIGHT_STEP, SLENDERNESS_STEP
+        while True:
+            key = np.stack([np.floor(lh / hs), np.floor(ls / ss)], axis=1).astype(np.int64)
+            uniq, inverse = np.unique(key, axis=0, return_inverse=True)
+            if len(uniq) <= max_classes[name]:
+                break
+            hs, ss = hs * 1.3, ss * 1.3
+        inverse = inverse.reshape(-1)
+        count = np.bincount(inverse)
+        mh = np.exp(np.bincount(inverse, lh) / count)
+        ms = np.exp(np.bincount(inverse, ls) / count)
+        mbal = np.bincount(inverse, bal[idx]) / count
+        rng = stream(seed, "classes", name)
+        sizes = []
+        for c in range(len(uniq)):
+            # rounded so that the class's grammar (and its bytes) do not depend on the last
+            # bits of a log-mean
+            hc = round(float(mh[c]), 3)
+            dc = round(hc / float(ms[c]) * 100.0, 2)
+            sizes.append(
+                tree_size(species[name], rng, dbh=dc, height=hc, bal=float(mbal[c]), ccf=ccf)
+            )
+        classes[name] = tuple(sizes)
+        variant[idx] = inverse.astype(np.int32)
+        scale[idx] = height[idx] / np.array([s.height for s in sizes])[inverse]
+    return StandSizes(dbh, height, variant, scale, classes)
+
+
+def with_sizes(sites, sizes: StandSizes, names_allometric: set[str]):
+    """``sites`` with the variant and scale of allometric species' trees replaced."""
+    is_allo = np.isin(sites.species, [sites.names.index(n) for n in names_allometric])
+    return replace(
+        sites,
+        variant=np.where(is_allo, sizes.variant, sites.variant).astype(np.int32),
+        scale=np.where(is_allo, sizes.scale, sites.scale),
+    )

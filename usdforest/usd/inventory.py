@@ -1,0 +1,221 @@
+"""Stand figures measured on a composed forest: what a forest inventory would report.
+
+Read with pxr from the composed stage, not from the build's arrays: every tree instance of the
+forest's PointInstancers (tiles included, once loaded), its prototype's composed geometry and
+the instance's transform. Per tree: height (its composed extent), DBH (a girth tape round the
+composed trunk mesh at 1.3 m above the tree's base: the perimeter of the cross-section's hull
+over pi) and one-sided leaf area (every leaf instance's template area - half the surface of a
+closed needle mesh - times its scale squared). Per stand: stems/ha, basal area, quadratic
+mean DBH, DBH and height distributions, leaf area index (leaf area over the region's area) and
+nadir canopy cover (the share of 0.25 m cells of the region under any leaf or wood point).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from pxr import Usd, UsdGeom
+
+from ..errors import UsdForestError
+from .layers import open_stage
+
+CELL = 0.25  # m, the cover raster
+BREAST = 1.3
+
+
+def _mesh_world(prim: Usd.Prim, cache: UsdGeom.XformCache, to_local: np.ndarray):
+    mesh = UsdGeom.Mesh(prim)
+    pts = np.asarray(mesh.GetPointsAttr().Get() or [], dtype=float).reshape(-1, 3)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
+    idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
+    m = np.asarray(cache.GetLocalToWorldTransform(prim), dtype=float) @ to_local
+    world = pts @ m[:3, :3] + m[3, :3]
+    tri = idx.reshape(-1, 3) if len(counts) and np.all(counts == 3) else None
+    return world, tri
+
+
+def _girth_dbh(points: np.ndarray, tri: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Girth-tape diameters of the mesh at heights ``z``: hull perimeter of the section / pi."""
+    import trimesh
+    from scipy.spatial import ConvexHull
+
+    mesh = trimesh.Trimesh(points, tri, process=False)
+    out = np.full(len(z), np.nan)
+    for i, h in enumerate(z):
+        seg = trimesh.intersections.mesh_plane(mesh, [0, 0, 1], [0, 0, h])
+        xy = seg.reshape(-1, 3)[:, :2]
+        if len(xy) >= 3:
+            try:
+                hull = ConvexHull(xy)
+            except Exception:  # degenerate section
+                continue
+            p = xy[hull.vertices]
+            out[i] = float(np.linalg.norm(p - np.roll(p, 1, axis=0), axis=1).sum()) / math.pi
+    return out
+
+
+def _leaf_unit_area(proto: Usd.Prim) -> float:
+    """One-sided area of a leaf prototype (half a closed mesh's surface), in its own space."""
+    total, closed = 0.0, True
+    cache = UsdGeom.XformCache()
+    inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(proto), dtype=float))
+    for p in Usd.PrimRange(proto, Usd.TraverseInstanceProxies()):
+        if not p.IsA(UsdGeom.Mesh):
+            continue
+        v, tri = _mesh_world(p, cache, np.eye(4))
+        v = v @ inv[:3, :3] + inv[3, :3]
+        if tri is None or not len(tri):
+            continue
+        t = v[tri]
+        total += float(
+            0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum()
+        )
+        e = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+        _, c = np.unique(e, axis=0, return_counts=True)
+        closed &= bool(np.all(c == 2))
+    return total / 2.0 if closed else total
+
+
+def _tree_figures(tree: Usd.Prim, breast: np.ndarray) -> dict:
+    """One tree prototype (its own space, base at z = 0): height, DBH at each of ``breast``
+    heights, leaf area, and the xy of its leaf and wood points."""
+    cache = UsdGeom.XformCache()
+    inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(tree), dtype=float))
+    wood_xy, leaf_xy, leaf_area = [], [], 0.0
+    trunk = None
+    for p in Usd.PrimRange(tree, Usd.TraverseInstanceProxies()):
+        if p.IsA(UsdGeom.Mesh) and "/Leaves" not in str(p.GetPath()):
+            v, tri = _mesh_world(p, cache, inv)
+            wood_xy.append(v[:, :2])
+            if "/Trunk" in str(p.GetPath()) and tri is not None and trunk is None:
+                trunk = (v, tri)
+        elif p.IsA(UsdGeom.PointInstancer):
+            pi = UsdGeom.PointInstancer(p)
+            mats = np.asarray(
+                pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
+            )
+            if not len(mats):
+                continue
+            m = np.asarray(cache.GetLocalToWorldTransform(p), dtype=float) @ inv
+            pos = mats[:, 3, :3] @ m[:3, :3] + m[3, :3]
+            leaf_xy.append(pos[:, :2])
+            idx = np.asarray(pi.GetProtoIndicesAttr().Get(), dtype=np.int64)
+            s2 = np.abs(np.linalg.det(mats[:, :3, :3])) ** (2.0 / 3.0)
+            units = [
+                _leaf_unit_area(tree.GetStage().GetPrimAtPath(t))
+                for t in pi.GetPrototypesRel().GetTargets()
+            ]
+            grow2 = abs(np.linalg.det(m[:3, :3])) ** (2.0 / 3.0)
+            leaf_area += float(np.sum(s2 * np.asarray(units)[idx])) * grow2
+    bbox = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"], True)
+    r = bbox.ComputeWorldBound(tree).ComputeAlignedRange()
+    ext = np.array([list(r.GetMin()), list(r.GetMax())]) @ inv[:3, :3] + inv[3, :3]
+    dbh = _girth_dbh(*trunk, breast) if trunk is not None else np.full(len(breast), np.nan)
+    return {
+        "height": float(ext[:, 2].max() - min(ext[:, 2].min(), 0.0)),
+        "dbh": dbh,
+        "leaf_area": leaf_area,
+        "xy": np.concatenate([*wood_xy, *leaf_xy]) if wood_xy or leaf_xy else np.zeros((0, 2)),
+    }
+
+
+def stand_figures(path: str | Path) -> dict:
+    """Stand figures of the forest at ``path`` (see the module docstring)."""
+    stage = open_stage(Path(path), sound=True)
+    root = stage.GetDefaultPrim()
+    if not root:
+        raise UsdForestError(f"{path}: no default prim")
+    data = root.GetCustomDataByKey("usdforest") or {}
+    area = float(data.get("regionArea", 0.0))
+    bounds = data.get("regionBounds")
+    if not area and bounds is not None:
+        b = list(bounds)
+        area = (b[2] - b[0]) * (b[3] - b[1])
+    if not area:
+        raise UsdForestError(f"{path}: not a usdforest forest (no regionArea in /Forest)")
+    heights, dbhs, leaf, species, xy_all = [], [], [], [], []
+    grid = None
+    if bounds is not None:
+        b = np.asarray(list(bounds), dtype=float)
+        nx = max(int(math.ceil((b[2] - b[0]) / CELL)), 1)
+        ny = max(int(math.ceil((b[3] - b[1]) / CELL)), 1)
+        grid = (b, np.zeros((ny, nx), dtype=bool))
+    for p in Usd.PrimRange(root):
+        if not p.IsA(UsdGeom.PointInstancer) or p.GetName() == "Leaves":
+            continue
+        pi = UsdGeom.PointInstancer(p)
+        idx = np.asarray(pi.GetProtoIndicesAttr().Get() or [], dtype=np.int64)
+        if not len(idx):
+            continue
+        mats = np.asarray(
+            pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
+        )
+        world = np.asarray(UsdGeom.XformCache().GetLocalToWorldTransform(p), dtype=float)
+        scale = np.abs(np.linalg.det(mats[:, :3, :3])) ** (1.0 / 3.0)
+        for k, target in enumerate(pi.GetPrototypesRel().GetTargets()):
+            sel = np.flatnonzero(idx == k)
+            if not len(sel):
+                continue
+            proto = stage.GetPrimAtPath(target)
+            s = scale[sel]
+            # DBH at each tree's breast height (1.3 m / its scale on the prototype), read off
+            # the prototype's trunk at a few heights and interpolated
+            zs = np.unique(np.round(BREAST / s, 3))
+            probe = np.linspace(zs.min(), zs.max(), 5) if len(zs) > 5 else zs
+            f = _tree_figures(proto, probe)
+            d = np.interp(BREAST / s, probe, f["dbh"]) * s
+            heights.append(f["height"] * s)
+            dbhs.append(d)
+            leaf.append(f["leaf_area"] * s**2)
+            label = proto.GetCustomDataByKey("usdforest") or {}
+            species.append(np.full(len(sel), str(label.get("species", target.name))))
+            if grid is not None and len(f["xy"]):
+                b, g = grid
+                pts = np.unique(np.floor(f["xy"] / (CELL / 2)), axis=0) * (CELL / 2)
+                m = mats[sel] @ world
+                for i in range(len(sel)):
+                    w = pts @ m[i, :2, :2] + m[i, 3, :2]
+                    cx = np.floor((w[:, 0] - b[0]) / CELL).astype(np.int64)
+                    cy = np.floor((w[:, 1] - b[1]) / CELL).astype(np.int64)
+                    ok = (cx >= 0) & (cy >= 0) & (cx < g.shape[1]) & (cy < g.shape[0])
+                    g[cy[ok], cx[ok]] = True
+            xy_all.append(mats[sel, 3, :2])
+    h = np.concatenate(heights) if heights else np.zeros(0)
+    d = np.concatenate(dbhs) if dbhs else np.zeros(0)
+    la = np.concatenate(leaf) if leaf else np.zeros(0)
+    sp = np.concatenate(species) if species else np.zeros(0, dtype=str)
+    ha = area / 1e4
+    known = np.isfinite(d)
+    dk = d[known]
+
+    def dist(x: np.ndarray) -> dict:
+        if not len(x):
+            return {}
+        return {
+            "mean": float(x.mean()),
+            "sd": float(x.std(ddof=1)) if len(x) > 1 else 0.0,
+            "cv": float(x.std(ddof=1) / x.mean()) if len(x) > 1 and x.mean() else 0.0,
+            "p10": float(np.percentile(x, 10)),
+            "median": float(np.median(x)),
+            "p90": float(np.percentile(x, 90)),
+        }
+
+    return {
+        "stage": str(path),
+        "area_ha": ha,
+        "trees": len(h),
+        "stems_per_ha": len(h) / ha,
+        "basal_area_m2_per_ha": float(np.sum(math.pi * (dk / 2) ** 2) / ha),
+        "quadratic_mean_dbh_m": float(np.sqrt(np.mean(dk**2))) if len(dk) else None,
+        "dbh_m": dist(dk),
+        "height_m": dist(h),
+        "slenderness": dist(h[known] / dk) if len(dk) else {},
+        "leaf_area_index": float(la.sum() / area),
+        "canopy_cover": float(grid[1].mean()) if grid is not None else None,
+        "species": {
+            str(n): int(c) for n, c in zip(*np.unique(sp, return_counts=True), strict=True)
+        },
+        "per_tree": {"species": sp, "height": h, "dbh": d, "leaf_area": la},
+    }
