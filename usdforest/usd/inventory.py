@@ -139,8 +139,8 @@ def stand_figures(path: str | Path) -> dict:
     grid = None
     if bounds is not None:
         b = np.asarray(list(bounds), dtype=float)
-        nx = max(int(math.ceil((b[2] - b[0]) / CELL)), 1)
-        ny = max(int(math.ceil((b[3] - b[1]) / CELL)), 1)
+        nx = max(math.ceil((b[2] - b[0]) / CELL), 1)
+        ny = max(math.ceil((b[3] - b[1]) / CELL), 1)
         grid = (b, np.zeros((ny, nx), dtype=bool))
     for p in Usd.PrimRange(root):
         if not p.IsA(UsdGeom.PointInstancer) or p.GetName() == "Leaves":
