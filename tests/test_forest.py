@@ -82,7 +82,18 @@ def test_layout_and_ground_truth(default_forest):
     with (assets / "trees.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == build.n_trees
-    assert list(rows[0]) == ["id", "x", "y", "z", "species", "variant", "yaw", "scale", "height"]
+    assert list(rows[0]) == [
+        "id",
+        "x",
+        "y",
+        "z",
+        "species",
+        "variant",
+        "yaw",
+        "scale",
+        "height",
+        "dbh",
+    ]
     stage = Usd.Stage.Open(str(out))
     pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
     pos = np.asarray(pi.GetPositionsAttr().Get())
