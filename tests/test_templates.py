@@ -129,7 +129,7 @@ def test_shipped_templates_are_built_from_the_committed_cad(path):
 
 def test_manifest_rebuild_is_byte_identical(tmp_path):
     manifest = read_manifest(MANIFEST)
-    assert len(manifest.templates) == 7
+    assert len(manifest.templates) == 10
     from usdforest.library import build_manifest
 
     a = build_manifest(manifest, tmp_path / "a")
@@ -172,7 +172,7 @@ def test_rebuild_is_byte_identical_with_other_blas_kernels(tmp_path, kernel):
     )
     assert r.returncode == 0, r.stderr
     built = sorted(out.glob("*.usdc"))
-    assert len(built) == 7
+    assert len(built) == 10
     for p in built:
         assert p.read_bytes() == (template_dir() / p.name).read_bytes(), f"{p.name} ({kernel})"
 
@@ -190,7 +190,7 @@ def test_stored_measurements_are_rounded():
 def test_template_build_cli(tmp_path, runner):
     r = runner.invoke(app, ["template", "build", str(MANIFEST), "-o", str(tmp_path)])
     assert r.exit_code == 0, r.output
-    assert len(list(tmp_path.glob("*.usdc"))) == 7
+    assert len(list(tmp_path.glob("*.usdc"))) == 10
     assert not list(tmp_path.glob(".*"))  # no temporary files left behind
 
 
