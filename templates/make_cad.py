@@ -15,6 +15,10 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+# the conical trunk's ring vertices and cylindrical foot, which the allometric trees' DBH
+# arithmetic relies on
+from usdforest.architecture import TRUNK_FOOT, TRUNK_SECTIONS
+
 OUT = Path(__file__).resolve().parent / "cad"
 RNG_SEED = 20261122
 
@@ -152,10 +156,6 @@ def needle_fascicle() -> trimesh.Trimesh:
         )
         parts.append(tube(centre, 0.0007 * (1 - s) + 0.0001, sections=3))
     return trimesh.util.concatenate(parts)
-
-
-TRUNK_SECTIONS = 24  # the conical trunk's ring vertices (usdforest.architecture reads it)
-TRUNK_FOOT = 0.03  # its cylindrical foot, as a fraction of its length
 
 
 def trunk_cone() -> trimesh.Trimesh:

@@ -91,9 +91,7 @@ class Architecture:
 def trunk_base_radius(size: TreeSize) -> float:
     """Radius the skeleton gives the trunk's base so that the conical trunk template, a girth
     tape round it at 1.3 m reads ``size.dbh``."""
-    u = min(BREAST_HEIGHT / size.height, 0.95)
-    taper = 1.0 if u <= TRUNK_FOOT else (1.0 - u) / (1.0 - TRUNK_FOOT)
-    return 0.5 * size.dbh / (taper * _GIRTH)
+    return 0.5 * size.dbh / (float(_taper(BREAST_HEIGHT, size.height, 0.95)) * _GIRTH)
 
 
 def scaled_dbh(dbh: np.ndarray, height: np.ndarray, scale: np.ndarray) -> np.ndarray:
@@ -101,12 +99,7 @@ def scaled_dbh(dbh: np.ndarray, height: np.ndarray, scale: np.ndarray) -> np.nda
     height falls at 1.3 / scale on the grown tree's conical trunk."""
     h = np.asarray(height, dtype=float)
     s = np.asarray(scale, dtype=float)
-
-    def taper(z):
-        u = np.minimum(z / h, 0.95)
-        return np.where(u <= TRUNK_FOOT, 1.0, (1.0 - u) / (1.0 - TRUNK_FOOT))
-
-    return s * np.asarray(dbh) * taper(BREAST_HEIGHT / s) / taper(BREAST_HEIGHT)
+    return s * np.asarray(dbh) * _taper(BREAST_HEIGHT / s, h, 0.95) / _taper(BREAST_HEIGHT, h, 0.95)
 
 
 def _reach(size: TreeSize, arch: Architecture, z: np.ndarray) -> np.ndarray:
@@ -147,13 +140,13 @@ def grammar(
         nodes.append(zn)
         zn += rng.uniform(*arch.node_spacing)
     for zn in nodes:
-        parts.append(f"!({_f(r0 * _taper(z, h))}) F({_f(zn - z)})")
+        parts.append(f"!({_f(r0 * float(_taper(z, h)))}) F({_f(zn - z)})")
         z = zn
         reach = float(_reach(size, arch, np.array([zn]))[0])
         depth = (h - zn) / max(h - size.crown_base, 1e-3)
         angle_mid = arch.branch_angle[0] + (arch.branch_angle[1] - arch.branch_angle[0]) * depth
         k = int(rng.integers(arch.per_whorl[0], arch.per_whorl[1] + 1)) if arch.whorled else 1
-        r_trunk = r0 * _taper(zn, h)
+        r_trunk = r0 * float(_taper(zn, h))
         for j in range(k):
             angle = float(np.clip(angle_mid + rng.uniform(-8.0, 8.0), 10.0, 115.0))
             length = reach * rng.uniform(0.85, 1.15) / max(math.sin(math.radians(angle)), 0.35)
@@ -168,7 +161,7 @@ def grammar(
             rb = min(0.012 * length**1.1 + 0.003, 0.6 * r_trunk)
             parts.append(f"[/({_f(phi % 360.0)}) &({_f(angle)}) B({_f(length)},{_f(rb)})]")
         azimuth += 137.5 if not arch.whorled else rng.uniform(20.0, 45.0)
-    parts.append(f"!({_f(r0 * _taper(z, h))}) F({_f(h - z)}) L(1)")
+    parts.append(f"!({_f(r0 * float(_taper(z, h)))}) F({_f(h - z)}) L(1)")
     s = arch.lateral_spacing
     a0, a1 = arch.lateral_angle
     q = arch.lateral_ratio
@@ -190,7 +183,9 @@ def grammar(
     return " ".join(parts), rules, min(steps, 100)
 
 
-def _taper(z: float, h: float) -> float:
-    """The conical trunk template's radius at height z, as a fraction of its base radius."""
-    u = z / h
-    return 1.0 if u <= TRUNK_FOOT else max((1.0 - u) / (1.0 - TRUNK_FOOT), 0.0)
+def _taper(z, h, cap: float = 1.0):
+    """The conical trunk template's radius at height ``z`` of a trunk ``h`` long, as a
+    fraction of its base radius (arrays or numbers); ``cap`` stops the fraction of the height
+    short of the apex (a breast height near a small tree's top)."""
+    u = np.minimum(np.asarray(z, dtype=float) / h, cap)
+    return np.where(u <= TRUNK_FOOT, 1.0, np.maximum((1.0 - u) / (1.0 - TRUNK_FOOT), 0.0))
