@@ -382,6 +382,13 @@ def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
 
 
+def one_sided_area(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """A leaf's one-sided area: its area, or half its surface if the mesh is closed (a needle:
+    the hemi-surface area of Chen & Black 1992)."""
+    area = float(face_areas(vertices, faces).sum())
+    return area / 2.0 if _is_closed(faces) else area
+
+
 def principal_axes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Area-weighted centroid and principal axes (rows, largest variance first).
 
@@ -552,10 +559,7 @@ def normalise_part(
     if length <= 0:
         raise CADError(f"{mesh.source}: the {part} has no length")
     area = float(face_areas(v, f).sum())
-    leaf_area = 0.0
-    if part == "leaf":
-        closed = _is_closed(f)
-        leaf_area = area / 2.0 if closed else area
+    leaf_area = one_sided_area(v, f) if part == "leaf" else 0.0
     scaled = out / length
     measurements = Measurements(
         length=length,

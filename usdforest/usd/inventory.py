@@ -57,25 +57,19 @@ def _girth_dbh(points: np.ndarray, tri: np.ndarray, z: np.ndarray) -> np.ndarray
 
 
 def _leaf_unit_area(proto: Usd.Prim) -> float:
-    """One-sided area of a leaf prototype (half a closed mesh's surface), in its own space."""
-    total, closed = 0.0, True
+    """One-sided area of a leaf prototype (:func:`usdforest.cad.one_sided_area` of each of
+    its meshes), in its own space."""
+    from ..cad import one_sided_area
+
     cache = UsdGeom.XformCache()
     inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(proto), dtype=float))
+    total = 0.0
     for p in Usd.PrimRange(proto, Usd.TraverseInstanceProxies()):
-        if not p.IsA(UsdGeom.Mesh):
-            continue
-        v, tri = _mesh_world(p, cache, np.eye(4))
-        v = v @ inv[:3, :3] + inv[3, :3]
-        if tri is None or not len(tri):
-            continue
-        t = v[tri]
-        total += float(
-            0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum()
-        )
-        e = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
-        _, c = np.unique(e, axis=0, return_counts=True)
-        closed &= bool(np.all(c == 2))
-    return total / 2.0 if closed else total
+        if p.IsA(UsdGeom.Mesh):
+            v, tri = _mesh_world(p, cache, inv)
+            if tri is not None and len(tri):
+                total += one_sided_area(v, tri)
+    return total
 
 
 def _tree_figures(tree: Usd.Prim, breast: np.ndarray) -> dict:
