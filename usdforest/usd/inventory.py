@@ -115,6 +115,20 @@ def _tree_figures(tree: Usd.Prim, breast: np.ndarray) -> dict:
     }
 
 
+def _cover(grid: tuple[np.ndarray, np.ndarray], pts: np.ndarray, mats: np.ndarray) -> None:
+    """Mark the cells of ``grid`` (region bounds, boolean raster) under the prototype points
+    ``pts`` (k, 2) of every instance transform ``mats`` (n, 4, 4), a batch at a time."""
+    b, g = grid
+    batch = max(1, 2_000_000 // max(len(pts), 1))
+    for a in range(0, len(mats), batch):
+        m = mats[a : a + batch]
+        w = (pts @ m[:, :2, :2] + m[:, None, 3, :2]).reshape(-1, 2)
+        cx = np.floor((w[:, 0] - b[0]) / CELL).astype(np.int64)
+        cy = np.floor((w[:, 1] - b[1]) / CELL).astype(np.int64)
+        ok = (cx >= 0) & (cy >= 0) & (cx < g.shape[1]) & (cy < g.shape[0])
+        g[cy[ok], cx[ok]] = True
+
+
 def stand_figures(path: str | Path) -> dict:
     """Stand figures of the forest at ``path`` (see the module docstring)."""
     stage = open_stage(Path(path), sound=True)
@@ -129,7 +143,7 @@ def stand_figures(path: str | Path) -> dict:
         area = (b[2] - b[0]) * (b[3] - b[1])
     if not area:
         raise UsdForestError(f"{path}: not a usdforest forest (no regionArea in /Forest)")
-    heights, dbhs, leaf, species, xy_all = [], [], [], [], []
+    heights, dbhs, leaf, species = [], [], [], []
     grid = None
     if bounds is not None:
         b = np.asarray(list(bounds), dtype=float)
@@ -166,16 +180,11 @@ def stand_figures(path: str | Path) -> dict:
             label = proto.GetCustomDataByKey("usdforest") or {}
             species.append(np.full(len(sel), str(label.get("species", target.name))))
             if grid is not None and len(f["xy"]):
-                b, g = grid
-                pts = np.unique(np.floor(f["xy"] / (CELL / 2)), axis=0) * (CELL / 2)
-                m = mats[sel] @ world
-                for i in range(len(sel)):
-                    w = pts @ m[i, :2, :2] + m[i, 3, :2]
-                    cx = np.floor((w[:, 0] - b[0]) / CELL).astype(np.int64)
-                    cy = np.floor((w[:, 1] - b[1]) / CELL).astype(np.int64)
-                    ok = (cx >= 0) & (cy >= 0) & (cx < g.shape[1]) & (cy < g.shape[0])
-                    g[cy[ok], cx[ok]] = True
-            xy_all.append(mats[sel, 3, :2])
+                _cover(
+                    grid,
+                    np.unique(np.floor(f["xy"] / (CELL / 2)), axis=0) * (CELL / 2),
+                    mats[sel] @ world,
+                )
     h = np.concatenate(heights) if heights else np.zeros(0)
     d = np.concatenate(dbhs) if dbhs else np.zeros(0)
     la = np.concatenate(leaf) if leaf else np.zeros(0)
