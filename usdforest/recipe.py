@@ -116,14 +116,26 @@ def parse_species(name: str, table: Mapping[str, Any], base: Path, where: str) -
     return SpeciesEntry(sp, template_base, stand)
 
 
+def _allometric_presets() -> str:
+    from .allometry import ALLOMETRY
+
+    return ", ".join(ALLOMETRY)
+
+
+def _dbh_in_metres(d: float, where: str) -> None:
+    """No tree is 2 m across at breast height: a larger DBH was given in centimetres."""
+    if d > 2.0:
+        raise RecipeError(f"{where}: {d:g} looks like centimetres; DBH is in metres ({d / 100:g})")
+
+
 def _parse_stand(t: Any, sp: Species, where: str) -> Any:
     """``[species.NAME.stand]``: the DBH distribution of an allometric species (metres)."""
     from .stand import StandSpec
 
     if sp.allometry is None:
         raise RecipeError(
-            f"{where}: only an allometric species (scots-pine, norway-spruce, european-beech, "
-            f"sessile-oak, silver-birch) takes a stand table; {sp.name} is not one"
+            f"{where}: only an allometric species ({_allometric_presets()}) takes a stand "
+            f"table; {sp.name} is not one"
         )
     if not isinstance(t, Mapping):
         raise RecipeError(f"{where}: expected a table, e.g. {{ dbh_mean = 0.18, dbh_cv = 0.3 }}")
@@ -131,10 +143,7 @@ def _parse_stand(t: Any, sp: Species, where: str) -> Any:
     mean = _num(t.get("dbh_mean", sp.reference_dbh / 100), f"{where}.dbh_mean", positive=True)
     cv = _num(t.get("dbh_cv", 0.3), f"{where}.dbh_cv", positive=True)
     lo = _num(t.get("dbh_min", 0.04), f"{where}.dbh_min", lo=0)
-    if mean > 2.0:
-        raise RecipeError(
-            f"{where}.dbh_mean: {mean:g} looks like centimetres; DBH is in metres ({mean / 100:g})"
-        )
+    _dbh_in_metres(mean, f"{where}.dbh_mean")
     if not 0.02 <= cv <= 1.5:
         raise RecipeError(f"{where}.dbh_cv: {cv:g} is outside 0.02..1.5")
     if lo >= mean:
@@ -426,14 +435,14 @@ def _site_sizes(
         raise RecipeError(f"{w}.species: a row with dbh or height must name its species")
     if species is not None and species[name].species.allometry is None:
         raise RecipeError(
-            f"{w}: dbh and height need an allometric species (scots-pine, norway-spruce, "
-            f"european-beech, sessile-oak, silver-birch); {name} is not one"
+            f"{w}: dbh and height need an allometric species ({_allometric_presets()}); "
+            f"{name} is not one"
         )
     if "scale" in site:
         raise RecipeError(f"{w}.scale: a row with dbh or height is sized by them, not scaled")
     d, h = site.get("dbh"), site.get("height")
-    if d is not None and d > 2.0:
-        raise RecipeError(f"{w}.dbh: {d:g} looks like centimetres; DBH is in metres ({d / 100:g})")
+    if d is not None:
+        _dbh_in_metres(d, f"{w}.dbh")
     if h is not None and not 1.5 <= h <= 120.0:
         raise RecipeError(f"{w}.height: {h:g} m is not a tree height (1.5 to 120 m)")
     if d is not None and h is not None:
