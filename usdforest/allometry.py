@@ -62,11 +62,6 @@ class Allometry:
         # d / (a + b d) = x  ->  d = a x / (1 - b x)
         return a * x / np.maximum(1.0 - b * x, 1e-6)
 
-    def max_height(self) -> float:
-        """The curve's asymptote (m)."""
-        p, _, b = self.naslund
-        return 1.3 + b**-p
-
     def crown_radius(self, d: np.ndarray) -> np.ndarray:
         """Open-grown crown radius (m) of DBH ``d`` (cm), Hasenauer 1997."""
         b0, b1, mse = self.crown

@@ -12,18 +12,14 @@ from __future__ import annotations
 import sys
 
 
-def _interrupted() -> None:
-    sys.stderr.write("error: interrupted\n")
-    sys.exit(130)
-
-
 def main() -> None:
     try:
         from .cli import main as cli_main
 
         cli_main()
     except KeyboardInterrupt:
-        _interrupted()
+        sys.stderr.write("error: interrupted\n")
+        sys.exit(130)
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .allometry import ALLOMETRY
 from .architecture import Architecture, TreeSize, grammar
 from .errors import UsdForestError
 from .lsystem import DEFAULT_MAX_MODULES, Derivation, LSystem, derive, make_lsystem
@@ -448,8 +449,6 @@ def tree_size(
     carries its own residual; crown base from the crown ratio at the stand's ``bal`` (m²/ha)
     and ``ccf`` (%); leaf area from the foliage equation at the tree's DBH and height.
     """
-    from .allometry import ALLOMETRY
-
     a = ALLOMETRY[species.allometry or ""]
     d = float(species.reference_dbh if dbh is None else dbh)
     e_h, e_c = rng.standard_normal(2)
