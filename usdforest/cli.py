@@ -305,6 +305,28 @@ def validate_cmd(
         raise typer.Exit(1)
 
 
+def _print_pairs(pairs: dict, shown) -> None:
+    """A two-column table of ``key  shown(key, value)`` (info, stats)."""
+    table = Table(box=None, show_header=False)
+    for k, v in pairs.items():
+        table.add_row(k, str(shown(k, v)))
+    out.print(table)
+
+
+def _info_value(k: str, v):
+    if isinstance(v, list) and k == "layers":
+        return "\n".join(v)
+    return f"{v:,}" if isinstance(v, int) else v
+
+
+def _stats_value(_k: str, v):
+    if isinstance(v, dict):
+        return ", ".join(
+            f"{a} {b:.3g}" if isinstance(b, float) else f"{a} {b}" for a, b in v.items()
+        )
+    return f"{v:.4g}" if isinstance(v, float) else v
+
+
 @app.command("info")
 @handles_errors
 def info_cmd(
@@ -318,14 +340,7 @@ def info_cmd(
     if as_json:
         sys.stdout.write(json.dumps(info) + "\n")
         return
-    table = Table(box=None, show_header=False)
-    for k, v in info.items():
-        if isinstance(v, list) and k == "layers":
-            v = "\n".join(v)
-        elif isinstance(v, int):
-            v = f"{v:,}"
-        table.add_row(k, str(v))
-    out.print(table)
+    _print_pairs(info, _info_value)
 
 
 @app.command("stats")
@@ -343,16 +358,7 @@ def stats_cmd(
     if as_json:
         sys.stdout.write(json.dumps(f) + "\n")
         return
-    table = Table(box=None, show_header=False)
-    for k, v in f.items():
-        if isinstance(v, dict):
-            v = ", ".join(
-                f"{a} {b:.3g}" if isinstance(b, float) else f"{a} {b}" for a, b in v.items()
-            )
-        elif isinstance(v, float):
-            v = f"{v:.4g}"
-        table.add_row(k, str(v))
-    out.print(table)
+    _print_pairs(f, _stats_value)
 
 
 def _load_recipe(pipeline: Path | None, seed: int | None, hard_core: float | None = None):
