@@ -89,30 +89,49 @@ def mesh_color(prim) -> np.ndarray:
 def _sample_mesh(prim, to_root: np.ndarray, spacing: float, rng: np.random.Generator) -> Cloud:
     from .usd.layers import mesh_triangles
 
-    t = mesh_triangles(prim, to_root)
-    if len(t) == 0:
+    return _sample_triangles(
+        mesh_triangles(prim, np.eye(4)), to_root[None], spacing, rng, lambda: mesh_color(prim)
+    )
+
+
+def _sample_triangles(
+    local: np.ndarray, mats: np.ndarray, spacing: float, rng: np.random.Generator, color
+) -> Cloud:
+    """Samples on the triangles ``local`` (m, 3, 3) of one mesh placed by each row-vector
+    transform of ``mats`` (k, 4, 4), all at once: the branch prims of a tree instance one
+    template mesh each. ``color()`` gives the mesh's colour."""
+    if len(local) == 0 or len(mats) == 0:
         return Cloud.concat([])
-    e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    t = (local.reshape(1, -1, 3) @ mats[:, :3, :3] + mats[:, None, 3, :3]).reshape(
+        len(mats), -1, 3, 3
+    )
+    e1, e2 = t[:, :, 1] - t[:, :, 0], t[:, :, 2] - t[:, :, 0]
     fn = np.cross(e1, e2)
-    area = 0.5 * np.linalg.norm(fn, axis=1)
-    fn /= np.maximum(2 * area[:, None], 1e-18)
+    area = 0.5 * np.linalg.norm(fn, axis=2)
+    fn /= np.maximum(2 * area[..., None], 1e-18)
     # about one point per spacing^2 of surface (stochastic rounding per triangle); a mesh too
     # small for any gets one point at its largest triangle, splatted as large as the mesh
     expected = area / spacing**2
-    n = np.minimum(np.floor(expected + rng.uniform(size=len(area))).astype(np.int64), 4096)
-    if n.sum() == 0:
-        k = int(np.argmax(area))
-        p = t[k].mean(axis=0)[None]
-        color = mesh_color(prim)[None]
-        return Cloud(p, fn[k][None], color, np.array([max(np.sqrt(area.sum()), 1e-6)]))
-    which = np.repeat(np.arange(len(area)), n)
+    n = np.minimum(np.floor(expected + rng.uniform(size=area.shape)).astype(np.int64), 4096)
+    empty = np.flatnonzero(n.sum(axis=1) == 0)
+    k_big = np.argmax(area[empty], axis=1)
+    lone = Cloud(
+        t[empty, k_big].mean(axis=1),
+        fn[empty, k_big],
+        np.zeros((len(empty), 3)),
+        np.maximum(np.sqrt(area[empty].sum(axis=1)), 1e-6),
+    )
+    which = np.repeat(np.arange(n.size), n.ravel())
+    t, e1, e2, fn = (a.reshape(-1, *a.shape[2:]) for a in (t, e1, e2, fn))
     r1, r2 = rng.uniform(size=(2, which.size))
     flip = r1 + r2 > 1
     r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
     p = t[which, 0] + e1[which] * r1[:, None] + e2[which] * r2[:, None]
-    local_spacing = np.full(which.size, spacing)
-    color = np.broadcast_to(mesh_color(prim), p.shape)
-    return Cloud(p, fn[which], np.array(color), np.maximum(local_spacing, 1e-6))
+    spread = Cloud(p, fn[which], np.zeros_like(p), np.full(which.size, max(spacing, 1e-6)))
+    out = Cloud.concat([spread, lone])
+    return Cloud(
+        out.points, out.normals, np.broadcast_to(color(), out.points.shape).copy(), out.spacing
+    )
 
 
 def _times3(x: np.ndarray, a: np.ndarray) -> np.ndarray:
@@ -153,13 +172,48 @@ def stage_cloud(
     are appended to it instead, to be drawn as sprites (:func:`splat`)."""
     from pxr import Usd, UsdGeom
 
-    from .usd.layers import rendered
+    from .usd.layers import mesh_triangles, rendered
 
     rng = np.random.default_rng(seed)
     root = root or stage.GetDefaultPrim() or stage.GetPseudoRoot()
     cache = UsdGeom.XformCache()
     memo: dict = {}
     shared: dict = {}  # prototype samples by what they compose from (see _prototype)
+
+    def _drawn(p) -> bool:
+        return (
+            p.IsActive()
+            and rendered(p)
+            and not (
+                p.IsA(UsdGeom.Imageable) and UsdGeom.Imageable(p).ComputeVisibility() == "invisible"
+            )
+        )
+
+    def _instanced(first, mats: np.ndarray, spacing: float) -> list[Cloud]:
+        """Samples on the meshes of the instanceable prim ``first`` (read through its
+        instance proxies) placed by each instance's transform ``mats`` (k, 4, 4)."""
+        out = []
+        first_inv = np.linalg.inv(_matrix(cache.GetLocalToWorldTransform(first)))
+        it = iter(Usd.PrimRange(first, Usd.TraverseInstanceProxies()))
+        next(it)
+        for p in it:
+            if not _drawn(p):
+                it.PruneChildren()
+                continue
+            rel = _matrix(cache.GetLocalToWorldTransform(p)) @ first_inv
+            if p.IsA(UsdGeom.PointInstancer):
+                it.PruneChildren()
+                inner = _instances(p, spacing).transformed(rel)
+                out.extend(inner.transformed(m) for m in mats)
+                continue
+            if not p.IsA(UsdGeom.Mesh):
+                continue
+            local = mesh_triangles(p, rel)
+            step = max(1, 200_000 // max(len(local), 1))  # triangles per batch
+            for a in range(0, len(mats), step):
+                color = lambda p=p: mesh_color(p)  # noqa: E731
+                out.append(_sample_triangles(local, mats[a : a + step], spacing, rng, color))
+        return out
 
     def subtree(prim, spacing: float, defer: list[Stamps] | None = None) -> Cloud:
         """Samples under ``prim`` in ``prim``'s own local space."""
@@ -169,16 +223,10 @@ def stage_cloud(
         prim_to_world = _matrix(cache.GetLocalToWorldTransform(prim))
         inv = np.linalg.inv(prim_to_world)
         parts = []
+        instances: dict = {}  # instanceable prims (a tree's branches) by their prototype
         it = iter(Usd.PrimRange(prim, Usd.TraverseInstanceProxies()))
         for p in it:
-            if (
-                not p.IsActive()
-                or not rendered(p)
-                or (
-                    p.IsA(UsdGeom.Imageable)
-                    and UsdGeom.Imageable(p).ComputeVisibility() == "invisible"
-                )
-            ):
+            if not _drawn(p):
                 it.PruneChildren()
                 continue
             if p.IsA(UsdGeom.Mesh):
@@ -190,6 +238,13 @@ def stage_cloud(
                 deferred = defer is not None and _defer(p, spacing, to_root @ prim_to_world, defer)
                 if not deferred:
                     parts.append(_instances(p, spacing).transformed(to_root))
+            elif p.IsInstance():
+                # its prototype's meshes are sampled below, once for all its instances
+                it.PruneChildren()
+                to_root = _matrix(cache.GetLocalToWorldTransform(p)) @ inv
+                instances.setdefault(p.GetPrototype().GetPath(), (p, []))[1].append(to_root)
+        for first, mats in instances.values():
+            parts.extend(_instanced(first, np.stack(mats), spacing))
         out = Cloud.concat(parts)
         memo[key] = out
         return out
