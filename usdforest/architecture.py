@@ -74,6 +74,11 @@ class Architecture:
         branch's remaining length.
     droop
         Turtle tropism elasticity (branches bend down under their weight).
+    wood_radius
+        Radius of every branch, lateral and shoot from the length of axis it still carries:
+        ``tip + slope * remaining length`` (metres, metres per metre). A 3 m pine branch
+        starts 2.8 cm across and its shoots end 3 mm across (Mäkinen & Colin 1998 give
+        1-3 cm for the branches of 15-25 cm Scots pines).
     """
 
     whorled: bool
@@ -86,6 +91,7 @@ class Architecture:
     lateral_angle: tuple[float, float]
     lateral_ratio: float
     droop: float
+    wood_radius: tuple[float, float] = (0.0025, 0.004)
 
 
 def trunk_base_radius(size: TreeSize) -> float:
@@ -122,7 +128,7 @@ def grammar(
     """The axiom, rules and derivation steps that grow a tree of ``size``.
 
     The trunk and each first-order branch's insertion are decided here with ``rng`` (node
-    spacing, branches per whorl, azimuths, angles, a 15 % scatter of branch lengths round the
+    spacing, branches per whorl, azimuths, angles with a per-tree tilt, a 15 % scatter of branch lengths round the
     envelope); the rules' own ``uniform`` draws shape the laterals.
     """
     h = size.height
@@ -132,6 +138,8 @@ def grammar(
     azimuth = float(rng.uniform(0.0, 360.0))
     # the first node sits just above the crown base (or one spacing up, if that is higher)
     spacing = rng.uniform(*arch.node_spacing)
+    # the whole crown a little more open or closed than the species' mean (a tree's habit)
+    tilt = float(rng.uniform(-8.0, 8.0))
     first = max(size.crown_base, spacing)
     nodes = []
     longest = 0.0
@@ -148,7 +156,7 @@ def grammar(
         k = int(rng.integers(arch.per_whorl[0], arch.per_whorl[1] + 1)) if arch.whorled else 1
         r_trunk = r0 * float(_taper(zn, h))
         for j in range(k):
-            angle = float(np.clip(angle_mid + rng.uniform(-8.0, 8.0), 10.0, 115.0))
+            angle = float(np.clip(angle_mid + tilt + rng.uniform(-8.0, 8.0), 10.0, 115.0))
             length = reach * rng.uniform(0.85, 1.15) / max(math.sin(math.radians(angle)), 0.35)
             # no branch tip (nor its leaves) above the top: its rise stays under the apex
             rise = math.cos(math.radians(angle))
@@ -158,26 +166,32 @@ def grammar(
                 continue
             phi = azimuth + j * 360.0 / k + rng.uniform(-12.0, 12.0)
             longest = max(longest, length)
-            rb = min(0.012 * length**1.1 + 0.003, 0.6 * r_trunk)
+            rb = 0.6 * r_trunk  # no branch thicker than this share of the trunk
             parts.append(f"[/({_f(phi % 360.0)}) &({_f(angle)}) B({_f(length)},{_f(rb)})]")
         azimuth += 137.5 if not arch.whorled else rng.uniform(20.0, 45.0)
     parts.append(f"!({_f(r0 * float(_taper(z, h)))}) F({_f(h - z)}) L(1)")
     s = arch.lateral_spacing
     a0, a1 = arch.lateral_angle
     q = arch.lateral_ratio
+    tip, slope = arch.wood_radius
+
+    def radius(x: str) -> str:
+        return f"{_f(tip)}+{_f(slope)}*({x})"
+
     rules = (
-        # a branch: a node every s metres with a lateral on alternating sides, rolled on by
-        # about 90 degrees, the branch thinning to its tip; the last metre carries leaves
-        f"B(l,r) : l > {_f(s)} -> !(r) F({_f(s)}) [&(uniform({_f(a0)},{_f(a1)}))"
-        f" C((l-{_f(s)})*{_f(q)}*uniform(0.7,1.1),r*0.55)] /(uniform(150,210))"
-        f" B(l-{_f(s)},r*max((l-{_f(s)})/l,0.3))",
-        "B(l,r) : l <= " + _f(s) + " -> !(r) F(l) L(1)",
+        # a branch (length l, no thicker than c): a node every s metres with a lateral on
+        # alternating sides, rolled on by about 90 degrees; each axis is as thick as the
+        # length it still carries, so all thin to shoots at their tips
+        f"B(l,c) : l > {_f(s)} -> !(min({radius('l')},c)) F({_f(s)})"
+        f" [&(uniform({_f(a0)},{_f(a1)})) C((l-{_f(s)})*{_f(q)}*uniform(0.7,1.1))]"
+        f" /(uniform(150,210)) B(l-{_f(s)},c)",
+        f"B(l,c) : l <= {_f(s)} -> !(min({radius('l')},c)) F(l) L(1)",
         # a lateral: short shoots from its nodes, leaves at every shoot tip and node
-        f"C(l,r) : l > {_f(0.6 * s)} -> !(r) F({_f(0.6 * s)}) L(1)"
-        f" [&(uniform({_f(a0)},{_f(a1)})) D(min(l*0.5,{_f(0.5 * s)}),r*0.5)]"
-        f" /(uniform(150,210)) C(l-{_f(0.6 * s)},r*0.8)",
-        "C(l,r) : l <= " + _f(0.6 * s) + " -> !(r) F(l) L(1)",
-        "D(l,r) -> !(r) F(l) L(1)",
+        f"C(l) : l > {_f(0.6 * s)} -> !({radius('l')}) F({_f(0.6 * s)}) L(1)"
+        f" [&(uniform({_f(a0)},{_f(a1)})) D(min(l*0.5,{_f(0.5 * s)}))]"
+        f" /(uniform(150,210)) C(l-{_f(0.6 * s)})",
+        f"C(l) : l <= {_f(0.6 * s)} -> !({radius('l')}) F(l) L(1)",
+        f"D(l) -> !({radius('l')}) F(l) L(1)",
     )
     steps = math.ceil(longest / s) + math.ceil(longest * q / (0.6 * s)) + 3
     return " ".join(parts), rules, min(steps, 100)

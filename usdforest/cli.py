@@ -350,7 +350,7 @@ def stats_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print as JSON.")] = False,
 ) -> None:
     """Stand figures measured on the composed forest: stems/ha, basal area, DBH and height
-    distributions, slenderness, leaf area index, nadir canopy cover."""
+    distributions, slenderness, leaf and wood area indices, nadir canopy cover."""
     from .usd.inventory import stand_figures
 
     f = stand_figures(stage)

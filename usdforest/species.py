@@ -386,7 +386,17 @@ def _allometric_presets() -> tuple[Species, ...]:
             "European beech sized by published allometry: single branches on a spiral, "
             "a domed crown, leaves through the outer crown.",
             Architecture(
-                False, (0.35, 0.6), (1, 1), (35.0, 65.0), 0.8, True, 0.35, (35.0, 55.0), 0.6, 0.05
+                False,
+                (0.35, 0.6),
+                (1, 1),
+                (35.0, 65.0),
+                0.8,
+                True,
+                0.35,
+                (35.0, 55.0),
+                0.6,
+                0.05,
+                (0.0025, 0.007),
             ),
             Geometry(
                 trunk=cone,
@@ -402,7 +412,17 @@ def _allometric_presets() -> tuple[Species, ...]:
             "Sessile oak sized by published allometry: spreading, crooked branches, a broad "
             "domed crown.",
             Architecture(
-                False, (0.4, 0.7), (1, 1), (45.0, 80.0), 0.7, True, 0.4, (40.0, 70.0), 0.65, 0.04
+                False,
+                (0.4, 0.7),
+                (1, 1),
+                (45.0, 80.0),
+                0.7,
+                True,
+                0.4,
+                (40.0, 70.0),
+                0.65,
+                0.04,
+                (0.0025, 0.007),
             ),
             Geometry(
                 trunk=cone,
@@ -420,7 +440,17 @@ def _allometric_presets() -> tuple[Species, ...]:
             "Silver birch sized by published allometry: steep branches with pendulous "
             "shoots, a narrow crown, small leaves.",
             Architecture(
-                False, (0.3, 0.5), (1, 1), (30.0, 50.0), 0.9, True, 0.3, (30.0, 50.0), 0.5, 0.2
+                False,
+                (0.3, 0.5),
+                (1, 1),
+                (30.0, 50.0),
+                0.9,
+                True,
+                0.3,
+                (30.0, 50.0),
+                0.5,
+                0.1,
+                (0.002, 0.006),
             ),
             Geometry(
                 trunk=cone,

@@ -5,8 +5,9 @@ forest's PointInstancers (tiles included, once loaded), its prototype's composed
 the instance's transform. Per tree: height (its composed extent), DBH (a girth tape round the
 composed trunk mesh at 1.3 m above the tree's base: the perimeter of the cross-section's hull
 over pi) and one-sided leaf area (every leaf instance's template area - half the surface of a
-closed needle mesh - times its scale squared). Per stand: stems/ha, basal area, quadratic
-mean DBH, DBH and height distributions, leaf area index (leaf area over the region's area) and
+closed needle mesh - times its scale squared) and wood area (half the surface of its trunk and
+branch meshes, the same one-sided convention). Per stand: stems/ha, basal area, quadratic mean
+DBH, DBH and height distributions, leaf and wood area indices (over the region's area) and
 nadir canopy cover (the share of 0.25 m cells of the region under any leaf or wood point).
 """
 
@@ -19,7 +20,7 @@ import numpy as np
 from pxr import Usd, UsdGeom
 
 from ..errors import UsdForestError
-from .layers import open_stage
+from .layers import open_stage, rendered
 
 CELL = 0.25  # m, the cover raster
 BREAST = 1.3
@@ -77,12 +78,21 @@ def _tree_figures(tree: Usd.Prim, breast: np.ndarray) -> dict:
     heights, leaf area, and the xy of its leaf and wood points."""
     cache = UsdGeom.XformCache()
     inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(tree), dtype=float))
-    wood_xy, leaf_xy, leaf_area = [], [], 0.0
+    wood_xy, leaf_xy, leaf_area, wood_area = [], [], 0.0, 0.0
     trunk = None
-    for p in Usd.PrimRange(tree, Usd.TraverseInstanceProxies()):
+    it = iter(Usd.PrimRange(tree, Usd.TraverseInstanceProxies()))
+    for p in it:
+        if not rendered(p):  # the proxy hull and guides are not the tree
+            it.PruneChildren()
+            continue
         if p.IsA(UsdGeom.Mesh) and "/Leaves" not in str(p.GetPath()):
             v, tri = _mesh_world(p, cache, inv)
             wood_xy.append(v[:, :2])
+            if tri is not None and len(tri):
+                t = v[tri]
+                wood_area += 0.25 * float(
+                    np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum()
+                )
             if "/Trunk" in str(p.GetPath()) and tri is not None and trunk is None:
                 trunk = (v, tri)
         elif p.IsA(UsdGeom.PointInstancer):
@@ -111,6 +121,7 @@ def _tree_figures(tree: Usd.Prim, breast: np.ndarray) -> dict:
         "height": float(ext[:, 2].max() - min(ext[:, 2].min(), 0.0)),
         "dbh": dbh,
         "leaf_area": leaf_area,
+        "wood_area": wood_area,
         "xy": np.concatenate([*wood_xy, *leaf_xy]) if wood_xy or leaf_xy else np.zeros((0, 2)),
     }
 
@@ -143,7 +154,7 @@ def stand_figures(path: str | Path) -> dict:
         area = (b[2] - b[0]) * (b[3] - b[1])
     if not area:
         raise UsdForestError(f"{path}: not a usdforest forest (no regionArea in /Forest)")
-    heights, dbhs, leaf, species = [], [], [], []
+    heights, dbhs, leaf, wood, species = [], [], [], [], []
     grid = None
     if bounds is not None:
         b = np.asarray(list(bounds), dtype=float)
@@ -177,6 +188,7 @@ def stand_figures(path: str | Path) -> dict:
             heights.append(f["height"] * s)
             dbhs.append(d)
             leaf.append(f["leaf_area"] * s**2)
+            wood.append(f["wood_area"] * s**2)
             label = proto.GetCustomDataByKey("usdforest") or {}
             species.append(np.full(len(sel), str(label.get("species", target.name))))
             if grid is not None and len(f["xy"]):
@@ -188,6 +200,7 @@ def stand_figures(path: str | Path) -> dict:
     h = np.concatenate(heights) if heights else np.zeros(0)
     d = np.concatenate(dbhs) if dbhs else np.zeros(0)
     la = np.concatenate(leaf) if leaf else np.zeros(0)
+    wa = np.concatenate(wood) if wood else np.zeros(0)
     sp = np.concatenate(species) if species else np.zeros(0, dtype=str)
     ha = area / 1e4
     known = np.isfinite(d)
@@ -216,9 +229,11 @@ def stand_figures(path: str | Path) -> dict:
         "height_m": dist(h),
         "slenderness": dist(h[known] / dk) if len(dk) else {},
         "leaf_area_index": float(la.sum() / area),
+        "wood_area_index": float(wa.sum() / area),
+        "wood_to_leaf_area": float(wa.sum() / la.sum()) if la.sum() else None,
         "canopy_cover": float(grid[1].mean()) if grid is not None else None,
         "species": {
             str(n): int(c) for n, c in zip(*np.unique(sp, return_counts=True), strict=True)
         },
-        "per_tree": {"species": sp, "height": h, "dbh": d, "leaf_area": la},
+        "per_tree": {"species": sp, "height": h, "dbh": d, "leaf_area": la, "wood_area": wa},
     }
