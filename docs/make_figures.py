@@ -169,6 +169,66 @@ def stands(out: Path, work: Path) -> None:
     save_figure(fig, out / "default-sites.png")
 
 
+STAND_1HA_BEFORE = """
+seed = 21
+[region]
+bounds = [0.0, 0.0, 100.0, 100.0]
+[intensity]
+kind = "gaussian-mixture"
+base = 0.06
+bumps = [
+    { x = 20.0, y = 50.0, sigma = 25.0, peak = 0.04 },
+    { x = 65.0, y = 60.0, sigma = 9.0, peak = -0.06 },
+]
+[mix]
+pine = 0.5
+broadleaf = 0.5
+[forest]
+variants = 4
+hard_core = 1.5
+[species.pine]
+[species.broadleaf]
+"""
+
+
+def allometric(out: Path, work: Path) -> None:
+    """The five allometric presets, and stand-1ha before (the fixed-grammar presets it
+    used until allometric species) and after, with their measured stand figures."""
+    from usdforest.usd.inventory import stand_figures
+
+    names = ("scots-pine", "norway-spruce", "european-beech", "sessile-oak", "silver-birch")
+    fig, axes = plt.subplots(1, len(names), figsize=(15, 5.2), dpi=100)
+    for ax, name in zip(axes, names, strict=True):
+        b = write_tree(get_species(name), work / f"{name}.usda", seed=1)
+        preview(work / f"{name}.usda", work / f"{name}.png", view="side", size=(400, 560))
+        s = b.size
+        image_panel(
+            ax,
+            work / f"{name}.png",
+            f"{name}: DBH {100 * s.dbh:.0f} cm, {s.height:.1f} m\n"
+            f"{s.leaf_area:.0f} m² leaves, {b.placement.n_leaves:,} leaves",
+        )
+    save_figure(fig, out / "allometric-species.png")
+
+    (work / "before.toml").write_text(STAND_1HA_BEFORE)
+    fig, axes = plt.subplots(2, 2, figsize=(12, 12.6), dpi=100)
+    for col, (label, recipe) in enumerate(
+        (("before", work / "before.toml"), ("after", PIPELINES / "stand-1ha.toml"))
+    ):
+        path = work / f"stand-{label}.usda"
+        write_forest(read_recipe(recipe), path, thumbnail=False)
+        f = stand_figures(path)
+        caption = (
+            f"{label}: LAI {f['leaf_area_index']:.2f}, cover {f['canopy_cover']:.0%}, "
+            f"DBH CV {f['dbh_m']['cv']:.2f}, height CV {f['height_m']['cv']:.2f}"
+        )
+        for row, view in enumerate(("top", "side")):
+            png = work / f"stand-{label}-{view}.png"
+            preview(path, png, view=view, size=(560, 560))
+            image_panel(axes[row, col], png, caption if row == 0 else f"{label}, side view")
+    save_figure(fig, out / "stand-1ha-before-after.png")
+
+
 def gallery(out: Path, work: Path) -> None:
     names = ("pine", "broadleaf", "paper-rule-3")
     fig, axes = plt.subplots(1, len(names), figsize=(12, 5.2), dpi=100)
@@ -337,6 +397,7 @@ def main(out: Path) -> None:
         ipp_levels(out)
         stands(out, work)
         gallery(out, work)
+        allometric(out, work)
         sensors(out, work)
         forest_sensors(out, work)
         terrain(out, work)

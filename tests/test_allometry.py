@@ -181,6 +181,53 @@ dbh_cv = 0.3
     assert fd["leaf_area_index"] > fs["leaf_area_index"]
 
 
+def test_crowns_grow_away_from_their_neighbours(tmp_path):
+    # on the composed stage: each tree's crown centre (the mean of its composed leaf
+    # positions) sits off its trunk on the side away from its nearest neighbour
+    (tmp_path / "r.toml").write_text("""
+seed = 9
+[region]
+bounds = [0, 0, 40, 40]
+[intensity]
+kind = "constant"
+value = 0.06
+[forest]
+hard_core = 1.0
+[species.pine]
+preset = "scots-pine"
+[species.beech]
+preset = "european-beech"
+""")
+    out = tmp_path / "f.usda"
+    write_forest(read_recipe(tmp_path / "r.toml"), out, thumbnail=False)
+    stage = Usd.Stage.Open(str(out))
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+    mats = np.asarray(
+        pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
+    )
+    idx = np.asarray(pi.GetProtoIndicesAttr().Get())
+    centre = []
+    for target in pi.GetPrototypesRel().GetTargets():
+        leaves = next(
+            p
+            for p in Usd.PrimRange(stage.GetPrimAtPath(target), Usd.TraverseInstanceProxies())
+            if p.IsA(UsdGeom.PointInstancer) and p.GetName() == "Leaves"
+        )
+        centre.append(np.asarray(UsdGeom.PointInstancer(leaves).GetPositionsAttr().Get()).mean(0))
+    xy = mats[:, 3, :2]
+    offset = np.einsum("nj,njk->nk", np.asarray(centre)[idx], mats[:, :3, :3])[:, :2]
+    d = np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1)) + np.eye(len(xy)) * 1e9
+    nearest = d.argmin(axis=1)
+    close = d.min(axis=1) < 3.0
+    away = xy - xy[nearest]
+    cos = np.sum(offset * away, axis=1) / (
+        np.linalg.norm(offset, axis=1) * np.linalg.norm(away, axis=1)
+    )
+    assert close.sum() > 30
+    assert cos[close].mean() > 0.4  # 0 for crowns turned at random
+    assert np.median(np.linalg.norm(offset[close], axis=1)) > 0.2  # metres
+
+
 def test_the_shipped_1ha_stand_has_published_stand_figures(tmp_path):
     # Asner, Scurlock & Hicke 2003: one-sided LAI 3-9 in temperate forests; Majasalmi et al.
     # 2013: branch area 0.15-0.18 of leaf area (wood with stems here: at most 0.4); a

@@ -31,13 +31,16 @@ _GIRTH = TRUNK_SECTIONS * math.sin(math.pi / TRUNK_SECTIONS) / math.pi
 @dataclass(frozen=True)
 class TreeSize:
     """One tree's target sizes (metres, m²): height, DBH (over bark, at 1.3 m), crown radius
-    (mean horizontal reach), crown base height and one-sided leaf area."""
+    (mean horizontal reach), crown base height and one-sided leaf area; ``asymmetry`` makes
+    the crown reach ``1 + asymmetry`` times as far on one side as on average and
+    ``1 - asymmetry`` on the other (a crown grown away from its neighbours)."""
 
     height: float
     dbh: float
     crown_radius: float
     crown_base: float
     leaf_area: float
+    asymmetry: float = 0.0
 
     def as_dict(self) -> dict[str, float]:
         return {
@@ -46,6 +49,7 @@ class TreeSize:
             "crownRadius": round(self.crown_radius, 4),
             "crownBase": round(self.crown_base, 4),
             "leafArea": round(self.leaf_area, 3),
+            "asymmetry": round(self.asymmetry, 3),
         }
 
 
@@ -128,8 +132,9 @@ def grammar(
     """The axiom, rules and derivation steps that grow a tree of ``size``.
 
     The trunk and each first-order branch's insertion are decided here with ``rng`` (node
-    spacing, branches per whorl, azimuths, angles with a per-tree tilt, a 15 % scatter of branch lengths round the
-    envelope); the rules' own ``uniform`` draws shape the laterals.
+    spacing, branches per whorl, azimuths, angles with a per-tree tilt, a 15 % scatter of
+    branch lengths round the envelope, longer on one side by ``size.asymmetry``); the rules'
+    own ``uniform`` draws shape the laterals.
     """
     h = size.height
     r0 = trunk_base_radius(size)
@@ -157,14 +162,17 @@ def grammar(
         r_trunk = r0 * float(_taper(zn, h))
         for j in range(k):
             angle = float(np.clip(angle_mid + tilt + rng.uniform(-8.0, 8.0), 10.0, 115.0))
-            length = reach * rng.uniform(0.85, 1.15) / max(math.sin(math.radians(angle)), 0.35)
+            phi = azimuth + j * 360.0 / k + rng.uniform(-12.0, 12.0)
+            side = 1.0 + size.asymmetry * math.cos(math.radians(phi))
+            length = (
+                reach * side * rng.uniform(0.85, 1.15) / max(math.sin(math.radians(angle)), 0.35)
+            )
             # no branch tip (nor its leaves) above the top: its rise stays under the apex
             rise = math.cos(math.radians(angle))
             if rise > 0:
                 length = min(length, 0.85 * (h - zn) / rise)
             if length < 0.15:
                 continue
-            phi = azimuth + j * 360.0 / k + rng.uniform(-12.0, 12.0)
             longest = max(longest, length)
             rb = 0.6 * r_trunk  # no branch thicker than this share of the trunk
             parts.append(f"[/({_f(phi % 360.0)}) &({_f(angle)}) B({_f(length)},{_f(rb)})]")
@@ -181,17 +189,17 @@ def grammar(
     rules = (
         # a branch (length l, no thicker than c): a node every s metres with a lateral on
         # alternating sides, rolled on by about 90 degrees; each axis is as thick as the
-        # length it still carries, so all thin to shoots at their tips
+        # length it still carries (and no thicker than its parent), so all thin to shoots
         f"B(l,c) : l > {_f(s)} -> !(min({radius('l')},c)) F({_f(s)})"
-        f" [&(uniform({_f(a0)},{_f(a1)})) C((l-{_f(s)})*{_f(q)}*uniform(0.7,1.1))]"
+        f" [&(uniform({_f(a0)},{_f(a1)})) C((l-{_f(s)})*{_f(q)}*uniform(0.7,1.1),c)]"
         f" /(uniform(150,210)) B(l-{_f(s)},c)",
         f"B(l,c) : l <= {_f(s)} -> !(min({radius('l')},c)) F(l) L(1)",
         # a lateral: short shoots from its nodes, leaves at every shoot tip and node
-        f"C(l) : l > {_f(0.6 * s)} -> !({radius('l')}) F({_f(0.6 * s)}) L(1)"
-        f" [&(uniform({_f(a0)},{_f(a1)})) D(min(l*0.5,{_f(0.5 * s)}))]"
-        f" /(uniform(150,210)) C(l-{_f(0.6 * s)})",
-        f"C(l) : l <= {_f(0.6 * s)} -> !({radius('l')}) F(l) L(1)",
-        f"D(l) -> !({radius('l')}) F(l) L(1)",
+        f"C(l,c) : l > {_f(0.6 * s)} -> !(min({radius('l')},c)) F({_f(0.6 * s)}) L(1)"
+        f" [&(uniform({_f(a0)},{_f(a1)})) D(min(l*0.5,{_f(0.5 * s)}),c)]"
+        f" /(uniform(150,210)) C(l-{_f(0.6 * s)},c)",
+        f"C(l,c) : l <= {_f(0.6 * s)} -> !(min({radius('l')},c)) F(l) L(1)",
+        f"D(l,c) -> !(min({radius('l')},c)) F(l) L(1)",
     )
     steps = math.ceil(longest / s) + math.ceil(longest * q / (0.6 * s)) + 3
     return " ".join(parts), rules, min(steps, 100)

@@ -8,7 +8,11 @@ grid of log height (steps of 25 %) and log slenderness (steps of 8 %); each clas
 asset grown to the class's mean size, and each tree instances its class scaled by its own
 height over the class's, so its height is exact and its DBH within half a slenderness step
 (4 %). Crown base comes from the crown-ratio model with each class's basal area of larger
-trees and the stand's crown competition factor, so it rises with density. Pure numpy.
+trees and the stand's crown competition factor, so it rises with density. Crowns give way to
+neighbours: a tree whose open-grown crown overlaps others' is pressed away from them
+(:func:`crowding`); its class grows a one-sided crown (up to 35 % longer branches on one side
+and shorter on the other, as one-sided as its trees are pressed on average) and the tree is
+turned so that the long side faces away. Pure numpy.
 """
 
 from __future__ import annotations
@@ -41,13 +45,15 @@ class StandSpec:
 class StandSizes:
     """Per site: ``dbh`` (m) and ``height`` (m), NaN for trees of non-allometric species;
     per species: the class targets (one tree asset each); ``variant`` and ``scale`` are the
-    sites' new marks."""
+    sites' new marks; ``away`` the direction (degrees from +x) a tree's crown grows away
+    from its neighbours, NaN where they do not press it to one side."""
 
     dbh: np.ndarray
     height: np.ndarray
     variant: np.ndarray
     scale: np.ndarray
     classes: dict[str, tuple[TreeSize, ...]]
+    away: np.ndarray
 
 
 def draw_dbh(spec: StandSpec, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -58,11 +64,39 @@ def draw_dbh(spec: StandSpec, n: int, rng: np.random.Generator) -> np.ndarray:
     return lam * (-np.log1p(-u)) ** (1.0 / k)
 
 
+def crowding(xy: np.ndarray, crown: np.ndarray, height: np.ndarray) -> np.ndarray:
+    """Per tree, the sum of its neighbours' pressure as a vector (n, 2): every neighbour
+    whose open-grown crown (radius ``crown``) overlaps the tree's pushes towards it by the
+    overlap's share of the two radii, times its height over the tree's (at most 2). Trees
+    with NaN ``crown`` neither push nor are pushed."""
+    from scipy.spatial import cKDTree
+
+    out = np.zeros((len(xy), 2))
+    ok = np.flatnonzero(np.isfinite(crown))
+    if len(ok) < 2:
+        return out
+    pairs = cKDTree(xy[ok]).query_pairs(2.0 * float(crown[ok].max()), output_type="ndarray")
+    i, j = ok[pairs[:, 0]], ok[pairs[:, 1]]
+    v = xy[j] - xy[i]
+    d = np.hypot(v[:, 0], v[:, 1])
+    reach = crown[i] + crown[j]
+    near = (d > 1e-9) & (d < reach)
+    i, j, v, d, reach = i[near], j[near], v[near], d[near], reach[near]
+    overlap = (1.0 - d / reach)[:, None] * v / d[:, None]
+    np.add.at(out, i, overlap * np.minimum(height[j] / height[i], 2.0)[:, None])
+    np.add.at(out, j, -overlap * np.minimum(height[i] / height[j], 2.0)[:, None])
+    return out
+
+
+MAX_ASYMMETRY = 0.35
+
+
 def stand_sizes(
     species: dict[str, Species],
     stands: dict[str, StandSpec],
     names: tuple[str, ...],
     site_species: np.ndarray,
+    xy: np.ndarray,
     given_dbh: np.ndarray,
     given_height: np.ndarray,
     area_m2: float,
@@ -101,13 +135,19 @@ def stand_sizes(
     bal = np.zeros(n)
     area_ha = area_m2 / 1e4
     bal[known] = basal_area_larger(dbh[known] * 100.0, area_ha)
-    open_area = 0.0
+    crown = np.full(n, np.nan)
     for k, name in enumerate(names):
         if name in allometric:
             sel = site_species == k
-            r = ALLOMETRY[species[name].allometry or ""].crown_radius(dbh[sel] * 100.0)
-            open_area += float(np.sum(math.pi * r**2))
-    ccf = 100.0 * open_area / max(area_m2, 1e-9) if n else 100.0
+            crown[sel] = ALLOMETRY[species[name].allometry or ""].crown_radius(dbh[sel] * 100.0)
+    ccf = 100.0 * float(np.nansum(math.pi * crown**2)) / max(area_m2, 1e-9) if n else 100.0
+    # crowns grow away from their neighbours: each class's crowns are as one-sided as its
+    # trees' mean pressure, and each tree turns its long side away from it
+    push = crowding(np.asarray(xy, dtype=float), crown, height)
+    pressure = np.minimum(np.hypot(push[:, 0], push[:, 1]), 1.0)
+    away = np.where(
+        pressure >= 0.05, np.round(np.degrees(np.arctan2(-push[:, 1], -push[:, 0])), 3), np.nan
+    )
     for k, name in enumerate(names):
         if name not in allometric:
             continue
@@ -129,6 +169,7 @@ def stand_sizes(
         mh = np.exp(np.bincount(inverse, lh) / count)
         ms = np.exp(np.bincount(inverse, ls) / count)
         mbal = np.bincount(inverse, bal[idx]) / count
+        mpress = np.bincount(inverse, pressure[idx]) / count
         rng = stream(seed, "classes", name)
         sizes = []
         for c in range(len(uniq)):
@@ -136,13 +177,13 @@ def stand_sizes(
             # bits of a log-mean
             hc = round(float(mh[c]), 3)
             dc = round(hc / float(ms[c]) * 100.0, 2)
-            sizes.append(
-                tree_size(species[name], rng, dbh=dc, height=hc, bal=float(mbal[c]), ccf=ccf)
-            )
+            size = tree_size(species[name], rng, dbh=dc, height=hc, bal=float(mbal[c]), ccf=ccf)
+            asym = round(MAX_ASYMMETRY * float(mpress[c]), 3)
+            sizes.append(replace(size, asymmetry=asym))
         classes[name] = tuple(sizes)
         variant[idx] = inverse.astype(np.int32)
         scale[idx] = height[idx] / np.array([s.height for s in sizes])[inverse]
-    return StandSizes(dbh, height, variant, scale, classes)
+    return StandSizes(dbh, height, variant, scale, classes, away)
 
 
 def with_sizes(sites, sizes: StandSizes, names_allometric: set[str]):

@@ -483,15 +483,16 @@ def _dask_client(workers: int, scheduler: str | None):
         yield client
 
 
-def _sized_sites(recipe: Recipe, sites: Sites) -> tuple[Sites, dict]:
+def _sized_sites(recipe: Recipe, sites: Sites) -> tuple[Sites, dict, np.ndarray]:
     """Allometric species' trees sized one by one and grouped into size classes
     (:mod:`usdforest.stand`): the sites with each tree's class as its variant and its height
-    over the class's as its scale, and the class targets by species."""
+    over the class's as its scale, the class targets by species and the direction each
+    tree's crown grows away from its neighbours (NaN: none)."""
     from ..stand import stand_sizes, with_sizes
 
     allometric = {n for n in sites.names if recipe.species[n].species.allometry is not None}
     if not allometric or len(sites) == 0:
-        return sites, {}
+        return sites, {}, np.full(len(sites), np.nan)
     n = len(sites)
     given = {k: np.full(n, np.nan) for k in ("dbh", "height")}
     if recipe.sites is not None:
@@ -504,13 +505,35 @@ def _sized_sites(recipe: Recipe, sites: Sites) -> tuple[Sites, dict]:
         {name: e.stand for name, e in recipe.species.items() if e.stand is not None},
         sites.names,
         sites.species,
+        sites.xy,
         given["dbh"],
         given["height"],
         float(recipe.region.area),
         {name: recipe.variants[name] for name in sites.names},
         recipe.seed,
     )
-    return with_sizes(sites, sizes, allometric), sizes.classes
+    return with_sizes(sites, sizes, allometric), sizes.classes, sizes.away
+
+
+def _turned_away(
+    sites: Sites, away: np.ndarray, trees: list[TreeBuild], proto_index: np.ndarray
+) -> Sites:
+    """Each tree pressed by neighbours turned so that its prototype's one-sided crown (the
+    mean of its leaves' xy, measured on the grown tree) points ``away`` from them."""
+    pressed = np.isfinite(away)
+    if not pressed.any():
+        return sites
+    lean = np.array(
+        [
+            np.degrees(np.arctan2(*t.placement.leaf_position[:, 1::-1].mean(axis=0)))
+            if t.size is not None and t.size.asymmetry > 0 and len(t.placement.leaf_position)
+            else np.nan
+            for t in trees
+        ]
+    )
+    turn = np.round((away - lean[proto_index]) % 360.0, 3)
+    ok = pressed & np.isfinite(turn)
+    return replace(sites, yaw=np.where(ok, turn, sites.yaw))
 
 
 def _level_extent(
@@ -603,7 +626,7 @@ def _write_forest(
     sites = sample_sites(recipe, 0, client)
     tick("sampling sites", 1, 1)
 
-    sites, classes = _sized_sites(recipe, sites)
+    sites, classes, away = _sized_sites(recipe, sites)
     counts = {
         n: len(classes[n]) if n in classes else recipe.variants[n] for n in recipe.species_names
     }
@@ -630,6 +653,7 @@ def _write_forest(
             target=classes[name][variant] if name in classes else None,
         )
     tick("growing trees", len(prototypes), len(prototypes))
+    sites = _turned_away(sites, away, [trees[p] for p in prototypes], proto_index)
 
     proto_extent = np.stack([trees[p].extent for p in prototypes])
     # per prototype: its height and (allometric trees) its DBH; a tree's are its scale times
