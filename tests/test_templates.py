@@ -42,6 +42,22 @@ def test_library_has_the_starter_parts():
     assert parts["leaf_broadleaf"] == parts["needle_fascicle"] == "leaf"
 
 
+@pytest.mark.parametrize("name", ["branch_curved_a", "branch_curved_b"])
+def test_thickened_variants_keep_the_bend(name):
+    # NAME_xK: every cross-section K times as wide about the centreline, the same centreline
+    base = read_template(template_dir() / f"{name}.usdc")
+    for k in (2, 4, 8):
+        v = read_template(template_dir() / f"{name}_x{k}.usdc")
+        assert v.part == "branch"
+        assert v.base_radius == pytest.approx(k * base.base_radius, rel=0.02)
+        assert v.tip_radius == pytest.approx(k * base.tip_radius, rel=0.02)
+        # the bend off the chord (placement shears the tip onto the axis), within 30 %
+        u = np.linspace(0.0, 1.0, len(base.centreline))[:, None]
+        bend = [np.abs(t.centreline - u * t.centreline[-1]).max() for t in (base, v)]
+        assert bend[1] == pytest.approx(bend[0], rel=0.3)
+        assert np.ptp(v.hull[:, 2]) == pytest.approx(np.ptp(base.hull[:, 2]), rel=1e-3)
+
+
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
 def test_shipped_template_structure_and_validation(path):
     assert validate(path) == []
@@ -129,7 +145,7 @@ def test_shipped_templates_are_built_from_the_committed_cad(path):
 
 def test_manifest_rebuild_is_byte_identical(tmp_path):
     manifest = read_manifest(MANIFEST)
-    assert len(manifest.templates) == 10
+    assert len(manifest.templates) == 16
     from usdforest.library import build_manifest
 
     a = build_manifest(manifest, tmp_path / "a")
@@ -172,7 +188,7 @@ def test_rebuild_is_byte_identical_with_other_blas_kernels(tmp_path, kernel):
     )
     assert r.returncode == 0, r.stderr
     built = sorted(out.glob("*.usdc"))
-    assert len(built) == 10
+    assert len(built) == 16
     for p in built:
         assert p.read_bytes() == (template_dir() / p.name).read_bytes(), f"{p.name} ({kernel})"
 
@@ -190,7 +206,7 @@ def test_stored_measurements_are_rounded():
 def test_template_build_cli(tmp_path, runner):
     r = runner.invoke(app, ["template", "build", str(MANIFEST), "-o", str(tmp_path)])
     assert r.exit_code == 0, r.output
-    assert len(list(tmp_path.glob("*.usdc"))) == 10
+    assert len(list(tmp_path.glob("*.usdc"))) == 16
     assert not list(tmp_path.glob(".*"))  # no temporary files left behind
 
 
@@ -215,6 +231,14 @@ def test_template_build_cli(tmp_path, runner):
             "template[0].source: expected a non-empty string",
         ),
         ('[[template]]\nname="a"\nsource="a.stl"\npart="leaf"\nunits="yd"\n', "units: 'yd'"),
+        (
+            '[[template]]\nname="a"\nsource="a.stl"\npart="branch"\nthicken=0.5\n',
+            "template[0].thicken: expected a number from 1 to 16",
+        ),
+        (
+            '[[template]]\nname="a"\nsource="a.stl"\npart="leaf"\nthicken=2\n',
+            "only a branch or twig is thickened",
+        ),
         ("template = [", "not valid TOML"),
         ('output="."\n', "template: expected a non-empty array of tables"),
     ],

@@ -269,6 +269,69 @@ def test_paper_presets_follow_gmt3_numbers(tmp_path, k, seed):
     assert radii[left] == pytest.approx(0.7 * trunk_r, rel=1e-5)
 
 
+def _bend(points: np.ndarray, base: np.ndarray, tip: np.ndarray) -> float:
+    """Largest distance of a tube's centreline (middle of its bounds across the chord, in 32
+    slices along it) from the chord base -> tip, over the chord's length."""
+    length = float(np.linalg.norm(tip - base))
+    u = (tip - base) / length
+    e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    rel = points - base
+    t = rel @ u / length
+    xy = np.stack([rel @ e1, rel @ e2], axis=1)
+    b = np.clip((t * 32).astype(int), 0, 31)
+    mids = [0.5 * (xy[b == i].min(0) + xy[b == i].max(0)) for i in range(32) if (b == i).any()]
+    return float(np.max(np.linalg.norm(mids, axis=1))) / length
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_paper_presets_show_the_bend_of_the_curved_cad_branches(tmp_path, k):
+    """Stout paper branches take thickened variants of the curved CAD templates (the same
+    bend, a wider cross-section), not the straight one: on the composed stage each curved
+    branch bends as its CAD source does, sheared so that its tip lands on the axis."""
+    cad = Path(__file__).resolve().parents[1] / "templates" / "cad"
+    ref = {}
+    for name, src in (
+        ("branch_curved_a", "branch_curved_a.stl"),
+        ("branch_curved_b", "branch_curved_b.ply"),
+    ):
+        v = np.asarray(trimesh.load(cad / src, force="mesh").vertices, dtype=float)
+        z0, z1 = v[:, 2].min(), v[:, 2].max()
+        t = (v[:, 2] - z0) / (z1 - z0)
+        b = np.clip((t * 32).astype(int), 0, 31)
+        full = [i for i in range(32) if (b == i).any()]
+        tc = np.array([t[b == i].mean() for i in full])
+        mids = np.array([0.5 * (v[b == i, :2].min(0) + v[b == i, :2].max(0)) for i in full])
+        # the shear puts the tip on the axis: the chord from the first slice to the last
+        chord = mids[0] + (tc - tc[0])[:, None] / (tc[-1] - tc[0]) * (mids[-1] - mids[0])
+        ref[name] = float(np.max(np.linalg.norm(mids - chord, axis=1))) / (z1 - z0)
+    out = tmp_path / "t.usda"
+    write_tree(get_species(f"paper-rule-{k}"), out, seed=3)
+    stage = Usd.Stage.Open(str(out))
+    cache = UsdGeom.XformCache()
+    ratios, branches = [], 0
+    for p in stage.GetPrimAtPath("/Tree/Branches").GetChildren():
+        branches += 1
+        template = p.GetAttribute("usdforest:template").Get()
+        if "curved" not in template:
+            continue
+        mesh = next(
+            m for m in Usd.PrimRange(p, Usd.TraverseInstanceProxies()) if m.IsA(UsdGeom.Mesh)
+        )
+        m = np.asarray(cache.GetLocalToWorldTransform(mesh), dtype=float)
+        pts = (
+            np.asarray(UsdGeom.Mesh(mesh).GetPointsAttr().Get(), dtype=float) @ m[:3, :3] + m[3, :3]
+        )
+        base = np.asarray(cache.GetLocalToWorldTransform(p), dtype=float)[3, :3]
+        tip = np.asarray(p.GetAttribute("usdforest:tip").Get(), dtype=float)
+        ratios.append(_bend(pts, base, tip) / ref[template.split("_x")[0]])
+    ratios = np.array(ratios)
+    assert len(ratios) >= 0.3 * branches  # (none before the thickened variants)
+    assert 0.7 <= np.median(ratios) <= 1.5
+    assert np.all((ratios > 0.45) & (ratios < 1.8)), ratios
+
+
 def test_composed_leaf_count_equals_leaf_sites_with_one_leaf_per_site(tmp_path):
     sp = get_species("paper-rule-2")
     sp = replace(sp, geometry=replace(sp.geometry, leaves_per_site=1.0))

@@ -19,7 +19,7 @@ import hashlib
 import math
 import re
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -608,6 +608,7 @@ def import_part(
     up: str = "auto",
     name: str | None = None,
     color: tuple[float, float, float] | None = None,
+    thicken: float = 1.0,
 ) -> TemplatePart:
     """Read a CAD file and normalise it as one template part.
 
@@ -621,6 +622,8 @@ def import_part(
         ``mm``, ``cm``, ``m``, ``in`` or ``auto`` (see :func:`resolve_units`).
     up
         ``Y``, ``Z`` or ``auto`` (glTF and OBJ: Y; STL and PLY: Z).
+    thicken
+        Widen every cross-section by this factor about the centreline (:func:`thickened`).
     """
     if part not in PARTS:
         raise CADError(f"unknown part {part!r}; use one of {', '.join(PARTS)}")
@@ -637,4 +640,34 @@ def import_part(
         "originalBoundsMax": [float(x) for x in hi],
         "triangles": raw.n_triangles,
     }
-    return normalise_part(mesh, part, name=name, provenance=provenance, color=color)
+    out = normalise_part(mesh, part, name=name, provenance=provenance, color=color)
+    return out if thicken == 1.0 else thickened(out, thicken)
+
+
+def thickened(part: TemplatePart, k: float) -> TemplatePart:
+    """``part`` with every cross-section ``k`` times as wide about its centreline, the bend
+    of the centreline kept: the template a run ``k`` times as stout as the CAD part takes, so
+    that scaling it across does not exaggerate its bend (:mod:`usdforest.placement`)."""
+    from .placement import centreline_of
+
+    v = np.array(part.vertices, dtype=np.float64)
+    line = centreline_of(v)
+    u = np.linspace(0.0, 1.0, len(line))
+    c = np.stack([np.interp(v[:, 2], u, line[:, 0]), np.interp(v[:, 2], u, line[:, 1])], axis=1)
+    v[:, :2] = c + k * (v[:, :2] - c)
+    m = part.measurements
+    # the frame stays the CAD part's: radii and width grow by k, the length and bend do not
+    measurements = replace(
+        m,
+        base_radius=m.base_radius * k,
+        tip_radius=m.tip_radius * k,
+        width=m.width * k,
+        surface_area=float(face_areas(v * m.length, part.faces).sum()),
+    )
+    return replace(
+        part,
+        vertices=v,
+        normals=vertex_normals(v, part.faces),
+        measurements=measurements,
+        provenance={**part.provenance, "thickened": float(k)},
+    )

@@ -23,7 +23,7 @@ from .config import check_keys, load_toml, table_array
 from .errors import RecipeError
 
 MANIFEST_KEYS = {"output", "template"}
-TEMPLATE_KEYS = {"name", "source", "part", "units", "up", "color"}
+TEMPLATE_KEYS = {"name", "source", "part", "units", "up", "color", "thicken"}
 
 
 def template_dir() -> Path:
@@ -48,6 +48,7 @@ class TemplateSpec:
     units: str = "auto"
     up: str = "auto"
     color: tuple[float, float, float] | None = None
+    thicken: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -86,6 +87,15 @@ def read_manifest(path: str | Path) -> Manifest:
             or not all(isinstance(c, int | float) and 0 <= c <= 1 for c in color)
         ):
             raise RecipeError(f"{where}.color: expected three numbers in [0, 1]")
+        thicken = e.get("thicken", 1.0)
+        if (
+            not isinstance(thicken, int | float)
+            or isinstance(thicken, bool)
+            or not 1.0 <= thicken <= 16.0
+        ):
+            raise RecipeError(f"{where}.thicken: expected a number from 1 to 16")
+        if thicken != 1.0 and e["part"] not in ("branch", "twig"):
+            raise RecipeError(f"{where}.thicken: only a branch or twig is thickened")
         specs.append(
             TemplateSpec(
                 e["name"],
@@ -94,6 +104,7 @@ def read_manifest(path: str | Path) -> Manifest:
                 units,
                 up,
                 tuple(float(c) for c in color) if color else None,
+                float(thicken),
             )
         )
     names = [s.name for s in specs]
@@ -112,7 +123,13 @@ def build_manifest(manifest: Manifest, output: Path | None = None) -> list[Path]
     written = []
     for spec in manifest.templates:
         part = import_part(
-            spec.source, spec.part, units=spec.units, up=spec.up, name=spec.name, color=spec.color
+            spec.source,
+            spec.part,
+            units=spec.units,
+            up=spec.up,
+            name=spec.name,
+            color=spec.color,
+            thicken=spec.thicken,
         )
         written.append(write_template(part, out / f"{spec.name}.usdc"))
     return written

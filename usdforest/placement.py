@@ -9,7 +9,8 @@ Pure numpy (no pxr): the USD writer (:mod:`usdforest.usd.tree`) only copies thes
   trunk template; axes thinner than ``twig_radius`` the twig template; other axes a branch
   variant drawn per axis, with a random roll about the axis. A run more than 1.5 times as
   stout (radius / length) as a curved template would exaggerate its bend by that ratio, so it
-  takes the straightest branch template instead.
+  takes the template's thickened variant (``NAME_x2``, ``_x4``, ``_x8``: the same bend, a
+  wider cross-section) nearest its proportions, or the straightest template if none fits.
 * Joints: a curved template's centreline leaves the straight skeleton axis. Branch templates
   are sheared (cross-sections kept horizontal) so that their tip lands on the axis's tip (no
   hook), and every child - branch or leaf - is moved onto its parent's *bent* centreline at
@@ -192,6 +193,7 @@ def place(
     shapes: Mapping[str, WoodShape],
     rng: np.random.Generator,
     clumps: Clumps | None = None,
+    stouter: Mapping[str, tuple[str, ...]] | None = None,
 ) -> Placement:
     """Compute wood and leaf transforms for ``sk``.
 
@@ -208,8 +210,12 @@ def place(
         Seeded generator for template variants, rolls and leaf scatter.
     clumps
         Measured foliage clumps to place (with jitter) instead of leaves at the leaf sites.
+    stouter
+        Per branch template, its thickened variants (:func:`usdforest.cad.thickened`) for
+        runs too stout for it.
     """
-    names = [geometry.trunk, *geometry.branches, geometry.twig]
+    stouter = dict(stouter or {})
+    names = [geometry.trunk, *geometry.branches, geometry.twig, *sum(stouter.values(), ())]
     templates = tuple(dict.fromkeys(names))
     index = {n: i for i, n in enumerate(templates)}
 
@@ -242,10 +248,21 @@ def place(
 
     # a template is scaled across by radius / its normalised radius and along by length, so
     # a run stouter than the template exaggerates its bend by that ratio: such runs take the
-    # straightest branch template instead of a curved one
+    # thickened variant of their template (the same bend, a wider cross-section) nearest
+    # their own proportions, and only where none is stout enough the straightest template
     rn_t = np.array([shapes[t].base_radius for t in templates])
     bend_t = np.array([float(np.abs(shapes[t].centreline).max()) for t in templates])
-    branch_ids = np.array([index[b] for b in geometry.branches])
+    for name, variants in stouter.items():
+        ids = np.array([index[name], *(index[v] for v in variants)])
+        sel = np.flatnonzero((template == index[name]) & ~is_trunk)
+        if not len(sel):
+            continue
+        ex = radius[sel, None] / rn_t[ids][None, :] / length[sel, None]
+        cost = np.where(ex <= MAX_BEND_EXAGGERATION, np.abs(np.log(ex)), np.inf)
+        best = np.argmin(cost, axis=1)
+        fits = np.isfinite(cost[np.arange(len(sel)), best])
+        template[sel[fits]] = ids[best[fits]]
+    branch_ids = np.array([index[b] for b in (*geometry.branches, *sum(stouter.values(), ()))])
     straightest = int(branch_ids[np.argmin(bend_t[branch_ids])])
     stout = (radius / rn_t[template]) / length > MAX_BEND_EXAGGERATION
     swap = stout & ~is_trunk & np.isin(template, branch_ids) & (bend_t[template] > 1e-3)

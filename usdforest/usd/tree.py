@@ -33,7 +33,7 @@ from ..atomic import publish, refuse_overwrite, staging_folder
 from ..bounds import EMPTY, EMPTY_EXTENT, Bounds, instances_bounds
 from ..colliders import Capsules, tree_capsules
 from ..errors import UsdForestError
-from ..library import template_path
+from ..library import template_dir, template_path
 from ..placement import Placement, place
 from ..proxy import Levels, levels
 from ..seeds import stream
@@ -65,6 +65,23 @@ def resolve_template(name: str, base: Path | None = None) -> Path:
             raise UsdForestError(f"template {name!r}: no such file {p}")
         return p
     return template_path(name)
+
+
+STOUTER = (2, 4, 8)
+
+
+def stouter_variants(name: str, base: Path | None = None) -> tuple[str, ...]:
+    """The thickened variants of a branch template that exist beside it (``NAME_x2``,
+    ``NAME_x4``, ``NAME_x8``; for a template given by path, files of those stems in its
+    folder): see :func:`usdforest.cad.thickened`."""
+    if name.endswith((".usdc", ".usda", ".usd")):
+        p = Path(name)
+        folder = (base / p.parent) if base is not None and not p.is_absolute() else p.parent
+        found = [p.parent / f"{p.stem}_x{k}{p.suffix}" for k in STOUTER]
+        return tuple(str(f) for f in found if (folder / f.name).is_file())
+    return tuple(
+        f"{name}_x{k}" for k in STOUTER if (template_dir() / f"{name}_x{k}.usdc").is_file()
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,7 +140,8 @@ def build_tree(
     g = species.geometry
     grown = grow(species, seed=int(stream(seed, species.name, variant, "lsystem").integers(2**63)))
     leaf_names = species.clumps.templates if species.clumps is not None else (g.leaf,)
-    wood_names = dict.fromkeys([g.trunk, *g.branches, g.twig])
+    stouter = {n: stouter_variants(n, template_base) for n in g.branches}
+    wood_names = dict.fromkeys([g.trunk, *g.branches, g.twig, *sum(stouter.values(), ())])
     names = dict.fromkeys([*wood_names, *leaf_names])
     infos = {n: read_template(resolve_template(n, template_base)) for n in names}
     for n in wood_names:
@@ -143,6 +161,7 @@ def build_tree(
         {n: infos[n].wood_shape() for n in wood_names},
         stream(seed, species.name, variant, "place"),
         clumps=species.clumps,
+        stouter={n: v for n, v in stouter.items() if v},
     )
     lv, bounds = _levels_and_bounds(placement, infos)
     return TreeBuild(
