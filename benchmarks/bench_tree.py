@@ -25,6 +25,12 @@ def _preset(name: str) -> tuple[int, str, str]:
     return b.placement.n_leaves, "leaves", "built in memory"
 
 
+def _written(name: str) -> tuple[int, str, str]:
+    """An allometric preset's reference tree (its allometry at its reference DBH), written."""
+    b = write_tree(get_species(name), OUT / f"{name}.usdc", seed=1, force=True)
+    return b.placement.n_leaves, "leaves", f"{b.placement.n_wood:,} wood prims, written"
+
+
 BENCHMARKS = {
     "tree: broadleaf, ~1k leaves, written": lambda: _tree(3.0),
     "tree: broadleaf, ~10k leaves, written": lambda: _tree(28.0),
@@ -33,4 +39,7 @@ BENCHMARKS = {
     "tree: paper-rule-1 preset, built": lambda: _preset("paper-rule-1"),
     "tree: paper-rule-3 preset, built": lambda: _preset("paper-rule-3"),
     "tree: pine preset, built": lambda: _preset("pine"),
+    "tree: scots-pine (20 cm, 21 m), written": lambda: _written("scots-pine"),
+    "tree: norway-spruce (20 cm, 19 m), written": lambda: _written("norway-spruce"),
+    "tree: european-beech (20 cm, 13 m), written": lambda: _written("european-beech"),
 }

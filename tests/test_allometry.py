@@ -48,7 +48,7 @@ sites = [
   {{ x = 15, y = 8, species = "pine", dbh = 0.12, height = 13.5 }},
   {{ x = 22, y = 20, species = "beech", dbh = 0.3, height = 16.0 }},
   {{ x = 8, y = 24, species = "birch", dbh = 0.16, height = 15.0 }},
-  {{ x = 25, y = 5, species = "spruce", dbh = 0.25, height = 20.0 }},
+  {{ x = 25, y = 5, species = "spruce", dbh = 0.25, height = 20.0, crown_radius = 1.2 }},
 ]
 [region]
 bounds = [0, 0, 30, 30]
@@ -97,6 +97,17 @@ def test_an_inventory_is_reproduced_on_the_composed_stage(inventory):
     ):
         sel = (t["species"] == name) & np.isclose(t["dbh"], d / 100, rtol=0.05)
         assert t["leaf_area"][sel][0] == pytest.approx(area, rel=0.3), name
+
+
+def test_an_inventory_crown_radius_sizes_the_crown(inventory):
+    # the spruce row gives a 1.2 m crown radius (its allometry: 2.9 m): the composed crown's
+    # half-width, read from the prototype's bound, follows the row
+    stage = Usd.Stage.Open(str(inventory))
+    proto = next(p for p in stage.Traverse() if p.GetName() == "Spruce_0")
+    box = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"]).ComputeLocalBound(proto)
+    r = box.ComputeAlignedRange()
+    half = 0.25 * (r.GetSize()[0] + r.GetSize()[1])
+    assert half == pytest.approx(1.2, rel=0.3)
 
 
 def test_trunks_taper_to_a_closed_point(inventory):

@@ -99,13 +99,15 @@ def stand_sizes(
     xy: np.ndarray,
     given_dbh: np.ndarray,
     given_height: np.ndarray,
+    given_crown: np.ndarray,
     area_m2: float,
     max_classes: dict[str, int],
     seed: int,
 ) -> StandSizes:
     """Sizes and size classes for every site (see the module docstring).
 
-    ``given_dbh`` / ``given_height`` (m, NaN where not given) come from an inventory.
+    ``given_dbh`` / ``given_height`` / ``given_crown`` (crown radius; m, NaN where not
+    given) come from an inventory; a class whose trees give crown radii grows to their mean.
     """
     n = len(site_species)
     dbh = np.array(given_dbh, dtype=float, copy=True)
@@ -139,7 +141,8 @@ def stand_sizes(
     for k, name in enumerate(names):
         if name in allometric:
             sel = site_species == k
-            crown[sel] = ALLOMETRY[species[name].allometry or ""].crown_radius(dbh[sel] * 100.0)
+            own = ALLOMETRY[species[name].allometry or ""].crown_radius(dbh[sel] * 100.0)
+            crown[sel] = np.where(np.isnan(given_crown[sel]), own, given_crown[sel])
     ccf = 100.0 * float(np.nansum(math.pi * crown**2)) / max(area_m2, 1e-9) if n else 100.0
     # crowns grow away from their neighbours: each class's crowns are as one-sided as its
     # trees' mean pressure, and each tree turns its long side away from it
@@ -178,8 +181,11 @@ def stand_sizes(
             hc = round(float(mh[c]), 3)
             dc = round(hc / float(ms[c]) * 100.0, 2)
             size = tree_size(species[name], rng, dbh=dc, height=hc, bal=float(mbal[c]), ccf=ccf)
-            asym = round(MAX_ASYMMETRY * float(mpress[c]), 3)
-            sizes.append(replace(size, asymmetry=asym))
+            size = replace(size, asymmetry=round(MAX_ASYMMETRY * float(mpress[c]), 3))
+            gc = given_crown[idx][inverse == c]
+            if np.isfinite(gc).any():
+                size = replace(size, crown_radius=round(float(np.nanmean(gc)), 4))
+            sizes.append(size)
         classes[name] = tuple(sizes)
         variant[idx] = inverse.astype(np.int32)
         scale[idx] = height[idx] / np.array([s.height for s in sizes])[inverse]

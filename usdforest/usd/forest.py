@@ -494,7 +494,7 @@ def _sized_sites(recipe: Recipe, sites: Sites) -> tuple[Sites, dict, np.ndarray]
     if not allometric or len(sites) == 0:
         return sites, {}, np.full(len(sites), np.nan)
     n = len(sites)
-    given = {k: np.full(n, np.nan) for k in ("dbh", "height")}
+    given = {k: np.full(n, np.nan) for k in ("dbh", "height", "crown_radius")}
     if recipe.sites is not None:
         for i, row in enumerate(recipe.sites):
             for k in given:
@@ -508,6 +508,7 @@ def _sized_sites(recipe: Recipe, sites: Sites) -> tuple[Sites, dict, np.ndarray]
         sites.xy,
         given["dbh"],
         given["height"],
+        given["crown_radius"],
         float(recipe.region.area),
         {name: recipe.variants[name] for name in sites.names},
         recipe.seed,
