@@ -283,7 +283,7 @@ def _write_tiles(
     build: ForestBuild,
     recipe: Recipe,
     csv_sites: Sites,
-    heights: np.ndarray,
+    proto_sizes: np.ndarray,
     tree_assets: list[str],
     trees: list[TreeBuild],
     client=None,
@@ -324,7 +324,7 @@ def _write_tiles(
         if recipe.ground is not None:
             ground = (_tile_ground(recipe, build, tile), recipe.ground["color"])
         jobs.append(
-            (folder, tile, part, rows, heights, assets, recipe.lod, recipe.colliders, ground)
+            (folder, tile, part, rows, proto_sizes, assets, recipe.lod, recipe.colliders, ground)
         )
     tick = tick or (lambda stage, done, total: None)
     if client is None:
@@ -352,7 +352,7 @@ def _tile_job(
     tile,
     part: ForestBuild,
     rows: Sites,
-    heights: np.ndarray,
+    proto_sizes: np.ndarray,
     assets: list[str],
     lod: str,
     colliders: str,
@@ -387,7 +387,7 @@ def _tile_job(
         with Sdf.ChangeBlock():
             add_ground(layer.GetPrimAtPath("/Tile"), ground[0], color=ground[1])
     save_layer(layer, folder / f"{tile.name}.usdc")
-    _write_csv(folder / f"{tile.name}.csv", rows, heights, part.proto_index, z, ids=tile.index)
+    _write_csv(folder / f"{tile.name}.csv", rows, proto_sizes, part.proto_index, z, ids=tile.index)
     return extent
 
 
@@ -552,18 +552,18 @@ def _level_extent(
 def _write_csv(
     path: Path,
     sites: Sites,
-    heights: np.ndarray,
+    proto_sizes: np.ndarray,
     proto_index: np.ndarray,
     z: np.ndarray,
     ids: np.ndarray | None = None,
 ) -> None:
-    """``trees.csv``: one row per tree; ``heights`` (P, 3) holds each prototype's height, and
+    """``trees.csv``: one row per tree; ``proto_sizes`` (P, 3) holds each prototype's height, and
     an allometric prototype's DBH and target height (NaN for others): a tree's height is its
     scale times its prototype's, its DBH measured at 1.3 m on the scaled trunk."""
     from .. import csvtext
 
-    height = heights[proto_index, 0] * sites.scale
-    dbh = scaled_dbh(heights[proto_index, 1], heights[proto_index, 2], sites.scale)
+    height = proto_sizes[proto_index, 0] * sites.scale
+    dbh = scaled_dbh(proto_sizes[proto_index, 1], proto_sizes[proto_index, 2], sites.scale)
     with path.open("wb") as f:
         f.write(b"id,x,y,z,species,variant,yaw,scale,height,dbh\n")
         csvtext.write_rows(
@@ -658,7 +658,7 @@ def _write_forest(
 
     proto_extent = np.stack([trees[p].extent for p in prototypes])
     # per prototype: its height and (allometric trees) its DBH; a tree's are its scale times
-    heights = np.stack(
+    proto_sizes = np.stack(
         [
             proto_extent[:, 1, 2] - proto_extent[:, 0, 2],
             [trees[p].size.dbh if trees[p].size is not None else np.nan for p in prototypes],
@@ -716,7 +716,7 @@ def _write_forest(
                 build,
                 recipe,
                 csv_sites,
-                heights,
+                proto_sizes,
                 tree_assets,
                 [trees[k] for k in prototypes],
                 client,
@@ -747,7 +747,7 @@ def _write_forest(
         # leaving the block waits for it, also on an error
         with ThreadPoolExecutor(1) as pool:
             csv = pool.submit(
-                _write_csv, staged / "trees.csv", csv_sites, heights, proto_index, ground_z
+                _write_csv, staged / "trees.csv", csv_sites, proto_sizes, proto_index, ground_z
             )
             (staged / "pipeline.toml").write_text(
                 "# The resolved recipe of this forest: usdforest build OUT.usda --pipeline this\n"
