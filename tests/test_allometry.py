@@ -239,6 +239,45 @@ preset = "european-beech"
     assert np.median(np.linalg.norm(offset[close], axis=1)) > 0.2  # metres
 
 
+def test_an_understory_is_a_second_entry_of_a_preset_with_its_own_stand(tmp_path):
+    # small beeches under large pines: one preset twice, each with its own DBH distribution;
+    # on the composed stage two layers, the understory wholly below the canopy's crowns
+    (tmp_path / "r.toml").write_text("""
+seed = 4
+[region]
+bounds = [0, 0, 40, 40]
+[intensity]
+kind = "constant"
+value = 0.08
+[mix]
+pine = 0.6
+beech-understory = 0.4
+[forest]
+hard_core = 1.0
+[species.pine]
+preset = "scots-pine"
+[species.pine.stand]
+dbh_mean = 0.28
+dbh_cv = 0.2
+[species.beech-understory]
+preset = "european-beech"
+[species.beech-understory.stand]
+dbh_mean = 0.06
+dbh_cv = 0.3
+dbh_min = 0.02
+""")
+    out = tmp_path / "f.usda"
+    b = write_forest(read_recipe(tmp_path / "r.toml"), out, thumbnail=False)
+    t = stand_figures(out)["per_tree"]
+    under, over = t["species"] == "beech-understory", t["species"] == "pine"
+    assert under.sum() > 20 and over.sum() > 40
+    assert np.percentile(t["height"][under], 90) < 0.6 * np.percentile(t["height"][over], 10)
+    assert np.median(t["dbh"][under]) == pytest.approx(0.06, rel=0.2)
+    # the pines' crowns start above the understory's tops
+    bases = [s.crown_base for (name, _), tb in b.trees.items() if name == "pine" for s in [tb.size]]
+    assert min(bases) > np.percentile(t["height"][under], 90)
+
+
 def test_the_shipped_1ha_stand_has_published_stand_figures(tmp_path):
     # Asner, Scurlock & Hicke 2003: one-sided LAI 3-9 in temperate forests; Majasalmi et al.
     # 2013: branch area 0.15-0.18 of leaf area (wood with stems here: at most 0.4); a
