@@ -278,6 +278,43 @@ dbh_min = 0.02
     assert min(bases) > np.percentile(t["height"][under], 90)
 
 
+def test_an_inventory_yaw_is_kept_when_neighbours_press(tmp_path):
+    # two pines 2 m apart press each other; the one whose row gives a yaw keeps it, the other
+    # is turned so that its one-sided crown faces away from its neighbour (-x)
+    (tmp_path / "r.toml").write_text("""
+seed = 2
+sites = [
+  { x = 10, y = 10, species = "pine", dbh = 0.25, height = 20.0, yaw = 30.0 },
+  { x = 12, y = 10, species = "pine", dbh = 0.25, height = 20.5 },
+  { x = 8, y = 10, species = "pine", dbh = 0.12, height = 12.0 },
+]
+[region]
+bounds = [0, 0, 20, 20]
+[species.pine]
+preset = "scots-pine"
+""")
+    out = tmp_path / "f.usda"
+    write_forest(read_recipe(tmp_path / "r.toml"), out, thumbnail=False)
+    rows = np.genfromtxt(out.parent / "f_assets" / "trees.csv", delimiter=",", names=True)
+    assert rows["yaw"][np.isclose(rows["x"], 10)][0] == pytest.approx(30.0, abs=1e-3)
+    stage = Usd.Stage.Open(str(out))
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+    mats = np.asarray(
+        pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
+    )
+    i = int(np.argmin(np.abs(mats[:, 3, 0] - 12.0)))
+    proto = stage.GetPrimAtPath(
+        pi.GetPrototypesRel().GetTargets()[pi.GetProtoIndicesAttr().Get()[i]]
+    )
+    leaves = next(
+        p
+        for p in Usd.PrimRange(proto, Usd.TraverseInstanceProxies())
+        if p.IsA(UsdGeom.PointInstancer) and p.GetName() == "Leaves"
+    )
+    centre = np.asarray(UsdGeom.PointInstancer(leaves).GetPositionsAttr().Get()).mean(0)
+    assert (centre @ mats[i, :3, :3])[0] > 0.1  # the x = 12 tree leans to +x, away
+
+
 def test_the_shipped_1ha_stand_has_published_stand_figures(tmp_path):
     # Asner, Scurlock & Hicke 2003: one-sided LAI 3-9 in temperate forests; Majasalmi et al.
     # 2013: branch area 0.15-0.18 of leaf area (wood with stems here: at most 0.4); a

@@ -51,10 +51,11 @@ def test_thickened_variants_keep_the_bend(name):
         assert v.part == "branch"
         assert v.base_radius == pytest.approx(k * base.base_radius, rel=0.02)
         assert v.tip_radius == pytest.approx(k * base.tip_radius, rel=0.02)
-        # the bend off the chord (placement shears the tip onto the axis), within 30 %
+        # the bend off the chord (placement shears the tip onto the axis): slices widened
+        # horizontally tilt the measured centreline a little, 1-25 % here
         u = np.linspace(0.0, 1.0, len(base.centreline))[:, None]
         bend = [np.abs(t.centreline - u * t.centreline[-1]).max() for t in (base, v)]
-        assert bend[1] == pytest.approx(bend[0], rel=0.3)
+        assert 0.98 <= bend[1] / bend[0] <= 1.3
         assert np.ptp(v.hull[:, 2]) == pytest.approx(np.ptp(base.hull[:, 2]), rel=1e-3)
 
 
@@ -237,7 +238,7 @@ def test_template_build_cli(tmp_path, runner):
         ),
         (
             '[[template]]\nname="a"\nsource="a.stl"\npart="leaf"\nthicken=2\n',
-            "only a branch or twig is thickened",
+            "only a branch is thickened",
         ),
         ("template = [", "not valid TOML"),
         ('output="."\n', "template: expected a non-empty array of tables"),

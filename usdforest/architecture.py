@@ -80,9 +80,8 @@ class Architecture:
         Turtle tropism elasticity (branches bend down under their weight).
     wood_radius
         Radius of every branch, lateral and shoot from the length of axis it still carries:
-        ``tip + slope * remaining length`` (metres, metres per metre). A 3 m pine branch
-        starts 2.8 cm across and its shoots end 3 mm across (Mäkinen & Colin 1998 give
-        1-3 cm for the branches of 15-25 cm Scots pines).
+        ``tip + slope * remaining length`` (metres, metres per metre). With the default a
+        3 m branch starts 2.9 cm across and its shoots end 5 mm across.
     """
 
     whorled: bool
@@ -191,12 +190,13 @@ def grammar(
         # alternating sides, rolled on by about 90 degrees; each axis is as thick as the
         # length it still carries (and no thicker than its parent), so all thin to shoots
         f"B(l,c) : l > {_f(s)} -> !(min({radius('l')},c)) F({_f(s)})"
-        f" [&(uniform({_f(a0)},{_f(a1)})) C((l-{_f(s)})*{_f(q)}*uniform(0.7,1.1),c)]"
+        f" [&(uniform({_f(a0)},{_f(a1)})) C((l-{_f(s)})*{_f(q)}*uniform(0.7,1.1),"
+        f"min({radius('l')},c))]"
         f" /(uniform(150,210)) B(l-{_f(s)},c)",
         f"B(l,c) : l <= {_f(s)} -> !(min({radius('l')},c)) F(l) L(1)",
         # a lateral: short shoots from its nodes, leaves at every shoot tip and node
         f"C(l,c) : l > {_f(0.6 * s)} -> !(min({radius('l')},c)) F({_f(0.6 * s)}) L(1)"
-        f" [&(uniform({_f(a0)},{_f(a1)})) D(min(l*0.5,{_f(0.5 * s)}),c)]"
+        f" [&(uniform({_f(a0)},{_f(a1)})) D(min(l*0.5,{_f(0.5 * s)}),min({radius('l')},c))]"
         f" /(uniform(150,210)) C(l-{_f(0.6 * s)},c)",
         f"C(l,c) : l <= {_f(0.6 * s)} -> !(min({radius('l')},c)) F(l) L(1)",
         f"D(l,c) -> !(min({radius('l')},c)) F(l) L(1)",

@@ -94,8 +94,8 @@ def read_manifest(path: str | Path) -> Manifest:
             or not 1.0 <= thicken <= 16.0
         ):
             raise RecipeError(f"{where}.thicken: expected a number from 1 to 16")
-        if thicken != 1.0 and e["part"] not in ("branch", "twig"):
-            raise RecipeError(f"{where}.thicken: only a branch or twig is thickened")
+        if thicken != 1.0 and e["part"] != "branch":
+            raise RecipeError(f"{where}.thicken: only a branch is thickened")
         specs.append(
             TemplateSpec(
                 e["name"],

@@ -9,7 +9,7 @@ Pure numpy (no pxr): the USD writer (:mod:`usdforest.usd.tree`) only copies thes
   trunk template; axes thinner than ``twig_radius`` the twig template; other axes a branch
   variant drawn per axis, with a random roll about the axis. A run more than 1.5 times as
   stout (radius / length) as a curved template would exaggerate its bend by that ratio, so it
-  takes the template's thickened variant (``NAME_x2``, ``_x4``, ``_x8``: the same bend, a
+  takes the template's thickened variant (``NAME_x2``, ``_x4``, ``_x8``: about the same bend, a
   wider cross-section) nearest its proportions, or the straightest template if none fits.
 * Joints: a curved template's centreline leaves the straight skeleton axis. Branch templates
   are sheared (cross-sections kept horizontal) so that their tip lands on the axis's tip (no
@@ -248,7 +248,7 @@ def place(
 
     # a template is scaled across by radius / its normalised radius and along by length, so
     # a run stouter than the template exaggerates its bend by that ratio: such runs take the
-    # thickened variant of their template (the same bend, a wider cross-section) nearest
+    # thickened variant of their template (about the same bend, wider slices) nearest
     # their own proportions, and only where none is stout enough the straightest template
     rn_t = np.array([shapes[t].base_radius for t in templates])
     bend_t = np.array([float(np.abs(shapes[t].centreline).max()) for t in templates])

@@ -209,7 +209,7 @@ def stage_cloud(
             if not p.IsA(UsdGeom.Mesh):
                 continue
             local = mesh_triangles(p, rel)
-            step = max(1, 200_000 // max(len(local), 1))  # triangles per batch
+            step = max(1, 200_000 // max(len(local), 1))  # instances per batch (~200k triangles)
             for a in range(0, len(mats), step):
                 color = lambda p=p: mesh_color(p)  # noqa: E731
                 out.append(_sample_triangles(local, mats[a : a + step], spacing, rng, color))

@@ -432,10 +432,13 @@ def _site_sizes(
         return
     name = site.get("species", names[0] if len(names) == 1 else None)
     if name is None:
-        raise RecipeError(f"{w}.species: a row with dbh or height must name its species")
+        raise RecipeError(
+            f"{w}.species: a row with dbh, height or crown_radius must name its species"
+        )
     if species is not None and species[name].species.allometry is None:
         raise RecipeError(
-            f"{w}: dbh and height need an allometric species ({_allometric_presets()}); "
+            f"{w}: dbh, height and crown_radius need an allometric species "
+            f"({_allometric_presets()}); "
             f"{name} is not one"
         )
     if "scale" in site:

@@ -65,10 +65,10 @@ def draw_dbh(spec: StandSpec, n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def crowding(xy: np.ndarray, crown: np.ndarray, height: np.ndarray) -> np.ndarray:
-    """Per tree, the sum of its neighbours' pressure as a vector (n, 2): every neighbour
-    whose open-grown crown (radius ``crown``) overlaps the tree's pushes towards it by the
-    overlap's share of the two radii, times its height over the tree's (at most 2). Trees
-    with NaN ``crown`` neither push nor are pushed."""
+    """Per tree, the crowding vector (n, 2), pointing at the neighbours that press it: the
+    sum over every neighbour whose open-grown crown (radius ``crown``) overlaps the tree's of
+    the unit vector towards it times the overlap's share of the two radii times its height
+    over the tree's (at most 2). Trees with NaN ``crown`` neither press nor are pressed."""
     from scipy.spatial import cKDTree
 
     out = np.zeros((len(xy), 2))
@@ -183,8 +183,9 @@ def stand_sizes(
             size = tree_size(species[name], rng, dbh=dc, height=hc, bal=float(mbal[c]), ccf=ccf)
             size = replace(size, asymmetry=round(MAX_ASYMMETRY * float(mpress[c]), 3))
             gc = given_crown[idx][inverse == c]
-            if np.isfinite(gc).any():
-                size = replace(size, crown_radius=round(float(np.nanmean(gc)), 4))
+            if np.isfinite(gc).any():  # the inventory's radii, the allometry's for the rest
+                mean = float(np.mean(np.where(np.isnan(gc), size.crown_radius, gc)))
+                size = replace(size, crown_radius=round(mean, 4))
             sizes.append(size)
         classes[name] = tuple(sizes)
         variant[idx] = inverse.astype(np.int32)

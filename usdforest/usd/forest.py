@@ -495,8 +495,10 @@ def _sized_sites(recipe: Recipe, sites: Sites) -> tuple[Sites, dict, np.ndarray]
         return sites, {}, np.full(len(sites), np.nan)
     n = len(sites)
     given = {k: np.full(n, np.nan) for k in ("dbh", "height", "crown_radius")}
+    yawed = np.zeros(n, dtype=bool)
     if recipe.sites is not None:
         for i, row in enumerate(recipe.sites):
+            yawed[i] = "yaw" in row
             for k in given:
                 if k in row:
                     given[k][i] = row[k]
@@ -513,7 +515,8 @@ def _sized_sites(recipe: Recipe, sites: Sites) -> tuple[Sites, dict, np.ndarray]
         {name: recipe.variants[name] for name in sites.names},
         recipe.seed,
     )
-    return with_sizes(sites, sizes, allometric), sizes.classes, sizes.away
+    # a tree whose yaw the inventory gives keeps it
+    return with_sizes(sites, sizes, allometric), sizes.classes, np.where(yawed, np.nan, sizes.away)
 
 
 def _turned_away(
@@ -532,7 +535,7 @@ def _turned_away(
             for t in trees
         ]
     )
-    turn = np.round((away - lean[proto_index]) % 360.0, 3)
+    turn = np.round(away - lean[proto_index], 3) % 360.0
     ok = pressed & np.isfinite(turn)
     return replace(sites, yaw=np.where(ok, turn, sites.yaw))
 

@@ -77,7 +77,7 @@ def stouter_variants(name: str, base: Path | None = None) -> tuple[str, ...]:
     if name.endswith((".usdc", ".usda", ".usd")):
         p = Path(name)
         folder = (base / p.parent) if base is not None and not p.is_absolute() else p.parent
-        found = [p.parent / f"{p.stem}_x{k}{p.suffix}" for k in STOUTER]
+        found = [p.parent / f"{p.stem}_x{k}.usdc" for k in STOUTER]  # as the manifest writes
         return tuple(str(f) for f in found if (folder / f.name).is_file())
     return tuple(
         f"{name}_x{k}" for k in STOUTER if (template_dir() / f"{name}_x{k}.usdc").is_file()
