@@ -215,7 +215,8 @@ def place(
         runs too stout for it.
     """
     stouter = dict(stouter or {})
-    names = [geometry.trunk, *geometry.branches, geometry.twig, *sum(stouter.values(), ())]
+    thick = tuple(v for variants in stouter.values() for v in variants)
+    names = [geometry.trunk, *geometry.branches, geometry.twig, *thick]
     templates = tuple(dict.fromkeys(names))
     index = {n: i for i, n in enumerate(templates)}
 
@@ -262,7 +263,7 @@ def place(
         best = np.argmin(cost, axis=1)
         fits = np.isfinite(cost[np.arange(len(sel)), best])
         template[sel[fits]] = ids[best[fits]]
-    branch_ids = np.array([index[b] for b in (*geometry.branches, *sum(stouter.values(), ()))])
+    branch_ids = np.array([index[b] for b in (*geometry.branches, *thick)])
     straightest = int(branch_ids[np.argmin(bend_t[branch_ids])])
     stout = (radius / rn_t[template]) / length > MAX_BEND_EXAGGERATION
     swap = stout & ~is_trunk & np.isin(template, branch_ids) & (bend_t[template] > 1e-3)

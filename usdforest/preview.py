@@ -13,6 +13,7 @@ cost a few pixels each.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -115,22 +116,21 @@ def _sample_triangles(
     n = np.minimum(np.floor(expected + rng.uniform(size=area.shape)).astype(np.int64), 4096)
     empty = np.flatnonzero(n.sum(axis=1) == 0)
     k_big = np.argmax(area[empty], axis=1)
-    lone = Cloud(
-        t[empty, k_big].mean(axis=1),
-        fn[empty, k_big],
-        np.zeros((len(empty), 3)),
-        np.maximum(np.sqrt(area[empty].sum(axis=1)), 1e-6),
-    )
+    lone_points, lone_normals = t[empty, k_big].mean(axis=1), fn[empty, k_big]
+    lone_spacing = np.maximum(np.sqrt(area[empty].sum(axis=1)), 1e-6)
     which = np.repeat(np.arange(n.size), n.ravel())
     t, e1, e2, fn = (a.reshape(-1, *a.shape[2:]) for a in (t, e1, e2, fn))
     r1, r2 = rng.uniform(size=(2, which.size))
     flip = r1 + r2 > 1
     r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
-    p = t[which, 0] + e1[which] * r1[:, None] + e2[which] * r2[:, None]
-    spread = Cloud(p, fn[which], np.zeros_like(p), np.full(which.size, max(spacing, 1e-6)))
-    out = Cloud.concat([spread, lone])
+    points = np.concatenate(
+        [t[which, 0] + e1[which] * r1[:, None] + e2[which] * r2[:, None], lone_points]
+    )
     return Cloud(
-        out.points, out.normals, np.broadcast_to(color(), out.points.shape).copy(), out.spacing
+        points,
+        np.concatenate([fn[which], lone_normals]),
+        np.broadcast_to(color(), points.shape).copy(),
+        np.concatenate([np.full(which.size, max(spacing, 1e-6)), lone_spacing]),
     )
 
 
@@ -210,8 +210,8 @@ def stage_cloud(
                 continue
             local = mesh_triangles(p, rel)
             step = max(1, 200_000 // max(len(local), 1))  # instances per batch (~200k triangles)
+            color = functools.cache(lambda p=p: mesh_color(p))  # read once per mesh
             for a in range(0, len(mats), step):
-                color = lambda p=p: mesh_color(p)  # noqa: E731
                 out.append(_sample_triangles(local, mats[a : a + step], spacing, rng, color))
         return out
 

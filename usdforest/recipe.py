@@ -116,7 +116,7 @@ def parse_species(name: str, table: Mapping[str, Any], base: Path, where: str) -
     return SpeciesEntry(sp, template_base, stand)
 
 
-def _allometric_presets() -> str:
+def _allometric_names() -> str:
     from .allometry import ALLOMETRY
 
     return ", ".join(ALLOMETRY)
@@ -134,7 +134,7 @@ def _parse_stand(t: Any, sp: Species, where: str) -> Any:
 
     if sp.allometry is None:
         raise RecipeError(
-            f"{where}: only an allometric species ({_allometric_presets()}) takes a stand "
+            f"{where}: only an allometric species ({_allometric_names()}) takes a stand "
             f"table; {sp.name} is not one"
         )
     if not isinstance(t, Mapping):
@@ -438,11 +438,10 @@ def _site_sizes(
     if species is not None and species[name].species.allometry is None:
         raise RecipeError(
             f"{w}: dbh, height and crown_radius need an allometric species "
-            f"({_allometric_presets()}); "
-            f"{name} is not one"
+            f"({_allometric_names()}); {name} is not one"
         )
     if "scale" in site:
-        raise RecipeError(f"{w}.scale: a row with dbh or height is sized by them, not scaled")
+        raise RecipeError(f"{w}.scale: a row with dbh, height or crown_radius is sized, not scaled")
     d, h = site.get("dbh"), site.get("height")
     if d is not None:
         _dbh_in_metres(d, f"{w}.dbh")

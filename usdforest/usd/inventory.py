@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom
 
+from ..cad import face_areas, one_sided_area
 from ..errors import UsdForestError
 from .layers import open_stage, rendered
 
@@ -60,8 +61,6 @@ def _girth_dbh(points: np.ndarray, tri: np.ndarray, z: np.ndarray) -> np.ndarray
 def _leaf_unit_area(proto: Usd.Prim) -> float:
     """One-sided area of a leaf prototype (:func:`usdforest.cad.one_sided_area` of each of
     its meshes), in its own space."""
-    from ..cad import one_sided_area
-
     cache = UsdGeom.XformCache()
     inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(proto), dtype=float))
     total = 0.0
@@ -89,10 +88,7 @@ def _tree_figures(tree: Usd.Prim, breast: np.ndarray) -> dict:
             v, tri = _mesh_world(p, cache, inv)
             wood_xy.append(v[:, :2])
             if tri is not None and len(tri):
-                t = v[tri]
-                wood_area += 0.25 * float(
-                    np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum()
-                )
+                wood_area += 0.5 * float(face_areas(v, tri).sum())  # one-sided: half
             if "/Trunk" in str(p.GetPath()) and tri is not None and trunk is None:
                 trunk = (v, tri)
         elif p.IsA(UsdGeom.PointInstancer):
