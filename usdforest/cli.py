@@ -729,6 +729,7 @@ def scan_cmd(
         centre=p.position,
         radius=settings.max_range,
         leaf_triangles=sensor != "sonar" or settings.occlusion,
+        reflectors=sensor == "sonar",
     )
     for w in [*pose_warnings(scene, p, settings.max_range), unseen_warning(scene)]:
         if w:
@@ -923,6 +924,7 @@ def fly_cmd(
         centre=(lo + hi) / 2,
         radius=float(np.linalg.norm(hi - lo) / 2 + reach),
         leaf_triangles=casts or bool(sonar_cfg is not None and sonar_cfg.occlusion),
+        reflectors=sonar_cfg is not None,
     )
     if (w := unseen_warning(scene)) is not None:
         err.print(f"warning: {w}", highlight=False)

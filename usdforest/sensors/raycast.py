@@ -1,15 +1,24 @@
-"""First-hit ray casting on triangle soups with Embree (embreex), on every core.
+"""First-hit ray casting: on triangle soups with Embree (embreex), and through a scene's
+instances of trees and of leaves with NVIDIA Warp, both on every core.
 
-Pure-Python ray casting is thousands of times slower; Embree releases the GIL, so chunks of
-rays run in parallel threads.
+Pure-Python ray casting is thousands of times slower; Embree and Warp's CPU kernels release
+the GIL, so chunks of rays run in parallel threads. Embree's Python binding has no
+instances, and a forest's leaves copied into triangles do not fit in memory (53 M
+triangles for one allometric spruce), so the forest is traced by Warp kernels
+(:mod:`usdforest.sensors.kernels`) that walk trees, then leaves, then triangles.
 """
 
 from __future__ import annotations
 
+import functools
 import os
+import sys
+import tempfile
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+
+from .scene import Scene, leaf_boxes
 
 CHUNK = 65_536
 
@@ -89,193 +98,248 @@ class Hits:
         return np.isfinite(self.t)
 
 
-def _normals(tri: np.ndarray) -> np.ndarray:
-    t = tri.astype(float)
-    return np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+@functools.cache
+def _warp():
+    """Warp and the kernels, initialised once. Warp's native library prints a CUDA warning
+    to stderr on a machine without an NVIDIA driver: it is kept out of a command's output
+    (and shown if initialisation fails)."""
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_ERROR  # no banner, no module-load lines
+    with tempfile.TemporaryFile() as err:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        os.dup2(err.fileno(), 2)
+        try:
+            wp.init()
+        except Exception:
+            os.dup2(saved, 2)
+            err.seek(0)
+            sys.stderr.write(err.read().decode(errors="replace"))
+            raise
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+    from . import kernels
+
+    return wp, kernels
+
+
+def _inverse_columns(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row-vector 4x4 transforms ``m`` (n, 4, 4) as Warp wants them: the column-form inverse
+    of the linear part (``local = inv @ (x - shift)``), the shift, and which are invertible."""
+    rot = m[:, :3, :3]
+    ok = np.abs(np.linalg.det(rot)) > 1e-30
+    inv = np.zeros_like(rot)
+    inv[ok] = np.linalg.inv(rot[ok]).transpose(0, 2, 1)
+    return inv.astype(np.float32), m[:, 3, :3].astype(np.float32), ok
+
+
+def _box_corners(lo: np.ndarray, hi: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World boxes of boxes ``lo``/``hi`` (n, 3) moved by row-vector transforms ``m``."""
+    bits = ((np.arange(8)[:, None] >> np.arange(3)) & 1).astype(bool)
+    corners = np.where(bits[None], hi[:, None], lo[:, None])
+    world = np.einsum("ncj,njk->nck", corners, m[:, :3, :3]) + m[:, None, 3, :3]
+    return world.min(axis=1), world.max(axis=1)
 
 
 class SceneCaster:
-    """First hits on a :class:`~usdforest.sensors.scene.Scene`, following tree instances.
+    """First hits on a :class:`~usdforest.sensors.scene.Scene`, through its instances.
 
-    World-space triangles go into one Embree scene; each tree prototype gets its own, built
-    once. The instances' bounding spheres are the top level: every ray's candidate instances
-    (the spheres it enters before ``max_range`` and before its hit among the world
-    triangles) are found at once, rays binned by direction and each sphere's cone of
-    directions looked up in the bins (:meth:`_cone_pairs`). Instances are then visited
-    nearest first, each with one Embree call for its candidate rays that still enter its
-    sphere before their best hit so far, moved into its space (the ray parameter is the same
-    in both spaces, so distances compare directly): a ray that meets a near trunk is not cast
-    into the trees behind it, and no step costs time for rays an instance cannot meet.
+    Built once per scene: one grouped Warp mesh of every wood triangle (the world's own and
+    each tree prototype's, in its own space), one grouped BVH of the leaf instances of the
+    world and of each prototype, one mesh of the leaf shapes, and one BVH of the tree
+    instances' world boxes. Each ray is one kernel thread that walks trees, then leaves,
+    then triangles, pruned by its nearest hit so far: a leaf behind a near trunk is never
+    visited. Rays go in chunks, one Warp launch per chunk, on every core (or one launch on
+    a CUDA device when ``device`` names one).
     """
 
-    BIN = np.radians(1.0)  # direction cells of the top level
-    SPREAD = 5.0  # m: rays from origins further apart than this test every instance
+    CHUNK = 8192
 
-    def __init__(self, scene):
+    def __init__(self, scene: Scene, device: str | None = None):
+        wp, kern = _warp()
         self.scene = scene
-        self.base = RayCaster(scene.triangles)
-        self._protos: list[RayCaster | None] = [None] * len(scene.protos)
+        self._wp, self._kern = wp, kern
+        self.device = wp.get_device(device or "cpu")
+        protos = scene.protos
+        owners = [
+            (scene.triangles, scene.cls, scene.tree, scene.path, scene.leaf_instances),
+            *(
+                (p.triangles, p.cls, np.full(len(p.cls), -1), p.path, p.leaf_instances)
+                for p in protos
+            ),
+        ]
+        g = len(owners)
+        # wood: every owner's triangles, grouped by owner
+        n_tri = np.array([len(o[0]) for o in owners])
+        self._wood_cls = np.concatenate([o[1] for o in owners]).astype(np.uint8)
+        self._wood_tree = np.concatenate([o[2] for o in owners]).astype(np.int64)
+        self._wood_path = np.concatenate([o[3] for o in owners]).astype(np.int64)
+        tri = np.concatenate([np.asarray(o[0], np.float32).reshape(-1, 3, 3) for o in owners])
+        self._wood, wood_roots = self._mesh(tri, np.repeat(np.arange(g), n_tri), g)
+        # leaf shapes
+        shapes = scene.shapes
+        s_tri = [np.asarray(s.triangles, np.float32).reshape(-1, 3, 3) for s in shapes]
+        self._shape_cls = np.concatenate([s.cls for s in shapes] or [np.zeros(0)]).astype(np.uint8)
+        self._shape_path = np.concatenate([s.path for s in shapes] or [np.zeros(0)]).astype(
+            np.int64
+        )
+        self._shapes, shape_roots = self._mesh(
+            np.concatenate(s_tri) if s_tri else np.zeros((0, 3, 3), np.float32),
+            np.repeat(np.arange(len(shapes)), [len(t) for t in s_tri]),
+            len(shapes),
+        )
+        # leaf instances, grouped by owner, in the owner's space
+        leaves = [o[4] for o in owners]
+        inv, shift, lo, hi, group, shape, tree = [], [], [], [], [], [], []
+        for k, li in enumerate(leaves):
+            a, b, good = _inverse_columns(li.matrix)
+            lo_k, hi_k = leaf_boxes(li, shapes)
+            inv.append(a[good])
+            shift.append(b[good])
+            lo.append(lo_k[good])
+            hi.append(hi_k[good])
+            group.append(np.full(int(good.sum()), k))
+            shape.append(li.shape[good])
+            tree.append(li.tree[good])
+        self._leaf_tree = np.concatenate(tree).astype(np.int64)
+        shape = np.concatenate(shape).astype(np.int64)
+        group = np.concatenate(group)
+        self._leaf_bvh, leaf_roots = self._bvh(np.concatenate(lo), np.concatenate(hi), group, g)
+        self._leaf_inv = self._array(np.concatenate(inv), wp.mat33)
+        self._leaf_shift = self._array(np.concatenate(shift), wp.vec3)
+        self._leaf_shape = self._array(shape_roots[shape].astype(np.int32), wp.int32)
+        # tree instances
         inst = scene.instances
-        self.rot = inst.matrix[:, :3, :3]
-        self.shift = inst.matrix[:, 3, :3]
-        self.inv = np.linalg.inv(self.rot) if len(inst) else np.zeros((0, 3, 3))
-        self.centre, self.radius = scene.instance_spheres()
-        # a hair wider: a pair kept by rounding only costs a cast that misses
-        self._reach = self.radius * (1 + 1e-9) + 1e-9
+        self._inst_tree = inst.tree.astype(np.int64)
+        p_lo = np.zeros((len(protos), 3))
+        p_hi = np.zeros((len(protos), 3))
+        for k, p in enumerate(protos):
+            lo_k, hi_k = leaf_boxes(p.leaf_instances, shapes)
+            pts = np.concatenate([np.asarray(p.triangles, float).reshape(-1, 3), lo_k, hi_k])
+            if len(pts):
+                p_lo[k], p_hi[k] = pts.min(axis=0), pts.max(axis=0)
+        a, b, good = _inverse_columns(inst.matrix)
+        w_lo, w_hi = _box_corners(p_lo[inst.proto], p_hi[inst.proto], inst.matrix)
+        w_lo[~good], w_hi[~good] = np.inf, -np.inf  # a flattened tree: no box, never entered
+        self._n_inst = len(inst)
+        self._top, _ = self._bvh(w_lo, w_hi, None, 0)
+        self._inst_inv = self._array(a, wp.mat33)
+        self._inst_shift = self._array(b, wp.vec3)
+        self._inst_proto = self._array(inst.proto.astype(np.int32), wp.int32)
+        self._wood_roots = self._array(wood_roots, wp.int32)
+        self._leaf_roots = self._array(leaf_roots, wp.int32)
+        self.first_hit(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]))  # compile, load: once
+
+    def _array(self, a: np.ndarray, dtype):
+        return self._wp.array(np.ascontiguousarray(a), dtype=dtype, device=self.device)
+
+    def _roots(self, kernel, handle, groups: np.ndarray, n: int) -> np.ndarray:
+        """Root of each of ``n`` groups (``EMPTY`` where a group has nothing)."""
+        roots = np.full(n, self._kern.EMPTY, np.int32)
+        used = np.unique(groups).astype(np.int32)
+        if handle is not None and used.size:
+            out = self._wp.empty(used.size, dtype=self._wp.int32, device=self.device)
+            self._wp.launch(
+                kernel, dim=used.size, inputs=[handle.id, self._array(used, self._wp.int32), out],
+                device=self.device,
+            )  # fmt: skip
+            roots[used] = out.numpy()
+        return roots
+
+    def _mesh(self, tri: np.ndarray, groups: np.ndarray, n: int):
+        """A grouped Warp mesh of triangles ``tri`` (None when empty) and its group roots."""
+        wp = self._wp
+        if not len(tri):
+            return None, np.full(n, self._kern.EMPTY, np.int32)
+        mesh = wp.Mesh(
+            points=self._array(tri.reshape(-1, 3), wp.vec3),
+            indices=self._array(np.arange(tri.shape[0] * 3, dtype=np.int32), wp.int32),
+            groups=self._array(groups.astype(np.int32), wp.int32),
+        )
+        return mesh, self._roots(self._kern.mesh_roots, mesh, groups, n)
+
+    def _bvh(self, lo: np.ndarray, hi: np.ndarray, groups: np.ndarray | None, n: int):
+        """A (grouped) Warp BVH of boxes (None when empty) and its group roots."""
+        wp = self._wp
+        if not len(lo):
+            return None, np.full(n, self._kern.EMPTY, np.int32)
+        bvh = wp.Bvh(
+            self._array(lo.astype(np.float32), wp.vec3),
+            self._array(hi.astype(np.float32), wp.vec3),
+            groups=None if groups is None else self._array(groups.astype(np.int32), wp.int32),
+        )
+        if groups is None:
+            return bvh, np.zeros(0, np.int32)
+        return bvh, self._roots(self._kern.bvh_roots, bvh, groups, n)
+
+    def _cast(self, o: np.ndarray, d: np.ndarray, limit: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Raw kernel output for rays ``o``, ``d`` (float32): t, instance, leaf, face, normal."""
+        wp, n = self._wp, len(o)
+        out = (
+            np.empty(n, np.float32),
+            np.empty(n, np.int32),
+            np.empty(n, np.int32),
+            np.empty(n, np.int32),
+            np.empty((n, 3), np.float32),
+        )
+        types = (float, wp.int32, wp.int32, wp.int32, wp.vec3)
+        handle = [0 if x is None else x.id for x in (self._wood, self._leaf_bvh, self._shapes)]
+        top = 0 if self._top is None else self._top.id
+
+        def run(sl: slice) -> None:
+            arrays = [
+                self._array(o[sl], wp.vec3),
+                self._array(d[sl], wp.vec3),
+                self._array(limit[sl], float),
+            ]
+            res = [wp.empty(sl.stop - sl.start, dtype=t, device=self.device) for t in types]
+            wp.launch(
+                self._kern.first_hits,
+                dim=sl.stop - sl.start,
+                inputs=[
+                    *arrays, handle[0], self._wood_roots, handle[1], self._leaf_roots,
+                    self._leaf_inv, self._leaf_shift, self._leaf_shape, handle[2], top,
+                    self._n_inst, self._inst_inv, self._inst_shift, self._inst_proto, *res,
+                ],
+                device=self.device,
+            )  # fmt: skip
+            for dst, src in zip(out, res, strict=True):
+                dst[sl] = src.numpy()
+
+        if self.device.is_cuda or n <= self.CHUNK:
+            run(slice(0, n))
+        else:
+            workers = max(1, min(os.cpu_count() or 1, 8))
+            with ThreadPoolExecutor(workers) as pool:
+                list(
+                    pool.map(
+                        run, [slice(a, min(a + self.CHUNK, n)) for a in range(0, n, self.CHUNK)]
+                    )
+                )
+        return out
 
     def first_hit(
         self, origins: np.ndarray, directions: np.ndarray, max_range: float = np.inf
     ) -> Hits:
         """Unit ``directions``; hits beyond ``max_range`` are dropped."""
-        o = np.asarray(origins, dtype=float)
-        d = np.asarray(directions, dtype=float)
+        o = np.ascontiguousarray(origins, dtype=np.float32).reshape(-1, 3)
+        d = np.ascontiguousarray(directions, dtype=np.float32).reshape(-1, 3)
         h = Hits(len(o))
-        sc = self.scene
-        t, prim = self.base.first_hit(o, d)
-        ok = prim >= 0
-        h.t[ok] = t[ok]
-        h.cls[ok], h.tree[ok], h.path[ok] = sc.cls[prim[ok]], sc.tree[prim[ok]], sc.path[prim[ok]]
-        h.normal[ok] = _normals(sc.triangles[prim[ok]])
-        if len(sc.instances) and len(o):
-            self._instances(o, d, h, max_range)
-        far = h.t > max_range
-        h.t[far] = np.inf
-        h.cls[far], h.tree[far], h.path[far] = 0, -1, -1
+        if not len(o):
+            return h
+        limit = np.full(len(o), np.float32(min(max_range, np.finfo(np.float32).max)))
+        t, inst, leaf, face, normal = self._cast(o, d, limit)
+        hit = (face >= 0) & (t <= max_range)
+        wood = hit & (leaf < 0)
+        green = hit & (leaf >= 0)
+        h.t[hit] = t[hit]
+        h.normal[hit] = normal[hit]
+        h.cls[wood], h.path[wood] = self._wood_cls[face[wood]], self._wood_path[face[wood]]
+        h.cls[green], h.path[green] = self._shape_cls[face[green]], self._shape_path[face[green]]
+        h.tree[wood] = self._wood_tree[face[wood]]
+        h.tree[green] = self._leaf_tree[leaf[green]]
+        placed = hit & (inst >= 0)
+        h.tree[placed] = self._inst_tree[inst[placed]]
         return h
-
-    def _cone_pairs(self, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(ray, instance) pairs that may meet: rays binned by direction on a grid of
-        ``BIN`` radians; each instance's sphere, seen from the rays' mean origin (widened by
-        their spread), covers a cone of directions, whose cells' rays are its candidates (a
-        superset; the exact test follows). Rays from origins far apart (beyond ``SPREAD``)
-        are paired with every instance."""
-        n, m = len(o), len(self.centre)
-        origin = o.mean(axis=0)
-        spread = float(np.sqrt(np.max(np.einsum("ij,ij->i", o - origin, o - origin))))
-        if spread > self.SPREAD or n * m <= 4096:
-            return np.repeat(np.arange(n), m), np.tile(np.arange(m), n)
-        b = self.BIN
-        naz, nel = int(np.ceil(2 * np.pi / b)), int(np.ceil(np.pi / b))
-        az = np.arctan2(d[:, 1], d[:, 0])
-        el = np.arcsin(np.clip(d[:, 2], -1.0, 1.0))
-        cell = np.minimum(((el + np.pi / 2) / b).astype(np.int64), nel - 1) * naz + np.minimum(
-            ((az + np.pi) / b).astype(np.int64), naz - 1
-        )
-        by_cell = np.argsort(cell, kind="stable")
-        sorted_cells = cell[by_cell]
-        v = self.centre - origin
-        dist = np.linalg.norm(v, axis=1)
-        reach = self._reach + spread
-        near = dist <= reach  # the origin may be inside: every direction
-        half = np.arcsin(np.clip(reach / np.maximum(dist, 1e-300), 0.0, 1.0)) + b
-        c_el = np.arcsin(np.clip(v[:, 2] / np.maximum(dist, 1e-300), -1.0, 1.0))
-        c_az = np.arctan2(v[:, 1], v[:, 0])
-        e0 = np.clip(((c_el - half + np.pi / 2) / b).astype(np.int64), 0, nel - 1)
-        e1 = np.clip(((c_el + half + np.pi / 2) / b).astype(np.int64), 0, nel - 1)
-        top = np.abs(c_el) + half
-        spin = np.where(
-            top < np.pi / 2 - b,
-            np.arcsin(np.clip(np.sin(half) / np.cos(np.minimum(top, np.pi / 2 - b)), 0, 1)) + b,
-            np.pi,
-        )
-        full = near | (spin >= np.pi)
-        e0[near], e1[near] = 0, nel - 1
-        # (instance, row) spans of cells; an azimuth range that wraps is two spans
-        rows = e1 - e0 + 1
-        k = np.repeat(np.arange(m), rows)
-        row = e0[k] + (np.arange(k.size) - np.repeat(np.cumsum(rows) - rows, rows))
-        a0 = np.floor((c_az[k] - spin[k] + np.pi) / b).astype(np.int64)
-        a1 = np.floor((c_az[k] + spin[k] + np.pi) / b).astype(np.int64)
-        a0[full[k]], a1[full[k]] = 0, naz - 1
-        wrap_lo, wrap_hi = a0 < 0, a1 >= naz
-        spans = [
-            (k, row, np.maximum(a0, 0), np.minimum(a1, naz - 1)),
-            (k[wrap_lo], row[wrap_lo], a0[wrap_lo] + naz, np.full(wrap_lo.sum(), naz - 1)),
-            (k[wrap_hi], row[wrap_hi], np.zeros(wrap_hi.sum(), np.int64), a1[wrap_hi] - naz),
-        ]
-        ks, lo, hi = [], [], []
-        for kk, rr, x0, x1 in spans:
-            ks.append(kk)
-            lo.append(np.searchsorted(sorted_cells, rr * naz + x0, side="left"))
-            hi.append(np.searchsorted(sorted_cells, rr * naz + x1, side="right"))
-        ks, lo, hi = np.concatenate(ks), np.concatenate(lo), np.concatenate(hi)
-        count = np.maximum(hi - lo, 0)
-        inst = np.repeat(ks, count)
-        pos = np.repeat(lo - np.cumsum(count) + count, count) + np.arange(count.sum())
-        return by_cell[pos], inst
-
-    def _proto(self, k: int) -> RayCaster:
-        """Prototype ``k``'s Embree scene, built (and its BVH committed, by one ray) the first
-        time a ray is cast into it."""
-        if self._protos[k] is None:
-            caster = RayCaster(self.scene.protos[k].triangles)
-            caster.first_hit(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]))
-            self._protos[k] = caster
-        return self._protos[k]
-
-    def _instances(self, o: np.ndarray, d: np.ndarray, h: Hits, max_range: float) -> None:
-        """Cast into the instances, nearest first, each with its candidate rays that still
-        enter its sphere before their best hit so far (updating ``h``).
-
-        Instances go in waves, the casts of a wave on all cores (Embree releases the GIL)
-        against the best hits before the wave, their results merged in order with a strict
-        ``<``: the same hits as one instance at a time (a ray a wave casts needlessly only
-        finds a hit no nearer than the one it keeps)."""
-        ray, inst = self._cone_pairs(o, d)
-        order = np.argsort(inst, kind="stable")
-        ray, inst = ray[order], inst[order]
-        starts = np.searchsorted(inst, np.arange(len(self.centre) + 1))
-        gap = np.linalg.norm(self.centre - o.mean(axis=0), axis=1) - self.radius
-        limit = np.minimum(h.t, max_range)
-        shared = bool(np.all(o == o[0]))  # a scan or a frame: one origin for every ray
-        visit = [k for k in np.argsort(gap, kind="stable") if starts[k + 1] > starts[k]]
-        workers = max(1, min(os.cpu_count() or 1, 8))
-        wave = 2 * workers
-
-        def cast(k: int):
-            rays = ray[starts[k] : starts[k + 1]]
-            dd = d[rays]
-            r = self._reach[k]
-            if shared:
-                oc = self.centre[k] - o[0]
-                tca = dd @ oc
-                inside = r * r - (oc @ oc - tca * tca)
-            else:
-                oc = self.centre[k] - o[rays]
-                tca = np.einsum("ij,ij->i", oc, dd)
-                inside = r * r - (np.einsum("ij,ij->i", oc, oc) - tca * tca)
-            enter = tca - np.sqrt(np.maximum(inside, 0.0))
-            keep = (inside >= 0) & (tca + r >= 0) & (enter < limit[rays])
-            idx = rays[keep]
-            if idx.size == 0:
-                return None
-            if shared:  # one origin: moved into the instance's space once
-                lo = np.broadcast_to((o[:1] - self.shift[k]) @ self.inv[k], (idx.size, 3))
-            else:
-                lo = (o[idx] - self.shift[k]) @ self.inv[k]
-            ld = dd[keep] @ self.inv[k]
-            # Embree stops at each ray's best hit so far: a crown behind it is not walked
-            caster = self._protos[self.scene.instances.proto[k]]
-            return idx, *caster.first_hit(lo, ld, beyond=limit[idx])
-
-        with ThreadPoolExecutor(workers) as pool:
-            for w in range(0, len(visit), wave):
-                ks = visit[w : w + wave]
-                for k in ks:  # Embree builds a scene on its first cast: one thread at a time
-                    self._proto(self.scene.instances.proto[k])
-                for k, res in zip(ks, pool.map(cast, ks), strict=True):
-                    if res is not None:
-                        self._merge(h, limit, k, *res)
-
-    def _merge(
-        self, h: Hits, limit: np.ndarray, k: int, idx: np.ndarray, tl: np.ndarray, pl: np.ndarray
-    ) -> None:
-        """Keep instance ``k``'s hits that are nearer than the best so far."""
-        sc = self.scene
-        better = (pl >= 0) & (tl < h.t[idx])
-        j, q = idx[better], pl[better]
-        p = sc.protos[sc.instances.proto[k]]
-        h.t[j] = limit[j] = tl[better]
-        h.cls[j], h.path[j] = p.cls[q], p.path[q]
-        h.tree[j] = sc.instances.tree[k]
-        h.normal[j] = _normals(p.triangles[q]) @ self.inv[k].T

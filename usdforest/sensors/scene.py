@@ -6,14 +6,17 @@ a tree prototype (a prim labelled ``tree``) carry the instancer's ``ids`` as tre
 comes before expansion: only tree instances whose bounds come within ``radius`` of ``centre``
 are kept, so a scan near one corner of a 1 km² forest does not expand the whole forest.
 
-Tree instances stay instances: each tree prototype's triangles (its leaves expanded) are
-gathered once in the prototype's own space, and every instance is a transform to it
-(:class:`Instances`), which ray casting follows (:class:`~usdforest.sensors.raycast.SceneCaster`)
-instead of copying a million triangles per tree. ``instancing=False`` copies them instead.
+Instances stay instances, on two levels: each tree prototype's wood triangles are gathered
+once in the prototype's own space and every tree is a transform to it (:class:`Instances`);
+each leaf (or shoot) is a transform of one of a few leaf shapes (:class:`LeafInstances`,
+:class:`Shape`). Ray casting follows both levels
+(:class:`~usdforest.sensors.raycast.SceneCaster`) instead of copying a million triangles per
+tree and fifty per shoot. ``instancing=False`` copies every triangle instead.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -62,8 +65,54 @@ class Leaves:
 
 
 @dataclass(frozen=True, eq=False)
+class Shape:
+    """A leaf (or shoot) prototype's triangles in its own space, with class and path."""
+
+    triangles: np.ndarray
+    cls: np.ndarray
+    path: np.ndarray
+
+    @functools.cached_property
+    def box(self) -> np.ndarray:
+        """``(2, 3)`` lower and upper corner of the shape (zeros when empty)."""
+        pts = np.asarray(self.triangles, dtype=float).reshape(-1, 3)
+        return np.array([pts.min(axis=0), pts.max(axis=0)]) if len(pts) else np.zeros((2, 3))
+
+
+@dataclass(frozen=True, eq=False)
+class LeafInstances:
+    """Leaves kept as instances: shape index, row-vector 4x4 shape-to-owner transform and
+    tree id (-1 inside a tree prototype: the tree instance gives it)."""
+
+    shape: np.ndarray
+    matrix: np.ndarray
+    tree: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.shape.shape[0])
+
+    @staticmethod
+    def concat(parts: list[LeafInstances]) -> LeafInstances:
+        if not parts:
+            return LeafInstances(np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros(0, np.int64))
+        return LeafInstances(
+            *(np.concatenate([getattr(p, f) for p in parts]) for f in ("shape", "matrix", "tree"))
+        )
+
+    def triangles(self, shapes: tuple[Shape, ...]) -> int:
+        """How many triangles these leaves stand for."""
+        per = np.array([len(s.triangles) for s in shapes], dtype=np.int64)
+        return int(per[self.shape].sum()) if len(self) else 0
+
+
+def _no_leaves() -> LeafInstances:
+    return LeafInstances.concat([])
+
+
+@dataclass(frozen=True, eq=False)
 class Prototype:
-    """A tree prototype in its own space: triangles with class and path, leaves, bounds."""
+    """A tree prototype in its own space: wood triangles with class and path, leaf
+    instances, leaves as reflectors, bounds (of wood and leaves)."""
 
     triangles: np.ndarray
     cls: np.ndarray
@@ -71,6 +120,7 @@ class Prototype:
     leaves: Leaves
     centre: np.ndarray  # bounding sphere
     radius: float
+    leaf_instances: LeafInstances = field(default_factory=_no_leaves)
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,6 +154,8 @@ class Scene:
         )
     )
     unseen: tuple[str, ...] = ()  # geometry prims the scene cannot hold (curves, points...)
+    shapes: tuple[Shape, ...] = ()  # leaf shapes of every LeafInstances
+    leaf_instances: LeafInstances = field(default_factory=_no_leaves)  # in world space
 
     def instance_spheres(self) -> tuple[np.ndarray, np.ndarray]:
         """World-space bounding spheres (centres ``(n, 3)``, radii ``(n,)``) of the tree
@@ -118,9 +170,16 @@ class Scene:
         return centre, radii[inst.proto] * np.linalg.norm(rot, axis=2).max(axis=1)
 
     def __len__(self) -> int:
-        """Triangles in the scene, every instance counted."""
-        per = np.array([len(p.triangles) for p in self.protos], dtype=np.int64)
-        return int(self.triangles.shape[0] + (per[self.instances.proto].sum() if len(per) else 0))
+        """Triangles in the scene, every instance (of trees and of leaves) counted."""
+        per = np.array(
+            [len(p.triangles) + p.leaf_instances.triangles(self.shapes) for p in self.protos],
+            dtype=np.int64,
+        )
+        return int(
+            self.triangles.shape[0]
+            + self.leaf_instances.triangles(self.shapes)
+            + (per[self.instances.proto].sum() if len(per) else 0)
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,6 +193,7 @@ class _LeafBatch:
     unit_area: float
     centre: np.ndarray  # (3,) leaf centre in its own space
     size: float  # leaf extent in its own space
+    shape: int  # index among the scene's leaf shapes
     tree: int = -1
 
 
@@ -203,10 +263,15 @@ def _leaf_area_unit(proto, tri: np.ndarray) -> float:
 
 
 def _realise(
-    b: _LeafBatch, centre: np.ndarray | None, radius: float | None, triangles: bool = True
-):
-    """Leaf reflectors and triangles of a batch (no triangles unless ``triangles``), keeping
-    leaves within reach of the sensor."""
+    b: _LeafBatch,
+    centre: np.ndarray | None,
+    radius: float | None,
+    triangles: str | None = "copy",
+    reflectors: bool = True,
+) -> tuple[Leaves, _Part, LeafInstances]:
+    """Leaf reflectors of a batch, keeping leaves within reach of the sensor, and their
+    geometry: triangles (``"copy"``), instances of the batch's shape (``"instance"``) or
+    none (``None``). Without ``reflectors`` the reflectors are left out."""
     rot = b.xf[:, :3, :3]
     c = np.einsum("j,njk->nk", b.centre, rot) + b.xf[:, 3, :3]
     scale = np.cbrt(np.abs(np.linalg.det(rot)))
@@ -214,14 +279,22 @@ def _realise(
     if centre is not None and radius is not None:
         keep = np.linalg.norm(c - centre, axis=1) <= radius + b.size * scale
     rot, c, scale, xf = rot[keep], c[keep], scale[keep], b.xf[keep]
-    normal = np.einsum(
-        "j,njk->nk", np.array([0.0, 0.0, 1.0]), np.linalg.inv(rot).transpose(0, 2, 1)
-    )
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
     n, t = len(xf), len(b.tri)
-    leaves = Leaves(c, normal, b.unit_area * scale**2, np.full(n, b.tree, np.int64))
-    if not triangles:
-        return leaves, _Part.concat([])
+    if reflectors:
+        normal = np.einsum(
+            "j,njk->nk", np.array([0.0, 0.0, 1.0]), np.linalg.inv(rot).transpose(0, 2, 1)
+        )
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+        leaves = Leaves(c, normal, b.unit_area * scale**2, np.full(n, b.tree, np.int64))
+    else:
+        leaves = Leaves.concat([])
+    if triangles != "copy":
+        kept = (
+            LeafInstances(np.full(n, b.shape, np.int64), xf, np.full(n, b.tree, np.int64))
+            if triangles == "instance"
+            else _no_leaves()
+        )
+        return leaves, _Part.concat([]), kept
     tri = (
         np.einsum("tvj,njk->ntvk", b.tri, rot.astype(np.float32))
         + xf[:, None, None, 3, :3].astype(np.float32)
@@ -232,7 +305,22 @@ def _realise(
         np.full(n * t, b.tree, np.int32),
         np.tile(b.path, n),
     )
-    return leaves, part
+    return leaves, part, _no_leaves()
+
+
+def leaf_boxes(li: LeafInstances, shapes: tuple[Shape, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned boxes ``(lowers, uppers)``, each ``(n, 3)``, of leaf instances in their
+    owner's space: each shape's box moved by its instance's transform (centre moved, half
+    extents through the absolute linear part: the box of the moved box)."""
+    if not len(li):
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    box = np.array([s.box for s in shapes], dtype=float)  # (shapes, 2, 3)
+    centre = (box[:, 0] + box[:, 1]) / 2
+    half = (box[:, 1] - box[:, 0]) / 2
+    rot = li.matrix[:, :3, :3]
+    c = np.einsum("nj,njk->nk", centre[li.shape], rot) + li.matrix[:, 3, :3]
+    h = np.einsum("nj,njk->nk", half[li.shape], np.abs(rot))
+    return c - h, c + h
 
 
 def _placed_leaves(
@@ -258,6 +346,7 @@ def extract_scene(
     radius: float | None = None,
     instancing: bool = True,
     leaf_triangles: bool = True,
+    reflectors: bool = True,
 ) -> Scene:
     """Triangles and leaf reflectors of a stage, culled to a sphere around ``centre``.
 
@@ -270,8 +359,12 @@ def extract_scene(
     instancing
         Keep tree instances as transforms of their prototypes (default) or copy triangles.
     leaf_triangles
-        Expand every leaf into triangles (default: rays meet leaves). A sonar that casts no
-        ray needs the leaves as reflectors only: ``False`` skips millions of triangles.
+        Give rays leaves to meet (default): as instances of their shapes, or copied into
+        triangles without ``instancing``. A sonar that casts no ray needs the leaves as
+        reflectors only: ``False`` skips their geometry.
+    reflectors
+        Gather every leaf in reach as a reflector (default; the sonar's input). A lidar or
+        camera needs none: ``False`` saves a tuple of arrays per leaf.
     """
     from pxr import Usd, UsdGeom
 
@@ -286,15 +379,20 @@ def extract_scene(
     proto_of: dict = {}
     unseen: list[str] = []
     placed: list[tuple[int, np.ndarray, int]] = []
+    shapes: list[Shape] = []
+    shape_of: dict = {}
+    geometry = ("instance" if instancing else "copy") if leaf_triangles else None
 
     def prototype(prim) -> int:
-        """Index of the (tree) prototype ``prim``, gathered once with its leaves expanded."""
+        """Index of the (tree) prototype ``prim``, gathered once, its leaves as instances."""
         key = prim.GetPath()
         if key not in proto_of:
             part = subtree(prim)
-            realised = [_realise(b, None, None, leaf_triangles) for b in part.batches]
-            whole = _Part.concat([replace(part, batches=()), *(r[1] for r in realised)])
-            pts = whole.tri.reshape(-1, 3).astype(float)
+            realised = [_realise(b, None, None, geometry, reflectors) for b in part.batches]
+            whole = replace(part, batches=())
+            kept = LeafInstances.concat([r[2] for r in realised])
+            lo, hi = leaf_boxes(kept, tuple(shapes))
+            pts = np.concatenate([whole.tri.reshape(-1, 3).astype(float), lo, hi])
             lo, hi = (pts.min(axis=0), pts.max(axis=0)) if len(pts) else (np.zeros(3),) * 2
             proto_of[key] = len(protos)
             protos.append(
@@ -305,9 +403,18 @@ def extract_scene(
                     Leaves.concat([r[0] for r in realised]),
                     (lo + hi) / 2,
                     float(np.linalg.norm(hi - lo) / 2),
+                    kept,
                 )
             )
         return proto_of[key]
+
+    def shape(prim, local: _Part) -> int:
+        """Index of the leaf shape ``prim`` (its triangles gathered once)."""
+        key = prim.GetPath()
+        if key not in shape_of:
+            shape_of[key] = len(shapes)
+            shapes.append(Shape(local.tri, local.cls, local.path))
+        return shape_of[key]
 
     def pid(p: str) -> int:
         if p not in path_index:
@@ -398,6 +505,7 @@ def extract_scene(
                                 _leaf_area_unit(proto, local.tri),
                                 (lo + hi) / 2,
                                 float(np.linalg.norm(hi - lo)),
+                                shape(proto, local),
                             ),
                         ),
                     )
@@ -432,8 +540,9 @@ def extract_scene(
         else np.zeros((2, 3))
     )
     part = subtree(root, top=True)
-    realised = [_realise(b, centre, radius, leaf_triangles) for b in part.batches]
+    realised = [_realise(b, centre, radius, geometry, reflectors) for b in part.batches]
     whole = _Part.concat([part, *(r[1] for r in realised)])
+    world_leaves = LeafInstances.concat([r[2] for r in realised])
     inst = Instances(
         np.array([k for k, _, _ in placed], dtype=np.int64),
         np.array([m for _, m, _ in placed]).reshape(-1, 4, 4),
@@ -441,7 +550,7 @@ def extract_scene(
     )
     leaves = Leaves.concat(
         [r[0] for r in realised]
-        + [_placed_leaves(protos[k], m, t, centre, radius) for k, m, t in placed]
+        + [_placed_leaves(protos[k], m, t, centre, radius) for k, m, t in placed if reflectors]
     )
     tree, leaf_tree = whole.tree, leaves.tree
     # a stage holding one tree that is not instanced: tree id 0
@@ -452,6 +561,7 @@ def extract_scene(
     ):
         tree = np.zeros_like(tree)
         leaf_tree = np.zeros_like(leaf_tree)
+        world_leaves = replace(world_leaves, tree=np.zeros_like(world_leaves.tree))
     return Scene(
         whole.tri,
         whole.cls,
@@ -463,4 +573,8 @@ def extract_scene(
         tuple(protos),
         inst,
         tuple(dict.fromkeys(unseen)),
+        tuple(shapes)
+        if world_leaves.shape.size or any(len(p.leaf_instances) for p in protos)
+        else (),
+        world_leaves,
     )
