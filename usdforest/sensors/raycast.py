@@ -84,7 +84,7 @@ class RayCaster:
 
 class Hits:
     """First hits of a batch of rays: distance (inf: none), class, tree id, path index and the
-    hit triangle's world-space normal (unnormalised, as wound)."""
+    hit triangle's unit world-space normal (as wound)."""
 
     def __init__(self, n: int):
         self.t = np.full(n, np.inf)
