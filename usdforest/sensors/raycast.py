@@ -18,7 +18,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from .scene import Scene, leaf_boxes
+from .scene import Scene, leaf_boxes, moved_boxes
 
 CHUNK = 65_536
 
@@ -135,14 +135,6 @@ def _inverse_columns(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return inv.astype(np.float32), m[:, 3, :3].astype(np.float32), ok
 
 
-def _box_corners(lo: np.ndarray, hi: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World boxes of boxes ``lo``/``hi`` (n, 3) moved by row-vector transforms ``m``."""
-    bits = ((np.arange(8)[:, None] >> np.arange(3)) & 1).astype(bool)
-    corners = np.where(bits[None], hi[:, None], lo[:, None])
-    world = np.einsum("ncj,njk->nck", corners, m[:, :3, :3]) + m[:, None, 3, :3]
-    return world.min(axis=1), world.max(axis=1)
-
-
 class SceneCaster:
     """First hits on a :class:`~usdforest.sensors.scene.Scene`, through its instances.
 
@@ -213,15 +205,9 @@ class SceneCaster:
         # tree instances
         inst = scene.instances
         self._inst_tree = inst.tree.astype(np.int64)
-        p_lo = np.zeros((len(protos), 3))
-        p_hi = np.zeros((len(protos), 3))
-        for k, p in enumerate(protos):
-            lo_k, hi_k = leaf_boxes(p.leaf_instances, shapes)
-            pts = np.concatenate([np.asarray(p.triangles, float).reshape(-1, 3), lo_k, hi_k])
-            if len(pts):
-                p_lo[k], p_hi[k] = pts.min(axis=0), pts.max(axis=0)
+        box = np.array([p.box for p in protos]).reshape(-1, 2, 3)[inst.proto]
         a, b, good = _inverse_columns(inst.matrix)
-        w_lo, w_hi = _box_corners(p_lo[inst.proto], p_hi[inst.proto], inst.matrix)
+        w_lo, w_hi = moved_boxes(box[:, 0], box[:, 1], inst.matrix)
         w_lo[~good], w_hi[~good] = np.inf, -np.inf  # a flattened tree: no box, never entered
         self._n_inst = len(inst)
         self._top, _ = self._bvh(w_lo, w_hi, None, 0)

@@ -118,9 +118,18 @@ class Prototype:
     cls: np.ndarray
     path: np.ndarray
     leaves: Leaves
-    centre: np.ndarray  # bounding sphere
-    radius: float
+    box: np.ndarray  # (2, 3) lower and upper corner of its wood and leaves
     leaf_instances: LeafInstances = field(default_factory=_no_leaves)
+
+    @property
+    def centre(self) -> np.ndarray:
+        """Centre of the bounding sphere (the box's)."""
+        return self.box.mean(axis=0)
+
+    @property
+    def radius(self) -> float:
+        """Radius of the bounding sphere (half the box's diagonal)."""
+        return float(np.linalg.norm(self.box[1] - self.box[0]) / 2)
 
 
 @dataclass(frozen=True, eq=False)
@@ -308,19 +317,25 @@ def _realise(
     return leaves, part, _no_leaves()
 
 
+def moved_boxes(
+    lo: np.ndarray, hi: np.ndarray, matrix: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned boxes of boxes ``lo``/``hi`` (n, 3) moved by row-vector 4x4 transforms
+    ``matrix`` (n, 4, 4): the centre moved, the half extents through the absolute linear
+    part (the exact box of each moved box)."""
+    rot = matrix[:, :3, :3]
+    c = np.einsum("nj,njk->nk", (lo + hi) / 2, rot) + matrix[:, 3, :3]
+    h = np.einsum("nj,njk->nk", (hi - lo) / 2, np.abs(rot))
+    return c - h, c + h
+
+
 def leaf_boxes(li: LeafInstances, shapes: tuple[Shape, ...]) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned boxes ``(lowers, uppers)``, each ``(n, 3)``, of leaf instances in their
-    owner's space: each shape's box moved by its instance's transform (centre moved, half
-    extents through the absolute linear part: the box of the moved box)."""
+    owner's space: each shape's box moved by its instance's transform."""
     if not len(li):
         return np.zeros((0, 3)), np.zeros((0, 3))
-    box = np.array([s.box for s in shapes], dtype=float)  # (shapes, 2, 3)
-    centre = (box[:, 0] + box[:, 1]) / 2
-    half = (box[:, 1] - box[:, 0]) / 2
-    rot = li.matrix[:, :3, :3]
-    c = np.einsum("nj,njk->nk", centre[li.shape], rot) + li.matrix[:, 3, :3]
-    h = np.einsum("nj,njk->nk", half[li.shape], np.abs(rot))
-    return c - h, c + h
+    box = np.array([s.box for s in shapes], dtype=float)[li.shape]  # (n, 2, 3)
+    return moved_boxes(box[:, 0], box[:, 1], li.matrix)
 
 
 def _placed_leaves(
@@ -401,8 +416,7 @@ def extract_scene(
                     whole.cls,
                     whole.path,
                     Leaves.concat([r[0] for r in realised]),
-                    (lo + hi) / 2,
-                    float(np.linalg.norm(hi - lo) / 2),
+                    np.array([lo, hi]),
                     kept,
                 )
             )
