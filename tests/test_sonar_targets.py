@@ -108,6 +108,45 @@ def test_cylinders_are_fitted_to_a_trunk_mesh(tmp_path):
     assert np.all(cyl.cls == CLASS_ID["trunk"])
 
 
+def test_a_trees_wood_prims_fitted_together_are_each_fitted_alone(tmp_path):
+    """A scots-pine's hundreds of wood prims are fitted in one batch: the same cylinders
+    (same count, same centres, radii, lengths and axes up to sign) as fitting every prim's
+    triangles on its own, with trunk segments running up the stem."""
+    from usdforest.sensors.wood import fit_cylinders
+    from usdforest.species import get_species
+    from usdforest.usd.tree import write_tree
+
+    out = tmp_path / "p.usda"
+    write_tree(get_species("scots-pine"), out, seed=3)
+    scene = extract_scene(out, reflectors=False)
+    wood = np.isin(scene.cls, [CLASS_ID["trunk"], CLASS_ID["branch"]])
+    prims = np.unique(scene.path[wood])
+    assert len(prims) > 300
+    together = fit_cylinders(scene.triangles, scene.cls, scene.path, scene.tree, 0.05)
+    alone = []
+    for p in prims:
+        sel = scene.path == p
+        alone.append(
+            fit_cylinders(
+                scene.triangles[sel], scene.cls[sel], scene.path[sel], scene.tree[sel], 0.05
+            )
+        )
+    n = [len(c) for c in alone]
+    assert len(together) == sum(n) > 1000
+    k = 0
+    for c in alone:
+        part = slice(k, k + len(c))
+        np.testing.assert_allclose(together.centre[part], c.centre, atol=1e-9)
+        np.testing.assert_allclose(together.radius[part], c.radius, atol=1e-9)
+        np.testing.assert_allclose(together.length[part], c.length, atol=1e-9)
+        dots = np.abs(np.sum(together.axis[part] * c.axis, axis=1))
+        np.testing.assert_allclose(dots, 1.0, atol=1e-9)
+        np.testing.assert_array_equal(together.cls[part], c.cls)
+        k += len(c)
+    trunk = together.cls == CLASS_ID["trunk"]
+    assert np.all(np.diff(together.centre[trunk][:, 2]) > 0)  # bottom to top
+
+
 def test_a_trunks_echo_matches_the_kirchhoff_integral_at_its_range(tmp_path):
     """A trunk 0.05 m in radius and 0.3 m tall, 3 m ahead: the transfer function equals the
     Kirchhoff integral over its lit surface with each point's own range, beam, absorption and

@@ -85,29 +85,45 @@ def fit_cylinders(
     tree: np.ndarray,
     segment: float,
 ) -> Cylinders:
-    """Cylinders of every wood prim among ``triangles (m, 3, 3)`` (see the module docstring).
+    """Cylinders of every wood prim among ``triangles (m, 3, 3)`` (see the module docstring),
+    in prim path order and along each prim's axis.
 
-    ``cls``, ``path`` and ``tree`` label each triangle; segments are at most ``segment`` m."""
+    ``cls``, ``path`` and ``tree`` label each triangle; segments are at most ``segment`` m.
+    All prims are fitted together in flat arrays (per-prim sums by ``np.bincount``, one
+    batched eigen-decomposition and one batched solve): an allometric spruce has thousands of
+    wood prims."""
     wood = np.flatnonzero(np.isin(cls, WOOD))
-    parts = []
-    for p in np.unique(path[wood]):
-        sel = wood[path[wood] == p]
-        v, normal = surface_points(triangles[sel].astype(np.float64), segment / 4)
-        if len(v) >= 4:
-            parts.append(_fit_prim(v, normal, segment, int(cls[sel[0]]), int(tree[sel[0]])))
-    return Cylinders.concat(parts)
+    order = wood[np.argsort(path[wood], kind="stable")]  # each prim's triangles in turn
+    _, first, per_prim = np.unique(path[order], return_index=True, return_counts=True)
+    tri_prim = np.repeat(np.arange(len(first)), per_prim)
+    v, normal, owner = surface_points(
+        triangles[order].astype(np.float64), segment / 4, group=tri_prim
+    )
+    pp = tri_prim[owner]
+    keep = np.bincount(pp, minlength=len(first)) >= 4
+    sel = keep[pp]
+    first = first[keep]
+    v, normal, pp = v[sel], normal[sel], (np.cumsum(keep) - 1)[pp[sel]]
+    return _fit_prims(v, normal, pp, segment, cls[order[first]], tree[order[first]])
 
 
-def surface_points(tri: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+def surface_points(
+    tri: np.ndarray, spacing: float, group: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points spread over each triangle of ``tri (m, 3, 3)``, about one per ``spacing^2`` of
-    its area and at least its centroid (an R2 low-discrepancy pattern, one running sequence:
-    the same points every run, no two triangles alike), with their triangles' unit normals.
+    its area and at least its centroid (an R2 low-discrepancy pattern, one running sequence
+    per ``group`` of consecutive triangles, default one for all: the same points every run,
+    no two triangles alike), their triangles' unit normals and the triangle of each point.
     A long side face of a low-poly tube still covers every segment it spans."""
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     area = 0.5 * np.linalg.norm(cross, axis=1)
     n = np.maximum(np.ceil(area / spacing**2).astype(np.int64), 1)
     owner = np.repeat(np.arange(len(tri)), n)
     i = np.arange(n.sum())
+    if group is not None and len(tri):
+        starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+        tri_start = np.cumsum(n) - n
+        i -= np.repeat(tri_start[starts], np.diff(np.r_[tri_start[starts], n.sum()]))
     g = 1.32471795724474602596  # the plastic number: R2's generator
     u, w = (0.5 + i / g) % 1.0, (0.5 + i / g**2) % 1.0
     fold = u + w > 1
@@ -117,65 +133,114 @@ def surface_points(tri: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndar
     t = tri[owner]
     points = t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + w[:, None] * (t[:, 2] - t[:, 0])
     normal = cross / np.maximum(2 * area, 1e-300)[:, None]
-    return points, normal[owner]
+    return points, normal[owner], owner
 
 
-def _fit_prim(v: np.ndarray, normal: np.ndarray, segment: float, cls: int, tree: int) -> Cylinders:
-    mean = v.mean(axis=0)
-    _, _, vt = np.linalg.svd(v - mean, full_matrices=False)
-    axis, e1, e2 = vt
-    t = (v - mean) @ axis
-    lo, span = float(t.min()), float(t.max() - t.min())
-    n = max(1, int(np.ceil(span / segment * (1 - 1e-6))))  # float32 meshes: 2.0000001 m
-    step = span / n if span > 0 else 1.0
+def _sums(index: np.ndarray, columns: tuple[np.ndarray, ...], size: int) -> np.ndarray:
+    """``(size, len(columns))``: each column summed per ``index``."""
+    return np.stack([np.bincount(index, c, minlength=size) for c in columns], -1)
+
+
+def _fit_prims(
+    v: np.ndarray, normal: np.ndarray, pp: np.ndarray, segment: float, cls, tree
+) -> Cylinders:
+    """Cylinders of the prims ``0..P-1`` whose surface points ``v`` (sorted by prim ``pp``)
+    and normals are given."""
+    P = len(cls)
+    cnt = np.bincount(pp, minlength=P).astype(np.float64)
+    mean = _sums(pp, tuple(v.T), P) / np.maximum(cnt, 1)[:, None]
+    d = v - mean[pp]
+    # the principal axes: eigenvectors of the points' scatter, largest first
+    scatter = np.stack(
+        [_sums(pp, tuple(d[:, i] * d[:, j] for j in range(3)), P) for i in range(3)], 1
+    )
+    vecs = np.linalg.eigh(scatter)[1]
+    axis, e1, e2 = vecs[..., 2], vecs[..., 1], vecs[..., 0]
+    # a sign LAPACK does not choose: each axis's largest component positive (trunks upward)
+    flip = np.take_along_axis(axis, np.abs(axis).argmax(axis=1)[:, None], 1) < 0
+    axis = np.where(flip, -axis, axis)
+    t = np.einsum("nk,nk->n", d, axis[pp])
+    starts = np.flatnonzero(np.r_[True, pp[1:] != pp[:-1]]) if len(pp) else np.zeros(0, int)
+    lo = np.minimum.reduceat(t, starts) if len(pp) else np.zeros(0)
+    span = (np.maximum.reduceat(t, starts) if len(pp) else np.zeros(0)) - lo
+    n = np.maximum(1, np.ceil(span / segment * (1 - 1e-6)).astype(np.int64))  # float32: 2.0000001
+    step = np.where(span > 0, span / n, 1.0)
     # end caps (faces across the axis) are no part of the side wall a circle is fitted to
-    side = np.abs(normal @ axis) < 0.7
-    v, t = v[side], t[side]
-    b = np.minimum(((t - lo) / step).astype(np.int64), n - 1)
-    count = np.bincount(b, minlength=n)
+    side = np.abs(np.einsum("nk,nk->n", normal, axis[pp])) < 0.7
+    d, t, pp = d[side], t[side], pp[side]
+    b = np.minimum(((t - lo[pp]) / step[pp]).astype(np.int64), n[pp] - 1)
+    offset = np.cumsum(n) - n
+    gb = offset[pp] + b  # every prim's slices in one numbering
+    S = int(n.sum())
+    count = np.bincount(gb, minlength=S)
     used = np.flatnonzero(count >= 3)
+    sp = np.repeat(np.arange(P), n)[used]  # each used slice's prim
     # a circle through each slice's points in the plane across the axis (Kasa's algebraic
     # fit: x^2 + y^2 = A x + B y + C by least squares), exact for points on a circle however
     # unevenly they are spread round it
-    x, y = (v - mean) @ e1, (v - mean) @ e2
+    x = np.einsum("nk,nk->n", d, e1[pp])
+    y = np.einsum("nk,nk->n", d, e2[pp])
     rhs = x * x + y * y
     cols = (x, y, np.ones_like(x))
-    normal_eq = np.stack(
-        [np.stack([np.bincount(b, p * q, minlength=n) for q in cols], -1) for p in cols], -2
-    )[used]
-    target = np.stack([np.bincount(b, p * rhs, minlength=n) for p in cols], -1)[used]
+    normal_eq = np.stack([_sums(gb, tuple(p * q for q in cols), S) for p in cols], -2)[used]
+    target = _sums(gb, tuple(p * rhs for p in cols), S)[used]
     ok = np.abs(np.linalg.det(normal_eq)) > 1e-30
     sol = np.zeros((len(used), 3))
     sol[ok] = np.linalg.solve(normal_eq[ok], target[ok][..., None])[..., 0]
     cx, cy = sol[:, 0] / 2, sol[:, 1] / 2
     radius = np.sqrt(np.maximum(sol[:, 2] + cx * cx + cy * cy, 0.0))
-    mid = lo + (used + 0.5) * step
-    centre = mean + np.outer(mid, axis) + np.outer(cx, e1) + np.outer(cy, e2)
-    if len(used) > 1:
-        local = np.gradient(centre, mid, axis=0)
-        local /= np.maximum(np.linalg.norm(local, axis=1, keepdims=True), 1e-12)
-    else:
-        local = axis[None, :]
+    mid = lo[sp] + (used - offset[sp] + 0.5) * step[sp]
+    centre = mean[sp] + mid[:, None] * axis[sp] + cx[:, None] * e1[sp] + cy[:, None] * e2[sp]
+    local = _gradient(centre, mid, sp, axis)
     # a slice of a bend is slanted: its length along its own axis is longer
-    length = step / np.maximum(np.abs(local @ axis), 0.5)
+    length = step[sp] / np.maximum(np.abs(np.einsum("nk,nk->n", local, axis[sp])), 0.5)
     # a slice that is no circle (a fork's two limbs, a stump cut across) is no cylinder: the
     # points' rms distance from the fitted circle must stay within MAX_MISFIT of its radius
-    slot = np.full(n, -1)
+    slot = np.full(S, -1)
     slot[used] = np.arange(len(used))
-    k = slot[b]
+    k = slot[gb]
     inside = k >= 0
-    miss = np.hypot(x[inside] - cx[k[inside]], y[inside] - cy[k[inside]]) - radius[k[inside]]
-    rms = np.sqrt(np.bincount(k[inside], miss * miss, minlength=len(used)) / count[used])
-    ok &= (radius > 1e-4) & (radius < span + step) & (rms <= MAX_MISFIT * radius)
-    m = int(ok.sum())
+    k = k[inside]
+    miss = np.hypot(x[inside] - cx[k], y[inside] - cy[k]) - radius[k]
+    rms = np.sqrt(np.bincount(k, miss * miss, minlength=len(used)) / count[used])
+    ok &= (radius > 1e-4) & (radius < span[sp] + step[sp]) & (rms <= MAX_MISFIT * radius)
     return Cylinders(
         centre[ok],
         local[ok],
         length[ok],
         radius[ok],
-        np.full(m, cls, np.uint8),
-        np.full(m, tree, np.int64),
+        np.asarray(cls, np.uint8)[sp[ok]],
+        np.asarray(tree, np.int64)[sp[ok]],
     )
+
+
+def _gradient(centre: np.ndarray, mid: np.ndarray, sp: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Unit tangents along each prim's run of slice centres (``np.gradient`` per prim:
+    second-order inside, one-sided at the ends); a prim's only slice takes the prim's axis."""
+    m = len(sp)
+    out = axis[sp].copy()
+    if m < 2:
+        return out
+    first = np.r_[True, sp[1:] != sp[:-1]]
+    last = np.r_[sp[1:] != sp[:-1], True]
+    alone = first & last
+    head = first & ~alone
+    tail = last & ~alone
+    inner = ~first & ~last
+    i = np.flatnonzero(head)
+    out[i] = (centre[i + 1] - centre[i]) / (mid[i + 1] - mid[i])[:, None]
+    i = np.flatnonzero(tail)
+    out[i] = (centre[i] - centre[i - 1]) / (mid[i] - mid[i - 1])[:, None]
+    i = np.flatnonzero(inner)
+    h1, h2 = (mid[i] - mid[i - 1])[:, None], (mid[i + 1] - mid[i])[:, None]
+    out[i] = (
+        -h2 / (h1 * (h1 + h2)) * centre[i - 1]
+        + (h2 - h1) / (h1 * h2) * centre[i]
+        + h1 / (h2 * (h1 + h2)) * centre[i + 1]
+    )
+    moved = ~alone
+    out[moved] /= np.maximum(np.linalg.norm(out[moved], axis=1, keepdims=True), 1e-12)
+    return out
 
 
 def scene_cylinders(scene: Scene, segment: float) -> Cylinders:
