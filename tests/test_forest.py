@@ -18,6 +18,7 @@ from usdforest.usd.stats import stage_info
 from usdforest.validate import validate
 
 PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
+SPECIES = {"scots-pine", "norway-spruce", "european-beech", "silver-birch"}
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +38,9 @@ def test_default_forest_validates_and_composes(default_forest):
     assert Usd.ModelAPI(trees).GetKind() == "group" and trees.IsModel()
     pi = UsdGeom.PointInstancer(trees)
     protos = pi.GetPrototypesRel().GetTargets()
-    assert len(protos) == 6  # pine and broadleaf, 3 variants each
+    # four allometric species, each grown in up to 6 size classes (one asset per class)
+    assert len(protos) == len(build.prototypes) and 16 <= len(protos) <= 24
+    assert {species for species, _ in build.prototypes} == SPECIES
     for path in protos:
         proto = stage.GetPrimAtPath(path)
         assert proto.IsModel() and Usd.ModelAPI(proto).GetKind() == "component"
@@ -72,7 +75,7 @@ def test_layout_and_ground_truth(default_forest):
         "trees.csv",
     ]
     assert sorted(p.name for p in out.parent.iterdir()) == ["forest.usda", "forest_assets"]
-    assert len(list((assets / "trees").glob("*.usdc"))) == 6
+    assert len(list((assets / "trees").glob("*.usdc"))) == len(build.prototypes)
     forest_layer = Sdf.Layer.FindOrOpen(str(out))
     assert list(forest_layer.subLayerPaths) == [
         "./forest_assets/instances.usdc",
@@ -99,11 +102,28 @@ def test_layout_and_ground_truth(default_forest):
     pos = np.asarray(pi.GetPositionsAttr().Get())
     xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
     np.testing.assert_allclose(xy, pos[:, :2], atol=1e-3)
-    assert {r["species"] for r in rows} == {"pine", "broadleaf"}
-    # the mix varies with y: pines are commoner in the north
+    assert {r["species"] for r in rows} == SPECIES
+    # the mix varies with y: conifers are commoner in the north, beeches in the south
     y = xy[:, 1]
-    pine = np.array([r["species"] == "pine" for r in rows])
-    assert pine[y > 60].mean() > pine[y < 40].mean()
+    conifer = np.array([r["species"] in ("scots-pine", "norway-spruce") for r in rows])
+    beech = np.array([r["species"] == "european-beech" for r in rows])
+    assert conifer[y > 60].mean() > conifer[y < 40].mean() + 0.2
+    assert beech[y < 40].mean() > beech[y > 60].mean() + 0.2
+
+
+def test_the_default_forest_is_a_closed_canopy(default_forest):
+    # issue 21: nadir cover of leaves and wood at least 60 %; one-sided LAI 3-9 in temperate
+    # forests (Asner, Scurlock & Hicke 2003); DBH and height vary as in a real stand (CVs of
+    # 0.26 and 0.23 in a 33-year Scots pine stand, Forests 14:1779)
+    from usdforest.usd.inventory import stand_figures
+
+    out, build = default_forest
+    f = stand_figures(out)
+    assert f["trees"] == build.n_trees
+    assert f["canopy_cover"] >= 0.6
+    assert 3.0 <= f["leaf_area_index"] <= 9.0 and f["wood_to_leaf_area"] <= 0.4
+    assert f["dbh_m"]["cv"] >= 0.25 and f["height_m"]["cv"] >= 0.15
+    assert 50 <= np.median(f["per_tree"]["height"] / f["per_tree"]["dbh"]) <= 150
 
 
 def test_layered_into_a_simulation_stage_under_a_translated_prim(default_forest, tmp_path):
@@ -253,9 +273,9 @@ def _sample_counts(runner, out, *args):
 
 
 def test_default_sample_with_an_intensity_is_a_pure_ipp(tmp_path, runner):
-    """``sample --intensity`` on the embedded default: counts are Poisson(∫λ) - mean and
-    variance both equal the integral (index-of-dispersion test) - and no two sites are
-    forbidden from being close."""
+    """``sample --intensity`` on the embedded default without its hard core: counts are
+    Poisson(∫λ) - mean and variance both equal the integral (index-of-dispersion test) - and
+    no two sites are forbidden from being close."""
     from scipy import integrate, stats
 
     expr = "0.02 * (1 + sin(x / 10))"
@@ -271,6 +291,8 @@ def test_default_sample_with_an_intensity_is_a_pure_ipp(tmp_path, runner):
         str(reps),
         "--seed",
         "9",
+        "--hard-core",
+        "0",
     )
     # the integral, computed independently of usdforest
     lam, _ = integrate.dblquad(lambda y, x: 0.02 * (1 + math.sin(x / 10)), 0, 100, 0, 50)
@@ -293,24 +315,29 @@ def test_default_sample_with_an_intensity_is_a_pure_ipp(tmp_path, runner):
     assert close > 0
 
 
-def test_default_pipeline_is_poisson_and_hard_core_is_opt_in(tmp_path, runner):
+def test_default_pipeline_is_matern_over_the_ipp_and_the_hard_core_can_go(tmp_path, runner):
+    """The default recipe thins its IPP by a 1.5 m Matérn II hard core (stems cannot
+    overlap); ``--hard-core 0`` gives the pure IPP back, whose counts average ∫λ."""
     recipe = read_recipe(default_recipe_path())
-    assert recipe.hard_core == 0
+    assert recipe.hard_core == 1.5
     lam = recipe.expected_trees()
-    _, pure = _sample_counts(runner, tmp_path / "a.csv", "--replicates", "100")
+    data, pure = _sample_counts(
+        runner, tmp_path / "a.csv", "--replicates", "100", "--hard-core", "0"
+    )
+    assert data["hard_core"] == 0
     assert abs(pure.mean() - lam) < 4 * math.sqrt(lam / 100)
-    data, hc = _sample_counts(runner, tmp_path / "b.csv", "--replicates", "100", "--hard-core", "2")
-    assert data["hard_core"] == 2.0
-    assert hc.mean() < pure.mean() - 10  # Matérn II removes sites where λ is high
-    with (tmp_path / "b.csv").open() as f:
-        xy = np.array(
-            [[float(r["x"]), float(r["y"])] for r in csv.DictReader(f) if r["replicate"] == "0"]
-        )
+    data, hc = _sample_counts(runner, tmp_path / "b.csv", "--replicates", "100")
+    assert data["hard_core"] == 1.5
+    assert hc.mean() < pure.mean() - 30  # Matérn II removes sites where λ is high
     from scipy.spatial import cKDTree
 
-    assert cKDTree(xy).query_pairs(2.0) == set()
-    # a shipped recipe shows the hard-core variant
-    assert read_recipe(PIPELINES / "stand-1ha.toml").hard_core > 0
+    for name, d in (("a.csv", 0.3), ("b.csv", 1.5)):
+        with (tmp_path / name).open() as f:
+            xy = np.array(
+                [[float(r["x"]), float(r["y"])] for r in csv.DictReader(f) if r["replicate"] == "0"]
+            )
+        pairs = cKDTree(xy).query_pairs(d)
+        assert (pairs == set()) == (name == "b.csv"), (name, len(pairs))
     r = runner.invoke(app, ["sample", str(tmp_path / "c.csv"), "--hard-core", "-1"])
     assert r.exit_code == 2
 

@@ -13,10 +13,14 @@ from usdforest.recipe import default_recipe_path, load_toml, parse_recipe
 from usdforest.usd.forest import write_forest
 from usdforest.validate import validate
 
+QUICK = default_recipe_path().parent / "quick-mixed.toml"
+
 
 def _recipe(tmp_path, **extra):
-    data = {**load_toml(default_recipe_path()), **extra}
-    return parse_recipe(data, default_recipe_path().parent, str(tmp_path / "r.toml"))
+    """The quick mixed stand (fixed-grammar trees: tiling is about where trees go), changed
+    by ``extra``."""
+    data = {**load_toml(QUICK), **extra}
+    return parse_recipe(data, QUICK.parent, str(tmp_path / "r.toml"))
 
 
 def _trees(stage: Usd.Stage) -> dict[int, tuple[np.ndarray, int]]:
