@@ -10,7 +10,8 @@ frequency f (wavenumber k = 2 pi f / c)::
 * B: the one-way beam amplitude, Gaussian with a -3 dB full width theta_3(f) = theta_3(f_ref)
   f_ref / f, or a piston of the radius that has that width at f_ref; emitter and receiver
   share it, hence the square.
-* S, the reflector's backscatter amplitude (formulas in :mod:`usdforest.sensors.backscatter`):
+* S, the reflector's backscatter amplitude (formulas in :mod:`usdforest.sensors.backscatter`),
+  all in the physical-optics phase convention (a flat plate facing the wave: +i k A / 2 pi):
 
   - a leaf is a disk of radius a = sqrt(area / pi) (Ming, Zhu and Müller, PLoS ONE 2017;
     Zhu et al., PLoS ONE 2023) at incidence theta_i from its normal, ``leaf_model``:
@@ -23,18 +24,18 @@ frequency f (wavenumber k = 2 pi f / c)::
 
     (their code also scales every echo by a constant 0.2, left out here: H is in physical
     units, and at normal incidence this S meets the disk's k a^2 / 2 as k a grows), or
-    ``disk``: physical-optics backscatter of a rigid disk, real and positive,
-    S = (k a^2 / 2) |2 J1(x) / x| |cos theta_i| with x = 2 k a sin theta_i.
+    ``disk``: physical-optics backscatter of a rigid disk,
+    S = i (k a^2 / 2) (2 J1(x) / x) |cos theta_i| with x = 2 k a sin theta_i.
   - wood (``wood = true``) is cut into rigid finite cylinders of at most ``wood_segment`` m
     (:mod:`usdforest.sensors.wood`), each a Kirchhoff cylinder
-    S = (L / 2) sqrt(k a cos beta / pi) sinc(k L sin beta) exp(-i pi / 4) (beta: the line of
+    S = (L / 2) sqrt(k a cos beta / pi) sinc(k L sin beta) exp(+i pi / 4) (beta: the line of
     sight's tilt from the plane normal to the axis), its range that of its specular line
     (centre less a cos beta).
   - the ground (``ground = true``) is sampled as rough facets of ``ground_patch`` m
     (:mod:`usdforest.sensors.facets`), each with the two-part rough-surface cross-section
     sigma0 = R^2 exp(-tan^2 theta / s^2) / (s^2 cos^4 theta) + 4 pi mu cos^2 theta (a glint
     of rms slope s = ``ground_slope`` and |R| = ``ground_reflection``, plus Lambert's diffuse
-    part, mu = ``ground_lambert``), and a random phase.
+    part, mu = ``ground_lambert``), times i and a random phase.
 
 * 1 / r^2: two-way spherical spreading; alpha: atmospheric absorption per ISO 9613-1 in dB/m.
 * ``window = "hann"`` weighs the band with a Hann window (times 2, the window's amplitude
@@ -51,7 +52,8 @@ hat covers. The impulse response is H's inverse FFT (at 8x the output rate, deci
 echo is the impulse response convolved with the call (a linear FM sweep).
 
 Modelled: leaves, wood, ground, beam, backscatter, spreading, absorption, optional occlusion
-(ray cast: a reflector with anything in front of it is dropped), the Doppler of a moving sonar.
+(ray cast: a reflector with anything in front of it is dropped), the Doppler and the delays of
+a moving sonar (the platform moves on while the echo travels).
 Not modelled: multiple scattering, diffraction round trunks, the ground's coherent specular
 reflection, leaves' and twigs' Rayleigh regime below k a ~ 1 (overestimated).
 """
@@ -442,10 +444,13 @@ def _coherent(
     c = cfg.speed_of_sound
     d = position - pose.position
     r_all = np.linalg.norm(d, axis=1)
-    eta = np.zeros(len(position))
+    closing = np.zeros(len(position))  # the platform's speed towards each reflector
+    v2 = 0.0
     if velocity is not None and np.any(np.asarray(velocity) != 0):
-        unit = d / np.maximum(r_all, 1e-12)[:, None]
-        eta = 2 * (unit @ np.asarray(velocity, dtype=float)) / c
+        v = np.asarray(velocity, dtype=float)
+        closing = (d / np.maximum(r_all, 1e-12)[:, None]) @ v
+        v2 = float(v @ v)
+    eta = 2 * closing / c
     spectrum = np.zeros(grid.freqs.size, dtype=complex)
     impulse = np.zeros(grid.n_out)  # per second (delta -> fs): the groups' sum (irfft is linear)
     echo = np.zeros(grid.n_out)
@@ -453,12 +458,18 @@ def _coherent(
     ranges = np.zeros(len(position))
     for factor, group in _doppler_groups(eta, cfg.doppler_bins):
         part = np.zeros(grid.freqs.size, dtype=complex)
+        # each reflector's delay where the moving platform hears it, and the group's mean (the
+        # centre of its Doppler compression, below)
+        delays = echo_delay(r_all[group], closing[group], v2, c)
+        centre = float(delays.mean()) if group.size else 0.0
         for start in range(0, group.size, LEAF_CHUNK):
             sel = group[start : start + LEAF_CHUNK]
             amp, r = amplitudes(sel)
             ranges[sel] = r
             energy[sel] = np.mean(np.abs(amp) ** 2, axis=1)
-            tau = 2 * r / c
+            # placed so that compressing the group by its factor about its centre moves each
+            # reflector's echo to its own delay (exact at rest: 2 r / c)
+            tau = centre + factor * (echo_delay(r, closing[sel], v2, c) - centre)
             pos = tau * grid.fs_base
             i0 = np.floor(pos).astype(np.int64)
             frac = pos - i0
@@ -487,11 +498,12 @@ def _coherent(
         rest = np.convolve(impulse_part, grid.call)[: grid.n_out] / cfg.sample_rate
         if factor == 1.0:
             echo += rest
-        else:  # the echo at rest, time-compressed by the factor about the group's delay
-            tau = float(np.mean(2 * ranges[group] / c)) if group.size else 0.0
+        else:  # the echo at rest, time-compressed by the factor about the group's centre
             from scipy.interpolate import CubicSpline
 
-            scaled = CubicSpline(grid.t, rest, extrapolate=False)(tau + factor * (grid.t - tau))
+            scaled = CubicSpline(grid.t, rest, extrapolate=False)(
+                centre + factor * (grid.t - centre)
+            )
             echo += np.nan_to_num(scaled)  # outside the window: silence
     return spectrum, impulse, echo, energy, ranges
 
@@ -502,13 +514,16 @@ def echo_from_targets(
     """Coherent echo of leaves, wood and ground heard by a sonar at ``pose``, within
     ``cfg.max_range`` (wood and ground only where ``cfg.wood`` and ``cfg.ground`` are on).
 
-    With the platform's ``velocity`` (m/s), each reflector's echo is its echo at rest
-    time-compressed by its two-way Doppler factor s = 1 + 2 (v . u) / c (u: the unit vector
-    to it) about its delay, so every frequency f of it arrives as s f: the reflectors are
-    grouped into ``doppler_bins`` factors spanning the pulse's range of them (one reflector,
-    or a sonar at rest, is exact; the compression is a cubic spline at the output rate).
-    ``transfer`` and ``impulse`` are those of the sonar at rest; ``echo`` carries the
-    Doppler."""
+    With the platform's ``velocity`` (m/s, constant while the echo travels), each reflector
+    is heard at :func:`echo_delay` (the platform has moved on: 2 r / (c + v) head-on) and
+    its echo is time-compressed by its two-way Doppler factor s = 1 + 2 (v . u) / c (u: the
+    unit vector to it), so every frequency f of it arrives as s f: the reflectors are grouped
+    into ``doppler_bins`` factors spanning the pulse's range of them, each group's echo
+    compressed about its mean delay with every reflector placed so that the compression
+    lands it at its own delay (one reflector, or a sonar at rest, is exact; the compression
+    is a cubic spline at the output rate). ``transfer`` and ``impulse`` are before the
+    compression (each group's reflectors where the compression starts them); ``echo``
+    carries the Doppler."""
     cfg.check()
     grid = _Grid.of(cfg)
     lv, wood, ground = targets.leaves, targets.wood, targets.ground
@@ -610,6 +625,18 @@ def _labels(tree: np.ndarray, cls: np.ndarray, energy: np.ndarray, r: np.ndarray
     np.minimum.at(out["range_min"], inv, r)
     np.maximum.at(out["range_max"], inv, r)
     return out
+
+
+def echo_delay(r: np.ndarray, closing: np.ndarray, v2: float, c: float) -> np.ndarray:
+    """The delay at which a platform moving at constant velocity v hears the echo of a still
+    reflector at range ``r`` when it sent the pulse: the wave reaches the reflector at r / c
+    and the platform, now at p + v tau, at tau, so |d - v tau| = c tau - r with d the vector
+    to the reflector, whose root is
+
+        tau = 2 (c r - d . v) / (c^2 - |v|^2)
+
+    (``closing`` = d . v / r, ``v2`` = |v|^2); 2 r / (c + v) head-on, 2 r / c at rest."""
+    return 2 * r * (c - closing) / (c * c - v2)
 
 
 def _doppler_groups(eta: np.ndarray, bins: int) -> list[tuple[float, np.ndarray]]:
