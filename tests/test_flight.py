@@ -127,7 +127,7 @@ def test_a_flight_through_a_built_forest_writes_las_and_sonar(tmp_path, runner):
     write_forest(read_recipe(pipe), stand, thumbnail=False)
     out = tmp_path / "run"
     args = ["fly", str(stand), "--line", "1,2,1.5:9,2,1.5", "--speed", "8", "-o", str(out)]
-    r = runner.invoke(app, [*args, "--json"])
+    r = runner.invoke(app, [*args, "--sonar", "paper", "--json"])
     assert r.exit_code == 0, r.output
     summary = json.loads(r.stdout.strip().splitlines()[-1])
     las = laspy.read(str(tmp_path / "run.las"))
@@ -186,6 +186,7 @@ def test_a_short_flight_through_the_default_forest_writes_every_output(tmp_path,
     r = runner.invoke(
         app,
         ["fly", str(forest), "--line", "26,68,2:30,68,2", "--speed", "4", "-o", str(out),
+         "--sonar", "paper",
          "--camera", "pinhole-640", "--camera-rate", "2", "--config", str(cfg), "--json"],
     )  # fmt: skip
     assert r.exit_code == 0, r.output
@@ -213,3 +214,33 @@ def test_a_short_flight_through_the_default_forest_writes_every_output(tmp_path,
     )
     frames = np.load(tmp_path / "run_camera.npz")
     assert frames["depth"].shape == (3, 48, 64) == (summary["camera"]["frames"], 48, 64)
+
+
+def test_a_flight_reports_progress_and_an_interrupted_one_leaves_nothing(
+    tmp_path, runner, monkeypatch
+):
+    """Progress lines name each sensor's work with its count (the sonar only when asked for:
+    it is off by default); Ctrl-C during the sonar, after the lidar has finished, leaves no
+    LAS, no sonar files and no staging folder."""
+    import usdforest.sensors.flight as flight
+
+    stand = tmp_path / "two.usda"
+    pipe = default_recipe_path().parent / "paper-two-tree-stand.toml"
+    write_forest(read_recipe(pipe), stand, thumbnail=False)
+    args = ["fly", str(stand), "--line", "1,2,1.5:9,2,1.5", "--speed", "8"]
+    r = runner.invoke(app, [*args, "-o", str(tmp_path / "a")])
+    assert r.exit_code == 0, r.output
+    assert "lidar sweeps: 10/10" in r.stderr and "sonar" not in r.stderr
+    assert sorted(p.name for p in tmp_path.glob("a*")) == ["a.las"]
+    r = runner.invoke(app, [*args, "-o", str(tmp_path / "b"), "--sonar", "paper", "-q"])
+    assert r.exit_code == 0 and r.stderr == ""
+    assert len(list(tmp_path.glob("b_sonar.*"))) == 3
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(flight, "fly_sonar", interrupted)
+    r = runner.invoke(app, [*args, "-o", str(tmp_path / "c"), "--sonar", "paper"])
+    assert r.exit_code != 0 and "Traceback" not in r.stderr
+    assert "lidar sweeps: 10/10" in r.stderr  # the lidar had finished
+    assert not list(tmp_path.glob("c*")) and not list(tmp_path.glob(".c*"))

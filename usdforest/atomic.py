@@ -133,3 +133,19 @@ def publish(tmp: Path, out: Path, staged_out: Path, moves: list[tuple[Path, Path
             os.replace(dest, tmp / f"old-{dest.name}")
         os.replace(src, dest)
     os.replace(staged_out, out)
+
+
+def move_into_place(moves: list[tuple[Path, Path]]) -> None:
+    """Rename each staged ``(src, dest)`` onto ``dest`` with Ctrl-C held back until the last
+    one has moved, so a set of outputs appears together or not at all."""
+    import signal
+
+    held = hasattr(signal, "pthread_sigmask")
+    if held:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        for src, dest in moves:
+            os.replace(src, dest)
+    finally:
+        if held:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})

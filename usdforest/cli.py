@@ -9,7 +9,8 @@ import functools
 import json
 import os
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
@@ -19,7 +20,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from . import __version__
-from .atomic import refuse_overwrite
+from .atomic import move_into_place, refuse_overwrite, staging_folder
 from .errors import UsdForestError
 from .paths import require_output
 
@@ -410,8 +411,6 @@ def build_cmd(
     require_output(output)
     import time
 
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
     from .usd.forest import write_forest
 
     t0 = time.perf_counter()
@@ -420,29 +419,7 @@ def build_cmd(
         raise UsdForestError(
             "--workers, --scheduler and --untiled apply to a tiled recipe ([tiles] size = ...)"
         )
-    show = not (quiet or as_json)
-    with Progress(
-        TextColumn("{task.description:<18}"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total}"),
-        TimeElapsedColumn(),
-        console=err,
-        disable=not show,
-        transient=True,
-    ) as bar:
-        tasks: dict[str, int] = {}
-        plain = show and not err.is_terminal  # a log file or CI: a short line now and then
-        last = [time.perf_counter()]
-
-        def tick(stage: str, done: int, total: int) -> None:
-            if stage not in tasks:
-                tasks[stage] = bar.add_task(stage, total=total)
-            bar.update(tasks[stage], completed=done, total=total)
-            now = time.perf_counter()
-            if plain and (now - last[0] >= PLAIN_PROGRESS_SECONDS or done == total):
-                last[0] = now
-                err.print(f"{stage}: {done:,}/{total:,} ({now - t0:.0f} s)", highlight=False)
-
+    with _progress(not (quiet or as_json), t0) as tick:
         b = write_forest(
             recipe,
             output,
@@ -806,6 +783,53 @@ def scan_cmd(
         out.print(text, highlight=False)
 
 
+@contextmanager
+def _progress(show: bool, t0: float) -> Iterator[Callable[[str, int, int], None]]:
+    """A ``tick(stage, done, total)`` for long work: rich bars with the time left on a
+    terminal; on a log file or CI a line every few seconds with the time left (each stage's
+    rate so far); nothing when ``show`` is false."""
+    import time
+
+    from rich.progress import (
+        BarColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    with Progress(
+        TextColumn("{task.description:<18}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(),
+        TextColumn("left"),
+        TimeRemainingColumn(),
+        console=err,
+        disable=not show,
+        transient=True,
+    ) as bar:
+        tasks: dict[str, int] = {}
+        began: dict[str, float] = {}
+        plain = show and not err.is_terminal  # a log file or CI: a short line now and then
+        last = [time.perf_counter()]
+
+        def tick(stage: str, done: int, total: int) -> None:
+            now = time.perf_counter()
+            if stage not in tasks:
+                tasks[stage] = bar.add_task(stage, total=total)
+                began[stage] = now
+            bar.update(tasks[stage], completed=done, total=total)
+            if plain and (now - last[0] >= PLAIN_PROGRESS_SECONDS or done == total):
+                last[0] = now
+                left = ""
+                if 0 < done < total:
+                    left = f", about {(now - began[stage]) / done * (total - done):.0f} s left"
+                err.print(f"{stage}: {done:,}/{total:,} ({now - t0:.0f} s{left})", highlight=False)
+
+        yield tick
+
+
 @app.command("fly")
 @handles_errors
 def fly_cmd(
@@ -830,8 +854,12 @@ def fly_cmd(
     ] = "vlp-16",
     lidar_rate: Annotated[float, typer.Option(help="Lidar sweeps per second.")] = 10.0,
     sonar_preset: Annotated[
-        str, typer.Option("--sonar", help="paper, bat-fm, narrow, wide or none.")
-    ] = "paper",
+        str,
+        typer.Option(
+            "--sonar",
+            help="paper, bat-fm, narrow, wide or none (a pulse takes seconds in a closed canopy).",
+        ),
+    ] = "none",
     camera_preset: Annotated[
         str, typer.Option("--camera", help="pinhole-640, d435, fpv-1280 or none.")
     ] = "none",
@@ -844,11 +872,13 @@ def fly_cmd(
         int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise and ground roughness.")
     ] = 0,
     force: Annotated[bool, typer.Option("--force", help="Overwrite the outputs.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
 ) -> None:
     """Fly a lidar, a sonar and a camera through a stage: LAS 1.4 returns with GPS time,
     class and tree id; sonar pulses with Doppler (leaves, wood, ground), a WAV of the flight
-    and an echogram; camera frames (depth, semantic, instance, RGB) and a contact sheet."""
+    and an echogram; camera frames (depth, semantic, instance, RGB) and a contact sheet.
+    Every output appears at the end, together: an interrupted flight leaves none."""
     import time
 
     import numpy as np
@@ -929,31 +959,43 @@ def fly_cmd(
     if (w := unseen_warning(scene)) is not None:
         err.print(f"warning: {w}", highlight=False)
     summary: dict = {"duration_s": traj.duration, "outputs": [str(o) for o in outs]}
-    if lidar_cfg is not None:
-        r = flight.fly_lidar(scene, lidar_cfg, traj, lidar_rate, seed=seed)
-        flight.write_las(r, las)
-        summary["lidar"] = {
-            "sweeps": r.sweeps,
-            "rays": r.n_rays,
-            "returns": len(r),
-            "returns_by_class": class_counts(r.cls),
-        }
-    if sonar_cfg is not None:
-        f = flight.fly_sonar(scene, sonar_cfg, traj, seed=seed)
-        flight.write_flight_echo(f, echo_stem)
-        summary["sonar"] = {
-            "pulses": len(f.t),
-            "max_leaves_in_range": int(f.leaves.max()),
-            "classes_heard": sorted(k for k, v in f.parts.items() if np.any(v)),
-        }
-    if camera_cfg is not None:
-        colours = camera.path_colours(stage, scene.paths)
-        frames = camera.fly_camera(scene, camera_cfg, traj, camera_rate, colours)
-        camera.write_frames(frames, frames_stem)
-        summary["camera"] = {
-            "frames": len(frames),
-            "trees_seen": int(np.unique(frames.instance[frames.instance >= 0]).size),
-        }
+    with _progress(not (quiet or as_json), t0) as tick, staging_folder(output) as tmp:
+        staged = tmp / output.name
+        if lidar_cfg is not None:
+            r = flight.fly_lidar(
+                scene, lidar_cfg, traj, lidar_rate, seed=seed,
+                progress=lambda d, n: tick("lidar sweeps", d, n),
+            )  # fmt: skip
+            flight.write_las(r, staged.with_name(las.name))
+            summary["lidar"] = {
+                "sweeps": r.sweeps,
+                "rays": r.n_rays,
+                "returns": len(r),
+                "returns_by_class": class_counts(r.cls),
+            }
+        if sonar_cfg is not None:
+            f = flight.fly_sonar(
+                scene, sonar_cfg, traj, seed=seed,
+                progress=lambda d, n: tick("sonar pulses", d, n),
+            )  # fmt: skip
+            flight.write_flight_echo(f, staged.with_name(echo_stem.name))
+            summary["sonar"] = {
+                "pulses": len(f.t),
+                "max_leaves_in_range": int(f.leaves.max()),
+                "classes_heard": sorted(k for k, v in f.parts.items() if np.any(v)),
+            }
+        if camera_cfg is not None:
+            colours = camera.path_colours(stage, scene.paths)
+            frames = camera.fly_camera(
+                scene, camera_cfg, traj, camera_rate, colours,
+                progress=lambda d, n: tick("camera frames", d, n),
+            )  # fmt: skip
+            camera.write_frames(frames, staged.with_name(frames_stem.name))
+            summary["camera"] = {
+                "frames": len(frames),
+                "trees_seen": int(np.unique(frames.instance[frames.instance >= 0]).size),
+            }
+        move_into_place([(tmp / o.name, o) for o in outs])
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     if as_json:
         sys.stdout.write(json.dumps(summary) + "\n")

@@ -19,6 +19,7 @@ tan(hfov / 2), cx = (width - 1) / 2, cy = (height - 1) / 2; a point at camera co
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -236,9 +237,11 @@ def fly_camera(
     rate: float,
     colours: np.ndarray,
     caster: SceneCaster | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> Frames:
     """Frames at ``rate`` per second along ``traj`` (a
-    :class:`~usdforest.sensors.flight.Trajectory`), each from the pose at its time."""
+    :class:`~usdforest.sensors.flight.Trajectory`), each from the pose at its time;
+    ``progress(done, total)`` after each frame."""
     times = frame_times(cam, traj, rate)
     shape = (len(times), cam.height, cam.width)
     pos, rot, _ = traj.at(times)
@@ -261,6 +264,8 @@ def fly_camera(
             f.instance,
             f.rgb,
         )
+        if progress is not None:
+            progress(k + 1, len(times))
     return out
 
 

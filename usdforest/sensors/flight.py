@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -144,8 +145,10 @@ def fly_lidar(
     *,
     seed: int = 0,
     caster: SceneCaster | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> FlightReturns:
-    """Sweeps at ``rate`` Hz along ``traj`` (first returns; per-ray time and pose)."""
+    """Sweeps at ``rate`` Hz along ``traj`` (first returns; per-ray time and pose);
+    ``progress(done, total)`` after each sweep."""
     sensor.check()
     if not 0 < rate <= 100:
         raise UsdForestError(f"--lidar-rate: must be in (0, 100] Hz, got {rate:g}")
@@ -173,6 +176,8 @@ def fly_lidar(
                 h.path[hit],
             )
         )
+        if progress is not None:
+            progress(k + 1, len(starts))
     cat = (
         [np.concatenate([p[i] for p in parts]) for i in range(6)]
         if parts
@@ -235,9 +240,16 @@ class FlightEcho:
 
 
 def fly_sonar(
-    scene: Scene, cfg: SonarConfig, traj: Trajectory, *, seed: int = 0, caster=None
+    scene: Scene,
+    cfg: SonarConfig,
+    traj: Trajectory,
+    *,
+    seed: int = 0,
+    caster=None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> FlightEcho:
-    """Pulses at ``cfg.pulse_rate`` along ``traj``, Doppler from the platform's velocity."""
+    """Pulses at ``cfg.pulse_rate`` along ``traj``, Doppler and delays from the platform's
+    velocity; ``progress(done, total)`` after each pulse."""
     cfg.check()
     times = traj.t[0] + np.arange(0.0, traj.duration + 1e-12, 1.0 / cfg.pulse_rate)
     pos, rot, vel = traj.at(times)
@@ -259,6 +271,8 @@ def fly_sonar(
             rows[f] = e.labels[f]
         rows["pulse"] = k
         labels.append(rows)
+        if progress is not None:
+            progress(k + 1, len(times))
     return FlightEcho(
         times,
         pos,
