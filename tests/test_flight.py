@@ -139,6 +139,24 @@ def test_a_flight_through_a_built_forest_writes_las_and_sonar(tmp_path, runner):
     cls = np.asarray(las.usdforest_class)
     assert {1, 3} <= set(np.unique(cls))  # trunk and leaf returns
     assert np.all(np.asarray(las.classification)[cls == 3] == 5)  # high vegetation
+    # one return per pulse, flight line 1, no CRS (the stage has none)
+    assert np.all(las.return_number == 1) and np.all(las.number_of_returns == 1)
+    assert np.all(las.point_source_id == 1) and not las.header.global_encoding.wkt
+    # every point's ring and scan angle are the laser and azimuth it was fired at, seen from
+    # where the trajectory file puts the platform at the point's GPS time
+    traj = np.genfromtxt(tmp_path / "run_trajectory.csv", delimiter=",", names=True)
+    assert traj["t"][0] == 0 and traj["t"][-1] == pytest.approx(1.0)
+    np.testing.assert_allclose(traj["x"], 1 + 8 * traj["t"], atol=1e-6)
+    gps = np.asarray(las.gps_time)
+    at = np.column_stack([np.interp(gps, traj["t"], traj[k]) for k in "xyz"])
+    d = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]) - at
+    azimuth = np.degrees(np.arctan2(d[:, 1], d[:, 0]))  # heading +x: azimuth from forward
+    scan = np.asarray(las.scan_angle) * 0.006
+    assert np.all(np.abs((azimuth - scan + 180) % 360 - 180) < 0.01)
+    elevation = np.degrees(np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1])))
+    ring = np.asarray(las.ring)
+    assert set(np.unique(ring)) <= set(range(16)) and len(np.unique(ring)) > 8
+    np.testing.assert_allclose(elevation, np.linspace(-15, 15, 16)[ring], atol=0.01)
     pulses = np.load(tmp_path / "run_sonar.npz")
     assert pulses["echoes"].shape[0] == summary["sonar"]["pulses"] == 21  # 1 s at 20/s
     np.testing.assert_allclose(pulses["velocity"][:, 0], 8.0)
@@ -199,6 +217,7 @@ def test_a_short_flight_through_the_default_forest_writes_every_output(tmp_path,
         "run_sonar.npz",
         "run_sonar.png",
         "run_sonar.wav",
+        "run_trajectory.csv",
     ]
     las = laspy.read(str(tmp_path / "run.las"))
     assert len(las.points) == summary["lidar"]["returns"] > 10_000
@@ -231,7 +250,7 @@ def test_a_flight_reports_progress_and_an_interrupted_one_leaves_nothing(
     r = runner.invoke(app, [*args, "-o", str(tmp_path / "a")])
     assert r.exit_code == 0, r.output
     assert "lidar sweeps: 10/10" in r.stderr and "sonar" not in r.stderr
-    assert sorted(p.name for p in tmp_path.glob("a*")) == ["a.las"]
+    assert sorted(p.name for p in tmp_path.glob("a*")) == ["a.las", "a_trajectory.csv"]
     r = runner.invoke(app, [*args, "-o", str(tmp_path / "b"), "--sonar", "paper", "-q"])
     assert r.exit_code == 0 and r.stderr == ""
     assert len(list(tmp_path.glob("b_sonar.*"))) == 3

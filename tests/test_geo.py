@@ -316,3 +316,41 @@ def test_a_geopackage_stand(tmp_path):
     (tmp_path / "junk.gpkg").write_bytes(b"not a geopackage")
     with pytest.raises(RecipeError, match=r"region\.file: cannot read junk\.gpkg"):
         _recipe(tmp_path, region={"kind": "file", "file": "junk.gpkg"})
+
+
+def test_a_flight_over_a_georeferenced_forest_writes_map_coordinates_and_its_crs(tmp_path, runner):
+    """A forest in UTM 33N whose stage origin is its plot's centre, flown 3 m over its ground
+    (z is the DEM's elevation, about 107 m there): the flight's LAS carries
+    the WKT bit and a CRS record that pyproj reads as EPSG:32633, every return's x and y in
+    map metres inside the recipe's bounds, and its trajectory in the same coordinates."""
+    pyproj = pytest.importorskip(
+        "pyproj", reason="the LAS CRS record needs pyproj (usdforest[geo])"
+    )
+    import laspy
+
+    from usdforest.cli import app
+
+    _dem(tmp_path / "dem.tif")
+    recipe = _recipe(tmp_path, crs="EPSG:32633", ground={"kind": "raster", "file": "dem.tif"})
+    out = tmp_path / "f.usda"
+    write_forest(recipe, out, thumbnail=False)
+    r = runner.invoke(
+        app,
+        ["fly", str(out), "--line", "-20,0,110:20,0,110", "--speed", "10",
+         "-o", str(tmp_path / "g"), "--lidar-rate", "5", "-q"],
+    )  # fmt: skip
+    assert r.exit_code == 0, r.output
+    las = laspy.read(str(tmp_path / "g.las"))
+    assert las.header.global_encoding.wkt
+    assert pyproj.CRS(las.header.parse_crs()).to_epsg() == 32633
+    x, y, z = (np.asarray(v) for v in (las.x, las.y, las.z))
+    assert len(x) > 1000
+    x0, y0, x1, y1 = E0 + 20, N0 + 20, E0 + 180, N0 + 180
+    assert x.min() > x0 - 10 and x.max() < x1 + 10 and y.min() > y0 - 10 and y.max() < y1 + 10
+    # ground returns lie on the DEM's plane at their map position
+    ground = np.asarray(las.classification) == 2
+    assert ground.sum() > 100
+    np.testing.assert_allclose(z[ground], _plane(x[ground], y[ground]), atol=0.05)
+    traj = np.genfromtxt(tmp_path / "g_trajectory.csv", delimiter=",", names=True)
+    np.testing.assert_allclose(traj["x"][[0, -1]], [E0 + 80, E0 + 120], atol=1e-6)
+    np.testing.assert_allclose(traj["y"], N0 + 100, atol=1e-6)

@@ -839,7 +839,8 @@ def fly_cmd(
         typer.Option(
             "--output",
             "-o",
-            help="Output stem: writes STEM.las, STEM_sonar.npz/.wav/.png and STEM_camera.npz/.png.",
+            help="Output stem: writes STEM.las and STEM_trajectory.csv, STEM_sonar.npz/.wav/.png "
+            "and STEM_camera.npz/.png.",
         ),
     ],
     path: Annotated[
@@ -927,10 +928,11 @@ def fly_cmd(
     if lidar_cfg is None and sonar_cfg is None and camera_cfg is None:
         raise UsdForestError("nothing to fly: --lidar none, --sonar none and --camera none")
     las = output.with_name(output.name + ".las")
+    trajectory = output.with_name(output.name + "_trajectory.csv")
     echo_stem = output.with_name(output.name + "_sonar")
     frames_stem = output.with_name(output.name + "_camera")
     outs = (
-        ([las] if lidar_cfg else [])
+        ([las, trajectory] if lidar_cfg else [])
         + (
             [echo_stem.with_name(echo_stem.name + x) for x in (".npz", ".wav", ".png")]
             if sonar_cfg
@@ -966,7 +968,9 @@ def fly_cmd(
                 scene, lidar_cfg, traj, lidar_rate, seed=seed,
                 progress=lambda d, n: tick("lidar sweeps", d, n),
             )  # fmt: skip
-            flight.write_las(r, staged.with_name(las.name))
+            crs, origin = flight.stage_georeference(stage)
+            flight.write_las(r, staged.with_name(las.name), crs=crs, origin=origin)
+            flight.write_trajectory(traj, staged.with_name(trajectory.name), origin=origin)
             summary["lidar"] = {
                 "sweeps": r.sweeps,
                 "rays": r.n_rays,
@@ -1004,6 +1008,7 @@ def fly_cmd(
     if "lidar" in summary:
         parts.append(
             f"{las}: {summary['lidar']['returns']:,} returns in {summary['lidar']['sweeps']} sweeps"
+            f" (trajectory in {trajectory.name})"
         )
     if "sonar" in summary:
         parts.append(f"{echo_stem}.npz/.wav/.png: {summary['sonar']['pulses']} sonar pulses")

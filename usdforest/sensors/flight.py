@@ -76,6 +76,14 @@ class Trajectory:
     def at(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Positions ``(m, 3)``, rotations ``(m, 3, 3)`` (sensor -> world) and velocities
         ``(m, 3)`` at ``times``."""
+        pos, vel, (yaw, pitch, roll) = self._state(times)
+        return pos, rotations(yaw, pitch, roll), vel
+
+    def attitude(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Yaw, pitch and roll (degrees) at ``times``."""
+        return self._state(times)[2]
+
+    def _state(self, times: np.ndarray):
         times = np.asarray(times, dtype=float)
         pos = np.stack([np.interp(times, self.t, self.position[:, k]) for k in range(3)], 1)
         seg = np.clip(np.searchsorted(self.t, times, side="right") - 1, 0, len(self.t) - 2)
@@ -90,7 +98,7 @@ class Trajectory:
             yaw = np.degrees(yaw)
             pitch = np.interp(times, self.t, self.pitch)
             roll = np.interp(times, self.t, self.roll)
-        return pos, rotations(yaw, pitch, roll), vel
+        return pos, vel, (yaw, pitch, roll)
 
 
 def read_path(path: Path) -> Trajectory:
@@ -132,6 +140,8 @@ class FlightReturns:
     paths: tuple[str, ...]
     n_rays: int
     sweeps: int
+    ring: np.ndarray  # the laser (channel) of each return, 0 the lowest
+    scan_angle: np.ndarray  # its azimuth from the sensor's forward axis, degrees in [-180, 180)
 
     def __len__(self) -> int:
         return len(self.range)
@@ -153,7 +163,9 @@ def fly_lidar(
     if not 0 < rate <= 100:
         raise UsdForestError(f"--lidar-rate: must be in (0, 100] Hz, got {rate:g}")
     caster = caster or SceneCaster(scene)
-    az, _ = sensor.angles()
+    az, el = sensor.angles()
+    ring = np.unique(el, return_inverse=True)[1].astype(np.uint16)
+    scan_angle = (az + 180.0) % 360.0 - 180.0
     local = sensor.directions()
     starts = traj.t[0] + np.arange(0.0, traj.duration, 1.0 / rate)
     parts = []
@@ -174,14 +186,16 @@ def fly_lidar(
                 h.cls[hit],
                 h.tree[hit],
                 h.path[hit],
+                ring[hit],
+                scan_angle[hit],
             )
         )
         if progress is not None:
             progress(k + 1, len(starts))
     cat = (
-        [np.concatenate([p[i] for p in parts]) for i in range(6)]
+        [np.concatenate([p[i] for p in parts]) for i in range(8)]
         if parts
-        else [np.zeros((0, 3)), *(np.zeros(0) for _ in range(5))]
+        else [np.zeros((0, 3)), *(np.zeros(0) for _ in range(7))]
     )
     return FlightReturns(
         cat[0],
@@ -193,33 +207,96 @@ def fly_lidar(
         scene.paths,
         len(starts) * len(local),
         len(starts),
+        cat[6].astype(np.uint16),
+        cat[7],
     )
 
 
-def write_las(r: FlightReturns, out: Path) -> Path:
-    """LAS 1.4, point format 6: x, y, z (0.1 mm), GPS time (s since the flight's start),
-    ASPRS classification, and extra dimensions ``tree_id`` (int32, -1 off any tree) and
-    ``usdforest_class`` (0 unknown, 1 trunk, 2 branch, 3 leaf, 4 ground)."""
+def stage_georeference(stage: str | Path) -> tuple[str | None, np.ndarray]:
+    """The CRS a forest's root layer records (``customLayerData`` ``crs``, e.g. "EPSG:32633")
+    and where the stage's origin is in it (``crsOrigin``, x and y); ``(None, 0)`` for a stage
+    that is not georeferenced."""
+    from pxr import Sdf
+
+    layer = Sdf.Layer.FindOrOpen(str(stage))
+    data = dict(layer.customLayerData) if layer is not None else {}
+    crs = data.get("crs")
+    origin = np.array(list(data.get("crsOrigin", (0.0, 0.0))), dtype=float)
+    return (str(crs) if crs else None), origin
+
+
+def write_las(
+    r: FlightReturns,
+    out: Path,
+    *,
+    crs: str | None = None,
+    origin: np.ndarray | None = None,
+    flight_line: int = 1,
+) -> Path:
+    """LAS 1.4, point format 6, as point-cloud tools expect it: x, y, z (0.1 mm; in ``crs``
+    with the stage origin's map position ``origin`` added to x and y), GPS time (the path's
+    seconds), return 1 of 1 (one return per pulse), scan angle (the laser's azimuth from the
+    platform's forward axis), point source = ``flight_line``, ASPRS classification, and the
+    extra dimensions ``ring`` (uint16, the laser: 0 the lowest), ``tree_id`` (int32, -1 off
+    any tree) and ``usdforest_class`` (0 unknown, 1 trunk, 2 branch, 3 leaf, 4 ground). With a
+    ``crs`` the global encoding's WKT bit is set and a WKT CRS record written (pyproj)."""
     import laspy
 
+    shift = np.zeros(3)
+    if origin is not None:
+        shift[:2] = origin
+    points = r.points + shift
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.scales = np.array([1e-4, 1e-4, 1e-4])
-    header.offsets = np.floor(r.points.min(axis=0)) if len(r) else np.zeros(3)
+    header.offsets = np.floor(points.min(axis=0)) if len(r) else shift
+    if crs is not None:
+        try:
+            import pyproj
+        except ImportError:
+            raise UsdForestError(
+                f"{out}: a georeferenced flight ({crs}) needs pyproj for the LAS CRS record: "
+                "pip install 'usdforest[geo]'"
+            ) from None
+        header.add_crs(pyproj.CRS.from_user_input(crs))
     header.add_extra_dims(
         [
+            laspy.ExtraBytesParams(name="ring", type=np.uint16),
             laspy.ExtraBytesParams(name="tree_id", type=np.int32),
             laspy.ExtraBytesParams(name="usdforest_class", type=np.uint8),
         ]
     )
     las = laspy.LasData(header)
-    las.x, las.y, las.z = r.points[:, 0], r.points[:, 1], r.points[:, 2]
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
     las.gps_time = r.gps_time
+    las.return_number = np.ones(len(r), np.uint8)
+    las.number_of_returns = np.ones(len(r), np.uint8)
+    las.scan_angle = np.round(r.scan_angle / 0.006).astype(np.int16)  # 0.006 degree units
+    las.point_source_id = np.full(len(r), flight_line, np.uint16)
     lut = np.array([ASPRS[c] for c in CLASSES], dtype=np.uint8)
     las.classification = lut[r.cls]
+    las.ring = r.ring
     las.tree_id = r.tree
     las.usdforest_class = r.cls
     with atomic_path(out) as tmp:
         las.write(str(tmp))
+    return out
+
+
+def write_trajectory(
+    traj: Trajectory, out: Path, *, origin: np.ndarray | None = None, rate: float = 100.0
+) -> Path:
+    """The platform's trajectory beside its LAS: a CSV ``t,x,y,z,yaw,pitch,roll`` (s, the
+    LAS's coordinates, degrees) at ``rate`` Hz and at the path's end."""
+    times = np.unique(np.append(traj.t[0] + np.arange(0.0, traj.duration, 1.0 / rate), traj.t[-1]))
+    pos, _, _ = traj.at(times)
+    if origin is not None:
+        pos = pos + np.array([origin[0], origin[1], 0.0])
+    yaw, pitch, roll = traj.attitude(times)
+    table = np.column_stack([times, pos, yaw, pitch, roll])
+    with atomic_path(out) as tmp:
+        np.savetxt(
+            tmp, table, fmt="%.6f", delimiter=",", header="t,x,y,z,yaw,pitch,roll", comments=""
+        )
     return out
 
 
