@@ -263,3 +263,24 @@ def test_a_flight_reports_progress_and_an_interrupted_one_leaves_nothing(
     assert r.exit_code != 0 and "Traceback" not in r.stderr
     assert "lidar sweeps: 10/10" in r.stderr  # the lidar had finished
     assert not list(tmp_path.glob("c*")) and not list(tmp_path.glob(".c*"))
+
+
+def test_a_near_leaf_among_far_ones_keeps_its_delay_when_moving():
+    """One Doppler group (``doppler_bins = 1``) holding a disk 0.3 m ahead and ten 9 m
+    ahead, the sonar closing at 8 m/s: every echo inside the window (none placed before
+    t = 0), the near disk's impulse peak at 2 r / (c + v) within 1 mm of range."""
+    cfg = SonarConfig(leaf_model="disk", doppler_bins=1)
+    c, v = cfg.speed_of_sound, 8.0
+    xs = np.array([0.3] + [9.0] * 10)
+    ys = np.r_[0.0, np.linspace(-0.5, 0.5, 10)]
+    leaves = Leaves(
+        np.column_stack([xs, ys, np.zeros(11)]),
+        np.tile([-1.0, 0.0, 0.0], (11, 1)),
+        np.full(11, math.pi * 0.03**2),
+        np.zeros(11, np.int64),
+    )
+    e = echo_from_leaves(leaves, Pose(0, 0, 0), cfg, velocity=np.array([v, 0, 0]))
+    assert np.all(np.isfinite(e.echo)) and np.abs(e.echo).max() > 0
+    near = e.t < 0.5 * (2 * 0.3 / c + 2 * 9.0 / c)
+    t = e.t[near][np.argmax(np.abs(e.impulse[near]))]
+    assert abs(t - 2 * 0.3 / (c + v)) * c / 2 < 1e-3

@@ -458,10 +458,11 @@ def _coherent(
     ranges = np.zeros(len(position))
     for factor, group in _doppler_groups(eta, cfg.doppler_bins):
         part = np.zeros(grid.freqs.size, dtype=complex)
-        # each reflector's delay where the moving platform hears it, and the group's mean (the
-        # centre of its Doppler compression, below)
+        # the centre of the group's Doppler compression (below): its first delay, so that no
+        # reflector is placed before the window's start (any centre lands each reflector at
+        # its own delay)
         delays = echo_delay(r_all[group], closing[group], v2, c)
-        centre = float(delays.mean()) if group.size else 0.0
+        centre = float(delays.min()) if group.size else 0.0
         for start in range(0, group.size, LEAF_CHUNK):
             sel = group[start : start + LEAF_CHUNK]
             amp, r = amplitudes(sel)
@@ -469,7 +470,7 @@ def _coherent(
             energy[sel] = np.mean(np.abs(amp) ** 2, axis=1)
             # placed so that compressing the group by its factor about its centre moves each
             # reflector's echo to its own delay (exact at rest: 2 r / c)
-            tau = centre + factor * (echo_delay(r, closing[sel], v2, c) - centre)
+            tau = np.maximum(centre + factor * (echo_delay(r, closing[sel], v2, c) - centre), 0)
             pos = tau * grid.fs_base
             i0 = np.floor(pos).astype(np.int64)
             frac = pos - i0
@@ -519,7 +520,7 @@ def echo_from_targets(
     its echo is time-compressed by its two-way Doppler factor s = 1 + 2 (v . u) / c (u: the
     unit vector to it), so every frequency f of it arrives as s f: the reflectors are grouped
     into ``doppler_bins`` factors spanning the pulse's range of them, each group's echo
-    compressed about its mean delay with every reflector placed so that the compression
+    compressed about its first delay with every reflector placed so that the compression
     lands it at its own delay (one reflector, or a sonar at rest, is exact; the compression
     is a cubic spline at the output rate). ``transfer`` and ``impulse`` are before the
     compression (each group's reflectors where the compression starts them); ``echo``
