@@ -495,3 +495,67 @@ def test_a_lone_trees_leaves_cast_like_their_triangles_copied(tmp_path):
     assert len(inst.triangles) < len(flat.triangles) / 2
     _same_as_copied(h, flat, t, prim, 800)
     assert set(np.unique(h.tree[h.hit])) == {0}
+
+
+def _host_stage(path, forest, *, up: str, cm: bool):
+    """A host stage in its own units and up axis that references ``forest`` under the
+    transform that corrects it (Z-up metres into Y-up: turned -90 degrees about X; into
+    centimetres: scaled 100)."""
+    from pxr import Gf, Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up == "Y" else UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01 if cm else 1.0)
+    world = UsdGeom.Xform.Define(stage, "/World")
+    plot = UsdGeom.Xform.Define(stage, "/World/Forest")
+    if cm:
+        plot.AddScaleOp().Set(Gf.Vec3f(100.0, 100.0, 100.0))
+    if up == "Y":
+        plot.AddRotateXOp().Set(-90.0)
+    plot.GetPrim().GetReferences().AddReference(str(forest))
+    stage.SetDefaultPrim(world.GetPrim())
+    stage.Save()
+    return path
+
+
+@pytest.mark.parametrize(("up", "cm"), [("Y", True), ("Z", True), ("Y", False)])
+def test_a_y_up_centimetre_host_scans_like_the_forest_itself(tmp_path, runner, up, cm):
+    """A forest referenced into a host stage of other units or up axis, with the transform
+    that corrects it: a lidar and a camera posed in the host's own units and axes (the same
+    place: x, y, z in metres is 100 x, 100 z, -100 y in a Y-up centimetre stage) give the
+    same returns (same rays, ranges within 1 mm, points in metres Z up) and the same images
+    as the forest scanned itself."""
+    from usdforest.recipe import default_recipe_path, read_recipe
+    from usdforest.usd.forest import write_forest
+
+    forest = tmp_path / "f.usda"
+    pipe = default_recipe_path().parent / "paper-two-tree-stand.toml"
+    write_forest(read_recipe(pipe), forest, thumbnail=False)
+    host = _host_stage(tmp_path / "host.usda", forest, up=up, cm=cm)
+    x, y, z = 1.0, 2.0, 1.5
+    hx, hy, hz = (x, z, -y) if up == "Y" else (x, y, z)
+    k = 100.0 if cm else 1.0
+    pose, host_pose = f"{x},{y},{z},0", f"{hx * k},{hy * k},{hz * k},0"
+    got = {}
+    for name, stage, where in (("own", forest, pose), ("host", host, host_pose)):
+        for sensor in ("lidar", "camera"):
+            out = tmp_path / f"{name}_{sensor}.npz"
+            r = runner.invoke(
+                app,
+                ["scan", str(stage), "--sensor", sensor, "--pose", where, "-o", str(out), "--json"],
+            )
+            assert r.exit_code == 0, r.output
+            got[name, sensor] = np.load(out)
+    a, b = got["own", "lidar"], got["host", "lidar"]
+    assert len(a["ray"]) > 500
+    shared, ia, ib = np.intersect1d(a["ray"], b["ray"], return_indices=True)
+    assert len(shared) >= 0.999 * max(len(a["ray"]), len(b["ray"]))
+    np.testing.assert_allclose(b["range"][ib], a["range"][ia], atol=1e-3)
+    np.testing.assert_allclose(b["points"][ib], a["points"][ia], atol=1e-3)
+    assert np.mean(b["cls"][ib] == a["cls"][ia]) > 0.999
+    a, b = got["own", "camera"], got["host", "camera"]
+    seen = np.isfinite(a["depth"]) & np.isfinite(b["depth"])
+    assert seen.sum() > 5000  # pixels on a tree
+    assert np.mean(np.isfinite(a["depth"]) == np.isfinite(b["depth"])) > 0.999
+    assert np.mean(np.abs(a["depth"][seen] - b["depth"][seen]) < 1e-3) > 0.999
+    assert np.mean(a["semantic"] == b["semantic"]) > 0.999

@@ -652,7 +652,7 @@ def scan_cmd(
     from .sensors.checks import check_not_inside_wood, pose_warnings, unseen_warning
     from .sensors.pose import parse_pose
     from .sensors.raycast import SceneCaster
-    from .sensors.scene import class_counts, extract_scene
+    from .sensors.scene import class_counts, extract_scene, stage_frame, to_frame
 
     kinds = {
         "lidar": (lidar.PRESETS, "vlp-16"),
@@ -673,6 +673,9 @@ def scan_cmd(
     }.get(sensor, [])
     refuse_overwrite(output, *companions, force=force)
     p = parse_pose(pose)
+    # the pose is in the stage's own units and axes; sensors work in metres, Z up
+    x, y, z = to_frame(p.position, stage_frame(stage))
+    p = dataclasses.replace(p, x=float(x), y=float(y), z=float(z))
     presets, default = kinds[sensor]
     name = preset or default
     if name not in presets:
@@ -880,6 +883,7 @@ def fly_cmd(
     class and tree id; sonar pulses with Doppler (leaves, wood, ground), a WAV of the flight
     and an echogram; camera frames (depth, semantic, instance, RGB) and a contact sheet.
     Every output appears at the end, together: an interrupted flight leaves none."""
+    import dataclasses
     import time
 
     import numpy as np
@@ -887,12 +891,13 @@ def fly_cmd(
     from .config import check_keys, load_toml, override
     from .sensors import camera, flight, lidar, sonar
     from .sensors.checks import unseen_warning
-    from .sensors.scene import class_counts, extract_scene
+    from .sensors.scene import class_counts, extract_scene, stage_frame, to_frame
 
     if (path is None) == (line is None):
         raise UsdForestError("give the flight as --path CSV or as --line x0,y0,z0:x1,y1,z1")
     if path is not None:
         traj = flight.read_path(path)
+        traj = dataclasses.replace(traj, position=to_frame(traj.position, stage_frame(stage)))
     else:
         try:
             a, b = ([float(v) for v in end.split(",")] for end in line.split(":"))
@@ -900,7 +905,7 @@ def fly_cmd(
                 raise ValueError
         except ValueError:
             raise UsdForestError(f"--line: expected x0,y0,z0:x1,y1,z1, got {line!r}") from None
-        traj = flight.Trajectory.line(a, b, speed)
+        traj = flight.Trajectory.line(*(to_frame(v, stage_frame(stage)) for v in (a, b)), speed)
     tables = {}
     if config is not None:
         tables = load_toml(config)

@@ -354,6 +354,33 @@ def _placed_leaves(
     return Leaves(c[keep], n, lv.area[keep] * s2, np.full(int(keep.sum()), tree, np.int64))
 
 
+def stage_frame(stage_path: str | Path) -> np.ndarray:
+    """The row-vector 4x4 from a stage's own units and axes to the sensors' frame (metres, Z
+    up): ``metersPerUnit`` and ``upAxis`` as its root layer authors them (a Y-up stage is
+    turned +90 degrees about X, so its +Y becomes +Z and its +Z becomes -Y); unauthored
+    metadata is taken as usdforest writes it, metres and Z up, not USD's fallbacks."""
+    from pxr import Sdf
+
+    m = np.eye(4)
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(stage_path))
+    except Exception:  # not USD: opening the stage names the problem
+        return m
+    if layer is None:
+        return m
+    root = layer.pseudoRoot
+    if root.HasInfo("metersPerUnit"):
+        m[:3, :3] *= float(root.GetInfo("metersPerUnit"))
+    if root.HasInfo("upAxis") and str(root.GetInfo("upAxis")).upper() == "Y":
+        m = m @ np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
+    return m
+
+
+def to_frame(points: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """``points (..., 3)`` in a stage's own units and axes, in the sensors' frame."""
+    return np.asarray(points, dtype=float) @ frame[:3, :3] + frame[3, :3]
+
+
 def extract_scene(
     stage_path: str | Path,
     *,
@@ -363,14 +390,16 @@ def extract_scene(
     leaf_triangles: bool = True,
     reflectors: bool = True,
 ) -> Scene:
-    """Triangles and leaf reflectors of a stage, culled to a sphere around ``centre``.
+    """Triangles and leaf reflectors of a stage, culled to a sphere around ``centre``, in
+    metres with Z up whatever the stage's own units and up axis (:func:`stage_frame`).
 
     Parameters
     ----------
     stage_path
         Any USD stage: a tree, a forest, a simulation stage that references them.
     centre, radius
-        Keep only tree instances and leaves within ``radius`` of ``centre`` (all when omitted).
+        Keep only tree instances and leaves within ``radius`` of ``centre`` (all when
+        omitted), both in metres in the sensors' frame.
     instancing
         Keep tree instances as transforms of their prototypes (default) or copy triangles.
     leaf_triangles
@@ -385,6 +414,7 @@ def extract_scene(
 
     path = Path(stage_path)
     stage = open_stage(path, sound=True)
+    frame = stage_frame(path)
     cache = UsdGeom.XformCache()
     bbox = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"], True)
     paths: list[str] = []
@@ -442,6 +472,8 @@ def extract_scene(
         if key in memo:
             return memo[key]
         inv = np.linalg.inv(_m(cache.GetLocalToWorldTransform(prim)))
+        if top:  # the world: in metres, Z up
+            inv = inv @ frame
         parts = []
         it = iter(Usd.PrimRange(prim, Usd.TraverseInstanceProxies()))
         for p in it:
@@ -492,7 +524,7 @@ def extract_scene(
             if ids_attr is not None and len(ids_attr)
             else np.arange(len(idx), dtype=np.int64)
         )
-        to_world = _m(cache.GetLocalToWorldTransform(p))
+        to_world = _m(cache.GetLocalToWorldTransform(p)) @ frame
         out = []
         for k, target in enumerate(pi.GetPrototypesRel().GetTargets()):
             sel = np.flatnonzero(idx == k)
@@ -530,7 +562,7 @@ def extract_scene(
                 ext = bbox.ComputeUntransformedBound(proto).ComputeAlignedRange()
                 r_proto = float(np.linalg.norm(np.array(ext.GetMax()) - np.array(ext.GetMin())))
                 world_pos = xf[sel, 3, :3] @ to_world[:3, :3] + to_world[3, :3]
-                scale = np.cbrt(np.abs(np.linalg.det(xf[sel, :3, :3])))
+                scale = np.cbrt(np.abs(np.linalg.det(xf[sel, :3, :3] @ to_world[:3, :3])))
                 sel = sel[np.linalg.norm(world_pos - centre, axis=1) <= radius + r_proto * scale]
                 if sel.size == 0:
                     continue
@@ -548,11 +580,14 @@ def extract_scene(
 
     root = stage.GetPseudoRoot()
     world_box = bbox.ComputeWorldBound(root).ComputeAlignedRange()
-    bounds = (
-        np.array([world_box.GetMin(), world_box.GetMax()])
-        if not world_box.IsEmpty()
-        else np.zeros((2, 3))
-    )
+    if world_box.IsEmpty():
+        bounds = np.zeros((2, 3))
+    else:
+        lo, hi = np.array(world_box.GetMin()), np.array(world_box.GetMax())
+        corners = to_frame(
+            np.array([[(lo, hi)[b >> k & 1][k] for k in range(3)] for b in range(8)]), frame
+        )
+        bounds = np.array([corners.min(axis=0), corners.max(axis=0)])
     part = subtree(root, top=True)
     realised = [_realise(b, centre, radius, geometry, reflectors) for b in part.batches]
     whole = _Part.concat([part, *(r[1] for r in realised)])
