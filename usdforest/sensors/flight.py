@@ -27,7 +27,7 @@ from ..atomic import atomic_path, save_npz
 from ..errors import UsdForestError
 from ..paths import require_file
 from ..seeds import stream
-from .lidar import SpinningLidar
+from .lidar import SpinningLidar, intensity
 from .pose import Pose, rotations
 from .raycast import SceneCaster
 from .scene import CLASSES, Scene
@@ -142,6 +142,7 @@ class FlightReturns:
     sweeps: int
     ring: np.ndarray  # the laser (channel) of each return, 0 the lowest
     scan_angle: np.ndarray  # its azimuth from the sensor's forward axis, degrees in [-180, 180)
+    intensity: np.ndarray  # uint16, see usdforest.sensors.lidar.intensity
 
     def __len__(self) -> int:
         return len(self.range)
@@ -188,14 +189,15 @@ def fly_lidar(
                 h.path[hit],
                 ring[hit],
                 scan_angle[hit],
+                intensity(h.cls[hit], np.einsum("nk,nk->n", dirs[hit], h.normal[hit]), h.t[hit]),
             )
         )
         if progress is not None:
             progress(k + 1, len(starts))
     cat = (
-        [np.concatenate([p[i] for p in parts]) for i in range(8)]
+        [np.concatenate([p[i] for p in parts]) for i in range(9)]
         if parts
-        else [np.zeros((0, 3)), *(np.zeros(0) for _ in range(7))]
+        else [np.zeros((0, 3)), *(np.zeros(0) for _ in range(8))]
     )
     return FlightReturns(
         cat[0],
@@ -209,6 +211,7 @@ def fly_lidar(
         len(starts),
         cat[6].astype(np.uint16),
         cat[7],
+        cat[8].astype(np.uint16),
     )
 
 
@@ -235,7 +238,8 @@ def write_las(
 ) -> Path:
     """LAS 1.4, point format 6, as point-cloud tools expect it: x, y, z (0.1 mm; in ``crs``
     with the stage origin's map position ``origin`` added to x and y), GPS time (the path's
-    seconds), return 1 of 1 (one return per pulse), scan angle (the laser's azimuth from the
+    seconds), return 1 of 1 (one return per pulse), intensity (the lidar equation, see
+    :func:`usdforest.sensors.lidar.intensity`), scan angle (the laser's azimuth from the
     platform's forward axis), point source = ``flight_line``, ASPRS classification, and the
     extra dimensions ``ring`` (uint16, the laser: 0 the lowest), ``tree_id`` (int32, -1 off
     any tree) and ``usdforest_class`` (0 unknown, 1 trunk, 2 branch, 3 leaf, 4 ground). With a
@@ -270,6 +274,7 @@ def write_las(
     las.gps_time = r.gps_time
     las.return_number = np.ones(len(r), np.uint8)
     las.number_of_returns = np.ones(len(r), np.uint8)
+    las.intensity = r.intensity
     las.scan_angle = np.round(r.scan_angle / 0.006).astype(np.int16)  # 0.006 degree units
     las.point_source_id = np.full(len(r), flight_line, np.uint16)
     lut = np.array([ASPRS[c] for c in CLASSES], dtype=np.uint8)

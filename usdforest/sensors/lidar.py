@@ -104,9 +104,31 @@ PRESETS: dict[str, SpinningLidar | DepthCamera] = {
 }
 
 
+# Hemispherical reflectance near 905 nm (the VLP-16's 903 nm; leaves differ by under 0.01 at
+# the OS1's 865 nm) per class, from docs/notes/lidar-radiometry.md: Norway spruce needles
+# 0.487 (RAMI-V Järvselja, Tartu Observatory) and broadleaves 0.44-0.51 (PROSPECT-D), so 0.47
+# for leaves and shoots; spruce and hardwood bark 0.34-0.36 (RAMI-V), so 0.35 for wood
+# (birch bark is brighter, 0.44-0.46); the forest floor between PROSAIL's wet (0.08) and dry
+# (0.43) soil, 0.25 (no measured figure: a guess); anything unlabelled 0.5.
+REFLECTANCE = {"unknown": 0.5, "trunk": 0.35, "branch": 0.35, "leaf": 0.47, "ground": 0.25}
+# the intensity of a Lambertian target of reflectance 1 facing the sensor 1 m away
+INTENSITY_GAIN = 65535.0
+
+
+def intensity(cls: np.ndarray, cos_incidence: np.ndarray, rng: np.ndarray) -> np.ndarray:
+    """``uint16`` return intensities by the lidar equation for an extended Lambertian target:
+    ``INTENSITY_GAIN`` x reflectance (of each return's class) x |cos incidence| / range^2
+    (range in metres), rounded, and saturated at 65,535 (a bright target closer than 1 m)."""
+    rho = np.array([REFLECTANCE[c] for c in CLASSES])[np.asarray(cls, dtype=np.int64)]
+    r = np.maximum(np.asarray(rng, dtype=float), 1e-6)
+    value = INTENSITY_GAIN * rho * np.abs(cos_incidence) / (r * r)
+    return np.minimum(np.round(value), 65535).astype(np.uint16)
+
+
 @dataclass(frozen=True, eq=False)
 class Returns:
-    """First returns: world points, ranges, ray index, class, tree id and prim path."""
+    """First returns: world points, ranges, ray index, class, tree id, prim path and
+    intensity (see :func:`intensity`)."""
 
     points: np.ndarray
     range: np.ndarray
@@ -117,6 +139,7 @@ class Returns:
     paths: tuple[str, ...]
     n_rays: int
     sensor: dict
+    intensity: np.ndarray
 
     def __len__(self) -> int:
         return int(self.range.shape[0])
@@ -141,6 +164,7 @@ def scan(
     if sensor.range_noise > 0:
         rng_ = rng_ + stream(seed, "lidar-noise").normal(0.0, sensor.range_noise, hit.size)
     pts = pose.position + dirs[hit] * rng_[:, None]
+    cos = np.einsum("nk,nk->n", dirs[hit], h.normal[hit])
     return Returns(
         pts,
         rng_,
@@ -151,6 +175,7 @@ def scan(
         scene.paths,
         len(dirs),
         {**asdict(sensor), "pose": asdict(pose)},
+        intensity(h.cls[hit], cos, h.t[hit]),
     )
 
 
@@ -166,6 +191,7 @@ def write_returns(r: Returns, out: str | Path) -> None:
             cls=r.cls,
             tree=r.tree,
             path=r.path,
+            intensity=r.intensity,
             paths=np.array(r.paths, dtype=str),
             classes=np.array(CLASSES),
             n_rays=r.n_rays,
@@ -186,11 +212,12 @@ def write_returns(r: Returns, out: str | Path) -> None:
             ("tree", "<i4"),
             ("path", "<i4"),
             ("ray", "<i4"),
+            ("intensity", "<u2"),
         ],
     )
     rec["x"], rec["y"], rec["z"] = r.points.T
     rec["range"], rec["class"], rec["tree"] = r.range, r.cls, r.tree
-    rec["path"], rec["ray"] = r.path, r.ray
+    rec["path"], rec["ray"], rec["intensity"] = r.path, r.ray, r.intensity
     header = "\n".join(
         [
             "ply",
@@ -207,6 +234,7 @@ def write_returns(r: Returns, out: str | Path) -> None:
             "property int tree",
             "property int path",
             "property int ray",
+            "property ushort intensity",
             "end_header",
             "",
         ]
