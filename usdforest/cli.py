@@ -606,7 +606,9 @@ def plot_sites_cmd(
 def scan_cmd(
     stage: Annotated[Path, typer.Argument(help="Any stage that composes trees or forests.")],
     sensor: Annotated[str, typer.Option(help="lidar, sonar or camera.")],
-    pose: Annotated[str, typer.Option(help="x,y,z[,yaw,pitch,roll] (m, degrees).")],
+    pose: Annotated[
+        str, typer.Option(help="x,y,z[,yaw,pitch,roll] (the stage's units and axes, degrees).")
+    ],
     output: Annotated[
         Path,
         typer.Option(
@@ -847,10 +849,12 @@ def fly_cmd(
         ),
     ],
     path: Annotated[
-        Path | None, typer.Option(help="CSV of poses: t,x,y,z[,yaw,pitch,roll] (s, m, deg).")
+        Path | None,
+        typer.Option(help="CSV of poses: t,x,y,z[,yaw,pitch,roll] (s, stage units, deg)."),
     ] = None,
     line: Annotated[
-        str | None, typer.Option(help="x0,y0,z0:x1,y1,z1, a straight flight (with --speed).")
+        str | None,
+        typer.Option(help="x0,y0,z0:x1,y1,z1 in the stage's units, flown at --speed."),
     ] = None,
     speed: Annotated[float, typer.Option(help="m/s along --line.")] = 2.0,
     lidar_preset: Annotated[
