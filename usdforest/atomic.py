@@ -69,26 +69,34 @@ def staging_folder(out: Path) -> Iterator[Path]:
     the next build sweeps away).
     """
     import shutil
-    import signal
 
     out.parent.mkdir(parents=True, exist_ok=True)
     sweep_stale_builds(out)
+    tmp = None
+    try:
+        with sigint_held():  # an interrupt held here arrives inside the try: tmp is removed
+            tmp = Path(tempfile.mkdtemp(prefix=f".{out.stem}{BUILD_MARK}", dir=out.parent))
+            (tmp / "pid").write_text(str(os.getpid()))
+        yield tmp
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+@contextmanager
+def sigint_held() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) back while the block runs; a held one arrives when it ends (where
+    the platform cannot block signals, the block is not protected)."""
+    import signal
+
     held = hasattr(signal, "pthread_sigmask")
     if held:
         signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    tmp = None
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.stem}{BUILD_MARK}", dir=out.parent))
-        (tmp / "pid").write_text(str(os.getpid()))
-        if held:
-            held = False
-            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
-        yield tmp
+        yield
     finally:
         if held:
             signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
-        if tmp is not None:
-            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _alive(pid: int) -> bool:
@@ -138,14 +146,6 @@ def publish(tmp: Path, out: Path, staged_out: Path, moves: list[tuple[Path, Path
 def move_into_place(moves: list[tuple[Path, Path]]) -> None:
     """Rename each staged ``(src, dest)`` onto ``dest`` with Ctrl-C held back until the last
     one has moved, so a set of outputs appears together or not at all."""
-    import signal
-
-    held = hasattr(signal, "pthread_sigmask")
-    if held:
-        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    try:
+    with sigint_held():
         for src, dest in moves:
             os.replace(src, dest)
-    finally:
-        if held:
-            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
