@@ -899,9 +899,10 @@ def fly_cmd(
 
     if (path is None) == (line is None):
         raise UsdForestError("give the flight as --path CSV or as --line x0,y0,z0:x1,y1,z1")
+    frame = stage_frame(stage)  # the path is in the stage's units and axes
     if path is not None:
         traj = flight.read_path(path)
-        traj = dataclasses.replace(traj, position=to_frame(traj.position, stage_frame(stage)))
+        traj = dataclasses.replace(traj, position=to_frame(traj.position, frame))
     else:
         try:
             a, b = ([float(v) for v in end.split(",")] for end in line.split(":"))
@@ -909,7 +910,7 @@ def fly_cmd(
                 raise ValueError
         except ValueError:
             raise UsdForestError(f"--line: expected x0,y0,z0:x1,y1,z1, got {line!r}") from None
-        traj = flight.Trajectory.line(*(to_frame(v, stage_frame(stage)) for v in (a, b)), speed)
+        traj = flight.Trajectory.line(to_frame(a, frame), to_frame(b, frame), speed)
     tables = {}
     if config is not None:
         tables = load_toml(config)

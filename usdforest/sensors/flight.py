@@ -27,7 +27,7 @@ from ..atomic import atomic_path, save_npz
 from ..errors import UsdForestError
 from ..paths import require_file
 from ..seeds import stream
-from .lidar import SpinningLidar, intensity
+from .lidar import SpinningLidar, hit_intensity
 from .pose import Pose, rotations
 from .raycast import SceneCaster
 from .scene import CLASSES, Scene
@@ -189,7 +189,7 @@ def fly_lidar(
                 h.path[hit],
                 ring[hit],
                 scan_angle[hit],
-                intensity(h.cls[hit], np.einsum("nk,nk->n", dirs[hit], h.normal[hit]), h.t[hit]),
+                hit_intensity(h, dirs, hit),
             )
         )
         if progress is not None:

@@ -115,6 +115,13 @@ REFLECTANCE = {"unknown": 0.5, "trunk": 0.35, "branch": 0.35, "leaf": 0.47, "gro
 INTENSITY_GAIN = 65535.0
 
 
+def hit_intensity(h, dirs: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    """:func:`intensity` of the rays ``hit`` (indices) among ``h``'s, cast along unit
+    ``dirs``: incidence on the hit triangle's normal, the true (noise-free) distance."""
+    cos = np.einsum("nk,nk->n", dirs[hit], h.normal[hit])
+    return intensity(h.cls[hit], cos, h.t[hit])
+
+
 def intensity(cls: np.ndarray, cos_incidence: np.ndarray, rng: np.ndarray) -> np.ndarray:
     """``uint16`` return intensities by the lidar equation for an extended Lambertian target:
     ``INTENSITY_GAIN`` x reflectance (of each return's class) x |cos incidence| / range^2
@@ -164,7 +171,6 @@ def scan(
     if sensor.range_noise > 0:
         rng_ = rng_ + stream(seed, "lidar-noise").normal(0.0, sensor.range_noise, hit.size)
     pts = pose.position + dirs[hit] * rng_[:, None]
-    cos = np.einsum("nk,nk->n", dirs[hit], h.normal[hit])
     return Returns(
         pts,
         rng_,
@@ -175,7 +181,7 @@ def scan(
         scene.paths,
         len(dirs),
         {**asdict(sensor), "pose": asdict(pose)},
-        intensity(h.cls[hit], cos, h.t[hit]),
+        hit_intensity(h, dirs, hit),
     )
 
 

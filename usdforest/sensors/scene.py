@@ -583,11 +583,10 @@ def extract_scene(
     if world_box.IsEmpty():
         bounds = np.zeros((2, 3))
     else:
-        lo, hi = np.array(world_box.GetMin()), np.array(world_box.GetMax())
-        corners = to_frame(
-            np.array([[(lo, hi)[b >> k & 1][k] for k in range(3)] for b in range(8)]), frame
+        lo, hi = moved_boxes(
+            np.array([world_box.GetMin()]), np.array([world_box.GetMax()]), frame[None]
         )
-        bounds = np.array([corners.min(axis=0), corners.max(axis=0)])
+        bounds = np.concatenate([lo, hi])
     part = subtree(root, top=True)
     realised = [_realise(b, centre, radius, geometry, reflectors) for b in part.batches]
     whole = _Part.concat([part, *(r[1] for r in realised)])
