@@ -139,8 +139,17 @@ def test_a_flight_through_a_built_forest_writes_las_and_sonar(tmp_path, runner):
     cls = np.asarray(las.usdforest_class)
     assert {1, 3} <= set(np.unique(cls))  # trunk and leaf returns
     assert np.all(np.asarray(las.classification)[cls == 3] == 5)  # high vegetation
-    # one return per pulse, flight line 1, no CRS (the stage has none)
-    assert np.all(las.return_number == 1) and np.all(las.number_of_returns == 1)
+    # the VLP-16's dual mode: one or two returns per pulse (a pulse is its GPS time and
+    # laser), numbered by range; some pulses through foliage give two
+    pulse = np.unique(np.column_stack([las.gps_time, las.ring]), axis=0, return_inverse=True)[1]
+    per = np.bincount(pulse.ravel())
+    number, count = np.asarray(las.return_number), np.asarray(las.number_of_returns)
+    assert set(np.unique(per)) == {1, 2} and np.all(count == per[pulse.ravel()])
+    assert np.all(np.sort(number[per[pulse.ravel()] == 2]) > 0)
+    for k in (1, 2):  # each two-return pulse holds return 1 and return 2
+        assert np.sum(number[count == 2] == k) == np.sum(per == 2)
+    assert np.sum(per == 2) >= 3
+    # flight line 1, no CRS (the stage has none)
     assert np.all(las.point_source_id == 1) and not las.header.global_encoding.wkt
     assert np.mean(np.asarray(las.intensity) > 0) > 0.9  # the lidar equation (a wall test below)
     # every point's ring and scan angle are the laser and azimuth it was fired at, seen from

@@ -287,6 +287,24 @@ def test_scan_cli_outputs(stand, tmp_path, runner):
     assert r.exit_code == 0, r.output
     npz = np.load(tmp_path / "s.npz")
     assert set(npz.files) >= {"points", "range", "cls", "tree", "path", "paths", "ray"}
+    assert np.all(npz["return_number"] == 1) and np.all(npz["number_of_returns"] == 1)
+    # up to three returns per pulse of a 19 sub-ray beam: numbered by range within each pulse
+    (tmp_path / "all.toml").write_text(
+        "[lidar]\nreturns = 'all'\nmax_returns = 3\nbeam_rings = 2\n"
+    )
+    args = ["scan", str(out), "--sensor", "lidar", "--pose", "5,1,2,90", "--json"]
+    r = runner.invoke(
+        app, [*args, "-o", str(tmp_path / "m.npz"), "--config", str(tmp_path / "all.toml")]
+    )
+    assert r.exit_code == 0, r.output
+    m = np.load(tmp_path / "m.npz")
+    per = np.bincount(m["ray"])
+    assert per.max() <= 3 and np.all(m["number_of_returns"] == per[m["ray"]])
+    assert json.loads(r.stdout)["pulses_with_several_returns"] == np.count_nonzero(per >= 2) > 0
+    for k in range(2, 4):  # return k of a pulse lies beyond return k - 1
+        later = np.flatnonzero(m["return_number"] == k)
+        assert np.all(m["ray"][later - 1] == m["ray"][later])
+        assert np.all(m["range"][later] > m["range"][later - 1] + 0.5)
     r = runner.invoke(
         app,
         [
@@ -328,6 +346,11 @@ def test_scan_cli_outputs(stand, tmp_path, runner):
         (["--sensor", "sonar"], "[sonar]\nground = 'yes'\n", "sonar.ground"),
         (["--sensor", "lidar"], "[lidar]\nchannels = 0\n", "at least 1 channel"),
         (["--sensor", "lidar"], "[lidar]\nchanels = 4\n", "unknown key 'chanels'"),
+        (["--sensor", "lidar"], "[lidar]\nreturns = 'both'\n", "lidar.returns: 'both' is not"),
+        (["--sensor", "lidar"], "[lidar]\ndivergence = -1.0\n", "lidar.divergence"),
+        (["--sensor", "lidar"], "[lidar]\nbeam_rings = 40\n", "lidar.beam_rings"),
+        (["--sensor", "lidar"], "[lidar]\nmax_returns = 16\n", "LAS 1.4 holds 15"),
+        (["--sensor", "lidar"], "[lidar]\nreturn_separation = 0.0\n", "return_separation"),
         (["--sensor", "lidar"], "[sonar]\nbeam = 'x'\n", "unknown key 'sonar'"),
     ],
 )

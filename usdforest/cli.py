@@ -726,13 +726,15 @@ def scan_cmd(
             "output": str(output),
             "rays": r.n_rays,
             "returns": len(r),
+            "pulses_with_several_returns": int(np.count_nonzero(r.return_number == 2)),
             "returns_by_class": class_counts(r.cls),
             "trees_hit": int(np.unique(r.tree[r.tree >= 0]).size),
             "triangles": len(scene),
             "seconds": round(time.perf_counter() - t0, 3),
         }
         text = (
-            f"{output}: {len(r):,} returns from {r.n_rays:,} rays ("
+            f"{output}: {len(r):,} returns from {r.n_rays:,} pulses "
+            f"({summary['pulses_with_several_returns']:,} with several; "
             + ", ".join(f"{k} {v:,}" for k, v in summary["returns_by_class"].items() if v)
             + f"), {summary['trees_hit']} trees, {len(scene):,} triangles in range"
         )

@@ -5,8 +5,8 @@
   roll level).
 * **Lidar**: sweeps at ``rate`` Hz; every ray is fired at its own time within the sweep (its
   azimuth's share of the turn) from where the platform is then, so a fast platform's points
-  are not smeared. Returns carry GPS time, class, tree id and prim path; written as LAS 1.4
-  (point format 6) with laspy.
+  are not smeared. Returns (several per pulse: see :mod:`usdforest.sensors.returns`) carry
+  GPS time, class, tree id and prim path; written as LAS 1.4 (point format 6) with laspy.
 * **Sonar**: pulses at ``pulse_rate`` from the pose at each pulse's time, the platform's
   velocity giving each leaf's echo its Doppler factor (see
   :func:`usdforest.sensors.sonar.echo_from_targets`): leaves, wood and ground, each
@@ -27,7 +27,7 @@ from ..atomic import atomic_path, save_npz
 from ..errors import UsdForestError
 from ..paths import require_file
 from ..seeds import stream
-from .lidar import SpinningLidar, hit_intensity
+from .lidar import SpinningLidar, cast_pulses, counts
 from .pose import Pose, rotations
 from .raycast import SceneCaster
 from .scene import CLASSES, Scene
@@ -143,6 +143,8 @@ class FlightReturns:
     ring: np.ndarray  # the laser (channel) of each return, 0 the lowest
     scan_angle: np.ndarray  # its azimuth from the sensor's forward axis, degrees in [-180, 180)
     intensity: np.ndarray  # uint16, see usdforest.sensors.lidar.intensity
+    return_number: np.ndarray  # uint8, 1-based, by range among its pulse's returns
+    number_of_returns: np.ndarray  # uint8, of its pulse
 
     def __len__(self) -> int:
         return len(self.range)
@@ -158,8 +160,8 @@ def fly_lidar(
     caster: SceneCaster | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> FlightReturns:
-    """Sweeps at ``rate`` Hz along ``traj`` (first returns; per-ray time and pose);
-    ``progress(done, total)`` after each sweep."""
+    """Sweeps at ``rate`` Hz along ``traj`` (returns as the sensor's ``returns`` mode says;
+    each pulse its own time and pose); ``progress(done, total)`` after each sweep."""
     sensor.check()
     if not 0 < rate <= 100:
         raise UsdForestError(f"--lidar-rate: must be in (0, 100] Hz, got {rate:g}")
@@ -174,30 +176,32 @@ def fly_lidar(
         times = np.minimum(t0 + (az % 360.0) / 360.0 / rate, traj.t[-1])
         pos, rot, _ = traj.at(times)
         dirs = np.einsum("nij,nj->ni", rot, local)
-        h = caster.first_hit(pos, dirs, sensor.max_range)
-        hit = np.flatnonzero(h.hit)
-        rng_ = h.t[hit]
+        e = cast_pulses(caster, pos, dirs, sensor)
+        rng_ = e.range
         if sensor.range_noise > 0:
-            rng_ = rng_ + stream(seed, "flight-lidar", k).normal(0, sensor.range_noise, hit.size)
+            rng_ = rng_ + stream(seed, "flight-lidar", k).normal(0, sensor.range_noise, len(e))
+        i = e.pulse
         parts.append(
             (
-                pos[hit] + dirs[hit] * rng_[:, None],
-                times[hit],
+                pos[i] + dirs[i] * rng_[:, None],
+                times[i],
                 rng_,
-                h.cls[hit],
-                h.tree[hit],
-                h.path[hit],
-                ring[hit],
-                scan_angle[hit],
-                hit_intensity(h, dirs, hit),
+                e.cls,
+                e.tree,
+                e.path,
+                ring[i],
+                scan_angle[i],
+                counts(e.energy),
+                e.return_number,
+                e.number_of_returns,
             )
         )
         if progress is not None:
             progress(k + 1, len(starts))
     cat = (
-        [np.concatenate([p[i] for p in parts]) for i in range(9)]
+        [np.concatenate([p[i] for p in parts]) for i in range(11)]
         if parts
-        else [np.zeros((0, 3)), *(np.zeros(0) for _ in range(8))]
+        else [np.zeros((0, 3)), *(np.zeros(0) for _ in range(10))]
     )
     return FlightReturns(
         cat[0],
@@ -212,6 +216,8 @@ def fly_lidar(
         cat[6].astype(np.uint16),
         cat[7],
         cat[8].astype(np.uint16),
+        cat[9].astype(np.uint8),
+        cat[10].astype(np.uint8),
     )
 
 
@@ -238,7 +244,7 @@ def write_las(
 ) -> Path:
     """LAS 1.4, point format 6, as point-cloud tools expect it: x, y, z (0.1 mm; in ``crs``
     with the stage origin's map position ``origin`` added to x and y), GPS time (the path's
-    seconds), return 1 of 1 (one return per pulse), intensity (the lidar equation, see
+    seconds), return number and number of returns of each pulse, intensity (the lidar equation, see
     :func:`usdforest.sensors.lidar.intensity`), scan angle (the laser's azimuth from the
     platform's forward axis), point source = ``flight_line``, ASPRS classification, and the
     extra dimensions ``ring`` (uint16, the laser: 0 the lowest), ``tree_id`` (int32, -1 off
@@ -272,8 +278,8 @@ def write_las(
     las = laspy.LasData(header)
     las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
     las.gps_time = r.gps_time
-    las.return_number = np.ones(len(r), np.uint8)
-    las.number_of_returns = np.ones(len(r), np.uint8)
+    las.return_number = r.return_number
+    las.number_of_returns = r.number_of_returns
     las.intensity = r.intensity
     las.scan_angle = np.round(r.scan_angle / 0.006).astype(np.int16)  # 0.006 degree units
     las.point_source_id = np.full(len(r), flight_line, np.uint16)

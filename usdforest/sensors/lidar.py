@@ -1,7 +1,11 @@
-"""Lidar: spinning multi-channel scanners and pinhole depth cameras, first returns.
+"""Lidar: spinning multi-channel scanners and pinhole depth cameras.
 
-Every return carries its range, semantic class (trunk, branch, leaf), tree id and prim path:
-ground truth for segmentation. Ranges may get Gaussian noise from a seeded generator.
+A spinning lidar's pulse is a diverging beam sampled as sub-rays (:mod:`.returns`): a pulse
+whose footprint falls partly on a leaf and partly on what lies behind gives several returns,
+reported first, last, strongest, dual or up to N as the sensor is set. A depth camera has one
+ray per pixel. Every return carries its range, intensity, semantic class (trunk, branch,
+leaf), tree id and prim path: ground truth for segmentation. Ranges may get Gaussian noise
+from a seeded generator.
 """
 
 from __future__ import annotations
@@ -17,12 +21,20 @@ from ..errors import UsdForestError
 from ..seeds import stream
 from .pose import Pose
 from .raycast import SceneCaster
+from .returns import MODES, Echoes, beam_pattern, merge_echoes, subray_directions
 from .scene import CLASSES, Scene
 
 
 @dataclass(frozen=True)
 class SpinningLidar:
-    """Channels evenly spread over [vfov_min, vfov_max] degrees, a full turn in azimuth."""
+    """Channels evenly spread over [vfov_min, vfov_max] degrees, a full turn in azimuth.
+
+    ``divergence`` (mrad, full angle at 1/e^2; 0: an ideal thin ray) is sampled by
+    ``beam_rings`` rings of sub-rays (1: 7 sub-rays, 2: 19); hits closer in range than
+    ``return_separation`` metres are one echo; ``returns`` picks the echoes reported:
+    ``first``, ``last``, ``strongest``, ``dual`` (strongest and last) or ``all`` (up to
+    ``max_returns``).
+    """
 
     channels: int = 16
     vfov_min: float = -15.0
@@ -31,10 +43,27 @@ class SpinningLidar:
     max_range: float = 100.0
     range_noise: float = 0.0
     kind: str = "spinning"
+    divergence: float = 0.0
+    beam_rings: int = 1
+    returns: str = "strongest"
+    max_returns: int = 4
+    return_separation: float = 1.0
 
     def check(self) -> None:
         if self.channels < 1:
             raise UsdForestError("lidar.channels: need at least 1 channel")
+        if not (np.isfinite(self.divergence) and 0 <= self.divergence <= 100):
+            raise UsdForestError("lidar.divergence: must be in [0, 100] milliradians")
+        if not 0 <= self.beam_rings <= 8:
+            raise UsdForestError("lidar.beam_rings: must be 0 to 8 (1: 7 sub-rays, 8: 217)")
+        if self.returns not in MODES:
+            raise UsdForestError(
+                f"lidar.returns: {self.returns!r} is not one of {', '.join(MODES)}"
+            )
+        if not 1 <= self.max_returns <= 15:
+            raise UsdForestError("lidar.max_returns: must be 1 to 15 (LAS 1.4 holds 15)")
+        if not (np.isfinite(self.return_separation) and self.return_separation > 0):
+            raise UsdForestError("lidar.return_separation: must be a finite number of metres > 0")
         if not 0 < self.azimuth_step <= 360:
             raise UsdForestError("lidar.azimuth_step: must be in (0, 360] degrees")
         if not -90 <= self.vfov_min <= self.vfov_max <= 90:
@@ -96,10 +125,14 @@ def _check_common(max_range: float, noise: float, table: str = "lidar") -> None:
         raise UsdForestError(f"{table}.range_noise: must be >= 0")
 
 
+# Divergence: VLP-16 3 mrad (the sister VLS-128's manual gives 3.0 x 1.5; the VLP-16's own
+# figure is unpublished), HDL-32E 3.3 mrad (its manual's 4" x 2" spot at 100 ft, the wider
+# side), OS1-64 2.3 mrad (0.13 deg FWHM); Velodyne's dual mode reports strongest and last,
+# the OS1 (older firmware) the strongest. See docs/notes/lidar-radiometry.md.
 PRESETS: dict[str, SpinningLidar | DepthCamera] = {
-    "vlp-16": SpinningLidar(16, -15.0, 15.0, 0.2, 100.0),
-    "hdl-32": SpinningLidar(32, -30.67, 10.67, 0.16, 100.0),
-    "os1-64": SpinningLidar(64, -16.6, 16.6, 0.35, 120.0),
+    "vlp-16": SpinningLidar(16, -15.0, 15.0, 0.2, 100.0, divergence=3.0, returns="dual"),
+    "hdl-32": SpinningLidar(32, -30.67, 10.67, 0.16, 100.0, divergence=3.3, returns="dual"),
+    "os1-64": SpinningLidar(64, -16.6, 16.6, 0.35, 120.0, divergence=2.3),
     "depth-camera": DepthCamera(640, 480, 87.0, 10.0),
 }
 
@@ -115,27 +148,65 @@ REFLECTANCE = {"unknown": 0.5, "trunk": 0.35, "branch": 0.35, "leaf": 0.47, "gro
 INTENSITY_GAIN = 65535.0
 
 
-def hit_intensity(h, dirs: np.ndarray, hit: np.ndarray) -> np.ndarray:
-    """:func:`intensity` of the rays ``hit`` (indices) among ``h``'s, cast along unit
-    ``dirs``: incidence on the hit triangle's normal, the true (noise-free) distance."""
-    cos = np.einsum("nk,nk->n", dirs[hit], h.normal[hit])
-    return intensity(h.cls[hit], cos, h.t[hit])
+def reflected(cls: np.ndarray, cos_incidence: np.ndarray, rng: np.ndarray) -> np.ndarray:
+    """Reflectance (of each hit's class) x |cos incidence| / range^2 (metres): the power an
+    extended Lambertian target returns, relative to a white one facing the sensor at 1 m."""
+    rho = np.array([REFLECTANCE[c] for c in CLASSES])[np.asarray(cls, dtype=np.int64)]
+    r = np.maximum(np.asarray(rng, dtype=float), 1e-6)
+    return rho * np.abs(cos_incidence) / (r * r)
+
+
+def counts(energy: np.ndarray) -> np.ndarray:
+    """``uint16`` intensities: ``INTENSITY_GAIN`` x ``energy`` (:func:`reflected`, summed over
+    a return's share of the beam), rounded and saturated at 65,535."""
+    return np.minimum(np.round(INTENSITY_GAIN * np.asarray(energy)), 65535).astype(np.uint16)
 
 
 def intensity(cls: np.ndarray, cos_incidence: np.ndarray, rng: np.ndarray) -> np.ndarray:
-    """``uint16`` return intensities by the lidar equation for an extended Lambertian target:
-    ``INTENSITY_GAIN`` x reflectance (of each return's class) x |cos incidence| / range^2
-    (range in metres), rounded, and saturated at 65,535 (a bright target closer than 1 m)."""
-    rho = np.array([REFLECTANCE[c] for c in CLASSES])[np.asarray(cls, dtype=np.int64)]
-    r = np.maximum(np.asarray(rng, dtype=float), 1e-6)
-    value = INTENSITY_GAIN * rho * np.abs(cos_incidence) / (r * r)
-    return np.minimum(np.round(value), 65535).astype(np.uint16)
+    """``uint16`` intensities of returns that fill the beam: the lidar equation for an
+    extended Lambertian target, ``INTENSITY_GAIN`` x reflectance x |cos incidence| / range^2."""
+    return counts(reflected(cls, cos_incidence, rng))
+
+
+def cast_pulses(
+    caster: SceneCaster,
+    origins: np.ndarray,
+    dirs: np.ndarray,
+    sensor: SpinningLidar | DepthCamera,
+) -> Echoes:
+    """The returns of pulses fired from ``origins`` along unit ``dirs`` (n, 3): every sub-ray
+    of a spinning lidar's beam cast in one batch, then merged (:func:`.returns.merge_echoes`);
+    a depth camera's rays are thin and give their first hit."""
+    if isinstance(sensor, SpinningLidar):
+        beam = beam_pattern(sensor.divergence, sensor.beam_rings)
+        mode, most, apart = sensor.returns, sensor.max_returns, sensor.return_separation
+    else:
+        beam, mode, most, apart = beam_pattern(0.0, 0), "first", 1, 1.0
+    n, s = len(dirs), len(beam)
+    sub = subray_directions(dirs, beam)
+    h = caster.first_hit(np.repeat(origins, s, axis=0), sub, sensor.max_range)
+    hit = h.hit
+    cos = np.abs(np.einsum("nk,nk->n", sub[hit], h.normal[hit]))
+    energy, spread = np.zeros(n * s), np.zeros(n * s)
+    energy[hit] = reflected(h.cls[hit], cos, h.t[hit]) * np.tile(beam.weights, n)[hit]
+    spread[hit] = (
+        h.t[hit] * beam.cell * np.sqrt(np.maximum(1 - cos * cos, 0)) / np.maximum(cos, 1e-3)
+    )
+    return merge_echoes(
+        h.t.reshape(n, s),
+        energy.reshape(n, s),
+        (h.cls.reshape(n, s), h.tree.reshape(n, s), h.path.reshape(n, s)),
+        spread=spread.reshape(n, s),
+        separation=apart,
+        mode=mode,
+        max_returns=most,
+    )
 
 
 @dataclass(frozen=True, eq=False)
 class Returns:
-    """First returns: world points, ranges, ray index, class, tree id, prim path and
-    intensity (see :func:`intensity`)."""
+    """Returns of one scan: world points, ranges, pulse (ray) index, class, tree id, prim path,
+    intensity (see :func:`intensity`), and each return's number among its pulse's."""
 
     points: np.ndarray
     range: np.ndarray
@@ -147,6 +218,8 @@ class Returns:
     n_rays: int
     sensor: dict
     intensity: np.ndarray
+    return_number: np.ndarray
+    number_of_returns: np.ndarray
 
     def __len__(self) -> int:
         return int(self.range.shape[0])
@@ -160,28 +233,30 @@ def scan(
     seed: int = 0,
     caster: SceneCaster | None = None,
 ) -> Returns:
-    """Cast every ray of ``sensor`` at ``pose`` into ``scene``; first returns only."""
+    """Fire every pulse of ``sensor`` at ``pose`` into ``scene``; its returns (one per pulse
+    for a depth camera, as the sensor's ``returns`` mode says for a spinning lidar)."""
     sensor.check()
     dirs = sensor.directions() @ pose.rotation().T
     origins = np.broadcast_to(pose.position, dirs.shape)
     caster = caster or SceneCaster(scene)
-    h = caster.first_hit(origins, dirs, sensor.max_range)
-    hit = np.flatnonzero(h.hit)
-    rng_ = h.t[hit]
+    e = cast_pulses(caster, origins, dirs, sensor)
+    rng_ = e.range
     if sensor.range_noise > 0:
-        rng_ = rng_ + stream(seed, "lidar-noise").normal(0.0, sensor.range_noise, hit.size)
-    pts = pose.position + dirs[hit] * rng_[:, None]
+        rng_ = rng_ + stream(seed, "lidar-noise").normal(0.0, sensor.range_noise, len(e))
+    pts = pose.position + dirs[e.pulse] * rng_[:, None]
     return Returns(
         pts,
         rng_,
-        hit.astype(np.int64),
-        h.cls[hit],
-        h.tree[hit],
-        h.path[hit],
+        e.pulse.astype(np.int64),
+        e.cls,
+        e.tree,
+        e.path,
         scene.paths,
         len(dirs),
         {**asdict(sensor), "pose": asdict(pose)},
-        hit_intensity(h, dirs, hit),
+        counts(e.energy),
+        e.return_number,
+        e.number_of_returns,
     )
 
 
@@ -198,6 +273,8 @@ def write_returns(r: Returns, out: str | Path) -> None:
             tree=r.tree,
             path=r.path,
             intensity=r.intensity,
+            return_number=r.return_number,
+            number_of_returns=r.number_of_returns,
             paths=np.array(r.paths, dtype=str),
             classes=np.array(CLASSES),
             n_rays=r.n_rays,
@@ -219,11 +296,14 @@ def write_returns(r: Returns, out: str | Path) -> None:
             ("path", "<i4"),
             ("ray", "<i4"),
             ("intensity", "<u2"),
+            ("return_number", "u1"),
+            ("number_of_returns", "u1"),
         ],
     )
     rec["x"], rec["y"], rec["z"] = r.points.T
     rec["range"], rec["class"], rec["tree"] = r.range, r.cls, r.tree
     rec["path"], rec["ray"], rec["intensity"] = r.path, r.ray, r.intensity
+    rec["return_number"], rec["number_of_returns"] = r.return_number, r.number_of_returns
     header = "\n".join(
         [
             "ply",
@@ -241,6 +321,8 @@ def write_returns(r: Returns, out: str | Path) -> None:
             "property int path",
             "property int ray",
             "property ushort intensity",
+            "property uchar return_number",
+            "property uchar number_of_returns",
             "end_header",
             "",
         ]

@@ -1,0 +1,200 @@
+"""Several returns per lidar pulse: a diverging Gaussian beam sampled as sub-rays, their hits
+merged into echoes by range, and the echoes a sensor reports (first, last, strongest, dual, or
+up to N).
+
+The beam's irradiance falls as exp(-2 (theta / w)^2) off its axis, ``w`` half the full
+divergence angle (the 1/e^2 width, as datasheets quote it). It is sampled in rings as
+HELIOS++ does (Winiwarter et al. 2022): the axis, then ring ``k`` of ``6 k`` sub-rays at
+``k w / rings``; each sub-ray carries the beam energy of its cell (the disk or annulus
+sector around it, the outermost annulus reaching to infinity), so the weights sum to 1 and
+a target that fills the footprint returns the single-ray intensity.
+
+Each sub-ray's hit contributes reflectance x |cos incidence| / range^2 x its weight (the
+lidar equation for an extended Lambertian target) and stands for a patch of the footprint,
+which spans ``range x cell x tan(incidence)`` either side in range on a surface seen
+obliquely. Hits of one pulse whose patches are closer in range than ``separation`` (about
+the pulse length: 1 m for Velodyne's dual mode) merge into one echo (a wall seen at grazing
+incidence stays one long echo)
+at their energy-weighted mean range, labelled by its strongest sub-ray (class, tree, prim),
+its intensity the sum. Leaves are opaque here: light a leaf transmits is not followed, so
+a pulse's later echoes come from the gaps in its footprint.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+MODES = ("first", "last", "strongest", "dual", "all")
+
+
+@dataclass(frozen=True, eq=False)
+class Beam:
+    """Sub-ray directions relative to a pulse's axis and their share of its energy."""
+
+    offsets: np.ndarray  # (s, 2) angular offsets (radians) along the axis' two normals
+    weights: np.ndarray  # (s,) sum 1
+    cell: float = 0.0  # angular half-width (radians) of the patch each sub-ray stands for
+
+    def __len__(self) -> int:
+        return len(self.weights)
+
+
+def beam_pattern(divergence: float, rings: int) -> Beam:
+    """The sub-rays of a Gaussian beam of full divergence ``divergence`` (milliradians, at
+    1/e^2) in ``rings`` rings (1 + 3 rings (rings + 1) sub-rays); one ray when either is 0.
+
+    Examples
+    --------
+    >>> b = beam_pattern(3.0, 1)
+    >>> len(b), round(float(b.weights.sum()), 12), round(float(b.weights[0]), 4)
+    (7, 1.0, 0.3935)
+    """
+    if divergence <= 0 or rings <= 0:
+        return Beam(np.zeros((1, 2)), np.ones(1))
+    w = divergence * 1e-3 / 2
+
+    def inside(r: float) -> float:  # share of the energy within angle r of the axis
+        return 1.0 - np.exp(-2.0 * (r / w) ** 2) if np.isfinite(r) else 1.0
+
+    offsets, weights = [np.zeros(2)], [inside(0.5 * w / rings)]
+    for k in range(1, rings + 1):
+        inner = (k - 0.5) * w / rings
+        outer = (k + 0.5) * w / rings if k < rings else np.inf
+        phi = 2 * np.pi * np.arange(6 * k) / (6 * k)
+        offsets += list(k * w / rings * np.column_stack([np.cos(phi), np.sin(phi)]))
+        weights += [(inside(outer) - inside(inner)) / (6 * k)] * (6 * k)
+    return Beam(np.array(offsets), np.array(weights), 0.5 * w / rings)
+
+
+def subray_directions(dirs: np.ndarray, beam: Beam) -> np.ndarray:
+    """Unit directions of every sub-ray of pulses along unit ``dirs`` (n, 3): (n * s, 3),
+    pulse-major (pulse ``i``'s sub-rays are rows ``i s`` to ``i s + s - 1``)."""
+    dirs = np.asarray(dirs, dtype=float)
+    if len(beam) == 1:
+        return dirs.copy()
+    # any normal to each axis: cross with the coordinate axis it is least aligned with
+    helper = np.zeros_like(dirs)
+    helper[np.arange(len(dirs)), np.argmin(np.abs(dirs), axis=1)] = 1.0
+    u = np.cross(dirs, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(dirs, u)
+    tan = np.tan(beam.offsets)
+    sub = dirs[:, None, :] + tan[None, :, :1] * u[:, None, :] + tan[None, :, 1:] * v[:, None, :]
+    sub /= np.linalg.norm(sub, axis=2, keepdims=True)
+    return sub.reshape(-1, 3)
+
+
+@dataclass(frozen=True, eq=False)
+class Echoes:
+    """The returns a sensor reports, ordered by pulse then range: pulse index, range, energy
+    (sum of weight x reflectance x |cos| / range^2), class, tree, path, return number
+    (1-based) and number of returns of the pulse."""
+
+    pulse: np.ndarray
+    range: np.ndarray
+    energy: np.ndarray
+    cls: np.ndarray
+    tree: np.ndarray
+    path: np.ndarray
+    return_number: np.ndarray
+    number_of_returns: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.pulse)
+
+
+def _first_per(key: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """Indices (into ``key``) of the first element of each run of equal ``key[order]``."""
+    k = key[order]
+    start = np.ones(len(k), dtype=bool)
+    start[1:] = k[1:] != k[:-1]
+    return order[start]
+
+
+def merge_echoes(
+    t: np.ndarray,
+    energy: np.ndarray,
+    labels: tuple[np.ndarray, np.ndarray, np.ndarray],
+    *,
+    spread: np.ndarray | None = None,
+    separation: float,
+    mode: str,
+    max_returns: int = 1,
+) -> Echoes:
+    """Echoes of pulses from their sub-rays' hits.
+
+    Parameters
+    ----------
+    t, energy
+        (n, s): each sub-ray's hit distance (inf: none) and energy.
+    labels
+        (class, tree, path), each (n, s).
+    spread
+        (n, s): half the range interval each hit stands for (its patch of the footprint on
+        a surface seen obliquely, ``range x cell x tan(incidence)``); 0 when not given.
+    separation
+        Hits of one pulse closer in range than this (metres) are one echo.
+    mode
+        ``first``, ``last``, ``strongest``, ``dual`` (the strongest and the last; the
+        second strongest and the last when the strongest is last, as Velodyne's dual mode)
+        or ``all`` (the nearest ``max_returns``).
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode {mode!r} is not one of {MODES}")
+    n, s = t.shape
+    order = np.argsort(t, axis=1, kind="stable")
+    t = np.take_along_axis(t, order, axis=1)
+    energy = np.take_along_axis(energy, order, axis=1)
+    spread = np.zeros_like(t) if spread is None else np.take_along_axis(spread, order, axis=1)
+    labels = tuple(np.take_along_axis(x, order, axis=1) for x in labels)
+    valid = np.isfinite(t)
+    gap = np.ones_like(valid)
+    with np.errstate(invalid="ignore"):  # inf - inf past the last hit
+        gap[:, 1:] = (t[:, 1:] - spread[:, 1:]) - (t[:, :-1] + spread[:, :-1]) > separation
+    echo = np.cumsum(gap & valid, axis=1) - 1  # echo index within the pulse, by range
+    p, j = np.nonzero(valid)
+    key = p * s + echo[p, j]  # non-decreasing: rows in order, echoes in range order
+    tv, ev = t[p, j], energy[p, j]
+    start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if len(key) else key
+    e_sum = np.add.reduceat(ev, start) if len(start) else np.zeros(0)
+    et_sum = np.add.reduceat(ev * tv, start) if len(start) else np.zeros(0)
+    safe = np.where(e_sum > 0, e_sum, 1.0)
+    rng = np.where(e_sum > 0, et_sum / safe, tv[start])  # grazing hits: the nearest
+    # the strongest sub-ray of each echo labels it
+    strongest = _first_per(key, np.lexsort((-ev, key)))
+    cls, tree, path = (x[p, j][strongest] for x in labels)
+    pulse = p[start]
+    number = echo[p, j][start]
+    count = np.bincount(pulse, minlength=n)[pulse]
+    is_last = number == count - 1
+    if mode == "first":
+        keep = number == 0
+    elif mode == "last":
+        keep = is_last
+    elif mode == "all":
+        keep = number < max_returns
+    else:
+        idx = np.arange(len(pulse))
+        pool = idx if mode == "strongest" else idx[~is_last]
+        best = _first_per(pulse, pool[np.lexsort((number[pool], -e_sum[pool], pulse[pool]))])
+        keep = np.zeros(len(pulse), dtype=bool)
+        keep[best] = True
+        if mode == "dual":
+            keep |= is_last
+    kept = np.flatnonzero(keep)
+    kp = pulse[kept]
+    per = np.bincount(kp, minlength=n)
+    first_of = np.cumsum(per) - per
+    ret = np.arange(len(kept)) - first_of[kp] + 1
+    return Echoes(
+        kp,
+        rng[kept],
+        e_sum[kept],
+        cls[kept],
+        tree[kept],
+        path[kept],
+        ret.astype(np.uint8),
+        per[kp].astype(np.uint8),
+    )
