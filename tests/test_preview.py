@@ -232,3 +232,51 @@ def test_each_instance_is_stamped_with_its_own_prototype():
     blue = (around[:, 2] > 0.5) & (around[:, 0] < 0.3)
     red = (around[:, 0] > 0.5) & (around[:, 2] < 0.3)
     assert blue.sum() > 10 and not red.any()  # the blue tree where it stands, no red there
+
+
+@pytest.fixture(scope="module")
+def two_trees(tmp_path_factory):
+    out = tmp_path_factory.mktemp("two") / "two.usda"
+    pipe = default_recipe_path().parent / "paper-two-tree-stand.toml"
+    write_forest(read_recipe(pipe), out, thumbnail=False)
+    return out
+
+
+@pytest.mark.parametrize(("up", "cm"), [("Y", True), ("Z", True), ("Y", False)])
+def test_a_host_of_other_units_and_axes_previews_like_the_forest_itself(
+    two_trees, tmp_path, up, cm
+):
+    """A forest referenced into a Y-up or centimetre host under the transform that corrects
+    it is drawn upright and in metres (the stage's metersPerUnit and upAxis read): the same
+    window to 1 % and the same tree pixels (IoU > 0.85: the forest itself is stamped as
+    sprites, the host's trees sampled one by one, as in the sprite test above) as the
+    forest drawn itself, where
+    before a Y-up host lay on its side and a centimetre one had a 200 m scale bar."""
+    from hosts import host_stage
+
+    host = host_stage(tmp_path / "host.usda", two_trees, up=up, cm=cm)
+    own, w_own, _ = render_stage(two_trees, view="iso", size=(240, 320), ground=False)
+    got, w_host, kind = render_stage(host, view="iso", size=(240, 320), ground=False)
+    assert kind == "forest"
+    np.testing.assert_allclose(w_host, w_own, rtol=0.01, atol=0.01)
+    a, b = (np.abs(x - [0.93, 0.95, 0.98]).sum(axis=2) >= 0.02 for x in (own, got))
+    assert a.sum() > 2000 and (a & b).sum() / (a | b).sum() > 0.85
+    # the trees stand up: taller than wide on screen
+    rows, cols = np.nonzero(b)
+    assert np.ptp(rows) > 1.5 * np.ptp(cols)
+
+
+def test_a_tilted_reference_to_a_forest_with_ground_previews(default_forest, tmp_path, runner):
+    """A forest with a ground mesh referenced under a 90 degree turn about X in a Z-up stage:
+    its ground stands as a wall, no height field seen from above (the triangulation of its
+    heights failed with "Triangulation is invalid", exit 3); now drawn from its own surface
+    samples, exit 0."""
+    from hosts import host_stage
+
+    host = host_stage(tmp_path / "tilted.usda", default_forest, tilt=90.0)
+    r = runner.invoke(
+        app, ["preview", str(host), "-o", str(tmp_path / "t.png"), "--size", "200x200"]
+    )
+    assert r.exit_code == 0, r.output
+    img = mpimg.imread(tmp_path / "t.png")[..., :3]
+    assert classify(img)["green"].mean() > 0.02

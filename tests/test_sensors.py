@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hosts import host_stage
 from pxr import Usd, UsdGeom, Vt
 
 from usdforest.cli import app
@@ -520,27 +521,6 @@ def test_a_lone_trees_leaves_cast_like_their_triangles_copied(tmp_path):
     assert set(np.unique(h.tree[h.hit])) == {0}
 
 
-def _host_stage(path, forest, *, up: str, cm: bool):
-    """A host stage in its own units and up axis that references ``forest`` under the
-    transform that corrects it (Z-up metres into Y-up: turned -90 degrees about X; into
-    centimetres: scaled 100)."""
-    from pxr import Gf, Usd, UsdGeom
-
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up == "Y" else UsdGeom.Tokens.z)
-    UsdGeom.SetStageMetersPerUnit(stage, 0.01 if cm else 1.0)
-    world = UsdGeom.Xform.Define(stage, "/World")
-    plot = UsdGeom.Xform.Define(stage, "/World/Forest")
-    if cm:
-        plot.AddScaleOp().Set(Gf.Vec3f(100.0, 100.0, 100.0))
-    if up == "Y":
-        plot.AddRotateXOp().Set(-90.0)
-    plot.GetPrim().GetReferences().AddReference(str(forest))
-    stage.SetDefaultPrim(world.GetPrim())
-    stage.Save()
-    return path
-
-
 @pytest.mark.parametrize(("up", "cm"), [("Y", True), ("Z", True), ("Y", False)])
 def test_a_y_up_centimetre_host_scans_like_the_forest_itself(tmp_path, runner, up, cm):
     """A forest referenced into a host stage of other units or up axis, with the transform
@@ -554,7 +534,7 @@ def test_a_y_up_centimetre_host_scans_like_the_forest_itself(tmp_path, runner, u
     forest = tmp_path / "f.usda"
     pipe = default_recipe_path().parent / "paper-two-tree-stand.toml"
     write_forest(read_recipe(pipe), forest, thumbnail=False)
-    host = _host_stage(tmp_path / "host.usda", forest, up=up, cm=cm)
+    host = host_stage(tmp_path / "host.usda", forest, up=up, cm=cm)
     x, y, z = 1.0, 2.0, 1.5
     hx, hy, hz = (x, z, -y) if up == "Y" else (x, y, z)
     k = 100.0 if cm else 1.0

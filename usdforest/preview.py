@@ -140,6 +140,12 @@ def _times3(x: np.ndarray, a: np.ndarray) -> np.ndarray:
     return x[..., 0, None] * a[0] + x[..., 1, None] * a[1] + x[..., 2, None] * a[2]
 
 
+def _scale(m: np.ndarray) -> float:
+    """The (median) uniform scale of row-vector 4x4 transforms ``m`` ((4, 4) or (k, 4, 4))."""
+    det = np.abs(np.linalg.det(np.asarray(m).reshape(-1, 4, 4)[:, :3, :3]))
+    return float(np.median(np.cbrt(det))) or 1.0
+
+
 def _matrix(m) -> np.ndarray:
     return np.array(m, dtype=float).reshape(4, 4)
 
@@ -203,7 +209,7 @@ def stage_cloud(
             rel = _matrix(cache.GetLocalToWorldTransform(p)) @ first_inv
             if p.IsA(UsdGeom.PointInstancer):
                 it.PruneChildren()
-                inner = _instances(p, spacing).transformed(rel)
+                inner = _instances(p, spacing / _scale(rel @ mats)).transformed(rel)
                 out.extend(inner.transformed(m) for m in mats)
                 continue
             if not p.IsA(UsdGeom.Mesh):
@@ -236,8 +242,8 @@ def stage_cloud(
                 it.PruneChildren()
                 to_root = _matrix(cache.GetLocalToWorldTransform(p)) @ inv
                 deferred = defer is not None and _defer(p, spacing, to_root @ prim_to_world, defer)
-                if not deferred:
-                    parts.append(_instances(p, spacing).transformed(to_root))
+                if not deferred:  # sampled in the instancer's own units
+                    parts.append(_instances(p, spacing / _scale(to_root)).transformed(to_root))
             elif p.IsInstance():
                 # its prototype's meshes are sampled below, once for all its instances
                 it.PruneChildren()
@@ -607,13 +613,18 @@ def render_stage(
     budget: int | None = None,
     ground: bool = True,
 ) -> tuple[np.ndarray, tuple, str]:
-    """Render a stage to an RGB array; returns (image, window, kind)."""
+    """Render a stage to an RGB array; returns (image, window, kind). Drawn in metres with Z
+    up whatever the stage's ``metersPerUnit`` and ``upAxis`` (a Y-up centimetre host that
+    references a forest draws it upright, its scale bar in metres)."""
     from pxr import Usd, UsdGeom
 
+    from .sensors.scene import stage_frame
     from .usd.layers import open_stage
 
     path = Path(path)
     stage = open_stage(path, sound=True)
+    frame = stage_frame(path)
+    native = np.allclose(frame, np.eye(4))
     basis = view_basis(view)
     root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
     box = (
@@ -624,6 +635,12 @@ def render_stage(
     region = (root.GetCustomDataByKey("usdforest") or {}).get("regionBounds")
     if not box.IsEmpty():
         lo, hi = np.array(box.GetMin()), np.array(box.GetMax())
+        if not native:  # the box of the box's corners in metres, Z up
+            c = np.array(
+                [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+            )
+            c = c @ frame[:3, :3] + frame[3, :3]
+            lo, hi = c.min(axis=0), c.max(axis=0)
     elif region is not None:  # a forest with no trees and no ground: its plot
         x0, y0, x1, y1 = (float(v) for v in region)
         lo, hi = np.array([x0, y0, 0.0]), np.array([x1, y1, 0.0])
@@ -646,14 +663,18 @@ def render_stage(
         else "tree"
     )
     budget = budget or min(MAX_POINTS, 12 * size[0] * size[1])
-    # a forest's trees are stamped as sprites, framed by the stage's bounds
-    stamps: list[Stamps] | None = [] if kind == "forest" else None
-    cloud = stage_cloud(stage, root, spacing=max(extent * 0.7, 1e-4), budget=budget, stamps=stamps)
+    # a forest's trees are stamped as sprites, framed by the stage's bounds (in a stage of
+    # other units or axes every instance is sampled, then the whole cloud turned to metres)
+    stamps: list[Stamps] | None = [] if kind == "forest" and native else None
+    spacing = max(extent * 0.7, 1e-4) / np.cbrt(abs(np.linalg.det(frame[:3, :3])))
+    cloud = stage_cloud(stage, root, spacing=spacing, budget=budget, stamps=stamps)
+    if not native:
+        cloud = cloud.transformed(frame)
     window = None
     if kind == "forest":
         window = view_window(uv, size)
         if ground:
-            cloud = Cloud.concat([_ground(lo, hi, extent, _ground_meshes(stage)), cloud])
+            cloud = Cloud.concat([_ground(lo, hi, extent, _ground_meshes(stage), frame), cloud])
     img, window = splat(cloud, basis, size, window=window, stamps=stamps or ())
     return img, window, kind
 
@@ -671,9 +692,14 @@ def _ground_meshes(stage) -> list:
     ]
 
 
-def _ground(lo: np.ndarray, hi: np.ndarray, px: float, meshes: list) -> Cloud:
-    """A dense grid of ground samples, one per pixel: on the stage's own ground meshes (their
-    heights interpolated, their colour) or, without one, a plain floor under everything."""
+def _ground(
+    lo: np.ndarray, hi: np.ndarray, px: float, meshes: list, frame: np.ndarray | None = None
+) -> Cloud:
+    """A dense grid of ground samples, one per pixel, in the drawing's frame (``frame``: the
+    stage's units and axes to metres, Z up): on the stage's own ground meshes (their heights
+    interpolated, their colour) or, without one, a plain floor under everything. Ground
+    meshes that are not a height field in that frame (a tilted reference) are drawn by their
+    own surface samples only."""
     step = px * 0.9
     xs = np.arange(lo[0], hi[0], step)
     ys = np.arange(lo[1], hi[1], step)
@@ -688,8 +714,10 @@ def _ground(lo: np.ndarray, hi: np.ndarray, px: float, meshes: list) -> Cloud:
 
         from .usd.layers import mesh_triangles
 
+        frame = np.eye(4) if frame is None else frame
         world = [
             _matrix(UsdGeom.Xformable(m).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+            @ frame
             for m in meshes
         ]
         corners = np.concatenate(
@@ -701,8 +729,11 @@ def _ground(lo: np.ndarray, hi: np.ndarray, px: float, meshes: list) -> Cloud:
             # float32 rounding, are kept once)
             pts, tri = np.unique(np.round(corners, 4), axis=0, return_inverse=True)
             tri = np.unique(np.sort(tri.reshape(-1, 3), axis=1), axis=0)
-            mesh = Triangulation(pts[:, 0], pts[:, 1], tri)
-            z = np.ma.filled(LinearTriInterpolator(mesh, pts[:, 2])(gx, gy), np.nan)
+            try:
+                mesh = Triangulation(pts[:, 0], pts[:, 1], tri)
+                z = np.ma.filled(LinearTriInterpolator(mesh, pts[:, 2])(gx, gy), np.nan)
+            except (RuntimeError, ValueError):  # not a height field seen from above
+                return Cloud(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
             if min(z.shape) > 1:  # shade the relief: normals from the height's gradient
                 dzdy, dzdx = np.gradient(z, step)
                 n = np.stack([-dzdx, -dzdy, np.ones_like(z)], axis=-1)
