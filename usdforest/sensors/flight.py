@@ -142,7 +142,7 @@ class FlightReturns:
     sweeps: int
     ring: np.ndarray  # the laser (channel) of each return, 0 the lowest
     scan_angle: np.ndarray  # its azimuth from the sensor's forward axis, degrees in [-180, 180)
-    intensity: np.ndarray  # uint16, see usdforest.sensors.lidar.intensity
+    intensity: np.ndarray  # uint16, see usdforest.sensors.lidar.counts
     return_number: np.ndarray  # uint8, 1-based, by range among its pulse's returns
     number_of_returns: np.ndarray  # uint8, of its pulse
 
@@ -245,7 +245,7 @@ def write_las(
     """LAS 1.4, point format 6, as point-cloud tools expect it: x, y, z (0.1 mm; in ``crs``
     with the stage origin's map position ``origin`` added to x and y), GPS time (the path's
     seconds), return number and number of returns of each pulse, intensity (the lidar equation, see
-    :func:`usdforest.sensors.lidar.intensity`), scan angle (the laser's azimuth from the
+    :func:`usdforest.sensors.lidar.counts`), scan angle (the laser's azimuth from the
     platform's forward axis), point source = ``flight_line``, ASPRS classification, and the
     extra dimensions ``ring`` (uint16, the laser: 0 the lowest), ``tree_id`` (int32, -1 off
     any tree) and ``usdforest_class`` (0 unknown, 1 trunk, 2 branch, 3 leaf, 4 ground). With a

@@ -162,12 +162,6 @@ def counts(energy: np.ndarray) -> np.ndarray:
     return np.minimum(np.round(INTENSITY_GAIN * np.asarray(energy)), 65535).astype(np.uint16)
 
 
-def intensity(cls: np.ndarray, cos_incidence: np.ndarray, rng: np.ndarray) -> np.ndarray:
-    """``uint16`` intensities of returns that fill the beam: the lidar equation for an
-    extended Lambertian target, ``INTENSITY_GAIN`` x reflectance x |cos incidence| / range^2."""
-    return counts(reflected(cls, cos_incidence, rng))
-
-
 def cast_pulses(
     caster: SceneCaster,
     origins: np.ndarray,
@@ -206,7 +200,7 @@ def cast_pulses(
 @dataclass(frozen=True, eq=False)
 class Returns:
     """Returns of one scan: world points, ranges, pulse (ray) index, class, tree id, prim path,
-    intensity (see :func:`intensity`), and each return's number among its pulse's."""
+    intensity (see :func:`counts`), and each return's number among its pulse's."""
 
     points: np.ndarray
     range: np.ndarray
