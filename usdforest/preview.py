@@ -25,6 +25,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from .errors import UsdForestError
+from .runs import run_starts
 
 VIEWS = ("side", "top", "iso")
 SKY = np.array([0.93, 0.95, 0.98])
@@ -64,8 +65,7 @@ class Cloud:
         rot = m[:3, :3]
         n = self.normals @ np.linalg.inv(rot).T
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        scale = float(np.cbrt(abs(np.linalg.det(rot)))) or 1.0
-        return Cloud(self.points @ rot + m[3, :3], n, self.colors, self.spacing * scale)
+        return Cloud(self.points @ rot + m[3, :3], n, self.colors, self.spacing * _scale(m))
 
 
 # --------------------------------------------------------------------------- stage -> points
@@ -540,7 +540,7 @@ def _stamp(zb: _ZBuffer, s: Stamps, basis: np.ndarray, window, px: float) -> Non
     key = (s.proto.astype(np.int64) * MAX_YAW_BINS + ybin) * (int(sbin.max()) - smin + 1)
     key += sbin - smin
     order = np.argsort(key, kind="stable")
-    first = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1]])
+    first = run_starts(key[order])
     bounds = np.r_[first, len(key)]
     sprites = []
     for b in range(len(first)):
@@ -618,7 +618,7 @@ def render_stage(
     references a forest draws it upright, its scale bar in metres)."""
     from pxr import Usd, UsdGeom
 
-    from .sensors.scene import stage_frame
+    from .sensors.scene import moved_boxes, stage_frame
     from .usd.layers import open_stage
 
     path = Path(path)
@@ -635,12 +635,8 @@ def render_stage(
     region = (root.GetCustomDataByKey("usdforest") or {}).get("regionBounds")
     if not box.IsEmpty():
         lo, hi = np.array(box.GetMin()), np.array(box.GetMax())
-        if not native:  # the box of the box's corners in metres, Z up
-            c = np.array(
-                [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-            )
-            c = c @ frame[:3, :3] + frame[3, :3]
-            lo, hi = c.min(axis=0), c.max(axis=0)
+        if not native:  # the box in metres, Z up
+            lo, hi = (b[0] for b in moved_boxes(lo[None], hi[None], frame[None]))
     elif region is not None:  # a forest with no trees and no ground: its plot
         x0, y0, x1, y1 = (float(v) for v in region)
         lo, hi = np.array([x0, y0, 0.0]), np.array([x1, y1, 0.0])
@@ -666,7 +662,7 @@ def render_stage(
     # a forest's trees are stamped as sprites, framed by the stage's bounds (in a stage of
     # other units or axes every instance is sampled, then the whole cloud turned to metres)
     stamps: list[Stamps] | None = [] if kind == "forest" and native else None
-    spacing = max(extent * 0.7, 1e-4) / np.cbrt(abs(np.linalg.det(frame[:3, :3])))
+    spacing = max(extent * 0.7, 1e-4) / _scale(frame)
     cloud = stage_cloud(stage, root, spacing=spacing, budget=budget, stamps=stamps)
     if not native:
         cloud = cloud.transformed(frame)

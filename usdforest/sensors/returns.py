@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..runs import run_starts
+
 MODES = ("first", "last", "strongest", "dual", "all")
 
 
@@ -107,10 +109,7 @@ class Echoes:
 
 def _first_per(key: np.ndarray, order: np.ndarray) -> np.ndarray:
     """Indices (into ``key``) of the first element of each run of equal ``key[order]``."""
-    k = key[order]
-    start = np.ones(len(k), dtype=bool)
-    start[1:] = k[1:] != k[:-1]
-    return order[start]
+    return order[run_starts(key[order])]
 
 
 def merge_echoes(
@@ -157,7 +156,7 @@ def merge_echoes(
     p, j = np.nonzero(valid)
     key = p * s + echo[p, j]  # non-decreasing: rows in order, echoes in range order
     tv, ev = t[p, j], energy[p, j]
-    start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if len(key) else key
+    start = run_starts(key)
     e_sum = np.add.reduceat(ev, start) if len(start) else np.zeros(0)
     et_sum = np.add.reduceat(ev * tv, start) if len(start) else np.zeros(0)
     safe = np.where(e_sum > 0, e_sum, 1.0)

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..runs import run_starts
 from .scene import CLASS_ID, Scene
 
 WOOD = (CLASS_ID["trunk"], CLASS_ID["branch"])
@@ -121,7 +122,7 @@ def surface_points(
     owner = np.repeat(np.arange(len(tri)), n)
     i = np.arange(n.sum())
     if group is not None and len(tri):
-        starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+        starts = run_starts(group)
         tri_start = np.cumsum(n) - n
         i -= np.repeat(tri_start[starts], np.diff(np.r_[tri_start[starts], n.sum()]))
     g = 1.32471795724474602596  # the plastic number: R2's generator
@@ -160,7 +161,7 @@ def _fit_prims(
     flip = np.take_along_axis(axis, np.abs(axis).argmax(axis=1)[:, None], 1) < 0
     axis = np.where(flip, -axis, axis)
     t = np.einsum("nk,nk->n", d, axis[pp])
-    starts = np.flatnonzero(np.r_[True, pp[1:] != pp[:-1]]) if len(pp) else np.zeros(0, int)
+    starts = run_starts(pp)
     lo = np.minimum.reduceat(t, starts) if len(pp) else np.zeros(0)
     span = (np.maximum.reduceat(t, starts) if len(pp) else np.zeros(0)) - lo
     n = np.maximum(1, np.ceil(span / segment * (1 - 1e-6)).astype(np.int64))  # float32: 2.0000001
