@@ -60,8 +60,10 @@ reflection, leaves' and twigs' Rayleigh regime below k a ~ 1 (overestimated).
 
 from __future__ import annotations
 
+import functools
 import json
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -70,12 +72,14 @@ from scipy.special import j1
 
 from ..atomic import atomic_path, save_npz
 from ..errors import UsdForestError
+from ..runs import run_starts
 from .backscatter import (
     LEAF_MODELS,
     cylinder_backscatter,
     facet_backscatter,
     leaf_backscatter,
 )
+from .bandsum import Bands
 from .facets import Facets, GroundField
 from .pose import Pose
 from .scene import CLASS_ID, CLASSES, Leaves, Scene
@@ -382,6 +386,7 @@ class _Grid:
     centres: np.ndarray
     call: np.ndarray
     t: np.ndarray
+    sums: Bands  # the band constants the band-sum kernels read
 
     @staticmethod
     def of(cfg: SonarConfig) -> _Grid:
@@ -426,22 +431,55 @@ class _Grid:
             centres,
             chirp(cfg),
             np.arange(n_out) / cfg.sample_rate,
+            _band_constants(cfg, centres, [b[3] for b in bands], duration, n_base),
         )
 
 
+def _band_constants(
+    cfg: SonarConfig, centres: np.ndarray, j0: list[int], duration: float, n_base: int
+) -> Bands:
+    """The per-band constants of :mod:`usdforest.sensors.bandsum`: baseband turns, wavenumbers,
+    and the two-way Gaussian beam and absorption of :func:`_propagation` as exponents."""
+    half = np.radians(cfg.beam_width) / 2 * cfg.f_ref / centres
+    alpha = absorption_db_per_m(centres, cfg.temperature, cfg.humidity, cfg.pressure)
+    return Bands(
+        turn=2 * math.pi * np.asarray(j0, dtype=float) / duration,
+        wavenumber=2 * math.pi * centres / cfg.speed_of_sound,
+        beam=math.log(2) / half**2,  # beam_amplitude squared: exp(-ln 2 (theta / half)^2)
+        absorb=alpha * math.log(10) / 10,  # 10^(-alpha 2 r / 20) = exp(-absorb r)
+        n_base=n_base,
+        fs_base=n_base / duration,
+    )
+
+
+@dataclass(frozen=True)
+class _Source:
+    """One class of a pulse's reflectors: ``amplitudes(indices)`` gives the band amplitudes
+    ``(n, B)`` and delay ranges of a subset; ``geometry(indices)``, where the kernel models
+    the reflectors itself (group-fit leaves in a Gaussian beam), their range, beam angle,
+    incidence and radius instead."""
+
+    cls: int
+    tree: np.ndarray
+    position: np.ndarray
+    amplitudes: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+    geometry: Callable[[np.ndarray], tuple[np.ndarray, ...]] | None = None
+
+
 def _coherent(
-    position: np.ndarray,
-    amplitudes,
+    source: _Source,
     pose: Pose,
     cfg: SonarConfig,
     grid: _Grid,
     velocity: np.ndarray | None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Spectrum, impulse response and echo of reflectors at ``position (n, 3)`` whose
-    band amplitudes and delay ranges ``amplitudes(indices)`` gives, plus each reflector's
+    """Spectrum, impulse response and echo of ``source``'s reflectors, plus each one's
     band-mean energy and delay range (the coherent sum of the module docstring; Doppler as
     in :func:`echo_from_targets`)."""
+    from . import bandsum
+
     c = cfg.speed_of_sound
+    position = source.position
     d = position - pose.position
     r_all = np.linalg.norm(d, axis=1)
     closing = np.zeros(len(position))  # the platform's speed towards each reflector
@@ -457,42 +495,37 @@ def _coherent(
     energy = np.zeros(len(position))
     ranges = np.zeros(len(position))
     for factor, group in _doppler_groups(eta, cfg.doppler_bins):
-        part = np.zeros(grid.freqs.size, dtype=complex)
         # the centre of the group's Doppler compression (below): its first delay, so that no
         # reflector is placed before the window's start (any centre lands each reflector at
         # its own delay)
         delays = echo_delay(r_all[group], closing[group], v2, c)
         centre = float(delays.min()) if group.size else 0.0
-        for start in range(0, group.size, LEAF_CHUNK):
-            sel = group[start : start + LEAF_CHUNK]
-            amp, r = amplitudes(sel)
-            ranges[sel] = r
-            energy[sel] = np.mean(np.abs(amp) ** 2, axis=1)
+
+        def delay(r: np.ndarray, sel: np.ndarray, centre=centre, factor=factor) -> np.ndarray:
             # placed so that compressing the group by its factor about its centre moves each
             # reflector's echo to its own delay (exact at rest: 2 r / c)
-            tau = np.maximum(centre + factor * (echo_delay(r, closing[sel], v2, c) - centre), 0)
-            pos = tau * grid.fs_base
-            i0 = np.floor(pos).astype(np.int64)
-            frac = pos - i0
-            # exp(-i 2 pi f0 tau) band after band: each centre is the last one's plus a whole
-            # number of bins, one of (at most) two numbers, so one product a band
-            phasor = np.exp(-2j * math.pi * (grid.bands[0][3] / grid.duration) * tau)
-            turns: dict[int, np.ndarray] = {}
-            for k, (idx, hat, base, j0) in enumerate(grid.bands):
-                # the band's share of H: sum_l a_lk exp(-i 2 pi f tau_l) near its centre f0,
-                # as the spectrum of a delay histogram of the amplitudes moved to baseband
-                if k:
-                    bins = j0 - grid.bands[k - 1][3]
-                    if bins not in turns:
-                        turns[bins] = np.exp(
-                            -2j * math.pi * bins * grid.fs_fine / grid.n_fine * tau
-                        )
-                    phasor *= turns[bins]
-                w = amp[:, k] * phasor
-                hist = _delay_histogram(i0, frac, w.real, grid.n_base) + 1j * _delay_histogram(
-                    i0, frac, w.imag, grid.n_base
-                )
-                part[idx] += hat * np.fft.fft(hist)[base]
+            return np.maximum(centre + factor * (echo_delay(r, closing[sel], v2, c) - centre), 0)
+
+        # each band's share of H: sum_l a_lk exp(-i 2 pi f tau_l) near its centre f0, as the
+        # spectrum of a delay histogram of the amplitudes moved to baseband
+        if source.geometry is not None:
+            r, theta_b, theta_i, radius = source.geometry(group)
+            ranges[group] = r
+            hist, energy[group] = bandsum.group_fit_deposit(
+                r, theta_b, theta_i, radius, delay(r, group), grid.sums
+            )
+        else:
+            hist = np.zeros((grid.centres.size, grid.n_base), complex)
+            for start in range(0, group.size, LEAF_CHUNK):
+                sel = group[start : start + LEAF_CHUNK]
+                amp, r = source.amplitudes(sel)
+                ranges[sel] = r
+                energy[sel] = np.mean(np.abs(amp) ** 2, axis=1)
+                hist += bandsum.deposit(amp, delay(r, sel), grid.sums)
+        spread = np.fft.fft(hist, axis=1)
+        part = np.zeros(grid.freqs.size, dtype=complex)
+        for k, (idx, hat, base, _) in enumerate(grid.bands):
+            part[idx] += hat * spread[k, base]
         spectrum += part
         impulse_part = (np.fft.irfft(part * grid.weight, grid.n_fine) * grid.fs_fine)[::OVERSAMPLE]
         impulse += impulse_part
@@ -533,13 +566,20 @@ def echo_from_targets(
         return np.flatnonzero(np.linalg.norm(points - pose.position, axis=1) <= cfg.max_range)
 
     leaf_in = near(lv.centre)
-    # (class, tree ids, positions, amplitudes of a subset): one coherent sum per class
+
+    def leaf_geometry_of(sel: np.ndarray) -> tuple[np.ndarray, ...]:
+        sub = _leaf_subset(lv, leaf_in[sel])
+        return (*leaf_geometry(sub, pose), sub.radius)
+
+    # one coherent sum per class
     sources = [
-        (
+        _Source(
             CLASS_ID["leaf"],
             lv.tree[leaf_in],
             lv.centre[leaf_in],
             lambda sel: leaf_amplitudes(_leaf_subset(lv, leaf_in[sel]), pose, cfg, grid.centres),
+            # the kernel's own model: the group's fit through a Gaussian beam
+            leaf_geometry_of if (cfg.leaf_model, cfg.beam) == ("group-fit", "gaussian") else None,
         )
     ]
     if cfg.wood and len(wood):
@@ -548,7 +588,7 @@ def echo_from_targets(
             wk = w.take(np.flatnonzero(w.cls == k))
             if len(wk):
                 sources.append(
-                    (
+                    _Source(
                         k,
                         wk.tree,
                         wk.centre,
@@ -558,7 +598,7 @@ def echo_from_targets(
     if cfg.ground and len(ground):
         g = ground.take(near(ground.centre))
         sources.append(
-            (
+            _Source(
                 CLASS_ID["ground"],
                 np.full(len(g), -1, np.int64),
                 g.centre,
@@ -569,8 +609,9 @@ def echo_from_targets(
     impulse, echo = np.zeros(grid.n_out), np.zeros(grid.n_out)
     parts: dict[str, np.ndarray] = {}
     labels, reflectors = [], {}
-    for k, tree, position, amplitudes in sources:
-        sp, imp, ec, energy, r = _coherent(position, amplitudes, pose, cfg, grid, velocity)
+    for source in sources:
+        k, tree, position = source.cls, source.tree, source.position
+        sp, imp, ec, energy, r = _coherent(source, pose, cfg, grid, velocity)
         spectrum += sp
         impulse += imp
         echo += ec
@@ -621,10 +662,11 @@ def _labels(tree: np.ndarray, cls: np.ndarray, energy: np.ndarray, r: np.ndarray
     out = np.zeros(len(uniq), LABEL_DTYPE)
     out["tree"], out["cls"] = uniq // 256, uniq % 256
     out["energy"] = np.bincount(inv, energy, minlength=len(uniq))
-    out["range_min"] = np.full(len(uniq), np.inf)
-    out["range_max"] = np.full(len(uniq), -np.inf)
-    np.minimum.at(out["range_min"], inv, r)
-    np.maximum.at(out["range_max"], inv, r)
+    if len(uniq):
+        order = np.argsort(inv, kind="stable")
+        starts = run_starts(inv[order])
+        out["range_min"] = np.minimum.reduceat(r[order], starts)
+        out["range_max"] = np.maximum.reduceat(r[order], starts)
     return out
 
 
@@ -654,14 +696,6 @@ def _doppler_groups(eta: np.ndarray, bins: int) -> list[tuple[float, np.ndarray]
         idx = np.flatnonzero(which == b)
         out.append((1.0 + float(eta[idx].mean()), idx))
     return out
-
-
-def _delay_histogram(i0: np.ndarray, frac: np.ndarray, w: np.ndarray, n: int) -> np.ndarray:
-    """Weights ``w`` spread linearly between the two fine samples around each delay."""
-    return (
-        np.bincount(i0, w * (1 - frac), minlength=n + 1)
-        + np.bincount(i0 + 1, w * frac, minlength=n + 2)[: n + 1]
-    )[:n]
 
 
 def _visible(points: np.ndarray, tolerance: np.ndarray, pose: Pose, caster) -> np.ndarray:
@@ -700,18 +734,30 @@ class SonarScene:
         """Reflectors within range of ``pose`` (hidden ones dropped when ``cfg.occlusion``)."""
         return self._unseen_dropped(self._in_range(pose, cfg), pose, cfg)
 
+    @functools.cached_property
+    def _index(self):
+        """k-d trees of the leaves' and the wood's centres (built once: a pulse finds the
+        reflectors within its range in milliseconds, not by measuring every one)."""
+        from scipy.spatial import cKDTree
+
+        return tuple(
+            cKDTree(np.ascontiguousarray(points, dtype=float))
+            for points in (self.scene.leaves.centre, self.wood.centre)
+        )
+
     def _in_range(self, pose: Pose, cfg: SonarConfig) -> Targets:
-        def near(points: np.ndarray) -> np.ndarray:
-            return np.flatnonzero(np.linalg.norm(points - pose.position, axis=1) <= cfg.max_range)
+        def near(index) -> np.ndarray:
+            found = index.query_ball_point(pose.position, cfg.max_range, return_sorted=True)
+            return np.asarray(found, dtype=np.int64)
 
         ground = (
             self.ground.facets(pose.position, cfg.max_range)
             if self.ground is not None
             else Facets.empty()
         )
-        lv = self.scene.leaves
+        leaves, wood = self._index
         return Targets(
-            _leaf_subset(lv, near(lv.centre)), self.wood.take(near(self.wood.centre)), ground
+            _leaf_subset(self.scene.leaves, near(leaves)), self.wood.take(near(wood)), ground
         )
 
     def _unseen_dropped(self, targets: Targets, pose: Pose, cfg: SonarConfig) -> Targets:
