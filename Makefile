@@ -50,7 +50,7 @@ lint: $(STAMP)
 
 templates: $(STAMP)
 	$(BIN)/python templates/make_cad.py
-	$(BIN)/usdforest template build pipelines/templates.toml
+	$(BIN)/usdforest template build pipelines/templates.toml --force
 
 figures: $(STAMP)
 	$(BIN)/python docs/make_figures.py docs/figures

@@ -394,7 +394,11 @@ BAD_RECIPES: dict[str, tuple[str, str]] = {
         _r('kind = "constant"\nvalue = 0.01', 'kind = "raster"\nfile = "grey.png"'),
         "intensity.max",
     ),
-    "no species": (BASE.replace("[species.pine]\n", ""), "species"),
+    # no [species] at all is the default mix; an empty one is an error
+    "no species": (
+        BASE.replace("seed = 1\n", "seed = 1\nspecies = {}\n").replace("[species.pine]\n", ""),
+        "species: no [species.NAME] tables",
+    ),
     "unknown preset": (_r("[species.pine]", '[species.pine]\npreset = "oak"'), "oak"),
     "species key": (_r("[species.pine]", "[species.pine]\ncolour = 1"), "colour"),
     "iterations": (_r("[species.pine]", "[species.pine]\niterations = 1000"), "iterations"),

@@ -104,3 +104,20 @@ def test_help_reads_well(runner):
     assert r.exit_code == 0 and "lsystem" in r.stdout and "species" in r.stdout
     r = runner.invoke(app, ["lsystem", "--help"])
     assert "stochastic" in r.stdout and "--iterations" in r.stdout
+
+
+COMMANDS = [
+    ["lsystem"], ["species"], ["recipes"], ["tree"], ["build"], ["sample"], ["preview"],
+    ["plot-sites"], ["scan"], ["fly"], ["validate"], ["info"], ["stats"],
+    ["template", "import"], ["template", "extract"], ["template", "build"], ["template", "list"],
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("command", COMMANDS, ids=" ".join)
+def test_help_names_what_options_take(runner, command):
+    """Flags show no value and text options their own name, not a type such as <bool>."""
+    r = runner.invoke(app, [*command, "--help"], env={"COLUMNS": "160"})
+    assert r.exit_code == 0, r.output
+    assert "<bool>" not in r.stdout and "<str>" not in r.stdout, r.stdout
+    if command == ["scan"]:
+        assert "SENSOR" in r.stdout and "OUTPUT" in r.stdout

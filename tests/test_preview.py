@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import matplotlib.image as mpimg
 import numpy as np
 import pytest
@@ -280,3 +282,56 @@ def test_a_tilted_reference_to_a_forest_with_ground_previews(default_forest, tmp
     assert r.exit_code == 0, r.output
     img = mpimg.imread(tmp_path / "t.png")[..., :3]
     assert classify(img)["green"].mean() > 0.02
+
+
+def test_site_plots_refuse_a_replicate_the_csv_lacks_and_binary_files(tmp_path, runner):
+    csv = tmp_path / "s.csv"
+    assert runner.invoke(app, ["sample", str(csv), "--replicates", "3"]).exit_code == 0
+    r = runner.invoke(
+        app, ["plot-sites", str(tmp_path / "p.png"), "--sites", str(csv), "--replicate", "9"]
+    )
+    assert r.exit_code == 2 and r.stderr.strip().endswith(
+        "no replicate 9 (the file has replicates 0 to 2)"
+    ), r.output
+    assert not (tmp_path / "p.png").exists()
+    (tmp_path / "b.csv").write_bytes(bytes(range(256)) * 4)
+    r = runner.invoke(
+        app, ["plot-sites", str(tmp_path / "p.png"), "--sites", str(tmp_path / "b.csv")]
+    )
+    assert r.exit_code == 2 and "not a text file" in r.stderr, r.output
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize(("suffix", "fmt"), [(".jpg", "JPEG"), (".PNG", "PNG"), (".webp", "WEBP")])
+def test_images_are_written_in_the_format_their_name_asks_for(tmp_path, runner, suffix, fmt):
+    from PIL import Image
+
+    stage = tmp_path / "t.usda"
+    assert runner.invoke(app, ["tree", str(stage), "--species", "paper-rule-1"]).exit_code == 0
+    for args in (
+        ["preview", str(stage), "-o", str(tmp_path / f"v{suffix}"), "--size", "120x120"],
+        ["plot-sites", str(tmp_path / f"s{suffix}")],
+    ):
+        r = runner.invoke(app, args)
+        assert r.exit_code == 0, r.output
+    assert Image.open(tmp_path / f"v{suffix}").format == fmt
+    assert Image.open(tmp_path / f"s{suffix}").format == fmt
+
+
+def test_images_refuse_unknown_formats_and_existing_files_unless_forced(tmp_path, runner):
+    stage = tmp_path / "t.usda"
+    assert runner.invoke(app, ["tree", str(stage), "--species", "paper-rule-1"]).exit_code == 0
+    r = runner.invoke(app, ["preview", str(stage), "-o", str(tmp_path / "v.bmp")])
+    assert r.exit_code == 2 and "must end in .png, .jpg" in r.stderr
+    assert not (tmp_path / "v.bmp").exists()
+    for args in (
+        ["preview", str(stage), "-o", str(tmp_path / "v.png"), "--size", "100x100"],
+        ["plot-sites", str(tmp_path / "s.png")],
+    ):
+        out = Path(args[3] if args[0] == "preview" else args[1])
+        out.write_bytes(b"mine")
+        r = runner.invoke(app, args)
+        assert r.exit_code == 2 and "exists; pass --force" in r.stderr, r.output
+        assert out.read_bytes() == b"mine"
+        assert runner.invoke(app, [*args, "--force"]).exit_code == 0
+        assert out.read_bytes()[:4] == b"\x89PNG"

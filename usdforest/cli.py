@@ -24,6 +24,35 @@ from .atomic import move_into_place, refuse_overwrite, staging_folder
 from .errors import UsdForestError
 from .paths import require_output
 
+
+class _Command(typer.core.TyperCommand):
+    """A command whose help names what each option takes: a flag shows no value (not
+    ``<bool>``), a text or path its own name (``--sensor SENSOR``, not ``<str>``)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        for param in self.params:
+            if getattr(param, "is_flag", False):
+                param.metavar = ""
+            elif param.metavar is None and _takes_text(param):
+                param.metavar = param.name.upper()
+
+    def get_help_option(self, ctx: Any) -> Any:
+        option = super().get_help_option(ctx)
+        if option is not None:
+            option.metavar = ""
+        return option
+
+
+def _takes_text(param: Any) -> bool:
+    """Whether an option or argument takes a string or a path (typer >= 0.20 describes its
+    type with ``type_descriptor``; older typer with click's ``type``)."""
+    descriptor = getattr(param, "type_descriptor", None)
+    if descriptor is not None:
+        return descriptor.annotation in (str, Path)
+    return getattr(getattr(param, "type", None), "name", None) in ("text", "path")
+
+
 app = typer.Typer(
     name="usdforest",
     help="Trees from L-systems and CAD templates, forests from inhomogeneous Poisson "
@@ -42,7 +71,13 @@ F = TypeVar("F", bound=Callable[..., Any])
 # options shared by the commands that read a forest recipe
 RecipeOption = Annotated[
     Path | None,
-    typer.Option("--pipeline", "-p", help="Recipe (TOML); default: the embedded one."),
+    typer.Option(
+        "--pipeline",
+        "-p",
+        metavar="RECIPE",
+        help="Recipe: a TOML file, or a shipped recipe's name (see 'usdforest recipes'); "
+        "default: the embedded one.",
+    ),
 ]
 MAX_SEED = 2**64 - 1
 PLAIN_PROGRESS_SECONDS = 5.0
@@ -102,7 +137,7 @@ def _root(
     """Trees from L-systems and CAD templates, forests from inhomogeneous Poisson processes."""
 
 
-@app.command("lsystem")
+@app.command("lsystem", cls=_Command)
 @handles_errors
 def lsystem_cmd(
     axiom: Annotated[
@@ -170,7 +205,7 @@ def lsystem_cmd(
         )
 
 
-@app.command("species")
+@app.command("species", cls=_Command)
 @handles_errors
 def species_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print the presets as JSON.")] = False,
@@ -198,7 +233,34 @@ def species_cmd(
     out.print(table)
 
 
-@app.command("tree")
+@app.command("recipes", cls=_Command)
+@handles_errors
+def recipes_cmd(
+    as_json: Annotated[bool, typer.Option("--json", help="Print the recipes as JSON.")] = False,
+) -> None:
+    """List the recipes shipped with usdforest (use a name with -p, e.g. -p stand-1ha)."""
+    from .recipe import default_recipe_path, recipe_description, shipped_recipes
+
+    rows = [
+        {
+            "name": name,
+            "default": path == default_recipe_path(),
+            "description": recipe_description(path),
+            "path": str(path),
+        }
+        for name, path in shipped_recipes().items()
+    ]
+    if as_json:
+        sys.stdout.write(json.dumps(rows, indent=2) + "\n")
+        return
+    table = Table("name", "description (its first sentence)", box=None, header_style="bold")
+    for row in rows:
+        first = row["description"].split(". ")[0].removesuffix(".")
+        table.add_row(row["name"] + (" (default)" if row["default"] else ""), first)
+    out.print(table)
+
+
+@app.command("tree", cls=_Command)
 @handles_errors
 def tree_cmd(
     output: Annotated[Path, typer.Argument(help="Tree layer to write (.usda or .usdc).")],
@@ -206,7 +268,13 @@ def tree_cmd(
         str | None, typer.Option("--species", "-s", help="Preset or pipeline species name.")
     ] = None,
     pipeline: Annotated[
-        Path | None, typer.Option("--pipeline", "-p", help="Recipe (TOML) defining species.")
+        Path | None,
+        typer.Option(
+            "--pipeline",
+            "-p",
+            metavar="RECIPE",
+            help="Recipe defining species: a TOML file or a shipped recipe's name.",
+        ),
     ] = None,
     seed: Annotated[
         int, typer.Option(min=0, max=MAX_SEED, help="Seed for growth and placement.")
@@ -230,8 +298,9 @@ def tree_cmd(
 
     template_base = None
     if pipeline is not None:
-        from .recipe import read_species
+        from .recipe import read_species, recipe_path
 
+        pipeline = recipe_path(pipeline)
         entries = read_species(pipeline)
         name = species or next(iter(entries))
         if name not in entries:
@@ -274,7 +343,7 @@ def tree_cmd(
         )
 
 
-@app.command("validate")
+@app.command("validate", cls=_Command)
 @handles_errors
 def validate_cmd(
     stage: Annotated[Path, typer.Argument(help="Any USD stage.")],
@@ -328,7 +397,7 @@ def _stats_value(_k: str, v):
     return f"{v:.4g}" if isinstance(v, float) else v
 
 
-@app.command("info")
+@app.command("info", cls=_Command)
 @handles_errors
 def info_cmd(
     stage: Annotated[Path, typer.Argument(help="A usdforest stage (tree or forest).")],
@@ -344,7 +413,7 @@ def info_cmd(
     _print_pairs(info, _info_value)
 
 
-@app.command("stats")
+@app.command("stats", cls=_Command)
 @handles_errors
 def stats_cmd(
     stage: Annotated[Path, typer.Argument(help="A forest built by usdforest build.")],
@@ -363,12 +432,12 @@ def stats_cmd(
 
 
 def _load_recipe(pipeline: Path | None, seed: int | None, hard_core: float | None = None):
-    from .recipe import default_recipe_path, read_recipe
+    from .recipe import read_recipe, recipe_path
 
-    return read_recipe(pipeline or default_recipe_path(), seed=seed, hard_core=hard_core)
+    return read_recipe(recipe_path(pipeline), seed=seed, hard_core=hard_core)
 
 
-@app.command("build")
+@app.command("build", cls=_Command)
 @handles_errors
 def build_cmd(
     output: Annotated[Path, typer.Argument(help="Forest interface layer to write (.usda).")],
@@ -458,7 +527,7 @@ def build_cmd(
         )
 
 
-@app.command("sample")
+@app.command("sample", cls=_Command)
 @handles_errors
 def sample_cmd(
     output: Annotated[Path, typer.Argument(help="CSV to write: replicate,x,y and the marks.")],
@@ -480,10 +549,10 @@ def sample_cmd(
 
     require_output(output)
     from .config import load_toml
-    from .recipe import default_recipe_path, parse_recipe
+    from .recipe import parse_recipe, recipe_path
     from .sites import sample_sites, write_sites_csv
 
-    path = pipeline or default_recipe_path()
+    path = recipe_path(pipeline)
     data = load_toml(path)
     if intensity is not None:
         data["intensity"] = {"kind": "expression", "expr": intensity}
@@ -549,23 +618,30 @@ def _parse_size(size: str) -> tuple[int, int]:
     return w, h
 
 
-@app.command("preview")
+@app.command("preview", cls=_Command)
 @handles_errors
 def preview_cmd(
     stage: Annotated[Path, typer.Argument(help="A usdforest stage (tree or forest).")],
-    output: Annotated[Path, typer.Option("--output", "-o", help="PNG to write.")],
+    output: Annotated[
+        Path,
+        typer.Option("--output", "-o", help="Image to write: .png, .jpg, .webp or .tif."),
+    ],
     view: Annotated[str, typer.Option(help="side, top or iso.")] = "iso",
-    size: Annotated[str, typer.Option(help="Image size WIDTHxHEIGHT.")] = "800x800",
+    size: Annotated[str, typer.Option(metavar="WxH", help="Image size WIDTHxHEIGHT.")] = "800x800",
     plain: Annotated[bool, typer.Option("--plain", help="No caption or scale bar.")] = False,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
 ) -> None:
-    """Render a stage headlessly to a PNG (what composes is what is drawn)."""
+    """Render a stage headlessly to an image (what composes is what is drawn)."""
     require_output(output)
     import time
 
+    from .paths import image_format
     from .preview import VIEWS, preview
 
+    image_format(output)
     if view not in VIEWS:
         raise UsdForestError(f"--view: {view!r} is not one of {', '.join(VIEWS)}")
+    refuse_overwrite(output, force=force)
     t0 = time.perf_counter()
     info = preview(stage, output, view=view, size=_parse_size(size), annotate=not plain)
     out.print(
@@ -575,10 +651,10 @@ def preview_cmd(
     )
 
 
-@app.command("plot-sites")
+@app.command("plot-sites", cls=_Command)
 @handles_errors
 def plot_sites_cmd(
-    output: Annotated[Path, typer.Argument(help="PNG to write.")],
+    output: Annotated[Path, typer.Argument(help="Image to write: .png, .jpg, .webp or .tif.")],
     pipeline: RecipeOption = None,
     sites_csv: Annotated[
         Path | None, typer.Option("--sites", help="Sites CSV from 'usdforest sample'.")
@@ -586,12 +662,16 @@ def plot_sites_cmd(
     replicate: Annotated[int, typer.Option(min=0, help="Replicate to plot.")] = 0,
     seed: SeedOverride = None,
     hard_core: HardCoreOverride = None,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
 ) -> None:
     """Plot the intensity map with sampled sites over it (the paper's IPP figure)."""
     require_output(output)
+    from .paths import image_format
     from .plots import plot_sites
     from .sites import read_sites_csv, sample_sites
 
+    image_format(output)
+    refuse_overwrite(output, force=force)
     recipe = _load_recipe(pipeline, seed, hard_core)
     if sites_csv is not None:
         sites = read_sites_csv(sites_csv, recipe.species_names, replicate)
@@ -601,7 +681,7 @@ def plot_sites_cmd(
     out.print(f"{output}: {len(sites):,} sites", highlight=False)
 
 
-@app.command("scan")
+@app.command("scan", cls=_Command)
 @handles_errors
 def scan_cmd(
     stage: Annotated[Path, typer.Argument(help="Any stage that composes trees or forests.")],
@@ -837,7 +917,7 @@ def _progress(show: bool, t0: float) -> Iterator[Callable[[str, int, int], None]
         yield tick
 
 
-@app.command("fly")
+@app.command("fly", cls=_Command)
 @handles_errors
 def fly_cmd(
     stage: Annotated[Path, typer.Argument(help="Any stage that composes trees or forests.")],
@@ -1036,7 +1116,7 @@ template_app = typer.Typer(
 app.add_typer(template_app, name="template")
 
 
-@template_app.command("import")
+@template_app.command("import", cls=_Command)
 @handles_errors
 def template_import_cmd(
     file: Annotated[Path, typer.Argument(help="CAD file: STL, OBJ (+MTL), PLY, GLB or glTF.")],
@@ -1078,7 +1158,7 @@ def template_import_cmd(
         )
 
 
-@template_app.command("extract")
+@template_app.command("extract", cls=_Command)
 @handles_errors
 def template_extract_cmd(
     file: Annotated[Path, typer.Argument(help="A whole-tree CAD model (OBJ with materials).")],
@@ -1125,22 +1205,25 @@ def template_extract_cmd(
     )
 
 
-@template_app.command("build")
+@template_app.command("build", cls=_Command)
 @handles_errors
 def template_build_cmd(
     manifest: Annotated[Path, typer.Argument(help="Template manifest (TOML).")],
     output: Annotated[
         Path | None, typer.Option("--output", "-o", help="Folder (default: the manifest's).")
     ] = None,
+    force: Annotated[
+        bool, typer.Option("--force", help="Overwrite template layers that exist.")
+    ] = False,
 ) -> None:
     """Build every template layer a manifest lists (e.g. pipelines/templates.toml)."""
     from .library import build_manifest, read_manifest
 
-    for path in build_manifest(read_manifest(manifest), output):
+    for path in build_manifest(read_manifest(manifest), output, force=force):
         out.print(f"wrote {path}", highlight=False)
 
 
-@template_app.command("list")
+@template_app.command("list", cls=_Command)
 @handles_errors
 def template_list_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print as JSON.")] = False,

@@ -114,12 +114,17 @@ def read_manifest(path: str | Path) -> Manifest:
     return Manifest(path, output, tuple(specs))
 
 
-def build_manifest(manifest: Manifest, output: Path | None = None) -> list[Path]:
-    """Import every template of ``manifest`` and write ``<output>/<name>.usdc``."""
+def build_manifest(
+    manifest: Manifest, output: Path | None = None, *, force: bool = True
+) -> list[Path]:
+    """Import every template of ``manifest`` and write ``<output>/<name>.usdc`` (refusing,
+    before any is written, when one exists and not ``force``)."""
+    from .atomic import refuse_overwrite
     from .cad import import_part
     from .usd.template import write_template
 
     out = output or manifest.output
+    refuse_overwrite(*(out / f"{spec.name}.usdc" for spec in manifest.templates), force=force)
     written = []
     for spec in manifest.templates:
         part = import_part(

@@ -80,3 +80,25 @@ def require_output(path: str | Path, what: str = "output") -> Path:
                 f"{shown(path)}: cannot write in {shown(probe)} ({exc.strerror})"
             ) from None
     return path
+
+
+IMAGE_FORMATS = {
+    ".png": "png",
+    ".jpg": "jpeg",
+    ".jpeg": "jpeg",
+    ".webp": "webp",
+    ".tif": "tiff",
+    ".tiff": "tiff",
+}
+
+
+def image_format(path: str | Path) -> str:
+    """The raster format an image's name asks for (by its suffix, any case), or a
+    :class:`UsdForestError` listing those written."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in IMAGE_FORMATS:
+        raise UsdForestError(
+            f"{shown(path)}: an image's name must end in {', '.join(IMAGE_FORMATS)} "
+            "(the format is taken from it)"
+        )
+    return IMAGE_FORMATS[suffix]

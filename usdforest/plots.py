@@ -77,7 +77,8 @@ def _outline(region) -> np.ndarray:
 
 
 def plot_sites(out: str | Path, recipe: Recipe, sites: Sites, *, title: str | None = None) -> None:
-    """Write a site plot PNG (intensity map, region, sites)."""
+    """Write a site plot (intensity map, region, sites) as a PNG, JPEG, WebP or TIFF by the
+    suffix of ``out``."""
     fig, ax = plt.subplots(figsize=(6.4, 5.6), dpi=110)
     draw_sites(ax, recipe, sites, title=title)
     fig.tight_layout()
@@ -110,8 +111,10 @@ def draw_skeleton(
 
 
 def _save(fig, out: str | Path) -> None:
+    from .paths import image_format
+
     with atomic_path(out) as tmp:
-        fig.savefig(tmp, format="png")
+        fig.savefig(tmp, format=image_format(out))
     plt.close(fig)
 
 

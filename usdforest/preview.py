@@ -750,9 +750,12 @@ def preview(
     size: tuple[int, int] = (800, 800),
     annotate: bool = True,
 ) -> PreviewInfo:
-    """Render ``path`` to a PNG at ``out`` (atomically)."""
+    """Render ``path`` to an image at ``out`` (atomically; PNG, JPEG, WebP or TIFF by its
+    suffix)."""
     from .atomic import atomic_path
+    from .paths import image_format
 
+    fmt = image_format(out)
     img, window, kind = render_stage(path, view=view, size=size)
     with atomic_path(out) as tmp:
         if annotate:
@@ -781,10 +784,10 @@ def preview(
                 fontsize=9,
                 va="top",
             )
-            fig.savefig(tmp, dpi=dpi, format="png")
+            fig.savefig(tmp, dpi=dpi, format=fmt)
             plt.close(fig)
         else:
-            plt.imsave(tmp, img, format="png")
+            plt.imsave(tmp, img, format=fmt)
     return PreviewInfo(kind, 0, size)
 
 

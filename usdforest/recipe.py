@@ -250,6 +250,8 @@ FOREST_KEYS = {
     "lod",
 }
 DEFAULT_MAX_TREES = 2_000_000
+# a recipe without [species.NAME] tables grows these presets (the default forest's), equally mixed
+DEFAULT_SPECIES = ("scots-pine", "norway-spruce", "european-beech", "silver-birch")
 DEFAULT_SIZE_CLASSES = 24
 
 
@@ -536,7 +538,7 @@ def parse_recipe(
         if "region" not in data:
             raise RecipeError("region: missing (e.g. [region] bounds = [0, 0, 100, 100])")
         region = parse_region(data["region"], "region", base)
-        species_tables = data.get("species")
+        species_tables = data.get("species", {n: {} for n in DEFAULT_SPECIES})
         if not isinstance(species_tables, Mapping) or not species_tables:
             raise RecipeError("species: no [species.NAME] tables")
         species = {n: parse_species(n, t, base, f"species.{n}") for n, t in species_tables.items()}
@@ -805,6 +807,40 @@ def default_recipe_path() -> Path:
     from importlib import resources
 
     return Path(str(resources.files("usdforest.pipelines") / "default.toml"))
+
+
+def shipped_recipes() -> dict[str, Path]:
+    """The forest recipes shipped in the package, by name (their file names without
+    ``.toml``; the template manifest ``templates.toml`` is no forest and not listed)."""
+    folder = default_recipe_path().parent
+    return {p.stem: p for p in sorted(folder.glob("*.toml")) if p.stem != "templates"}
+
+
+def recipe_description(path: Path) -> str:
+    """The opening comment of a recipe file, as one line."""
+    lines = []
+    for line in path.read_text().splitlines():
+        if not line.startswith("#"):
+            break
+        lines.append(line.lstrip("#").strip())
+    return " ".join(x for x in lines if x)
+
+
+def recipe_path(spec: str | Path | None) -> Path:
+    """The recipe file ``spec`` names: a path, or a shipped recipe's name (``stand-1ha``) when
+    no file of that name exists here; ``None``: the embedded default."""
+    if spec is None:
+        return default_recipe_path()
+    path = Path(spec)
+    if path.exists() or path.suffix or len(path.parts) != 1:
+        return path  # reading it reports a missing file with its path
+    shipped = shipped_recipes()
+    if path.name in shipped:
+        return shipped[path.name]
+    raise RecipeError(
+        f"{path}: no such file, and no shipped recipe of that name (shipped: "
+        f"{', '.join(shipped)}; `usdforest recipes` describes them)"
+    )
 
 
 def resolved_toml(recipe: Recipe, to_dir: Path) -> dict:

@@ -94,20 +94,28 @@ def write_sites_csv(path: str | Path, replicates: list[Sites]) -> None:
 def read_sites_csv(path: str | Path, names: tuple[str, ...], replicate: int = 0) -> Sites:
     """One replicate of a sites CSV written by :func:`write_sites_csv`."""
     import csv
+    import io
 
     from .errors import UsdForestError
 
     path = Path(path)
     require_file(path, "CSV file")
     rows = []
-    with path.open(newline="") as f:
+    last = -1  # the highest replicate the file has
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise UsdForestError(f"{path}: not a text file (expected a sites CSV)") from None
+    with io.StringIO(text, newline="") as f:
         reader = csv.DictReader(f)
         need = {"replicate", "x", "y"}
         if not reader.fieldnames or not need <= set(reader.fieldnames):
             raise UsdForestError(f"{path}: expected columns replicate,x,y (and marks)")
         for lineno, row in enumerate(reader, 2):
             try:
-                if int(row["replicate"]) != replicate:
+                k = int(row["replicate"])
+                last = max(last, k)
+                if k != replicate:
                     continue
                 rows.append(
                     (
@@ -121,6 +129,9 @@ def read_sites_csv(path: str | Path, names: tuple[str, ...], replicate: int = 0)
                 )
             except ValueError as exc:
                 raise UsdForestError(f"{path}: line {lineno}: {exc}") from None
+    if replicate > last:
+        has = "no sites" if last < 0 else f"replicates 0 to {last}"
+        raise UsdForestError(f"{path}: no replicate {replicate} (the file has {has})")
     all_names = tuple(dict.fromkeys([*names, *(r[2] for r in rows)]))
     xy = np.array([[r[0], r[1]] for r in rows], dtype=float).reshape(-1, 2)
     return Sites(
