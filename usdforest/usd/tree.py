@@ -375,7 +375,8 @@ def tree_layer(
         "leafSites": sk.n_leaves,
         "leaves": p.n_leaves,
         "woodPrims": p.n_wood,
-        "branchesByOrder": {str(k): v for k, v in sk.branch_counts().items()},
+        # keys are identifiers ("order0"): tinyusdz and others reject dictionary keys of digits
+        "branchesByOrder": {f"order{k}": v for k, v in sk.branch_counts().items()},
         "height": float(build.extent[1, 2] - build.extent[0, 2]),
     }
     with Sdf.ChangeBlock():
@@ -620,7 +621,8 @@ def write_tree(
             # the heavy arrays go into a crate file inside the assets folder (self-contained:
             # its templates beside it); OUT.usda is a thin interface that references it
             refs = copy_templates(build, tmp / "assets" / "templates", "./templates/")
-            layer = tree_layer(build, refs, asset_name=out.stem, identifier=f"./{out.name}")
+            # the asset is OUT.usda, one folder up from the payload (paths are the layer's own)
+            layer = tree_layer(build, refs, asset_name=out.stem, identifier=f"../{out.name}")
             save_layer(layer, tmp / "assets" / TREE_PAYLOAD)
             save_layer(
                 interface_tree_layer(build, f"./{assets.name}/{TREE_PAYLOAD}", out),
