@@ -375,6 +375,26 @@ def validate_cmd(
         raise typer.Exit(1)
 
 
+@app.command("wrap", cls=_Command)
+@handles_errors
+def wrap_cmd(
+    asset: Annotated[Path, typer.Argument(help="A usdforest forest or tree (Z-up, metres).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Host layer to write.")],
+    up: Annotated[str, typer.Option(metavar="Y|Z", help="The host's up axis.")] = "Y",
+    units: Annotated[
+        str, typer.Option(metavar="m|cm|mm|dm|in|ft", help="The host's unit of length.")
+    ] = "cm",
+    name: Annotated[str, typer.Option(help="The host's default prim.")] = "World",
+    force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
+) -> None:
+    """Write a host stage of another up axis and unit (Maya, Omniverse: Y-up centimetres)
+    that references ASSET upright and to scale."""
+    from .usd.host import wrap
+
+    path = wrap(asset, output, up=up, units=units, name=name, force=force)
+    out.print(f"{path}: {asset.name} in a {up}-up stage in {units}", highlight=False)
+
+
 def _print_pairs(pairs: dict, shown) -> None:
     """A two-column table of ``key  shown(key, value)`` (info, stats)."""
     table = Table(box=None, show_header=False)

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom, UsdValidation
 
+from .usd.host import placement_problems
 from .usd.integrity import structural_problems
 from .usd.layers import open_stage
 
@@ -56,12 +57,18 @@ def project_findings(stage: Usd.Stage) -> list[Finding]:
     def err(rule: str, path: str, msg: str) -> None:
         out.append(Finding(f"usdforest:{rule}", "error", path, msg))
 
-    if UsdGeom.GetStageUpAxis(stage) != UsdGeom.Tokens.z:
-        err("stageMetadata", "/", "upAxis is not Z")
-    if UsdGeom.GetStageMetersPerUnit(stage) != 1.0:
-        err("stageMetadata", "/", "metersPerUnit is not 1")
-    if not stage.GetDefaultPrim():
+    root = stage.GetDefaultPrim()
+    if not root:
         err("stageMetadata", "/", "no defaultPrim")
+    if root and "usdforest" in root.GetCustomData():
+        # a usdforest asset itself: Z-up metres, the product's contract
+        if UsdGeom.GetStageUpAxis(stage) != UsdGeom.Tokens.z:
+            err("stageMetadata", "/", "upAxis is not Z")
+        if UsdGeom.GetStageMetersPerUnit(stage) != 1.0:
+            err("stageMetadata", "/", "metersPerUnit is not 1")
+    else:  # a host of its own units and up axis: the assets beneath it upright and to scale
+        for path, msg in placement_problems(stage):
+            err("placement", path, msg)
     for p in stage.Traverse(Usd.TraverseInstanceProxies()):
         path = str(p.GetPath())
         if p.IsA(UsdGeom.Mesh):
