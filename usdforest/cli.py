@@ -746,22 +746,15 @@ def scan_cmd(
     import numpy as np
 
     require_output(output)
-    import dataclasses
     import time
 
-    from .config import check_keys, load_toml, override
+    from .config import check_keys, load_toml
     from .sensors import camera, lidar, sonar
-    from .sensors.checks import check_not_inside_wood, pose_warnings, unseen_warning
     from .sensors.pose import parse_pose
-    from .sensors.raycast import SceneCaster
-    from .sensors.scene import class_counts, extract_scene, stage_frame, to_frame
+    from .sensors.scene import class_counts
+    from .sensors.survey import SENSORS, scan, sensor_settings
 
-    kinds = {
-        "lidar": (lidar.PRESETS, "vlp-16"),
-        "sonar": (sonar.PRESETS, "bat-fm"),
-        "camera": (camera.PRESETS, "pinhole-640"),
-    }
-    if sensor not in kinds:
+    if sensor not in SENSORS:
         raise UsdForestError(f"--sensor: {sensor!r} is not lidar, sonar or camera")
     suffixes = (".ply", ".npz") if sensor == "lidar" else (".npz",)
     if output.suffix.lower() not in suffixes:
@@ -775,52 +768,27 @@ def scan_cmd(
     }.get(sensor, [])
     refuse_overwrite(output, *companions, force=force)
     p = parse_pose(pose)
-    # the pose is in the stage's own units and axes; sensors work in metres, Z up
-    x, y, z = to_frame(p.position, stage_frame(stage))
-    p = dataclasses.replace(p, x=float(x), y=float(y), z=float(z))
-    presets, default = kinds[sensor]
+    presets, default = SENSORS[sensor]
     name = preset or default
     if name not in presets:
         raise UsdForestError(
             f"--preset: unknown {sensor} preset {name!r}; known: " + ", ".join(presets)
         )
-    settings = presets[name]
+    table: dict = {}
     if config is not None:
         data = load_toml(config)
         check_keys(data, {sensor}, str(config))
         table = dict(data.get(sensor, {}))
-        if sensor == "camera":
-            camera.refuse_lidar_keys(table, config)
-        if sensor == "lidar" and table.get("kind") not in (None, settings.kind):
-            kinds = {"spinning": lidar.SpinningLidar(), "depth-camera": lidar.DepthCamera()}
-            if table["kind"] not in kinds:
-                raise UsdForestError(
-                    f"{config}: lidar.kind: {table['kind']!r} is not spinning or depth-camera"
-                )
-            settings = kinds[table["kind"]]
-        settings = override(settings, table, f"{config}: {sensor}")
     if occlusion and sensor == "sonar":
-        settings = dataclasses.replace(settings, occlusion=True)
-    try:
-        settings.check()
-    except UsdForestError as exc:
-        raise UsdForestError(f"{config}: {exc}" if config is not None else str(exc)) from None
+        table["occlusion"] = True
+    settings = sensor_settings(sensor, name, table, where=str(config) if config else "")
     t0 = time.perf_counter()
-    scene = extract_scene(
-        stage,
-        centre=p.position,
-        radius=settings.max_range,
-        leaf_triangles=sensor != "sonar" or settings.occlusion,
-        reflectors=sensor == "sonar",
-    )
-    for w in [*pose_warnings(scene, p, settings.max_range), unseen_warning(scene)]:
-        if w:
-            err.print(f"warning: {w}", highlight=False)
-    check_not_inside_wood(scene, p)
-    # a sonar without occlusion casts no rays into the trees: build nothing for them
-    caster = SceneCaster(scene) if sensor != "sonar" or settings.occlusion else None
+    done = scan(stage, sensor, p, settings=settings, seed=seed)
+    for w in done.warnings:
+        err.print(f"warning: {w}", highlight=False)
+    triangles = done.triangles
     if sensor == "lidar":
-        r = lidar.scan(scene, settings, p, seed=seed, caster=caster)
+        r = done.result
         lidar.write_returns(r, output)
         summary = {
             "output": str(output),
@@ -829,18 +797,17 @@ def scan_cmd(
             "pulses_with_several_returns": int(np.count_nonzero(r.return_number == 2)),
             "returns_by_class": class_counts(r.cls),
             "trees_hit": int(np.unique(r.tree[r.tree >= 0]).size),
-            "triangles": len(scene),
+            "triangles": triangles,
             "seconds": round(time.perf_counter() - t0, 3),
         }
         text = (
             f"{output}: {len(r):,} returns from {r.n_rays:,} pulses "
             f"({summary['pulses_with_several_returns']:,} with several; "
             + ", ".join(f"{k} {v:,}" for k, v in summary["returns_by_class"].items() if v)
-            + f"), {summary['trees_hit']} trees, {len(scene):,} triangles in range"
+            + f"), {summary['trees_hit']} trees, {triangles:,} triangles in range"
         )
     elif sensor == "camera":
-        colours = camera.path_colours(stage, scene.paths)
-        frame = camera.render(scene, settings, p, colours, caster)
+        frame = done.result
         files = camera.write_frame(frame, settings, output)
         summary = {
             "output": [str(f) for f in files],
@@ -856,11 +823,7 @@ def scan_cmd(
             + f"), {summary['trees_seen']} trees in view"
         )
     else:
-        e = sonar.sonar_scan(scene, p, settings, caster, seed=seed)
-        if not any(e.reflectors.values()):
-            err.print(
-                "warning: nothing within range of the sonar: the echo is silent", highlight=False
-            )
+        e = done.result
         files = sonar.write_echo(e, output)
         c = settings.speed_of_sound
         env = np.abs(e.impulse)
@@ -989,62 +952,41 @@ def fly_cmd(
     class and tree id; sonar pulses with Doppler (leaves, wood, ground), a WAV of the flight
     and an echogram; camera frames (depth, semantic, instance, RGB) and a contact sheet.
     Every output appears at the end, together: an interrupted flight leaves none."""
-    import dataclasses
     import time
 
     import numpy as np
 
-    from .config import check_keys, load_toml, override
-    from .sensors import camera, flight, lidar, sonar
-    from .sensors.checks import unseen_warning
-    from .sensors.scene import class_counts, extract_scene, stage_frame, to_frame
+    from .config import check_keys, load_toml
+    from .sensors import camera, flight
+    from .sensors.scene import class_counts
+    from .sensors.survey import flight_settings, fly, trajectory
 
     if (path is None) == (line is None):
         raise UsdForestError("give the flight as --path CSV or as --line x0,y0,z0:x1,y1,z1")
-    frame = stage_frame(stage)  # the path is in the stage's units and axes
-    if path is not None:
-        traj = flight.read_path(path)
-        traj = dataclasses.replace(traj, position=to_frame(traj.position, frame))
-    else:
+    ends = None
+    if line is not None:
         try:
-            a, b = ([float(v) for v in end.split(",")] for end in line.split(":"))
-            if len(a) != 3 or len(b) != 3:
+            ends = tuple([float(v) for v in end.split(",")] for end in line.split(":"))
+            if len(ends) != 2 or any(len(e) != 3 for e in ends):
                 raise ValueError
         except ValueError:
             raise UsdForestError(f"--line: expected x0,y0,z0:x1,y1,z1, got {line!r}") from None
-        traj = flight.Trajectory.line(to_frame(a, frame), to_frame(b, frame), speed)
+    traj = trajectory(stage, path=path, line=ends, speed=speed)
     tables = {}
     if config is not None:
         tables = load_toml(config)
         check_keys(tables, {"lidar", "sonar", "camera"}, str(config))
-
-    def settings(sensor: str, name: str, presets: dict):
-        """The preset ``name`` (or None for ``none``) overridden by the config's table."""
-        if name == "none":
-            return None
-        if name not in presets:
-            raise UsdForestError(f"--{sensor}: {name!r} is not one of {', '.join(presets)} or none")
-        table = dict(tables.get(sensor, {}))
-        if sensor == "camera":
-            camera.refuse_lidar_keys(table, config)
-        chosen = override(presets[name], table, f"{config}: {sensor}")
-        chosen.check()
-        return chosen
-
-    spinning = {n: v for n, v in lidar.PRESETS.items() if v.kind == "spinning"}
-    lidar_cfg = settings("lidar", lidar_preset, spinning)
-    sonar_cfg = settings("sonar", sonar_preset, sonar.PRESETS)
-    camera_cfg = settings("camera", camera_preset, camera.PRESETS)
+    lidar_cfg, sonar_cfg, camera_cfg = flight_settings(
+        lidar_preset, sonar_preset, camera_preset, tables, where=str(config) if config else ""
+    )
     if camera_cfg is not None:
         camera.frame_times(camera_cfg, traj, camera_rate)  # checks the rate and the memory
-    if lidar_cfg is None and sonar_cfg is None and camera_cfg is None:
-        raise UsdForestError("nothing to fly: --lidar none, --sonar none and --camera none")
     las = output.with_name(output.name + ".las")
-    trajectory = output.with_name(output.name + "_trajectory.csv")
+    trajectory_csv = output.with_name(output.name + "_trajectory.csv")
     echo_stem = output.with_name(output.name + "_sonar")
     frames_stem = output.with_name(output.name + "_camera")
     outs = (
-        ([las, trajectory] if lidar_cfg else [])
+        ([las, trajectory_csv] if lidar_cfg else [])
         + (
             [echo_stem.with_name(echo_stem.name + x) for x in (".npz", ".wav", ".png")]
             if sonar_cfg
@@ -1060,52 +1002,31 @@ def fly_cmd(
         require_output(o)
     refuse_overwrite(*outs, force=force)
     t0 = time.perf_counter()
-    reach = max(c.max_range for c in (lidar_cfg, sonar_cfg, camera_cfg) if c is not None)
-    lo, hi = traj.position.min(axis=0), traj.position.max(axis=0)
-    casts = lidar_cfg is not None or camera_cfg is not None
-    scene = extract_scene(
-        stage,
-        centre=(lo + hi) / 2,
-        radius=float(np.linalg.norm(hi - lo) / 2 + reach),
-        leaf_triangles=casts or bool(sonar_cfg is not None and sonar_cfg.occlusion),
-        reflectors=sonar_cfg is not None,
-    )
-    if (w := unseen_warning(scene)) is not None:
-        err.print(f"warning: {w}", highlight=False)
     summary: dict = {"duration_s": traj.duration, "outputs": [str(o) for o in outs]}
     with _progress(not (quiet or as_json), t0) as tick, staging_folder(output) as tmp:
+        done = fly(
+            stage, path=traj, lidar=lidar_cfg, sonar=sonar_cfg, camera=camera_cfg,
+            lidar_rate=lidar_rate, camera_rate=camera_rate, seed=seed, progress=tick,
+            warn=lambda w: err.print(f"warning: {w}", highlight=False),
+        )  # fmt: skip
         staged = tmp / output.name
-        if lidar_cfg is not None:
-            r = flight.fly_lidar(
-                scene, lidar_cfg, traj, lidar_rate, seed=seed,
-                progress=lambda d, n: tick("lidar sweeps", d, n),
-            )  # fmt: skip
-            crs, origin = flight.stage_georeference(stage)
-            flight.write_las(r, staged.with_name(las.name), crs=crs, origin=origin)
-            flight.write_trajectory(traj, staged.with_name(trajectory.name), origin=origin)
+        if (r := done.lidar) is not None:
+            flight.write_las(r, staged.with_name(las.name), crs=done.crs, origin=done.origin)
+            flight.write_trajectory(traj, staged.with_name(trajectory_csv.name), origin=done.origin)
             summary["lidar"] = {
                 "sweeps": r.sweeps,
                 "rays": r.n_rays,
                 "returns": len(r),
                 "returns_by_class": class_counts(r.cls),
             }
-        if sonar_cfg is not None:
-            f = flight.fly_sonar(
-                scene, sonar_cfg, traj, seed=seed,
-                progress=lambda d, n: tick("sonar pulses", d, n),
-            )  # fmt: skip
+        if (f := done.sonar) is not None:
             flight.write_flight_echo(f, staged.with_name(echo_stem.name))
             summary["sonar"] = {
                 "pulses": len(f.t),
                 "max_leaves_in_range": int(f.leaves.max()),
                 "classes_heard": sorted(k for k, v in f.parts.items() if np.any(v)),
             }
-        if camera_cfg is not None:
-            colours = camera.path_colours(stage, scene.paths)
-            frames = camera.fly_camera(
-                scene, camera_cfg, traj, camera_rate, colours,
-                progress=lambda d, n: tick("camera frames", d, n),
-            )  # fmt: skip
+        if (frames := done.camera) is not None:
             camera.write_frames(frames, staged.with_name(frames_stem.name))
             summary["camera"] = {
                 "frames": len(frames),
@@ -1120,7 +1041,7 @@ def fly_cmd(
     if "lidar" in summary:
         parts.append(
             f"{las}: {summary['lidar']['returns']:,} returns in {summary['lidar']['sweeps']} sweeps"
-            f" (trajectory in {trajectory.name})"
+            f" (trajectory in {trajectory_csv.name})"
         )
     if "sonar" in summary:
         parts.append(f"{echo_stem}.npz/.wav/.png: {summary['sonar']['pulses']} sonar pulses")

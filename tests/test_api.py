@@ -1,0 +1,132 @@
+"""The Python API: the same forests, scans and flights as the command line, typed results,
+nothing printed; the example that writes randomised forests for a training run."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pxr import Usd, UsdGeom
+
+import usdforest
+from usdforest.cli import app
+from usdforest.errors import UsdForestError
+from usdforest.validate import errors, validate
+
+ROOT = Path(__file__).parents[1]
+
+
+def test_importing_usdforest_loads_neither_numpy_nor_pxr():
+    code = (
+        "import sys, usdforest; usdforest.load_recipe; "
+        "print(json.dumps(['numpy' in sys.modules, 'pxr' in sys.modules]))"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", "import json; " + code], capture_output=True, text=True, check=True
+    )
+    assert json.loads(r.stdout) == [False, False]
+    assert set(dir(usdforest)) >= {"build_forest", "fly", "grow_tree", "load_recipe", "scan"}
+
+
+def test_the_api_builds_the_forest_the_command_line_builds(tmp_path, runner, capsys):
+    recipe = usdforest.load_recipe("paper-two-tree-stand", seed=9)
+    built = usdforest.build_forest(recipe, tmp_path / "a.usda", thumbnail=False)
+    assert capsys.readouterr().out == ""  # nothing printed
+    r = runner.invoke(
+        app,
+        ["build", str(tmp_path / "b.usda"), "-p", "paper-two-tree-stand", "--seed", "9", "-q"],
+    )
+    assert r.exit_code == 0, r.output
+    a, b = (tmp_path / f"{x}_assets" / "instances.usdc" for x in "ab")
+    assert a.read_bytes() == b.read_bytes()
+    assert built.n_trees == 2 and set(built.sites.names) == {"paper-rule-2", "paper-rule-3"}
+    # a seed given to build_forest wins over the recipe's
+    again = usdforest.build_forest(recipe, tmp_path / "c.usda", seed=9, thumbnail=False)
+    assert np.array_equal(again.sites.xy, built.sites.xy)
+    with pytest.raises(UsdForestError, match="exists; pass --force"):
+        usdforest.build_forest(recipe, tmp_path / "a.usda")
+
+
+def test_a_recipe_given_as_data_is_the_file_it_came_from(tmp_path):
+    path = usdforest.recipes()["paper-ipp-sparse"]
+    from_data = usdforest.load_recipe(tomllib.loads(path.read_text()), base=path.parent)
+    from_file = usdforest.load_recipe("paper-ipp-sparse")
+    assert from_data.seed == from_file.seed and from_data.species_names == from_file.species_names
+    assert from_data.expected_trees() == pytest.approx(from_file.expected_trees(), rel=1e-12)
+    with pytest.raises(UsdForestError, match="region: missing"):
+        usdforest.load_recipe({"seed": 1})
+
+
+def test_scan_fly_and_grow_return_what_the_command_line_writes(tmp_path, runner):
+    stand = tmp_path / "s.usda"
+    usdforest.build_forest("paper-two-tree-stand", stand, thumbnail=False)
+    shot = usdforest.scan(stand, "lidar", (5, -4, 1.5, 90), settings={"max_range": 30.0})
+    assert shot.sensor == "lidar" and shot.settings.max_range == 30.0
+    assert shot.pose.yaw == 90 and shot.warnings == () and len(shot.result) > 100
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[lidar]\nmax_range = 30.0\n")
+    out = tmp_path / "l.npz"
+    args = ["scan", str(stand), "--sensor", "lidar", "--pose", "5,-4,1.5,90", "-o", str(out)]
+    assert runner.invoke(app, [*args, "--config", str(cfg)]).exit_code == 0
+    np.testing.assert_array_equal(np.load(out)["points"], shot.result.points)
+    with pytest.raises(UsdForestError, match="unknown lidar preset 'vlp-61'"):
+        usdforest.scan(stand, "lidar", (0, 0, 1), preset="vlp-61")
+    echo = usdforest.scan(stand, "sonar", "5,-4,1.5,90", preset="paper")
+    assert echo.result.reflectors["leaf"] > 0 and echo.result.echo.shape == echo.result.t.shape
+    flown = usdforest.fly(stand, line=((0, -6, 1.5), (2, -6, 1.5)), speed=2.0, camera="d435")
+    assert flown.lidar.sweeps == 10 and len(flown.camera) == 3 and flown.sonar is None
+    r = runner.invoke(
+        app,
+        ["fly", str(stand), "--line", "0,-6,1.5:2,-6,1.5", "--speed", "2", "-o",
+         str(tmp_path / "f"), "--json"],
+    )  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["lidar"]["returns"] == len(flown.lidar)
+    usdforest.grow_tree("paper-rule-1", tmp_path / "t.usdc", seed=3)
+    (tmp_path / "cli").mkdir()
+    r = runner.invoke(
+        app, ["tree", str(tmp_path / "cli" / "t.usdc"), "--species", "paper-rule-1", "--seed", "3"]
+    )
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "t.usdc").read_bytes() == (tmp_path / "cli" / "t.usdc").read_bytes()
+
+
+def _example():
+    spec = importlib.util.spec_from_file_location(
+        "random_forests", ROOT / "examples/random_forests.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_example_writes_randomised_forests_for_a_training_run(tmp_path, capsys):
+    example = _example()
+    out = tmp_path / "run"
+    written = example.main([str(out), "--count", "3", "--recipe", "quick-mixed", "--seed", "5"])
+    assert [p.name for p in written] == [f"forest_{k:04d}.usda" for k in range(3)]
+    with (out / "forests.csv").open() as f:
+        import csv
+
+        rows = list(csv.DictReader(f))
+    assert len({r["seed"] for r in rows}) == 3 and len({r["mix"] for r in rows}) == 3
+    for row, path in zip(rows, written, strict=True):
+        stage = Usd.Stage.Open(str(path))
+        inst = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+        assert len(inst.GetProtoIndicesAttr().Get()) == int(row["trees"])
+        assert int(row["trees_pine"]) + int(row["trees_broadleaf"]) == int(row["trees"])
+        weights = [float(x.split("=")[1]) for x in row["mix"].split()]
+        assert sum(weights) == pytest.approx(1, abs=1e-3) and 0 <= float(row["hard_core"]) <= 2
+    assert errors(validate(written[0])) == []
+    # the run is reproducible from its seed
+    example.main(
+        [str(tmp_path / "again"), "--count", "1", "--recipe", "quick-mixed", "--seed", "5"]
+    )
+    a, b = (d / "forest_0000_assets" / "instances.usdc" for d in (out, tmp_path / "again"))
+    assert a.read_bytes() == b.read_bytes()

@@ -1,0 +1,149 @@
+"""usdforest from Python: the functions behind the command line, with typed results and no
+printing. Re-exported by the package (``usdforest.build_forest`` ...); each imports what it
+needs when called, so ``import usdforest`` stays cheap.
+
+Example
+-------
+>>> import usdforest
+>>> recipe = usdforest.load_recipe("paper-ipp-sparse", seed=7)  # doctest: +SKIP
+>>> built = usdforest.build_forest(recipe, "forest.usda")  # doctest: +SKIP
+>>> built.n_trees  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .recipe import Recipe
+    from .sensors.survey import Flight, Scan
+    from .species import Species
+    from .usd.forest import ForestBuild
+    from .usd.tree import TreeBuild
+
+
+def recipes() -> dict[str, Path]:
+    """The recipes shipped with usdforest, by name."""
+    from .recipe import shipped_recipes
+
+    return shipped_recipes()
+
+
+def load_recipe(
+    recipe: str | Path | Mapping[str, Any] | None = None,
+    *,
+    seed: int | None = None,
+    hard_core: float | None = None,
+    base: str | Path | None = None,
+) -> Recipe:
+    """Read and check a recipe: a TOML file, a shipped recipe's name (``"stand-1ha"``),
+    None (the embedded default), or the recipe's data as a mapping (what ``tomllib`` reads;
+    its relative file names are taken from ``base``, default the current folder). ``seed``
+    and ``hard_core`` override the recipe's."""
+    from .recipe import parse_recipe, read_recipe, recipe_path
+
+    if isinstance(recipe, Mapping):
+        folder = Path(base) if base is not None else Path.cwd()
+        return parse_recipe(
+            copy.deepcopy(dict(recipe)), folder, "recipe", seed=seed, hard_core=hard_core
+        )
+    return read_recipe(recipe_path(recipe), seed=seed, hard_core=hard_core)
+
+
+def build_forest(
+    recipe: Recipe | str | Path | None,
+    out: str | Path,
+    *,
+    seed: int | None = None,
+    force: bool = False,
+    thumbnail: bool = True,
+    workers: int = 1,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> ForestBuild:
+    """Build a forest at ``out`` (a ``.usda`` interface layer and ``<stem>_assets/``) from
+    ``recipe`` (a :class:`~usdforest.recipe.Recipe`, or anything :func:`load_recipe` takes),
+    with ``seed`` instead of the recipe's. Returns the sites, prototypes and extent; refuses
+    to overwrite unless ``force``; a failure leaves nothing behind."""
+    from .recipe import Recipe
+    from .usd.forest import write_forest
+
+    if not isinstance(recipe, Recipe):
+        recipe = load_recipe(recipe, seed=seed)
+    elif seed is not None:
+        recipe = dataclasses.replace(recipe, seed=seed)  # the resolved recipe records it
+    return write_forest(
+        recipe, out, force=force, thumbnail=thumbnail, workers=workers, progress=progress
+    )
+
+
+def grow_tree(
+    species: Species | str,
+    out: str | Path,
+    *,
+    seed: int = 0,
+    variant: int = 0,
+    colliders: str = "trunk",
+    force: bool = False,
+) -> TreeBuild:
+    """Grow one tree of ``species`` (a preset's name or a
+    :class:`~usdforest.species.Species`) and write it at ``out`` (``.usda`` or ``.usdc``)."""
+    from .species import get_species
+    from .usd.tree import write_tree
+
+    if isinstance(species, str):
+        species = get_species(species)
+    return write_tree(species, out, seed=seed, variant=variant, colliders=colliders, force=force)
+
+
+def scan(
+    stage: str | Path,
+    sensor: str,
+    pose: Any,
+    *,
+    preset: str | None = None,
+    settings: Any = None,
+    seed: int = 0,
+) -> Scan:
+    """Scan ``stage`` with a ``lidar``, ``sonar`` or ``camera`` at ``pose`` (x, y, z[, yaw,
+    pitch, roll]: the stage's units and axes, degrees); see
+    :func:`usdforest.sensors.survey.scan`."""
+    from .sensors import survey
+
+    return survey.scan(stage, sensor, pose, preset=preset, settings=settings, seed=seed)
+
+
+def fly(
+    stage: str | Path,
+    *,
+    path: Any = None,
+    line: tuple[Sequence[float], Sequence[float]] | None = None,
+    speed: float = 2.0,
+    lidar: Any = "vlp-16",
+    sonar: Any = None,
+    camera: Any = None,
+    seed: int = 0,
+    **rates: float,
+) -> Flight:
+    """Fly sensors through ``stage`` along ``path`` (a CSV of poses or a
+    :class:`~usdforest.sensors.flight.Trajectory`) or a straight ``line`` at ``speed``;
+    see :func:`usdforest.sensors.survey.fly` (``lidar_rate``, ``camera_rate``)."""
+    from .sensors import survey
+
+    return survey.fly(
+        stage,
+        path=path,
+        line=line,
+        speed=speed,
+        lidar=lidar,
+        sonar=sonar,
+        camera=camera,
+        seed=seed,
+        **rates,
+    )
+
+
+__all__ = ["build_forest", "fly", "grow_tree", "load_recipe", "recipes", "scan"]

@@ -1,0 +1,281 @@
+"""Scanning and flying a stage from Python: settings from a preset and a table of overrides,
+one scan at a pose, one flight along a path. Results are dataclasses of numpy arrays; nothing
+is printed or written (``usdforest scan`` and ``usdforest fly`` write the files).
+
+Poses and paths are in the stage's own units and axes, as a user reads them off the stage;
+the results are in metres, Z up (the sensors' frame)."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import override
+from ..errors import UsdForestError
+from . import camera, flight, lidar, sonar
+from .checks import check_not_inside_wood, pose_warnings, unseen_warning
+from .pose import Pose, parse_pose
+from .scene import extract_scene, stage_frame, to_frame
+
+SENSORS = {
+    "lidar": (lidar.PRESETS, "vlp-16"),
+    "sonar": (sonar.PRESETS, "bat-fm"),
+    "camera": (camera.PRESETS, "pinhole-640"),
+}
+SPINNING = {n: v for n, v in lidar.PRESETS.items() if v.kind == "spinning"}
+SONARS, CAMERAS = sonar.PRESETS, camera.PRESETS
+CAMERA_MODULE = camera  # fly() names its camera settings `camera`
+Progress = Callable[[str, int, int], None]
+
+
+def sensor_settings(
+    sensor: str,
+    preset: str | None = None,
+    table: Mapping[str, Any] | None = None,
+    *,
+    where: str = "",
+    presets: Mapping[str, Any] | None = None,
+) -> Any:
+    """A sensor's settings: ``preset`` (default: the sensor's first) with the keys of
+    ``table`` (a ``[lidar]``, ``[sonar]`` or ``[camera]`` table) over it, checked.
+    ``where`` names the table's file in messages."""
+    if sensor not in SENSORS:
+        raise UsdForestError(f"sensor: {sensor!r} is not lidar, sonar or camera")
+    known, default = SENSORS[sensor]
+    presets = known if presets is None else presets
+    name = preset or default
+    if name not in presets:
+        raise UsdForestError(f"unknown {sensor} preset {name!r}; known: " + ", ".join(presets))
+    settings = presets[name]
+    table = dict(table or {})
+    label = f"{where}: {sensor}" if where else sensor
+    if sensor == "camera":
+        camera.refuse_lidar_keys(table, where or "settings")
+    if sensor == "lidar" and table.get("kind") not in (None, settings.kind):
+        kinds = {"spinning": lidar.SpinningLidar(), "depth-camera": lidar.DepthCamera()}
+        if table["kind"] not in kinds:
+            raise UsdForestError(f"{label}.kind: {table['kind']!r} is not spinning or depth-camera")
+        settings = kinds[table["kind"]]
+    settings = override(settings, table, label)
+    try:
+        settings.check()
+    except UsdForestError as exc:
+        raise UsdForestError(f"{where}: {exc}" if where else str(exc)) from None
+    return settings
+
+
+def _pose(pose: Pose | str | Sequence[float]) -> Pose:
+    if isinstance(pose, Pose):
+        return pose
+    if isinstance(pose, str):
+        return parse_pose(pose)
+    return parse_pose(",".join(repr(float(v)) for v in pose))
+
+
+@dataclass(frozen=True)
+class Scan:
+    """One scan: the sensor's result (:class:`~usdforest.sensors.lidar.Returns`,
+    :class:`~usdforest.sensors.camera.Frame` or :class:`~usdforest.sensors.sonar.Echo`), the
+    settings and pose it was made with (metres, Z up), the triangles in range and what a
+    user should be told (a pose outside the stage, trees the scene could not read)."""
+
+    sensor: str
+    settings: Any
+    pose: Pose
+    result: Any
+    triangles: int
+    warnings: tuple[str, ...]
+    seconds: float
+
+
+def scan(
+    stage: str | Path,
+    sensor: str,
+    pose: Pose | str | Sequence[float],
+    *,
+    preset: str | None = None,
+    settings: Any = None,
+    seed: int = 0,
+) -> Scan:
+    """Scan ``stage`` with ``sensor`` (``lidar``, ``sonar`` or ``camera``) at ``pose``
+    (x, y, z[, yaw, pitch, roll] in the stage's units and axes, degrees). ``settings``: a
+    sensor settings object, or a mapping of keys over ``preset`` (e.g. ``{"max_range":
+    30}``). ``seed``: range noise and ground roughness."""
+    if settings is None or isinstance(settings, Mapping):
+        settings = sensor_settings(sensor, preset, settings)
+    else:
+        sensor_settings(sensor, preset)  # the sensor's name checked
+        settings.check()
+    p = _pose(pose)
+    x, y, z = to_frame(p.position, stage_frame(stage))
+    p = dataclasses.replace(p, x=float(x), y=float(y), z=float(z))
+    t0 = time.perf_counter()
+    occlusion = sensor == "sonar" and settings.occlusion
+    scene = extract_scene(
+        stage,
+        centre=p.position,
+        radius=settings.max_range,
+        leaf_triangles=sensor != "sonar" or occlusion,
+        reflectors=sensor == "sonar",
+    )
+    warnings = tuple(
+        w for w in [*pose_warnings(scene, p, settings.max_range), unseen_warning(scene)] if w
+    )
+    check_not_inside_wood(scene, p)
+    from .raycast import SceneCaster
+
+    # a sonar without occlusion casts no rays into the trees: build nothing for them
+    caster = SceneCaster(scene) if sensor != "sonar" or occlusion else None
+    if sensor == "lidar":
+        result = lidar.scan(scene, settings, p, seed=seed, caster=caster)
+    elif sensor == "camera":
+        result = camera.render(scene, settings, p, camera.path_colours(stage, scene.paths), caster)
+    else:
+        result = sonar.sonar_scan(scene, p, settings, caster, seed=seed)
+        if not any(result.reflectors.values()):
+            warnings += ("nothing within range of the sonar: the echo is silent",)
+    return Scan(sensor, settings, p, result, len(scene), warnings, time.perf_counter() - t0)
+
+
+@dataclass(frozen=True)
+class Flight:
+    """One flight: the trajectory (metres, Z up) and each sensor's results (None when it was
+    not flown), the stage's georeference (CRS and origin, for LAS files) and warnings."""
+
+    trajectory: flight.Trajectory
+    lidar: flight.FlightReturns | None
+    sonar: flight.FlightEcho | None
+    camera: camera.Frames | None
+    crs: str | None
+    origin: np.ndarray
+    warnings: tuple[str, ...]
+    seconds: float
+
+
+def trajectory(
+    stage: str | Path,
+    *,
+    path: str | Path | None = None,
+    line: tuple[Sequence[float], Sequence[float]] | None = None,
+    speed: float = 2.0,
+) -> flight.Trajectory:
+    """The flight path in the sensors' frame: a CSV of poses (``t,x,y,z[,yaw,pitch,roll]``)
+    or a straight ``line`` (two points) flown at ``speed`` m/s, in the stage's units."""
+    if (path is None) == (line is None):
+        raise UsdForestError("give the flight as a path CSV or as a line x0,y0,z0:x1,y1,z1")
+    frame = stage_frame(stage)
+    if path is not None:
+        traj = flight.read_path(path)
+        return dataclasses.replace(traj, position=to_frame(traj.position, frame))
+    a, b = (np.asarray(end, dtype=float) for end in line)
+    if a.shape != (3,) or b.shape != (3,):
+        raise UsdForestError(f"line: expected two points of 3 coordinates, got {line!r}")
+    return flight.Trajectory.line(to_frame(a, frame), to_frame(b, frame), speed)
+
+
+def flight_settings(
+    lidar: Any = "vlp-16",
+    sonar: Any = None,
+    camera: Any = None,
+    tables: Mapping[str, Mapping[str, Any]] | None = None,
+    *,
+    where: str = "",
+) -> tuple[Any, Any, Any]:
+    """The lidar (spinning), sonar and camera settings of a flight: each a preset's name
+    (with its table of ``tables`` over it), a settings object, or None (``"none"``): not
+    flown."""
+    tables = tables or {}
+    out = []
+    for sensor, given, presets in (
+        ("lidar", lidar, SPINNING),
+        ("sonar", sonar, SONARS),
+        ("camera", camera, CAMERAS),
+    ):
+        if given is None or given == "none":
+            out.append(None)
+        elif isinstance(given, str):
+            if given not in presets:
+                raise UsdForestError(
+                    f"--{sensor}: {given!r} is not one of {', '.join(presets)} or none"
+                )
+            out.append(
+                sensor_settings(sensor, given, tables.get(sensor), where=where, presets=presets)
+            )
+        else:
+            given.check()
+            out.append(given)
+    if all(x is None for x in out):
+        raise UsdForestError("nothing to fly: --lidar none, --sonar none and --camera none")
+    return out[0], out[1], out[2]
+
+
+def fly(
+    stage: str | Path,
+    *,
+    path: flight.Trajectory | str | Path | None = None,
+    line: tuple[Sequence[float], Sequence[float]] | None = None,
+    speed: float = 2.0,
+    lidar: Any = "vlp-16",
+    sonar: Any = None,
+    camera: Any = None,
+    tables: Mapping[str, Mapping[str, Any]] | None = None,
+    lidar_rate: float = 10.0,
+    camera_rate: float = 2.0,
+    seed: int = 0,
+    progress: Progress | None = None,
+    warn: Callable[[str], None] | None = None,
+) -> Flight:
+    """Fly a lidar, a sonar and a camera through ``stage`` along ``path`` (a
+    :class:`~usdforest.sensors.flight.Trajectory`, or a CSV of poses) or a straight ``line``
+    at ``speed`` (see :func:`trajectory`). Each sensor is a preset's name, a settings object
+    or None (see :func:`flight_settings`); ``progress(stage, done, total)`` after each sweep,
+    pulse and frame; ``warn(message)`` as soon as a warning is known (they are in the
+    result's ``warnings`` too)."""
+    traj = (
+        path
+        if isinstance(path, flight.Trajectory)
+        else trajectory(stage, path=path, line=line, speed=speed)
+    )
+    lidar, sonar, camera = flight_settings(lidar, sonar, camera, tables)
+    if camera is not None:
+        CAMERA_MODULE.frame_times(camera, traj, camera_rate)  # checks the rate and the memory
+    tick = progress or (lambda stage, done, total: None)
+    t0 = time.perf_counter()
+    reach = max(c.max_range for c in (lidar, sonar, camera) if c is not None)
+    lo, hi = traj.position.min(axis=0), traj.position.max(axis=0)
+    casts = lidar is not None or camera is not None
+    scene = extract_scene(
+        stage,
+        centre=(lo + hi) / 2,
+        radius=float(np.linalg.norm(hi - lo) / 2 + reach),
+        leaf_triangles=casts or bool(sonar is not None and sonar.occlusion),
+        reflectors=sonar is not None,
+    )
+    warnings = tuple(w for w in [unseen_warning(scene)] if w)
+    for w in warnings:
+        if warn is not None:
+            warn(w)
+    crs, origin = flight.stage_georeference(stage)
+    returns = echoes = frames = None
+    if lidar is not None:
+        returns = flight.fly_lidar(
+            scene, lidar, traj, lidar_rate, seed=seed,
+            progress=lambda d, n: tick("lidar sweeps", d, n),
+        )  # fmt: skip
+    if sonar is not None:
+        echoes = flight.fly_sonar(
+            scene, sonar, traj, seed=seed, progress=lambda d, n: tick("sonar pulses", d, n)
+        )
+    if camera is not None:
+        colours = CAMERA_MODULE.path_colours(stage, scene.paths)
+        frames = CAMERA_MODULE.fly_camera(
+            scene, camera, traj, camera_rate, colours,
+            progress=lambda d, n: tick("camera frames", d, n),
+        )  # fmt: skip
+    return Flight(traj, returns, echoes, frames, crs, origin, warnings, time.perf_counter() - t0)
