@@ -67,3 +67,23 @@ def test_every_dictionary_key_a_tree_authors_is_an_identifier(tmp_path):
             assert Tf.IsValidIdentifier(name), where
             seen.append(name)
     assert {"branchesByOrder", "order0", "order1"} <= set(seen)
+
+
+def test_class_labels_are_in_both_semantics_schemas(tmp_path):
+    """UsdSemantics (USD 25.2 on) and the older SemanticsAPI that Isaac Sim 4.x (USD 24.5 and
+    older) and Replicator read carry the same class labels on every labelled prim."""
+    out = tmp_path / "t.usda"
+    write_tree(get_species("paper-rule-3"), out, seed=2)
+    stage = Usd.Stage.Open(str(out))
+    labelled = 0
+    for p in stage.Traverse(Usd.TraverseInstanceProxies()):
+        new = p.GetAttribute("semantics:labels:class")
+        if not new or not new.HasValue():
+            continue
+        labelled += 1
+        # an unregistered schema is authored, not applied: read the list op itself
+        assert "SemanticsAPI:Semantics" in p.GetMetadata("apiSchemas").GetAddedOrExplicitItems()
+        assert p.GetAttribute("semantic:Semantics:params:semanticType").Get() == "class"
+        old = p.GetAttribute("semantic:Semantics:params:semanticData").Get()
+        assert old.split(",") == list(new.Get())
+    assert labelled >= 3  # the tree, its wood and its leaves at least

@@ -202,14 +202,20 @@ def triangle_mesh(
 
 
 def semantic_label(spec: Sdf.PrimSpec, label: str | Sequence[str]) -> None:
-    """Apply ``SemanticsLabelsAPI:class`` with ``semantics:labels:class = [label, ...]``."""
+    """Apply ``SemanticsLabelsAPI:class`` with ``semantics:labels:class = [label, ...]``,
+    and the same labels in the older ``SemanticsAPI:Semantics`` schema (``semantic:Semantics:
+    params:semanticType = "class"``, ``semanticData`` the labels joined by commas) that
+    Isaac Sim 4.x and Replicator read: UsdSemantics came with USD 25.2."""
     labels = [label] if isinstance(label, str) else list(label)
     existing = spec.GetInfo("apiSchemas") if spec.HasInfo("apiSchemas") else None
     items = list(existing.prependedItems) if existing else []
-    if "SemanticsLabelsAPI:class" not in items:
-        items.append("SemanticsLabelsAPI:class")
+    for schema in ("SemanticsLabelsAPI:class", "SemanticsAPI:Semantics"):
+        if schema not in items:
+            items.append(schema)
     spec.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=items))
     attr(spec, "semantics:labels:class", T.TokenArray, Vt.TokenArray(labels), uniform=True)
+    attr(spec, "semantic:Semantics:params:semanticType", T.String, "class")
+    attr(spec, "semantic:Semantics:params:semanticData", T.String, ",".join(labels))
 
 
 RENDERED_PURPOSES = ("default", "render")
