@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from usdforest.pointprocess import (
+from usdforest.recipe import read_recipe
+from usdforest.sites.pointprocess import (
     Bump,
     Constant,
     ExpressionIntensity,
@@ -18,7 +19,6 @@ from usdforest.pointprocess import (
     Rectangle,
     thin,
 )
-from usdforest.recipe import read_recipe
 from usdforest.usd.forest import write_forest
 
 PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from usdforest.lsystem import derive, make_lsystem
-from usdforest.species import get_species, grow
-from usdforest.turtle import TurtleConfig, interpret
+from usdforest.grow.lsystem import derive, make_lsystem
+from usdforest.grow.species import get_species, grow
+from usdforest.grow.turtle import TurtleConfig, interpret
 
 ALGAE = make_lsystem("b", ["a -> ab", "b -> a"])
 PLANT = make_lsystem("X", ["X -> F[+X][-X]FX", "F -> FF"])

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import tomli_w
 
-from usdforest.cad import read_cad
-from usdforest.extract import extract_tree
+from usdforest.cad.extract import extract_tree
+from usdforest.cad.parts import read_cad
 from usdforest.recipe import read_species
 from usdforest.usd.template import write_template
 from usdforest.usd.tree import write_tree

@@ -9,12 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
+from usdforest.grow.species import get_species
 from usdforest.sensors.lidar import SpinningLidar, scan
 from usdforest.sensors.pose import Pose
 from usdforest.sensors.raycast import SceneCaster
 from usdforest.sensors.scene import extract_scene
 from usdforest.sensors.sonar import SonarConfig, echo_from_leaves
-from usdforest.species import get_species
 from usdforest.usd.tree import write_tree
 
 WORK = Path(tempfile.mkdtemp(prefix="usdforest-bench-"))

@@ -41,7 +41,7 @@ CASES = (
 def _big_tree(path: Path) -> None:
     from dataclasses import replace
 
-    from usdforest.species import get_species
+    from usdforest.grow.species import get_species
     from usdforest.usd.tree import write_tree
 
     sp = get_species("broadleaf")

@@ -6,7 +6,7 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
-from usdforest.species import get_species
+from usdforest.grow.species import get_species
 from usdforest.usd.tree import build_tree, write_tree
 
 BROADLEAF = get_species("broadleaf")

@@ -14,14 +14,14 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from usdforest.library import template_dir
-from usdforest.plots import draw_sites, draw_skeleton, image_panel, save_figure
-from usdforest.preview import preview, render_stage
+from usdforest.cad.library import template_dir
+from usdforest.grow.species import get_species
 from usdforest.recipe import parse_recipe, read_recipe
-from usdforest.sites import sample_sites
-from usdforest.species import get_species
+from usdforest.sites.sampling import sample_sites
 from usdforest.usd.forest import write_forest
 from usdforest.usd.tree import write_tree
+from usdforest.view.plots import draw_sites, draw_skeleton, image_panel, save_figure
+from usdforest.view.preview import preview, render_stage
 
 ROOT = Path(__file__).resolve().parents[1]
 PIPELINES = ROOT / "pipelines"
@@ -88,7 +88,7 @@ def source_stage(model: Path, path: Path) -> Path:
     import trimesh
     from pxr import Sdf, Vt
 
-    from usdforest.extract import FOLIAGE_NAMES
+    from usdforest.cad.extract import FOLIAGE_NAMES
     from usdforest.usd.layers import T, attr, ints, new_layer, prim, save_layer, vec3f
 
     layer = new_layer("Source")

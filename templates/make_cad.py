@@ -17,7 +17,7 @@ import trimesh
 
 # the conical trunk's ring vertices and cylindrical foot, which the allometric trees' DBH
 # arithmetic relies on
-from usdforest.architecture import TRUNK_FOOT, TRUNK_SECTIONS
+from usdforest.grow.architecture import TRUNK_FOOT, TRUNK_SECTIONS
 
 OUT = Path(__file__).resolve().parent / "cad"
 RNG_SEED = 20261122

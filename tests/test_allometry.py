@@ -17,12 +17,12 @@ import pytest
 from pxr import Usd, UsdGeom
 
 from usdforest.errors import RecipeError
+from usdforest.grow.species import get_species
 from usdforest.recipe import read_recipe
-from usdforest.species import get_species
 from usdforest.usd.forest import write_forest
 from usdforest.usd.inventory import stand_figures
 from usdforest.usd.tree import build_tree
-from usdforest.validate import validate
+from usdforest.usd.validate import validate
 
 PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
 

@@ -17,7 +17,7 @@ from pxr import Usd, UsdGeom
 import usdforest
 from usdforest.cli import app
 from usdforest.errors import UsdForestError
-from usdforest.validate import errors, validate
+from usdforest.usd.validate import errors, validate
 
 ROOT = Path(__file__).parents[1]
 

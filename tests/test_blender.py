@@ -15,8 +15,8 @@ import numpy as np
 from optional import optional_tool
 from pxr import Usd
 
+from usdforest.grow.species import get_species
 from usdforest.recipe import default_recipe_path, parse_recipe, read_recipe
-from usdforest.species import get_species
 from usdforest.usd.forest import write_forest
 from usdforest.usd.tree import write_tree
 

@@ -1,4 +1,4 @@
-"""Exact instance bounds (:func:`usdforest.bounds.instances_bounds`) against transforming
+"""Exact instance bounds (:func:`usdforest.grow.bounds.instances_bounds`) against transforming
 every vertex of every instance."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import ConvexHull
 
-from usdforest.bounds import instances_bounds, yawed_extent
+from usdforest.grow.bounds import instances_bounds, yawed_extent
 from usdforest.rotations import matrix_from_quat
 
 
@@ -46,7 +46,7 @@ def test_bounds_equal_every_vertex_transformed(seed, n, spread, anisotropic):
 
 
 def test_a_million_leaves_transform_only_those_near_the_boundary(monkeypatch):
-    import usdforest.bounds as bounds
+    import usdforest.grow.bounds as bounds
 
     rng = np.random.default_rng(1)
     n = 200_000

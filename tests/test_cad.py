@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from usdforest.cad import import_part, read_cad
+from usdforest.cad.library import template_dir
+from usdforest.cad.parts import import_part, read_cad
 from usdforest.cli import app
 from usdforest.errors import CADError
-from usdforest.library import template_dir
 
 CAD = template_dir() / "cad"
 
@@ -72,7 +72,7 @@ def test_y_up_obj_becomes_z_up(tmp_path):
     t = import_part(tmp_path / "y.obj", "trunk", units="m", up="auto")
     assert t.provenance["upAxis"] == "Y"
     assert t.measurements.length == pytest.approx(1.2, rel=1e-5)
-    from usdforest.cad import to_metres_z_up
+    from usdforest.cad.parts import to_metres_z_up
 
     mesh, _, _ = to_metres_z_up(raw, "m", "Y", "trunk")
     assert mesh.vertices[:, 2].min() == pytest.approx(0.0, abs=1e-9)
@@ -242,7 +242,7 @@ def test_missing_file_and_unknown_part(tmp_path, runner):
 
 def test_text_files_in_other_encodings_import(tmp_path):
     """A Latin-1 comment in an OBJ (charset-normalizer is a dependency for this)."""
-    from usdforest.cad import read_cad
+    from usdforest.cad.parts import read_cad
 
     p = tmp_path / "latin.obj"
     p.write_bytes(b"# caf\xe9 \xff\xfe comment\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")

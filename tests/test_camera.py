@@ -133,7 +133,7 @@ def test_each_trees_trunk_is_labelled_with_its_id(stand):
         assert frame.depth[v, u] == pytest.approx(local[0], abs=0.5)  # the trunk's near side
     assert np.all(frame.semantic[-1] == CLASS_ID["ground"])
     assert np.all(frame.instance[-1] == -1)
-    from usdforest.preview import SKY
+    from usdforest.view.preview import SKY
 
     sky = np.isinf(frame.depth)
     assert sky[0].sum() > 100  # much of the top row sees sky between the crowns

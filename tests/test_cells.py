@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-import usdforest.cells as cells
+import usdforest.sites.cells as cells
 from usdforest.recipe import parse_recipe
-from usdforest.sites import sample_sites
+from usdforest.sites.sampling import sample_sites
 
 
 def _recipe(tmp_path, tiles=500.0, hard_core=0.0, side=1100.0, **extra):

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import synthetic_trees as syn
 
+from usdforest.cad.extract import extract_tree
 from usdforest.cli import app
-from usdforest.extract import extract_tree
-from usdforest.validate import validate
+from usdforest.usd.validate import validate
 
 
 def test_tree_2_broadleaf(cad_samples):

@@ -15,7 +15,7 @@ from usdforest.cli import app
 from usdforest.recipe import default_recipe_path, read_recipe
 from usdforest.usd.forest import write_forest
 from usdforest.usd.stats import stage_info
-from usdforest.validate import validate
+from usdforest.usd.validate import validate
 
 PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
 SPECIES = {"scots-pine", "norway-spruce", "european-beech", "silver-birch"}

@@ -13,9 +13,9 @@ from pxr import Sdf, Usd, UsdGeom
 
 from usdforest.errors import RecipeError
 from usdforest.recipe import parse_recipe
-from usdforest.sites import sample_sites
+from usdforest.sites.sampling import sample_sites
 from usdforest.usd.forest import write_forest
-from usdforest.validate import validate
+from usdforest.usd.validate import validate
 
 rasterio = pytest.importorskip("rasterio", reason="GeoTIFF inputs need rasterio (usdforest[geo])")
 from rasterio.transform import from_origin  # noqa: E402
@@ -276,7 +276,7 @@ def test_a_plain_tiff_is_an_image_without_rasterio(tmp_path, monkeypatch):
 
     from PIL import Image
 
-    from usdforest.terrain import load_height_field
+    from usdforest.sites.terrain import load_height_field
 
     Image.fromarray(np.arange(64, dtype=np.uint16).reshape(8, 8) * 1000).save(tmp_path / "p.tif")
     real = builtins.__import__

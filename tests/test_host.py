@@ -11,7 +11,7 @@ from pxr import Gf, Usd, UsdGeom
 from usdforest.cli import app
 from usdforest.recipe import read_recipe, shipped_recipes
 from usdforest.usd.forest import write_forest
-from usdforest.validate import errors, validate
+from usdforest.usd.validate import errors, validate
 
 
 @pytest.fixture(scope="module")

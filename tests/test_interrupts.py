@@ -16,7 +16,7 @@ from pxr import Sdf, Usd, UsdGeom, UsdUtils
 from usdforest import atomic
 from usdforest.recipe import default_recipe_path, read_recipe
 from usdforest.usd.forest import write_forest
-from usdforest.validate import validate
+from usdforest.usd.validate import validate
 
 TWO_TREES = default_recipe_path().parent / "paper-two-tree-stand.toml"
 SCRIPT = Path(sys.executable).parent / "usdforest"

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from usdforest.errors import LSystemError
-from usdforest.lsystem import derive, derive_string, make_lsystem
+from usdforest.grow.lsystem import derive, derive_string, make_lsystem
 
 
 def naive(axiom: str, rules: dict[str, str], n: int) -> str:

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 from optional import optional_tool
 
+from usdforest.grow.species import get_species
 from usdforest.recipe import default_recipe_path, parse_recipe, read_recipe
-from usdforest.species import get_species
 from usdforest.usd.forest import write_forest
 from usdforest.usd.tree import write_tree
 

@@ -13,8 +13,8 @@ import pytest
 from optional import optional_tool
 from pxr import Usd, UsdGeom, UsdPhysics
 
+from usdforest.grow.species import get_species
 from usdforest.recipe import default_recipe_path, read_recipe
-from usdforest.species import get_species
 from usdforest.usd.forest import write_forest
 from usdforest.usd.tree import write_tree
 
@@ -181,7 +181,7 @@ def test_centred_origin_and_asset_info(tmp_path):
 def test_a_tree_written_as_usda_keeps_its_data_in_a_crate_file(tmp_path):
     import shutil
 
-    from usdforest.validate import validate
+    from usdforest.usd.validate import validate
 
     out = tmp_path / "a" / "t.usda"
     write_tree(get_species("broadleaf"), out, seed=1)

@@ -10,7 +10,7 @@ from scipy import stats
 
 from usdforest.errors import RecipeError, UsdForestError
 from usdforest.expr import compile_expression
-from usdforest.pointprocess import (
+from usdforest.sites.pointprocess import (
     Bump,
     Constant,
     ExpressionIntensity,
@@ -54,7 +54,7 @@ def test_count_mean_and_variance_match_the_integral(region, intensity):
 
 
 def test_gaussian_mixture_integral_is_analytic_and_agrees_with_quadrature():
-    from usdforest.pointprocess import _grid_integral
+    from usdforest.sites.pointprocess import _grid_integral
 
     assert MIXTURE.integral(SQUARE) == pytest.approx(_grid_integral(MIXTURE, SQUARE), rel=1e-4)
     # a bump well inside the square: base * area + 2 pi sigma^2 peak

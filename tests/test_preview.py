@@ -10,11 +10,11 @@ import pytest
 from pxr import Sdf, Usd
 
 from usdforest.cli import app
-from usdforest.preview import render_stage
+from usdforest.grow.species import get_species
 from usdforest.recipe import default_recipe_path, read_recipe
-from usdforest.species import get_species
 from usdforest.usd.forest import write_forest
 from usdforest.usd.tree import write_tree
+from usdforest.view.preview import render_stage
 
 
 @pytest.fixture(scope="module")
@@ -159,7 +159,7 @@ def test_forest_sprites_show_every_tree_where_trees_csv_puts_it(default_forest):
 def test_forest_sprites_cover_what_expanding_every_tree_covers(default_forest):
     """The stamped sprites against every tree's samples transformed and splatted: the same
     pixels are trees, to within the sprites' half-pixel placement."""
-    from usdforest.preview import splat, stage_cloud, view_basis
+    from usdforest.view.preview import splat, stage_cloud, view_basis
 
     img, window, _ = render_stage(default_forest, view="iso", size=(300, 300), ground=False)
     stage = Usd.Stage.Open(str(default_forest))
@@ -178,7 +178,7 @@ def test_a_sheared_or_squashed_forest_is_not_drawn_as_sprites(default_forest, tm
     a scale that differs across x and y) every tree's samples are transformed instead."""
     from pxr import Gf, UsdGeom
 
-    from usdforest.preview import stage_cloud
+    from usdforest.view.preview import stage_cloud
 
     for name, row in (("shear", (0.8, 1.0, 0.0, 0.0)), ("squash", (0.0, 3.0, 0.0, 0.0))):
         wrap = tmp_path / f"{name}.usda"
@@ -202,7 +202,7 @@ def test_a_sheared_or_squashed_forest_is_not_drawn_as_sprites(default_forest, tm
 def test_each_instance_is_stamped_with_its_own_prototype():
     """Sprites grouped by (prototype, yaw bin, scale bin): with up to 256 yaw bins a large
     prototype's bins must not run into the next prototype's."""
-    from usdforest.preview import Cloud, Stamps, splat, view_basis
+    from usdforest.view.preview import Cloud, Stamps, splat, view_basis
 
     def disc(radius, colour):
         a = np.linspace(0, 2 * np.pi, 400, endpoint=False)

@@ -19,7 +19,7 @@ import trimesh
 from pxr import Usd
 
 from usdforest.cli import app
-from usdforest.validate import validate
+from usdforest.usd.validate import validate
 
 VARIANTS = (0, 1, 2)
 

@@ -67,7 +67,7 @@ def test_an_empty_forest_builds_validates_and_previews(tmp_path):
 
     runner = CliRunner()
     from usdforest.cli import app
-    from usdforest.validate import validate
+    from usdforest.usd.validate import validate
 
     recipe = tmp_path / "p.toml"
     recipe.write_text(
@@ -89,7 +89,7 @@ def test_a_30000_vertex_boundary_is_checked_without_quadratic_memory():
 
     import numpy as np
 
-    from usdforest.pointprocess import Polygon
+    from usdforest.sites.pointprocess import Polygon
 
     a = np.linspace(0, 2 * np.pi, 30_000, endpoint=False)
     r = 100 + 5 * np.sin(7 * a)

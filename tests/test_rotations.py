@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from usdforest.placement import frames_from_directions
+from usdforest.grow.placement import frames_from_directions
 from usdforest.rotations import matrix_from_quat, quat_from_matrix
 
 

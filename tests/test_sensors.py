@@ -12,6 +12,7 @@ from hosts import host_stage
 from pxr import Usd, UsdGeom, Vt
 
 from usdforest.cli import app
+from usdforest.grow.species import get_species
 from usdforest.recipe import read_recipe
 from usdforest.sensors.backscatter import disk_backscatter
 from usdforest.sensors.lidar import DepthCamera, SpinningLidar, scan
@@ -23,7 +24,6 @@ from usdforest.sensors.sonar import (
     beam_amplitude,
     echo_from_leaves,
 )
-from usdforest.species import get_species
 from usdforest.usd.forest import write_forest
 from usdforest.usd.tree import write_tree
 

@@ -113,8 +113,8 @@ def test_a_trees_wood_prims_fitted_together_are_each_fitted_alone(tmp_path):
     """A scots-pine's hundreds of wood prims are fitted in one batch: the same cylinders
     (same count, same centres, radii, lengths and axes up to sign) as fitting every prim's
     triangles on its own, with trunk segments running up the stem."""
+    from usdforest.grow.species import get_species
     from usdforest.sensors.wood import fit_cylinders
-    from usdforest.species import get_species
     from usdforest.usd.tree import write_tree
 
     out = tmp_path / "p.usda"
@@ -308,7 +308,7 @@ def test_the_echo_envelope_is_the_analytic_signals():
 def test_a_sonar_scan_without_occlusion_skips_leaf_triangles(tmp_path):
     """The leaves as reflectors are the same with or without their triangles, so a sonar
     that casts no rays (no occlusion) hears the same echo from a scene without them."""
-    from usdforest.species import get_species
+    from usdforest.grow.species import get_species
     from usdforest.usd.tree import write_tree
 
     out = tmp_path / "t.usda"

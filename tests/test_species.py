@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from usdforest.errors import UsdForestError
-from usdforest.species import PRESETS, get_species, grow
+from usdforest.grow.species import PRESETS, get_species, grow
 
 TREES = [name for name, s in PRESETS.items() if s.kind == "tree"]
 

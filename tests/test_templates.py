@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdGeom, UsdShade
 
+from usdforest.cad.library import read_manifest, template_dir
 from usdforest.cli import app
 from usdforest.errors import RecipeError
-from usdforest.library import read_manifest, template_dir
 from usdforest.usd.template import read_template
-from usdforest.validate import validate
+from usdforest.usd.validate import validate
 
 ROOT = Path(__file__).resolve().parents[1]
 MANIFEST = ROOT / "pipelines" / "templates.toml"
@@ -147,7 +147,7 @@ def test_shipped_templates_are_built_from_the_committed_cad(path):
 def test_manifest_rebuild_is_byte_identical(tmp_path):
     manifest = read_manifest(MANIFEST)
     assert len(manifest.templates) == 16
-    from usdforest.library import build_manifest
+    from usdforest.cad.library import build_manifest
 
     a = build_manifest(manifest, tmp_path / "a")
     b = build_manifest(manifest, tmp_path / "b")

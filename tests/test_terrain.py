@@ -12,9 +12,9 @@ from pxr import Usd, UsdGeom, UsdPhysics
 
 from usdforest.errors import RecipeError
 from usdforest.recipe import parse_recipe, read_recipe
-from usdforest.terrain import MAX_NODES, HeightField, load_height_field
+from usdforest.sites.terrain import MAX_NODES, HeightField, load_height_field
 from usdforest.usd.forest import write_forest
-from usdforest.validate import validate
+from usdforest.usd.validate import validate
 
 
 def _dem(rows: int = 31, cols: int = 41) -> np.ndarray:
@@ -172,7 +172,7 @@ def test_image_rasters_keep_their_scale_whatever_their_bit_depth(tmp_path):
     the values once gave 257 times the height of a 16-bit file)."""
     from PIL import Image
 
-    from usdforest.pointprocess import load_raster
+    from usdforest.sites.pointprocess import load_raster
 
     grey = np.linspace(0.0, 1.0, 12).reshape(3, 4)
     Image.fromarray(np.round(grey * 65535).astype(np.uint16)).save(tmp_path / "dem16.tif")
@@ -190,7 +190,7 @@ def test_image_rasters_keep_their_scale_whatever_their_bit_depth(tmp_path):
 
 def test_species_mix_on_the_ground_height(tmp_path):
     """Mix weights in z, the ground's height at the site: pines up the slope."""
-    from usdforest.sites import sample_sites
+    from usdforest.sites.sampling import sample_sites
 
     x = np.linspace(0.0, 100.0, 11)
     np.save(tmp_path / "slope.npy", np.tile(0.1 * x, (6, 1)))  # z = x / 10, 0 to 10 m

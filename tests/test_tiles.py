@@ -11,7 +11,7 @@ from pxr import Usd, UsdGeom
 from usdforest.errors import RecipeError
 from usdforest.recipe import default_recipe_path, load_toml, parse_recipe
 from usdforest.usd.forest import write_forest
-from usdforest.validate import validate
+from usdforest.usd.validate import validate
 
 QUICK = default_recipe_path().parent / "quick-mixed.toml"
 

@@ -14,10 +14,10 @@ import trimesh
 from pxr import Usd, UsdGeom, UsdShade
 
 from usdforest.cli import app
-from usdforest.species import PRESETS, get_species
+from usdforest.grow.species import PRESETS, get_species
 from usdforest.usd.stats import stage_info
 from usdforest.usd.tree import write_tree
-from usdforest.validate import validate
+from usdforest.usd.validate import validate
 
 TREES = [n for n, s in PRESETS.items() if s.kind == "tree"]
 
@@ -477,8 +477,8 @@ def test_leaves_placed_in_chunks_are_the_leaves_placed_at_once(monkeypatch):
     """The thread pool's chunks give the same bits as one pass over every leaf."""
     from dataclasses import replace
 
-    import usdforest.placement as placement
-    from usdforest.species import get_species
+    import usdforest.grow.placement as placement
+    from usdforest.grow.species import get_species
     from usdforest.usd.tree import build_tree
 
     sp = get_species("broadleaf")

@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from usdforest.lsystem import derive, make_lsystem
-from usdforest.turtle import TurtleConfig, interpret
+from usdforest.grow.lsystem import derive, make_lsystem
+from usdforest.grow.turtle import TurtleConfig, interpret
 
 
 def draw(text: str, rules=(), n: int = 0, **cfg):

@@ -33,7 +33,7 @@ def __getattr__(name: str):
         except PackageNotFoundError:  # a source tree that is not installed
             return "0.0.0+source"
     if name in _API:
-        from . import api
+        from usdforest import api
 
         return getattr(api, name)
     raise AttributeError(name)

@@ -19,16 +19,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from .recipe import Recipe
-    from .sensors.survey import Flight, Scan
-    from .species import Species
-    from .usd.forest import ForestBuild
-    from .usd.tree import TreeBuild
+    from usdforest.grow.species import Species
+    from usdforest.recipe import Recipe
+    from usdforest.sensors.survey import Flight, Scan
+    from usdforest.usd.forest import ForestBuild
+    from usdforest.usd.tree import TreeBuild
 
 
 def recipes() -> dict[str, Path]:
     """The recipes shipped with usdforest, by name."""
-    from .recipe import shipped_recipes
+    from usdforest.recipe import shipped_recipes
 
     return shipped_recipes()
 
@@ -44,7 +44,7 @@ def load_recipe(
     None (the embedded default), or the recipe's data as a mapping (what ``tomllib`` reads;
     its relative file names are taken from ``base``, default the current folder). ``seed``
     and ``hard_core`` override the recipe's."""
-    from .recipe import parse_recipe, read_recipe, recipe_path
+    from usdforest.recipe import parse_recipe, read_recipe, recipe_path
 
     if isinstance(recipe, Mapping):
         folder = Path(base) if base is not None else Path.cwd()
@@ -68,8 +68,8 @@ def build_forest(
     ``recipe`` (a :class:`~usdforest.recipe.Recipe`, or anything :func:`load_recipe` takes),
     with ``seed`` instead of the recipe's. Returns the sites, prototypes and extent; refuses
     to overwrite unless ``force``; a failure leaves nothing behind."""
-    from .recipe import Recipe
-    from .usd.forest import write_forest
+    from usdforest.recipe import Recipe
+    from usdforest.usd.forest import write_forest
 
     if not isinstance(recipe, Recipe):
         recipe = load_recipe(recipe, seed=seed)
@@ -90,9 +90,9 @@ def grow_tree(
     force: bool = False,
 ) -> TreeBuild:
     """Grow one tree of ``species`` (a preset's name or a
-    :class:`~usdforest.species.Species`) and write it at ``out`` (``.usda`` or ``.usdc``)."""
-    from .species import get_species
-    from .usd.tree import write_tree
+    :class:`~usdforest.grow.species.Species`) and write it at ``out`` (``.usda`` or ``.usdc``)."""
+    from usdforest.grow.species import get_species
+    from usdforest.usd.tree import write_tree
 
     if isinstance(species, str):
         species = get_species(species)
@@ -111,7 +111,7 @@ def scan(
     """Scan ``stage`` with a ``lidar``, ``sonar`` or ``camera`` at ``pose`` (x, y, z[, yaw,
     pitch, roll]: the stage's units and axes, degrees); see
     :func:`usdforest.sensors.survey.scan`."""
-    from .sensors import survey
+    from usdforest.sensors import survey
 
     return survey.scan(stage, sensor, pose, preset=preset, settings=settings, seed=seed)
 
@@ -131,7 +131,7 @@ def fly(
     """Fly sensors through ``stage`` along ``path`` (a CSV of poses or a
     :class:`~usdforest.sensors.flight.Trajectory`) or a straight ``line`` at ``speed``;
     see :func:`usdforest.sensors.survey.fly` (``lidar_rate``, ``camera_rate``)."""
-    from .sensors import survey
+    from usdforest.sensors import survey
 
     return survey.fly(
         stage,

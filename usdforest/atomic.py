@@ -46,7 +46,7 @@ def save_npz(path: str | Path, /, **arrays) -> Path:
 def refuse_overwrite(*paths: str | Path, force: bool) -> None:
     """Raise a :class:`UsdForestError` naming the first of ``paths`` that exists, unless
     ``force``."""
-    from .errors import UsdForestError
+    from usdforest.errors import UsdForestError
 
     if force:
         return

@@ -19,10 +19,10 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from . import __version__
-from .atomic import move_into_place, refuse_overwrite, staging_folder
-from .errors import UsdForestError
-from .paths import require_output
+from usdforest import __version__
+from usdforest.atomic import move_into_place, refuse_overwrite, staging_folder
+from usdforest.errors import UsdForestError
+from usdforest.paths import require_output
 
 
 class _Command(typer.core.TyperCommand):
@@ -97,7 +97,7 @@ HardCoreOverride = Annotated[
 
 
 def _shown(text: str) -> str:
-    from .paths import shown
+    from usdforest.paths import shown
 
     return " ".join(shown(line) for line in str(text).splitlines())
 
@@ -177,8 +177,8 @@ def lsystem_cmd(
     ] = False,
 ) -> None:
     """Derive an L-system and print the resulting word."""
-    from .lsystem import derive, make_lsystem
-    from .species import get_species
+    from usdforest.grow.lsystem import derive, make_lsystem
+    from usdforest.grow.species import get_species
 
     if preset is not None:
         if axiom is not None or rule:
@@ -211,7 +211,7 @@ def species_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print the presets as JSON.")] = False,
 ) -> None:
     """List the species presets."""
-    from .species import PRESETS
+    from usdforest.grow.species import PRESETS
 
     if as_json:
         rows = [
@@ -239,7 +239,7 @@ def recipes_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print the recipes as JSON.")] = False,
 ) -> None:
     """List the recipes shipped with usdforest (use a name with -p, e.g. -p stand-1ha)."""
-    from .recipe import default_recipe_path, recipe_description, shipped_recipes
+    from usdforest.recipe import default_recipe_path, recipe_description, shipped_recipes
 
     rows = [
         {
@@ -288,17 +288,17 @@ def tree_cmd(
 ) -> None:
     """Grow one tree and write it as a USD component with its templates beside it."""
     require_output(output)
-    from .colliders import COLLIDER_MODES
+    from usdforest.grow.colliders import COLLIDER_MODES
 
     if colliders not in COLLIDER_MODES:
         raise UsdForestError(
             f"--colliders: {colliders!r} is not one of {', '.join(COLLIDER_MODES)}"
         )
-    from .usd.tree import write_tree
+    from usdforest.usd.tree import write_tree
 
     template_base = None
     if pipeline is not None:
-        from .recipe import read_species, recipe_path
+        from usdforest.recipe import read_species, recipe_path
 
         pipeline = recipe_path(pipeline)
         entries = read_species(pipeline)
@@ -309,7 +309,7 @@ def tree_cmd(
             )
         sp, template_base = entries[name].species, entries[name].template_base
     else:
-        from .species import get_species
+        from usdforest.grow.species import get_species
 
         sp = get_species(species or "paper-rule-3")
     b = write_tree(
@@ -350,7 +350,7 @@ def validate_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print findings as JSON.")] = False,
 ) -> None:
     """Run every pxr.UsdValidation validator plus usdforest's rules; exit 0 only if clean."""
-    from .validate import validate
+    from usdforest.usd.validate import validate
 
     findings = validate(stage)
     if as_json:
@@ -389,7 +389,7 @@ def wrap_cmd(
 ) -> None:
     """Write a host stage of another up axis and unit (Maya, Omniverse: Y-up centimetres)
     that references ASSET upright and to scale."""
-    from .usd.host import wrap
+    from usdforest.usd.host import wrap
 
     path = wrap(asset, output, up=up, units=units, name=name, force=force)
     out.print(f"{path}: {asset.name} in a {up}-up stage in {units}", highlight=False)
@@ -424,7 +424,7 @@ def info_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print as JSON.")] = False,
 ) -> None:
     """Composed statistics: prims, meshes, branches by order, leaves, triangles, extent."""
-    from .usd.stats import stage_info
+    from usdforest.usd.stats import stage_info
 
     info = stage_info(stage)
     if as_json:
@@ -441,7 +441,7 @@ def stats_cmd(
 ) -> None:
     """Stand figures measured on the composed forest: stems/ha, basal area, DBH and height
     distributions, slenderness, leaf and wood area indices, nadir canopy cover."""
-    from .usd.inventory import stand_figures
+    from usdforest.usd.inventory import stand_figures
 
     f = stand_figures(stage)
     f.pop("per_tree")
@@ -452,7 +452,7 @@ def stats_cmd(
 
 
 def _load_recipe(pipeline: Path | None, seed: int | None, hard_core: float | None = None):
-    from .recipe import read_recipe, recipe_path
+    from usdforest.recipe import read_recipe, recipe_path
 
     return read_recipe(recipe_path(pipeline), seed=seed, hard_core=hard_core)
 
@@ -500,7 +500,7 @@ def build_cmd(
     require_output(output)
     import time
 
-    from .usd.forest import write_forest
+    from usdforest.usd.forest import write_forest
 
     t0 = time.perf_counter()
     recipe = _load_recipe(pipeline, seed, hard_core)
@@ -568,9 +568,9 @@ def sample_cmd(
     import numpy as np
 
     require_output(output)
-    from .config import load_toml
-    from .recipe import parse_recipe, recipe_path
-    from .sites import sample_sites, write_sites_csv
+    from usdforest.config import load_toml
+    from usdforest.recipe import parse_recipe, recipe_path
+    from usdforest.sites.sampling import sample_sites, write_sites_csv
 
     path = recipe_path(pipeline)
     data = load_toml(path)
@@ -655,8 +655,8 @@ def preview_cmd(
     require_output(output)
     import time
 
-    from .paths import image_format
-    from .preview import VIEWS, preview
+    from usdforest.paths import image_format
+    from usdforest.view.preview import VIEWS, preview
 
     image_format(output)
     if view not in VIEWS:
@@ -686,9 +686,9 @@ def plot_sites_cmd(
 ) -> None:
     """Plot the intensity map with sampled sites over it (the paper's IPP figure)."""
     require_output(output)
-    from .paths import image_format
-    from .plots import plot_sites
-    from .sites import read_sites_csv, sample_sites
+    from usdforest.paths import image_format
+    from usdforest.sites.sampling import read_sites_csv, sample_sites
+    from usdforest.view.plots import plot_sites
 
     image_format(output)
     refuse_overwrite(output, force=force)
@@ -748,11 +748,11 @@ def scan_cmd(
     require_output(output)
     import time
 
-    from .config import check_keys, load_toml
-    from .sensors import camera, lidar, sonar
-    from .sensors.pose import parse_pose
-    from .sensors.scene import class_counts
-    from .sensors.survey import SENSORS, scan, sensor_settings
+    from usdforest.config import check_keys, load_toml
+    from usdforest.sensors import camera, lidar, sonar
+    from usdforest.sensors.pose import parse_pose
+    from usdforest.sensors.scene import class_counts
+    from usdforest.sensors.survey import SENSORS, scan, sensor_settings
 
     if sensor not in SENSORS:
         raise UsdForestError(f"--sensor: {sensor!r} is not lidar, sonar or camera")
@@ -956,10 +956,10 @@ def fly_cmd(
 
     import numpy as np
 
-    from .config import check_keys, load_toml
-    from .sensors import camera, flight
-    from .sensors.scene import class_counts
-    from .sensors.survey import flight_settings, fly, trajectory
+    from usdforest.config import check_keys, load_toml
+    from usdforest.sensors import camera, flight
+    from usdforest.sensors.scene import class_counts
+    from usdforest.sensors.survey import flight_settings, fly, trajectory
 
     if (path is None) == (line is None):
         raise UsdForestError("give the flight as --path CSV or as --line x0,y0,z0:x1,y1,z1")
@@ -1073,8 +1073,8 @@ def template_import_cmd(
 ) -> None:
     """Import one CAD part, normalise its frame and write a template layer."""
     require_output(output)
-    from .cad import import_part
-    from .usd.template import write_template
+    from usdforest.cad.parts import import_part
+    from usdforest.usd.template import write_template
 
     refuse_overwrite(output, force=force)
     t = import_part(file, part, units=units, up=up, name=name or part)
@@ -1115,8 +1115,8 @@ def template_extract_cmd(
 
     import tomli_w
 
-    from .extract import extract_tree
-    from .usd.template import write_template
+    from usdforest.cad.extract import extract_tree
+    from usdforest.usd.template import write_template
 
     refuse_overwrite(output, force=force)
     ex = extract_tree(file, units=units, up=up)
@@ -1158,7 +1158,7 @@ def template_build_cmd(
     ] = False,
 ) -> None:
     """Build every template layer a manifest lists (e.g. pipelines/templates.toml)."""
-    from .library import build_manifest, read_manifest
+    from usdforest.cad.library import build_manifest, read_manifest
 
     for path in build_manifest(read_manifest(manifest), output, force=force):
         out.print(f"wrote {path}", highlight=False)
@@ -1170,8 +1170,8 @@ def template_list_cmd(
     as_json: Annotated[bool, typer.Option("--json", help="Print as JSON.")] = False,
 ) -> None:
     """List the shipped templates with their real measurements."""
-    from .library import template_dir
-    from .usd.template import read_template
+    from usdforest.cad.library import template_dir
+    from usdforest.usd.template import read_template
 
     rows = [read_template(p) for p in sorted(template_dir().glob("*.usdc"))]
     if as_json:

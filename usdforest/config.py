@@ -15,8 +15,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from .errors import RecipeError
-from .paths import require_file
+from usdforest.errors import RecipeError
+from usdforest.paths import require_file
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:

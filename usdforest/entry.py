@@ -14,7 +14,7 @@ import sys
 
 def main() -> None:
     try:
-        from .cli import main as cli_main
+        from usdforest.cli import main as cli_main
 
         cli_main()
     except KeyboardInterrupt:

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import ExpressionError
+from usdforest.errors import ExpressionError
 
 Value = np.ndarray | float
 Env = Mapping[str, Value]

@@ -12,7 +12,7 @@ import stat
 import tempfile
 from pathlib import Path
 
-from .errors import UsdForestError
+from usdforest.errors import UsdForestError
 
 
 def shown(path: str | Path) -> str:

@@ -29,10 +29,10 @@ from typing import Any
 
 import numpy as np
 
-from .config import check_keys, coerce, load_toml, override, table_array
-from .errors import RecipeError, UsdForestError
-from .species import Geometry, Species, get_species, species_from_profile
-from .turtle import TurtleConfig
+from usdforest.config import check_keys, coerce, load_toml, override, table_array
+from usdforest.errors import RecipeError, UsdForestError
+from usdforest.grow.species import Geometry, Species, get_species, species_from_profile
+from usdforest.grow.turtle import TurtleConfig
 
 SPECIES_KEYS = {
     "preset",
@@ -53,7 +53,7 @@ class SpeciesEntry:
 
     species: Species
     template_base: Path
-    stand: Any = None  # usdforest.stand.StandSpec of an allometric species, if given
+    stand: Any = None  # usdforest.sites.stand.StandSpec of an allometric species, if given
 
 
 def parse_species(name: str, table: Mapping[str, Any], base: Path, where: str) -> SpeciesEntry:
@@ -117,7 +117,7 @@ def parse_species(name: str, table: Mapping[str, Any], base: Path, where: str) -
 
 
 def _allometric_names() -> str:
-    from .allometry import ALLOMETRY
+    from usdforest.grow.allometry import ALLOMETRY
 
     return ", ".join(ALLOMETRY)
 
@@ -130,7 +130,7 @@ def _dbh_in_metres(d: float, where: str) -> None:
 
 def _parse_stand(t: Any, sp: Species, where: str) -> Any:
     """``[species.NAME.stand]``: the DBH distribution of an allometric species (metres)."""
-    from .stand import StandSpec
+    from usdforest.sites.stand import StandSpec
 
     if sp.allometry is None:
         raise RecipeError(
@@ -171,7 +171,7 @@ def _check_geometry(g: Geometry, where: str) -> None:
 
 def _check_templates(g: Geometry, base: Path, where: str) -> None:
     """Every template a geometry names exists: a shipped name or a layer file."""
-    from .library import template_dir
+    from usdforest.cad.library import template_dir
 
     shipped = {p.stem for p in template_dir().glob("*.usdc")}
     named = {"trunk": g.trunk, "twig": g.twig, "leaf": g.leaf}
@@ -318,7 +318,7 @@ def _under(where: str, exc: Exception) -> RecipeError:
 
 
 def parse_region(t: Any, where: str, base: Path = Path(".")) -> Any:
-    from .pointprocess import Polygon, Rectangle, read_shape
+    from usdforest.sites.pointprocess import Polygon, Rectangle, read_shape
 
     if not isinstance(t, Mapping):
         raise RecipeError(f"{where}: expected a table")
@@ -351,7 +351,7 @@ def parse_region(t: Any, where: str, base: Path = Path(".")) -> Any:
 
 
 def parse_intensity(t: Any, region: Any, base: Path, where: str) -> Any:
-    from .pointprocess import (
+    from usdforest.sites.pointprocess import (
         Bump,
         Constant,
         ExpressionIntensity,
@@ -463,7 +463,7 @@ def read_stem_map(path: Path, where: str) -> list[dict]:
     ``yaw``; metres) as ``[[sites]]`` rows."""
     import csv
 
-    from .paths import require_file
+    from usdforest.paths import require_file
 
     require_file(path, "stem map")
     try:
@@ -518,7 +518,7 @@ def parse_recipe(
     ``seed`` and ``hard_core`` override the recipe's ``seed`` and ``[forest] hard_core``
     (the overrides are part of the recipe's data, so a resolved recipe records them).
     """
-    from .expr import compile_expression
+    from usdforest.expr import compile_expression
 
     if hard_core is not None:
         forest_t = data.get("forest", {})
@@ -581,7 +581,7 @@ def parse_recipe(
         max_trees = coerce(forest.get("max_trees", DEFAULT_MAX_TREES), int, "forest.max_trees")
         if max_trees < 1:
             raise RecipeError("forest.max_trees: must be >= 1")
-        from .colliders import COLLIDER_MODES
+        from usdforest.grow.colliders import COLLIDER_MODES
 
         colliders = coerce(forest.get("colliders", "trunk"), str, "forest.colliders")
         if colliders not in COLLIDER_MODES:
@@ -713,8 +713,8 @@ def _parse_ground(t: Any, region: Any, base: Path) -> dict | None:
     the region, ``color`` linear RGB in 0..1; a raster takes ``file`` (``.npy`` metres, or an
     image with ``max`` metres for white), optional ``max`` and ``bounds`` (default: the
     region's bounds grown by ``margin``), and must cover the region."""
-    from .rasters import covers, geotiff_extent
-    from .terrain import HeightField, load_height_field
+    from usdforest.sites.rasters import covers, geotiff_extent
+    from usdforest.sites.terrain import HeightField, load_height_field
 
     if t is None:
         return None

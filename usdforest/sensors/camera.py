@@ -25,12 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, save_npz
-from ..errors import UsdForestError
-from .lidar import DepthCamera
-from .pose import Pose
-from .raycast import SceneCaster
-from .scene import CLASSES, Scene
+from usdforest.atomic import atomic_path, save_npz
+from usdforest.errors import UsdForestError
+from usdforest.sensors.lidar import DepthCamera
+from usdforest.sensors.pose import Pose
+from usdforest.sensors.raycast import SceneCaster
+from usdforest.sensors.scene import CLASSES, Scene
 
 PRESETS: dict[str, DepthCamera] = {
     "pinhole-640": DepthCamera(640, 480, 90.0, 200.0, kind="camera"),
@@ -78,8 +78,8 @@ def intrinsics(cam: DepthCamera) -> np.ndarray:
 
 def path_colours(stage_path: str | Path, paths: tuple[str, ...]) -> np.ndarray:
     """``(len(paths), 3)``: each prim's bound material colour (what the preview draws)."""
-    from ..preview import mesh_color
-    from ..usd.layers import open_stage
+    from usdforest.usd.layers import open_stage
+    from usdforest.view.preview import mesh_color
 
     stage = open_stage(stage_path)
     out = np.full((len(paths), 3), 0.6)
@@ -111,7 +111,7 @@ def render_at(
     caster: SceneCaster | None = None,
 ) -> Frame:
     """:func:`render` from a position and a camera -> world rotation matrix."""
-    from ..preview import LIGHT, SKY
+    from usdforest.view.preview import LIGHT, SKY
 
     cam.check()
     local = cam.directions()

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import UsdForestError
-from .pose import Pose
-from .raycast import RayCaster
-from .scene import CLASS_ID, Scene
+from usdforest.errors import UsdForestError
+from usdforest.sensors.pose import Pose
+from usdforest.sensors.raycast import RayCaster
+from usdforest.sensors.scene import CLASS_ID, Scene
 
 AXES = np.array([[1.0, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
 

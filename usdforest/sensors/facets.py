@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .raycast import RayCaster
-from .scene import CLASS_ID, Scene
+from usdforest.sensors.raycast import RayCaster
+from usdforest.sensors.scene import CLASS_ID, Scene
 
 
 @dataclass(frozen=True, eq=False)

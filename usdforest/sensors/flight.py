@@ -23,15 +23,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, save_npz
-from ..errors import UsdForestError
-from ..paths import require_file
-from ..seeds import stream
-from .lidar import SpinningLidar, cast_pulses, counts
-from .pose import Pose, rotations
-from .raycast import SceneCaster
-from .scene import CLASSES, Scene
-from .sonar import SonarConfig, SonarScene
+from usdforest.atomic import atomic_path, save_npz
+from usdforest.errors import UsdForestError
+from usdforest.paths import require_file
+from usdforest.seeds import stream
+from usdforest.sensors.lidar import SpinningLidar, cast_pulses, counts
+from usdforest.sensors.pose import Pose, rotations
+from usdforest.sensors.raycast import SceneCaster
+from usdforest.sensors.scene import CLASSES, Scene
+from usdforest.sensors.sonar import SonarConfig, SonarScene
 
 # ASPRS LAS classes for our semantic classes: unclassified, high vegetation (trunk, branch,
 # leaf) and ground; our own class is kept in the extra dimension "usdforest_class"

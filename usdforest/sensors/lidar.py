@@ -16,13 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, save_npz
-from ..errors import UsdForestError
-from ..seeds import stream
-from .pose import Pose
-from .raycast import SceneCaster
-from .returns import MODES, Echoes, beam_pattern, merge_echoes, subray_directions
-from .scene import CLASSES, Scene
+from usdforest.atomic import atomic_path, save_npz
+from usdforest.errors import UsdForestError
+from usdforest.seeds import stream
+from usdforest.sensors.pose import Pose
+from usdforest.sensors.raycast import SceneCaster
+from usdforest.sensors.returns import MODES, Echoes, beam_pattern, merge_echoes, subray_directions
+from usdforest.sensors.scene import CLASSES, Scene
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import UsdForestError
+from usdforest.errors import UsdForestError
 
 
 @dataclass(frozen=True)

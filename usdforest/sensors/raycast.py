@@ -18,7 +18,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from .scene import Scene, leaf_boxes, moved_boxes
+from usdforest.sensors.scene import Scene, leaf_boxes, moved_boxes
 
 CHUNK = 65_536
 
@@ -120,7 +120,7 @@ def _warp():
         finally:
             os.dup2(saved, 2)
             os.close(saved)
-    from . import kernels
+    from usdforest.sensors import kernels
 
     return wp, kernels
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..runs import run_starts
+from usdforest.runs import run_starts
 
 MODES = ("first", "last", "strongest", "dual", "all")
 

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..usd.layers import class_labels, mesh_triangles, open_stage, rendered
-from .implicit import IMPLICIT, shape_triangles
+from usdforest.sensors.implicit import IMPLICIT, shape_triangles
+from usdforest.usd.layers import class_labels, mesh_triangles, open_stage, rendered
 
 CLASSES = ("unknown", "trunk", "branch", "leaf", "ground")
 CLASS_ID = {name: i for i, name in enumerate(CLASSES)}

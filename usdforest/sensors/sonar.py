@@ -70,20 +70,20 @@ from pathlib import Path
 import numpy as np
 from scipy.special import j1
 
-from ..atomic import atomic_path, save_npz
-from ..errors import UsdForestError
-from ..runs import run_starts
-from .backscatter import (
+from usdforest.atomic import atomic_path, save_npz
+from usdforest.errors import UsdForestError
+from usdforest.runs import run_starts
+from usdforest.sensors.backscatter import (
     LEAF_MODELS,
     cylinder_backscatter,
     facet_backscatter,
     leaf_backscatter,
 )
-from .bandsum import Bands
-from .facets import Facets, GroundField
-from .pose import Pose
-from .scene import CLASS_ID, CLASSES, Leaves, Scene
-from .wood import Cylinders, scene_cylinders
+from usdforest.sensors.bandsum import Bands
+from usdforest.sensors.facets import Facets, GroundField
+from usdforest.sensors.pose import Pose
+from usdforest.sensors.scene import CLASS_ID, CLASSES, Leaves, Scene
+from usdforest.sensors.wood import Cylinders, scene_cylinders
 
 OVERSAMPLE = 8
 LEAF_CHUNK = 200_000
@@ -476,7 +476,7 @@ def _coherent(
     """Spectrum, impulse response and echo of ``source``'s reflectors, plus each one's
     band-mean energy and delay range (the coherent sum of the module docstring; Doppler as
     in :func:`echo_from_targets`)."""
-    from . import bandsum
+    from usdforest.sensors import bandsum
 
     c = cfg.speed_of_sound
     position = source.position
@@ -724,7 +724,7 @@ class SonarScene:
 
     @property
     def caster(self):
-        from .raycast import SceneCaster
+        from usdforest.sensors.raycast import SceneCaster
 
         if self._caster is None:
             self._caster = SceneCaster(self.scene)

@@ -16,12 +16,12 @@ from typing import Any
 
 import numpy as np
 
-from ..config import override
-from ..errors import UsdForestError
-from . import camera, flight, lidar, sonar
-from .checks import check_not_inside_wood, pose_warnings, unseen_warning
-from .pose import Pose, parse_pose
-from .scene import extract_scene, stage_frame, to_frame
+from usdforest.config import override
+from usdforest.errors import UsdForestError
+from usdforest.sensors import camera, flight, lidar, sonar
+from usdforest.sensors.checks import check_not_inside_wood, pose_warnings, unseen_warning
+from usdforest.sensors.pose import Pose, parse_pose
+from usdforest.sensors.scene import extract_scene, stage_frame, to_frame
 
 SENSORS = {
     "lidar": (lidar.PRESETS, "vlp-16"),
@@ -128,7 +128,7 @@ def scan(
         w for w in [*pose_warnings(scene, p, settings.max_range), unseen_warning(scene)] if w
     )
     check_not_inside_wood(scene, p)
-    from .raycast import SceneCaster
+    from usdforest.sensors.raycast import SceneCaster
 
     # a sonar without occlusion casts no rays into the trees: build nothing for them
     caster = SceneCaster(scene) if sensor != "sonar" or occlusion else None

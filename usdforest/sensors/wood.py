@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..runs import run_starts
-from .scene import CLASS_ID, Scene
+from usdforest.runs import run_starts
+from usdforest.sensors.scene import CLASS_ID, Scene
 
 WOOD = (CLASS_ID["trunk"], CLASS_ID["branch"])
 MAX_MISFIT = 0.15  # a slice's rms distance from its circle, as a share of the radius

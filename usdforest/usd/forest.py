@@ -32,19 +32,24 @@ import numpy as np
 import tomli_w
 from pxr import Gf, Sdf, Vt
 
-from ..architecture import scaled_dbh
-from ..atomic import publish, refuse_overwrite, staging_folder
-from ..bounds import EMPTY_EXTENT, Bounds, yawed_extent
-from ..colliders import Capsules
-from ..errors import UsdForestError
-from ..recipe import Recipe, resolved_toml
-from ..sites import Sites, sample_sites
-from ..terrain import HeightField
-from .ground import add_ground, ground_layer
-from .layers import T, attr, extents, new_layer, prim, save_layer, vec3f
-from .physics import add_physics_scene, author_capsules, collision_layer, instance_capsules
-from .tiles import author_tiles, partition
-from .tree import TreeBuild, build_tree, copy_templates, tree_layer
+from usdforest.atomic import publish, refuse_overwrite, staging_folder
+from usdforest.errors import UsdForestError
+from usdforest.grow.architecture import scaled_dbh
+from usdforest.grow.bounds import EMPTY_EXTENT, Bounds, yawed_extent
+from usdforest.grow.colliders import Capsules
+from usdforest.recipe import Recipe, resolved_toml
+from usdforest.sites.sampling import Sites, sample_sites
+from usdforest.sites.terrain import HeightField
+from usdforest.usd.ground import add_ground, ground_layer
+from usdforest.usd.layers import T, attr, extents, new_layer, prim, save_layer, vec3f
+from usdforest.usd.physics import (
+    add_physics_scene,
+    author_capsules,
+    collision_layer,
+    instance_capsules,
+)
+from usdforest.usd.tiles import author_tiles, partition
+from usdforest.usd.tree import TreeBuild, build_tree, copy_templates, tree_layer
 
 THUMBNAIL = "thumbnail.png"  # inside the assets folder
 
@@ -485,10 +490,10 @@ def _dask_client(workers: int, scheduler: str | None):
 
 def _sized_sites(recipe: Recipe, sites: Sites) -> tuple[Sites, dict, np.ndarray]:
     """Allometric species' trees sized one by one and grouped into size classes
-    (:mod:`usdforest.stand`): the sites with each tree's class as its variant and its height
+    (:mod:`usdforest.sites.stand`): the sites with each tree's class as its variant and its height
     over the class's as its scale, the class targets by species and the direction each
     tree's crown grows away from its neighbours (NaN: none)."""
-    from ..stand import stand_sizes, with_sizes
+    from usdforest.sites.stand import stand_sizes, with_sizes
 
     allometric = {n for n in sites.names if recipe.species[n].species.allometry is not None}
     if not allometric or len(sites) == 0:
@@ -563,7 +568,7 @@ def _write_csv(
     """``trees.csv``: one row per tree; ``proto_sizes`` (P, 3) holds each prototype's height, and
     an allometric prototype's DBH and target height (NaN for others): a tree's height is its
     scale times its prototype's, its DBH measured at 1.3 m on the scaled trunk."""
-    from .. import csvtext
+    from usdforest import csvtext
 
     height = proto_sizes[proto_index, 0] * sites.scale
     dbh = scaled_dbh(proto_sizes[proto_index, 1], proto_sizes[proto_index, 2], sites.scale)
@@ -768,7 +773,7 @@ def _write_forest(
             )
             tick("writing instances", 1, 1)
             if thumbnail:
-                from ..preview import preview
+                from usdforest.view.preview import preview
 
                 tick("thumbnail", 0, 1)
                 # the thumbnail lives in the assets folder, so it moves (and packs) with the

@@ -1,7 +1,7 @@
 """The forest's ground: a plane or a height field under the plot, with a collider, a label and
 a material.
 
-``/Forest/Ground/Mesh`` is the triangulated :class:`~usdforest.terrain.HeightField` (two
+``/Forest/Ground/Mesh`` is the triangulated :class:`~usdforest.sites.terrain.HeightField` (two
 triangles for a plane over the region's bounding box plus a margin, at z = 0; a raster's grid
 otherwise) on which every tree stands; ``PhysicsCollisionAPI`` makes it the floor robots drive
 on, ``SemanticsLabelsAPI:class = ground`` labels it for sensors, and a UsdPreviewSurface gives
@@ -15,8 +15,8 @@ from collections.abc import Sequence
 import numpy as np
 from pxr import Sdf, Vt
 
-from ..terrain import HeightField
-from .layers import (
+from usdforest.sites.terrain import HeightField
+from usdforest.usd.layers import (
     T,
     attr,
     bind_material,
@@ -45,7 +45,7 @@ def add_ground(
     root: Sdf.PrimSpec, field: HeightField, *, color: Sequence[float] = GROUND_COLOR
 ) -> None:
     """``<root>/Ground``: the mesh of ``field``, with its collider, label and material."""
-    from ..normals import vertex_normals
+    from usdforest.normals import vertex_normals
 
     pts, tri = field.mesh()
     ground = prim(root, "Ground", "Xform")

@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom
 
-from ..atomic import refuse_overwrite
-from ..errors import UsdForestError
-from ..paths import require_file, require_output, shown
-from .layers import prim, save_layer
+from usdforest.atomic import refuse_overwrite
+from usdforest.errors import UsdForestError
+from usdforest.paths import require_file, require_output, shown
+from usdforest.usd.layers import prim, save_layer
 
 UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
 UP_AXES = ("Y", "Z")

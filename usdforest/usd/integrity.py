@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom
 
-from ..errors import UsdForestError
-from ..paths import shown
+from usdforest.errors import UsdForestError
+from usdforest.paths import shown
 
 
 def _prims(stage: Usd.Stage) -> Iterator[Usd.Prim]:

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom
 
-from ..cad import face_areas, one_sided_area
-from ..errors import UsdForestError
-from .layers import open_stage, rendered
+from usdforest.cad.parts import face_areas, one_sided_area
+from usdforest.errors import UsdForestError
+from usdforest.usd.layers import open_stage, rendered
 
 CELL = 0.25  # m, the cover raster
 BREAST = 1.3
@@ -59,7 +59,7 @@ def _girth_dbh(points: np.ndarray, tri: np.ndarray, z: np.ndarray) -> np.ndarray
 
 
 def _leaf_unit_area(proto: Usd.Prim) -> float:
-    """One-sided area of a leaf prototype (:func:`usdforest.cad.one_sided_area` of each of
+    """One-sided area of a leaf prototype (:func:`usdforest.cad.parts.one_sided_area` of each of
     its meshes), in its own space."""
     cache = UsdGeom.XformCache()
     inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(proto), dtype=float))

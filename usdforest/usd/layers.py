@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
-from ..atomic import atomic_path
-from ..errors import UsdForestError
-from ..paths import require_file, shown
+from usdforest.atomic import atomic_path
+from usdforest.errors import UsdForestError
+from usdforest.paths import require_file, shown
 
 T = Sdf.ValueTypeNames
 
@@ -82,7 +82,7 @@ def open_stage(path: str | Path, *, sound: bool = False) -> Usd.Stage:
             f"{shown(path)}: does not compose: {_reason(Exception(str(errors[0])))}{more}"
         )
     if sound:
-        from .integrity import require_sound
+        from usdforest.usd.integrity import require_sound
 
         require_sound(stage, path)
     return stage
@@ -169,8 +169,8 @@ def vec3f(a: np.ndarray) -> Vt.Vec3fArray:
 
 def extents(a: np.ndarray) -> Vt.Vec3fArray:
     """Min, max pairs ``(2 k, 3)`` as a float3[] rounded outward (see
-    :func:`usdforest.bounds.outward_f32`): an extent or an extentsHint."""
-    from ..bounds import outward_f32
+    :func:`usdforest.grow.bounds.outward_f32`): an extent or an extentsHint."""
+    from usdforest.grow.bounds import outward_f32
 
     return Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(outward_f32(a)))
 

@@ -13,10 +13,10 @@ from __future__ import annotations
 import numpy as np
 from pxr import Gf, Sdf, Vt
 
-from ..colliders import Capsules
-from ..placement import frames_from_directions
-from ..rotations import quat_from_matrix
-from .layers import T, attr, new_layer, prim
+from usdforest.grow.colliders import Capsules
+from usdforest.grow.placement import frames_from_directions
+from usdforest.rotations import quat_from_matrix
+from usdforest.usd.layers import T, attr, new_layer, prim
 
 COLLISION_API = "PhysicsCollisionAPI"
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom
 
-from .layers import class_labels, open_stage, rendered
+from usdforest.usd.layers import class_labels, open_stage, rendered
 
 
 @dataclass

@@ -9,11 +9,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, Vt
 
-from ..bounds import hull_vertices
-from ..errors import UsdForestError
-from ..placement import WoodShape, centreline_of
-from ..uvs import leaf_uvs, wood_uvs
-from .layers import (
+from usdforest.cad.uvs import leaf_uvs, wood_uvs
+from usdforest.errors import UsdForestError
+from usdforest.grow.bounds import hull_vertices
+from usdforest.grow.placement import WoodShape, centreline_of
+from usdforest.usd.layers import (
     T,
     attr,
     bind_material,
@@ -28,7 +28,7 @@ from .layers import (
 )
 
 if TYPE_CHECKING:  # trimesh loads with the CAD importer, not with every template reader
-    from ..cad import TemplatePart
+    from usdforest.cad.parts import TemplatePart
 
 SEMANTIC_CLASS = {"trunk": "trunk", "branch": "branch", "twig": "branch", "leaf": "leaf"}
 
@@ -104,7 +104,7 @@ def template_layer(part: TemplatePart) -> Sdf.Layer:
 def _texture_coordinates(
     mesh: Sdf.PrimSpec, part: str, points: np.ndarray, faces: np.ndarray
 ) -> None:
-    """Indexed ``primvars:st`` (see :mod:`usdforest.uvs`) from the stored (rounded) points,
+    """Indexed ``primvars:st`` (see :mod:`usdforest.cad.uvs`) from the stored (rounded) points,
     rounded like them: each distinct coordinate stored once, ``primvars:st:indices`` per
     vertex (leaves) or per face corner (wood)."""
     if part == "leaf":

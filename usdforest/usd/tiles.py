@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Gf, Sdf, Vt
 
-from .layers import T, attr, extents, prim
+from usdforest.usd.layers import T, attr, extents, prim
 
 
 @dataclass(frozen=True, eq=False)

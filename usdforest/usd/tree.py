@@ -28,17 +28,17 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Vt
 
-from ..architecture import TreeSize
-from ..atomic import publish, refuse_overwrite, staging_folder
-from ..bounds import EMPTY, EMPTY_EXTENT, Bounds, instances_bounds
-from ..colliders import Capsules, tree_capsules
-from ..errors import UsdForestError
-from ..library import template_dir, template_path
-from ..placement import Placement, place
-from ..proxy import Levels, levels
-from ..seeds import stream
-from ..species import Geometry, Grown, Species, grow, sized, tree_size
-from .layers import (
+from usdforest.atomic import publish, refuse_overwrite, staging_folder
+from usdforest.cad.library import template_dir, template_path
+from usdforest.errors import UsdForestError
+from usdforest.grow.architecture import TreeSize
+from usdforest.grow.bounds import EMPTY, EMPTY_EXTENT, Bounds, instances_bounds
+from usdforest.grow.colliders import Capsules, tree_capsules
+from usdforest.grow.placement import Placement, place
+from usdforest.grow.proxy import Levels, levels
+from usdforest.grow.species import Geometry, Grown, Species, grow, sized, tree_size
+from usdforest.seeds import stream
+from usdforest.usd.layers import (
     T,
     attr,
     bind_material,
@@ -51,8 +51,8 @@ from .layers import (
     triangle_mesh,
     vec3f,
 )
-from .physics import add_colliders
-from .template import TemplateInfo, read_template
+from usdforest.usd.physics import add_colliders
+from usdforest.usd.template import TemplateInfo, read_template
 
 
 def resolve_template(name: str, base: Path | None = None) -> Path:
@@ -73,7 +73,7 @@ STOUTER = (2, 4, 8)
 def stouter_variants(name: str, base: Path | None = None) -> tuple[str, ...]:
     """The thickened variants of a branch template that exist beside it (``NAME_x2``,
     ``NAME_x4``, ``NAME_x8``; for a template given by path, files of those stems in its
-    folder): see :func:`usdforest.cad.thickened`."""
+    folder): see :func:`usdforest.cad.parts.thickened`."""
     if name.endswith((".usdc", ".usda", ".usd")):
         p = Path(name)
         folder = (base / p.parent) if base is not None and not p.is_absolute() else p.parent
@@ -129,7 +129,7 @@ def build_tree(
     target: TreeSize | None = None,
 ) -> TreeBuild:
     """Grow a tree and place its templates (no files written); ``colliders`` is ``trunk``,
-    ``wood`` or ``none`` (see :mod:`usdforest.colliders`). An allometric species grows to
+    ``wood`` or ``none`` (see :mod:`usdforest.grow.colliders`). An allometric species grows to
     ``target`` (default: its allometry at its reference DBH with residuals drawn from the
     seed) with as many leaves as carry the target's leaf area."""
     size = None
@@ -481,7 +481,7 @@ def _author_leaves(
 
 
 def _mesh(parent: Sdf.PrimSpec, name: str, v: np.ndarray, tri: np.ndarray, material, label):
-    from ..normals import vertex_normals
+    from usdforest.normals import vertex_normals
 
     mesh = triangle_mesh(parent, name, v, tri, vertex_normals(v, tri))
     bind_material(mesh, material)

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom, UsdValidation
 
-from .usd.host import placement_problems
-from .usd.integrity import structural_problems
-from .usd.layers import open_stage
+from usdforest.usd.host import placement_problems
+from usdforest.usd.integrity import structural_problems
+from usdforest.usd.layers import open_stage
 
 
 @dataclass(frozen=True)

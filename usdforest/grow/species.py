@@ -25,12 +25,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .allometry import ALLOMETRY
-from .architecture import Architecture, TreeSize, grammar
-from .errors import UsdForestError
-from .lsystem import DEFAULT_MAX_MODULES, Derivation, LSystem, derive, make_lsystem
-from .skeleton import Skeleton
-from .turtle import TurtleConfig, interpret
+from usdforest.errors import UsdForestError
+from usdforest.grow.allometry import ALLOMETRY
+from usdforest.grow.architecture import Architecture, TreeSize, grammar
+from usdforest.grow.lsystem import DEFAULT_MAX_MODULES, Derivation, LSystem, derive, make_lsystem
+from usdforest.grow.skeleton import Skeleton
+from usdforest.grow.turtle import TurtleConfig, interpret
 
 
 @dataclass(frozen=True)
@@ -124,8 +124,8 @@ class Species:
     kind: str = "tree"
     geometry: Geometry = field(default_factory=Geometry)
     clumps: Clumps | None = None
-    # allometric species: sized per tree from published equations (usdforest.allometry) and
-    # grown by a crown architecture (usdforest.architecture); the axiom above is a placeholder
+    # allometric species: sized per tree from published equations (usdforest.grow.allometry) and
+    # grown by a crown architecture (usdforest.grow.architecture); the axiom above is a placeholder
     allometry: str | None = None
     architecture: Architecture | None = None
     reference_dbh: float = 20.0  # cm: the DBH of a tree grown on its own (usdforest tree)
@@ -320,7 +320,7 @@ def _allometric(
     geometry: Geometry,
     reference_dbh: float = 20.0,
 ) -> Species:
-    """A species sized by :mod:`usdforest.allometry` and grown by ``arch``; its own grammar is
+    """A species sized by :mod:`usdforest.grow.allometry` and grown by ``arch``; its own grammar is
     that of a tree of ``reference_dbh`` (each built tree is sized again from its seed)."""
     sp = Species(
         name=name,
@@ -494,7 +494,8 @@ def tree_size(
 
 
 def sized(species: Species, size: TreeSize, rng: np.random.Generator) -> Species:
-    """The species' grammar for one tree of ``size`` (:func:`usdforest.architecture.grammar`)."""
+    """The species' grammar for one tree of ``size`` (see
+    :func:`usdforest.grow.architecture.grammar`)."""
     if species.architecture is None:
         return species
     axiom, rules, steps = grammar(size, species.architecture, rng)

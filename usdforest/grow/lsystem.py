@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import ExpressionError, LSystemError
-from .expr import Expression, compile_expression
+from usdforest.errors import ExpressionError, LSystemError
+from usdforest.expr import Expression, compile_expression
 
 DEFAULT_MAX_MODULES = 5_000_000
 MAX_ITERATIONS = 1_000

@@ -22,10 +22,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .allometry import ALLOMETRY, basal_area_larger, weibull_for
-from .architecture import TreeSize
-from .seeds import stream
-from .species import Species, tree_size
+from usdforest.grow.allometry import ALLOMETRY, basal_area_larger, weibull_for
+from usdforest.grow.architecture import TreeSize
+from usdforest.grow.species import Species, tree_size
+from usdforest.seeds import stream
 
 HEIGHT_STEP = math.log(1.25)
 SLENDERNESS_STEP = math.log(1.08)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .placement import centreline_of
+from usdforest.grow.placement import centreline_of
 
 
 def wood_uvs(points: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ separate parts. Steps:
    towards the foliage (or, leafless, from its thicker end to its thinner one);
 3. **units**: the unit that makes the tree's height plausible (1-120 m);
 4. **wood**: the trunk is the largest wood component on the ground. Every wood component is
-   split at its forks (:mod:`usdforest.tubes`: geodesic bands from its base ring), so limbs
+   split at its forks (:mod:`usdforest.cad.tubes`: geodesic bands from its base ring), so limbs
    fused into the trunk become branches of their own. A separate component's base is the end
    that touches other wood; the component it touches is its parent. Each branch is measured
    from its base (where it leaves its parent) to its tip: length, direction (angle to the
@@ -23,7 +23,7 @@ separate parts. Steps:
    frame and scaled per axis to the clump's extents.
 
 The result is a template per part (trunk, branch, clump_<k>) and a measured profile that
-:func:`usdforest.species.species_from_profile` grows back into a tree.
+:func:`usdforest.grow.species.species_from_profile` grows back into a tree.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cad import (
+from usdforest.cad.parts import (
     DEFAULT_COLORS,
     UNITS,
     CADMesh,
@@ -47,8 +47,8 @@ from .cad import (
     principal_axes,
     read_cad,
 )
-from .errors import CADError
-from .normals import vertex_normals
+from usdforest.errors import CADError
+from usdforest.normals import vertex_normals
 
 WOOD_NAMES = re.compile(r"bark|wood|trunk|branch|stem|twig|log|limb", re.IGNORECASE)
 FOLIAGE_NAMES = re.compile(r"lea(f|ves)|foliage|needle|crown|canopy|frond|conifer", re.IGNORECASE)
@@ -252,7 +252,7 @@ def _wood_parts(wood: CADMesh, trunk_label: int, label: np.ndarray, height: floa
     """Trunk first, then every branch after its parent."""
     from scipy.spatial import cKDTree
 
-    from .tubes import mesh_edges, split_tubes
+    from usdforest.cad.tubes import mesh_edges, split_tubes
 
     n_comp = int(label.max()) + 1
     comps = [wood.subset(label == c) for c in range(n_comp)]

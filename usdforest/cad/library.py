@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-from .config import check_keys, load_toml, table_array
-from .errors import RecipeError
+from usdforest.config import check_keys, load_toml, table_array
+from usdforest.errors import RecipeError
 
 MANIFEST_KEYS = {"output", "template"}
 TEMPLATE_KEYS = {"name", "source", "part", "units", "up", "color", "thicken"}
@@ -60,7 +60,7 @@ class Manifest:
 
 def read_manifest(path: str | Path) -> Manifest:
     """Parse and check a template manifest; every problem names the file and key."""
-    from .cad import PARTS, UNITS
+    from usdforest.cad.parts import PARTS, UNITS
 
     path = Path(path)
     data = load_toml(path)
@@ -119,9 +119,9 @@ def build_manifest(
 ) -> list[Path]:
     """Import every template of ``manifest`` and write ``<output>/<name>.usdc`` (refusing,
     before any is written, when one exists and not ``force``)."""
-    from .atomic import refuse_overwrite
-    from .cad import import_part
-    from .usd.template import write_template
+    from usdforest.atomic import refuse_overwrite
+    from usdforest.cad.parts import import_part
+    from usdforest.usd.template import write_template
 
     out = output or manifest.output
     refuse_overwrite(*(out / f"{spec.name}.usdc" for spec in manifest.templates), force=force)

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import RecipeError
-from .paths import require_file
+from usdforest.errors import RecipeError
+from usdforest.paths import require_file
 
 
 def _require(path: Path, where: str) -> None:

@@ -1,7 +1,7 @@
 """Crown architectures sized to one tree: a target height, DBH, crown and leaf area -> the
 L-system that grows it.
 
-An allometric species (:mod:`usdforest.allometry`) gives each tree its sizes; this module turns
+An allometric species (:mod:`usdforest.grow.allometry`) gives each tree its sizes; this module turns
 them and the species' :class:`Architecture` into an axiom and rules. The trunk is written out
 in the axiom, internode by internode from the ground to the tip (its radius set at every node
 so the conical trunk template tapers to a point), and carries, above the crown base, either

@@ -31,10 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import UsdForestError
-from .rotations import matrix_from_quat, quat_from_matrix
-from .skeleton import Skeleton
-from .species import Clumps, Geometry
+from usdforest.errors import UsdForestError
+from usdforest.grow.skeleton import Skeleton
+from usdforest.grow.species import Clumps, Geometry
+from usdforest.rotations import matrix_from_quat, quat_from_matrix
 
 CENTRELINE_SAMPLES = 33
 LEAF_CHUNK = 50_000  # leaves placed per task
@@ -211,7 +211,7 @@ def place(
     clumps
         Measured foliage clumps to place (with jitter) instead of leaves at the leaf sites.
     stouter
-        Per branch template, its thickened variants (:func:`usdforest.cad.thickened`) for
+        Per branch template, its thickened variants (:func:`usdforest.cad.parts.thickened`) for
         runs too stout for it.
     """
     stouter = dict(stouter or {})

@@ -40,9 +40,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import LSystemError
-from .lsystem import Word
-from .skeleton import Skeleton
+from usdforest.errors import LSystemError
+from usdforest.grow.lsystem import Word
+from usdforest.grow.skeleton import Skeleton
 
 (
     _NOP,
@@ -131,7 +131,7 @@ def interpret(word: Word, config: TurtleConfig | None = None) -> Skeleton:
     Parameters
     ----------
     word
-        A derived word (:func:`usdforest.lsystem.derive`).
+        A derived word (:func:`usdforest.grow.lsystem.derive`).
     config
         Turtle settings; defaults to :class:`TurtleConfig`.
 

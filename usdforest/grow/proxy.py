@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .placement import Placement, frames_from_directions
+from usdforest.grow.placement import Placement, frames_from_directions
 
 HULL_DIRECTIONS = 162
 STEM_SIDES = 8

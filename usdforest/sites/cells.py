@@ -17,8 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .pointprocess import draw_marks, matern_keep, thin
-from .seeds import stream
+from usdforest.seeds import stream
+from usdforest.sites.pointprocess import draw_marks, matern_keep, thin
+from usdforest.sites.table import Sites
 
 CELL = 250.0  # metres: fixed, so the sites never depend on the tile size
 BLOCK = 4  # cells per side of a sampling task
@@ -118,8 +119,6 @@ def sample_block(recipe, replicate: int, block: tuple[int, int, int, int]) -> di
 def sample_cells(recipe, replicate: int = 0, client=None):
     """All the recipe's sites, block by block (as tasks on a dask.distributed ``client``,
     or here), in cell order."""
-    from .sites import Sites
-
     jobs = blocks(recipe)
     if client is None:
         parts = [sample_block(recipe, replicate, b) for b in jobs]

@@ -2,31 +2,17 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path
-from .paths import require_file
-from .pointprocess import draw_marks, matern_ii, thin
-from .recipe import Recipe
-from .seeds import stream
-
-
-@dataclass(frozen=True, eq=False)
-class Sites:
-    """Tree sites and their marks; ``species`` indexes ``names``."""
-
-    names: tuple[str, ...]
-    xy: np.ndarray
-    species: np.ndarray
-    variant: np.ndarray
-    yaw: np.ndarray
-    scale: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.xy.shape[0])
+from usdforest.atomic import atomic_path
+from usdforest.paths import require_file
+from usdforest.recipe import Recipe
+from usdforest.seeds import stream
+from usdforest.sites.cells import sample_cells
+from usdforest.sites.pointprocess import draw_marks, matern_ii, thin
+from usdforest.sites.table import Sites
 
 
 def sample_sites(recipe: Recipe, replicate: int = 0, client=None) -> Sites:
@@ -34,12 +20,10 @@ def sample_sites(recipe: Recipe, replicate: int = 0, client=None) -> Sites:
 
     Replicate 0 is what ``usdforest build`` places. Each replicate draws from its own stream
     seeded by (seed, "sites", replicate) and (seed, "marks", replicate); a tiled recipe's
-    cell by cell (:mod:`usdforest.cells`; on a dask.distributed ``client`` if given).
+    cell by cell (:mod:`usdforest.sites.cells`; on a dask.distributed ``client`` if given).
     """
     names = recipe.species_names
     if recipe.tiles is not None and recipe.sites is None:
-        from .cells import sample_cells
-
         return sample_cells(recipe, replicate, client)
     if recipe.sites is not None:
         xy = np.array([[s["x"], s["y"]] for s in recipe.sites], dtype=float)
@@ -71,7 +55,7 @@ def sample_sites(recipe: Recipe, replicate: int = 0, client=None) -> Sites:
 
 def write_sites_csv(path: str | Path, replicates: list[Sites]) -> None:
     """``replicate,x,y,species,variant,yaw,scale`` rows, written atomically."""
-    from . import csvtext
+    from usdforest import csvtext
 
     with atomic_path(path) as tmp, tmp.open("wb") as f:
         f.write(b"replicate,x,y,species,variant,yaw,scale\n")
@@ -96,7 +80,7 @@ def read_sites_csv(path: str | Path, names: tuple[str, ...], replicate: int = 0)
     import csv
     import io
 
-    from .errors import UsdForestError
+    from usdforest.errors import UsdForestError
 
     path = Path(path)
     require_file(path, "CSV file")

@@ -12,11 +12,11 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.collections import LineCollection
 
-from .atomic import atomic_path
-from .pointprocess import region_grid
-from .recipe import Recipe
-from .sites import Sites
-from .skeleton import Skeleton
+from usdforest.atomic import atomic_path
+from usdforest.grow.skeleton import Skeleton
+from usdforest.recipe import Recipe
+from usdforest.sites.pointprocess import region_grid
+from usdforest.sites.sampling import Sites
 
 SPECIES_COLORS = ("#2166ac", "#d95f02", "#7b3294", "#e7298a", "#666666", "#000000")
 
@@ -111,7 +111,7 @@ def draw_skeleton(
 
 
 def _save(fig, out: str | Path) -> None:
-    from .paths import image_format
+    from usdforest.paths import image_format
 
     with atomic_path(out) as tmp:
         fig.savefig(tmp, format=image_format(out))

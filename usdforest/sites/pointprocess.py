@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import RecipeError, UsdForestError
-from .expr import Expression, compile_expression
+from usdforest.errors import RecipeError, UsdForestError
+from usdforest.expr import Expression, compile_expression
 
 MAX_CANDIDATES = 50_000_000  # thinning candidates drawn at most (memory: ~16 bytes each)
 CHUNK = 4_000_000
@@ -153,7 +153,7 @@ def read_shape(path: Path, where: str) -> Shape:
 
     from shapely.geometry import shape as to_shape
 
-    from .paths import require_file
+    from usdforest.paths import require_file
 
     if path.suffix.lower() not in (".geojson", ".json"):
         return _read_vector(path, where)
@@ -204,7 +204,7 @@ def _read_vector(path: Path, where: str) -> Shape:
     """A Shapefile, GeoPackage or any vector file GDAL reads (pyogrio): its polygons."""
     import shapely
 
-    from .paths import require_file
+    from usdforest.paths import require_file
 
     try:
         require_file(path, "vector file", RecipeError)
@@ -395,7 +395,7 @@ class ExpressionIntensity:
     _expr: Expression = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        from .errors import ExpressionError
+        from usdforest.errors import ExpressionError
 
         try:
             e = compile_expression(self.source, ("x", "y"), what="intensity.expr")
@@ -519,7 +519,7 @@ def load_raster(
     """A raster intensity from ``.npy`` (trees/m^2, over the region's ``bounds``), a GeoTIFF
     (trees/m^2 times ``peak`` if given, over its own georeferenced cells, which must cover the
     region; no-data cells hold no trees) or an image (grey 0..1 scaled by ``peak``)."""
-    from .rasters import GEOTIFF, covers, read_geotiff, read_grey, read_npy
+    from usdforest.sites.rasters import GEOTIFF, covers, read_geotiff, read_grey, read_npy
 
     where = "intensity.file"
     geo = read_geotiff(path, where, box=bounds) if path.suffix.lower() in GEOTIFF else None

@@ -24,8 +24,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from .errors import UsdForestError
-from .runs import run_starts
+from usdforest.errors import UsdForestError
+from usdforest.runs import run_starts
 
 VIEWS = ("side", "top", "iso")
 SKY = np.array([0.93, 0.95, 0.98])
@@ -88,7 +88,7 @@ def mesh_color(prim) -> np.ndarray:
 
 
 def _sample_mesh(prim, to_root: np.ndarray, spacing: float, rng: np.random.Generator) -> Cloud:
-    from .usd.layers import mesh_triangles
+    from usdforest.usd.layers import mesh_triangles
 
     return _sample_triangles(
         mesh_triangles(prim, np.eye(4)), to_root[None], spacing, rng, lambda: mesh_color(prim)
@@ -178,7 +178,7 @@ def stage_cloud(
     are appended to it instead, to be drawn as sprites (:func:`splat`)."""
     from pxr import Usd, UsdGeom
 
-    from .usd.layers import mesh_triangles, rendered
+    from usdforest.usd.layers import mesh_triangles, rendered
 
     rng = np.random.default_rng(seed)
     root = root or stage.GetDefaultPrim() or stage.GetPseudoRoot()
@@ -618,8 +618,8 @@ def render_stage(
     references a forest draws it upright, its scale bar in metres)."""
     from pxr import Usd, UsdGeom
 
-    from .sensors.scene import moved_boxes, stage_frame
-    from .usd.layers import open_stage
+    from usdforest.sensors.scene import moved_boxes, stage_frame
+    from usdforest.usd.layers import open_stage
 
     path = Path(path)
     stage = open_stage(path, sound=True)
@@ -679,7 +679,7 @@ def _ground_meshes(stage) -> list:
     """The stage's Meshes labelled ``ground`` that render."""
     from pxr import UsdGeom
 
-    from .usd.layers import class_labels, rendered
+    from usdforest.usd.layers import class_labels, rendered
 
     return [
         p
@@ -708,7 +708,7 @@ def _ground(
         from matplotlib.tri import LinearTriInterpolator, Triangulation
         from pxr import Usd, UsdGeom
 
-        from .usd.layers import mesh_triangles
+        from usdforest.usd.layers import mesh_triangles
 
         frame = np.eye(4) if frame is None else frame
         world = [
@@ -752,8 +752,8 @@ def preview(
 ) -> PreviewInfo:
     """Render ``path`` to an image at ``out`` (atomically; PNG, JPEG, WebP or TIFF by its
     suffix)."""
-    from .atomic import atomic_path
-    from .paths import image_format
+    from usdforest.atomic import atomic_path
+    from usdforest.paths import image_format
 
     fmt = image_format(out)
     img, window, kind = render_stage(path, view=view, size=size)

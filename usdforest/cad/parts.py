@@ -27,9 +27,9 @@ import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .errors import CADError
-from .normals import vertex_normals
-from .paths import require_file
+from usdforest.errors import CADError
+from usdforest.normals import vertex_normals
+from usdforest.paths import require_file
 
 PARTS = ("trunk", "branch", "twig", "leaf")
 WOOD_PARTS = ("trunk", "branch", "twig")
@@ -647,8 +647,8 @@ def import_part(
 def thickened(part: TemplatePart, k: float) -> TemplatePart:
     """``part`` with every horizontal slice ``k`` times as wide about its centreline, the
     centreline kept: the template a run ``k`` times as stout as the CAD part takes, so that
-    scaling it across does not exaggerate its bend (:mod:`usdforest.placement`)."""
-    from .placement import centreline_of
+    scaling it across does not exaggerate its bend (:mod:`usdforest.grow.placement`)."""
+    from usdforest.grow.placement import centreline_of
 
     v = np.array(part.vertices, dtype=np.float64)
     line = centreline_of(v)

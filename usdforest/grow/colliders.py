@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .placement import Placement
+from usdforest.grow.placement import Placement
 
 COLLIDER_MODES = ("trunk", "wood", "none")
 BRANCH_COLLIDER_RADIUS = 0.03  # metres: thinner first-order branches get no collider

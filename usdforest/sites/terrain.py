@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import RecipeError
+from usdforest.errors import RecipeError
 
 MAX_NODES = 1025  # per side of the ground mesh: a finer raster is decimated to this
 
@@ -106,7 +106,7 @@ def load_height_field(
     GeoTIFF DEM (metres, times ``peak`` if given, each elevation at its cell's centre: the
     cells over ``bounds`` and one more each side, placed by its georeferencing) or an image
     (grey 0..1 times ``peak`` metres), decimated to at most ``MAX_NODES`` nodes per side."""
-    from .rasters import GEOTIFF, read_geotiff, read_grey, read_npy
+    from usdforest.sites.rasters import GEOTIFF, read_geotiff, read_grey, read_npy
 
     where = "ground.file"
     geo = read_geotiff(path, where, box=bounds) if path.suffix.lower() in GEOTIFF else None

@@ -1,0 +1,2 @@
+"""Pictures: the headless stage renderer behind ``usdforest preview`` and the figures of
+sites and skeletons."""
