@@ -107,7 +107,7 @@ def test_help_reads_well(runner):
 
 
 COMMANDS = [
-    ["lsystem"], ["species"], ["recipes"], ["tree"], ["build"], ["sample"], ["preview"],
+    [], ["template"], ["lsystem"], ["species"], ["recipes"], ["tree"], ["build"], ["sample"], ["preview"],
     ["plot-sites"], ["scan"], ["fly"], ["validate"], ["info"], ["stats"],
     ["template", "import"], ["template", "extract"], ["template", "build"], ["template", "list"],
 ]  # fmt: skip

@@ -14,7 +14,6 @@ PKG = Path(usdforest.__file__).parent
 STAGES = {"grow", "cad", "sites", "usd", "sensors", "view"}
 # modules over 600 lines, and why they stay whole
 LONG = {
-    "cli": "the command line: each command's options are its documentation",
     "recipe": "one parser per recipe table, each naming its keys in errors",
     "view.preview": "one renderer: sampling, sprites and the z-buffer share their state",
     "usd.forest": "the forest writer: tiles, Dask tasks and publishing in one place",

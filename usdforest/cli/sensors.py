@@ -1,0 +1,325 @@
+"""Sensor commands: ``scan`` and ``fly`` (thin layers over :mod:`usdforest.sensors.survey`)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from usdforest.atomic import move_into_place, refuse_overwrite, staging_folder
+from usdforest.cli.app import (
+    MAX_SEED,
+    Command,
+    app,
+    err,
+    handles_errors,
+    out,
+    progress_bars,
+)
+from usdforest.errors import UsdForestError
+from usdforest.paths import require_output
+
+
+@app.command("scan", cls=Command)
+@handles_errors
+def scan_cmd(
+    stage: Annotated[Path, typer.Argument(help="Any stage that composes trees or forests.")],
+    sensor: Annotated[str, typer.Option(help="lidar, sonar or camera.")],
+    pose: Annotated[
+        str, typer.Option(help="x,y,z[,yaw,pitch,roll] (the stage's units and axes, degrees).")
+    ],
+    output: Annotated[
+        Path,
+        typer.Option(
+            "--output",
+            "-o",
+            help="lidar: .ply or .npz; sonar: .npz (+ .wav, .png); camera: .npz "
+            "(+ _rgb, _depth, _semantic, _instance .png)",
+        ),
+    ],
+    preset: Annotated[
+        str | None,
+        typer.Option(
+            help="lidar: vlp-16, hdl-32, os1-64, depth-camera; sonar: bat-fm, paper, narrow, "
+            "wide; camera: pinhole-640, d435, fpv-1280."
+        ),
+    ] = None,
+    config: Annotated[
+        Path | None,
+        typer.Option(help="TOML with a \\[lidar], \\[sonar] or \\[camera] table of settings."),
+    ] = None,
+    occlusion: Annotated[
+        bool,
+        typer.Option(
+            "--occlusion", help="sonar: drop leaves, wood and ground hidden by anything in front."
+        ),
+    ] = False,
+    seed: Annotated[
+        int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise and ground roughness.")
+    ] = 0,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
+) -> None:
+    """Scan a stage with a lidar (ray casting), a bat-like sonar (echoes of leaves, wood and
+    ground) or a camera (depth, semantic and instance images, shaded RGB)."""
+    import numpy as np
+
+    require_output(output)
+    import time
+
+    from usdforest.config import check_keys, load_toml
+    from usdforest.sensors import camera, lidar, sonar
+    from usdforest.sensors.pose import parse_pose
+    from usdforest.sensors.scene import class_counts
+    from usdforest.sensors.survey import SENSORS, scan, sensor_settings
+
+    if sensor not in SENSORS:
+        raise UsdForestError(f"--sensor: {sensor!r} is not lidar, sonar or camera")
+    suffixes = (".ply", ".npz") if sensor == "lidar" else (".npz",)
+    if output.suffix.lower() not in suffixes:
+        raise UsdForestError(f"{output}: a {sensor} scan is written as {' or '.join(suffixes)}")
+    companions = {
+        "sonar": [output.with_suffix(x) for x in (".wav", ".png")],  # OUT.npz -> OUT.wav
+        "camera": [
+            output.with_name(f"{output.stem}_{k}.png")
+            for k in ("rgb", "depth", "semantic", "instance")
+        ],
+    }.get(sensor, [])
+    refuse_overwrite(output, *companions, force=force)
+    p = parse_pose(pose)
+    presets, default = SENSORS[sensor]
+    name = preset or default
+    if name not in presets:
+        raise UsdForestError(
+            f"--preset: unknown {sensor} preset {name!r}; known: " + ", ".join(presets)
+        )
+    table: dict = {}
+    if config is not None:
+        data = load_toml(config)
+        check_keys(data, {sensor}, str(config))
+        table = dict(data.get(sensor, {}))
+    if occlusion and sensor == "sonar":
+        table["occlusion"] = True
+    settings = sensor_settings(sensor, name, table, where=str(config) if config else "")
+    t0 = time.perf_counter()
+    done = scan(stage, sensor, p, settings=settings, seed=seed)
+    for w in done.warnings:
+        err.print(f"warning: {w}", highlight=False)
+    triangles = done.triangles
+    if sensor == "lidar":
+        r = done.result
+        lidar.write_returns(r, output)
+        summary = {
+            "output": str(output),
+            "rays": r.n_rays,
+            "returns": len(r),
+            "pulses_with_several_returns": int(np.count_nonzero(r.return_number == 2)),
+            "returns_by_class": class_counts(r.cls),
+            "trees_hit": int(np.unique(r.tree[r.tree >= 0]).size),
+            "triangles": triangles,
+            "seconds": round(time.perf_counter() - t0, 3),
+        }
+        text = (
+            f"{output}: {len(r):,} returns from {r.n_rays:,} pulses "
+            f"({summary['pulses_with_several_returns']:,} with several; "
+            + ", ".join(f"{k} {v:,}" for k, v in summary["returns_by_class"].items() if v)
+            + f"), {summary['trees_hit']} trees, {triangles:,} triangles in range"
+        )
+    elif sensor == "camera":
+        frame = done.result
+        files = camera.write_frame(frame, settings, output)
+        summary = {
+            "output": [str(f) for f in files],
+            "pixels": int(frame.depth.size),
+            "pixels_by_class": class_counts(frame.semantic.ravel()),
+            "trees_seen": int(np.unique(frame.instance[frame.instance >= 0]).size),
+            "seconds": round(time.perf_counter() - t0, 3),
+        }
+        seen = summary["pixels_by_class"]
+        text = (
+            f"{output} (+ 4 PNGs): {settings.width} x {settings.height} pixels ("
+            + ", ".join(f"{k} {v:,}" for k, v in seen.items() if v and k != "unknown")
+            + f"), {summary['trees_seen']} trees in view"
+        )
+    else:
+        e = done.result
+        files = sonar.write_echo(e, output)
+        c = settings.speed_of_sound
+        env = np.abs(e.impulse)
+        peak = float(e.t[np.argmax(env)]) * c / 2 if env.max() > 0 else None
+        summary = {
+            "output": [str(f) for f in files],
+            "leaves_in_range": e.leaves_in_range,
+            "leaves_used": e.leaves_used,
+            "reflectors": e.reflectors,
+            "strongest_echo_range_m": peak,
+            "seconds": round(time.perf_counter() - t0, 3),
+        }
+        heard = {
+            "trunk": "trunk cylinders",
+            "branch": "branch cylinders",
+            "ground": "ground facets",
+        }
+        text = (
+            f"{', '.join(map(str, files))}: echo of {e.leaves_used:,} leaves "
+            f"(of {e.leaves_in_range:,} within {settings.max_range:g} m)"
+            + "".join(f", {n:,} {heard[k]}" for k, n in e.reflectors.items() if k in heard and n)
+            + (f", strongest at {peak:.2f} m" if peak is not None else "")
+        )
+    if as_json:
+        sys.stdout.write(json.dumps(summary) + "\n")
+    else:
+        out.print(text, highlight=False)
+
+
+@app.command("fly", cls=Command)
+@handles_errors
+def fly_cmd(
+    stage: Annotated[Path, typer.Argument(help="Any stage that composes trees or forests.")],
+    output: Annotated[
+        Path,
+        typer.Option(
+            "--output",
+            "-o",
+            help="Output stem: writes STEM.las and STEM_trajectory.csv, STEM_sonar.npz/.wav/.png "
+            "and STEM_camera.npz/.png.",
+        ),
+    ],
+    path: Annotated[
+        Path | None,
+        typer.Option(help="CSV of poses: t,x,y,z[,yaw,pitch,roll] (s, stage units, deg)."),
+    ] = None,
+    line: Annotated[
+        str | None,
+        typer.Option(help="x0,y0,z0:x1,y1,z1 in the stage's units, flown at --speed."),
+    ] = None,
+    speed: Annotated[float, typer.Option(help="m/s along --line.")] = 2.0,
+    lidar_preset: Annotated[
+        str, typer.Option("--lidar", help="vlp-16, hdl-32, os1-64 or none.")
+    ] = "vlp-16",
+    lidar_rate: Annotated[float, typer.Option(help="Lidar sweeps per second.")] = 10.0,
+    sonar_preset: Annotated[
+        str,
+        typer.Option(
+            "--sonar",
+            help="paper, bat-fm, narrow, wide or none (a pulse takes seconds in a closed canopy).",
+        ),
+    ] = "none",
+    camera_preset: Annotated[
+        str, typer.Option("--camera", help="pinhole-640, d435, fpv-1280 or none.")
+    ] = "none",
+    camera_rate: Annotated[float, typer.Option(help="Camera frames per second.")] = 2.0,
+    config: Annotated[
+        Path | None,
+        typer.Option(help="TOML with \\[lidar], \\[sonar] and/or \\[camera] settings."),
+    ] = None,
+    seed: Annotated[
+        int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise and ground roughness.")
+    ] = 0,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite the outputs.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
+) -> None:
+    """Fly a lidar, a sonar and a camera through a stage: LAS 1.4 returns with GPS time,
+    class and tree id; sonar pulses with Doppler (leaves, wood, ground), a WAV of the flight
+    and an echogram; camera frames (depth, semantic, instance, RGB) and a contact sheet.
+    Every output appears at the end, together: an interrupted flight leaves none."""
+    import time
+
+    import numpy as np
+
+    from usdforest.config import check_keys, load_toml
+    from usdforest.sensors import camera, flight
+    from usdforest.sensors.scene import class_counts
+    from usdforest.sensors.survey import flight_settings, fly, trajectory
+
+    if (path is None) == (line is None):
+        raise UsdForestError("give the flight as --path CSV or as --line x0,y0,z0:x1,y1,z1")
+    ends = None
+    if line is not None:
+        try:
+            ends = tuple([float(v) for v in end.split(",")] for end in line.split(":"))
+            if len(ends) != 2 or any(len(e) != 3 for e in ends):
+                raise ValueError
+        except ValueError:
+            raise UsdForestError(f"--line: expected x0,y0,z0:x1,y1,z1, got {line!r}") from None
+    traj = trajectory(stage, path=path, line=ends, speed=speed)
+    tables = {}
+    if config is not None:
+        tables = load_toml(config)
+        check_keys(tables, {"lidar", "sonar", "camera"}, str(config))
+    lidar_cfg, sonar_cfg, camera_cfg = flight_settings(
+        lidar_preset, sonar_preset, camera_preset, tables, where=str(config) if config else ""
+    )
+    if camera_cfg is not None:
+        camera.frame_times(camera_cfg, traj, camera_rate)  # checks the rate and the memory
+    las = output.with_name(output.name + ".las")
+    trajectory_csv = output.with_name(output.name + "_trajectory.csv")
+    echo_stem = output.with_name(output.name + "_sonar")
+    frames_stem = output.with_name(output.name + "_camera")
+    outs = (
+        ([las, trajectory_csv] if lidar_cfg else [])
+        + (
+            [echo_stem.with_name(echo_stem.name + x) for x in (".npz", ".wav", ".png")]
+            if sonar_cfg
+            else []
+        )
+        + (
+            [frames_stem.with_name(frames_stem.name + x) for x in (".npz", ".png")]
+            if camera_cfg
+            else []
+        )
+    )
+    for o in outs:
+        require_output(o)
+    refuse_overwrite(*outs, force=force)
+    t0 = time.perf_counter()
+    summary: dict = {"duration_s": traj.duration, "outputs": [str(o) for o in outs]}
+    with progress_bars(not (quiet or as_json), t0) as tick, staging_folder(output) as tmp:
+        done = fly(
+            stage, path=traj, lidar=lidar_cfg, sonar=sonar_cfg, camera=camera_cfg,
+            lidar_rate=lidar_rate, camera_rate=camera_rate, seed=seed, progress=tick,
+            warn=lambda w: err.print(f"warning: {w}", highlight=False),
+        )  # fmt: skip
+        staged = tmp / output.name
+        if (r := done.lidar) is not None:
+            flight.write_las(r, staged.with_name(las.name), crs=done.crs, origin=done.origin)
+            flight.write_trajectory(traj, staged.with_name(trajectory_csv.name), origin=done.origin)
+            summary["lidar"] = {
+                "sweeps": r.sweeps,
+                "rays": r.n_rays,
+                "returns": len(r),
+                "returns_by_class": class_counts(r.cls),
+            }
+        if (f := done.sonar) is not None:
+            flight.write_flight_echo(f, staged.with_name(echo_stem.name))
+            summary["sonar"] = {
+                "pulses": len(f.t),
+                "max_leaves_in_range": int(f.leaves.max()),
+                "classes_heard": sorted(k for k, v in f.parts.items() if np.any(v)),
+            }
+        if (frames := done.camera) is not None:
+            camera.write_frames(frames, staged.with_name(frames_stem.name))
+            summary["camera"] = {
+                "frames": len(frames),
+                "trees_seen": int(np.unique(frames.instance[frames.instance >= 0]).size),
+            }
+        move_into_place([(tmp / o.name, o) for o in outs])
+    summary["seconds"] = round(time.perf_counter() - t0, 3)
+    if as_json:
+        sys.stdout.write(json.dumps(summary) + "\n")
+        return
+    parts = [f"{traj.duration:.1f} s flight"]
+    if "lidar" in summary:
+        parts.append(
+            f"{las}: {summary['lidar']['returns']:,} returns in {summary['lidar']['sweeps']} sweeps"
+            f" (trajectory in {trajectory_csv.name})"
+        )
+    if "sonar" in summary:
+        parts.append(f"{echo_stem}.npz/.wav/.png: {summary['sonar']['pulses']} sonar pulses")
+    if "camera" in summary:
+        parts.append(f"{frames_stem}.npz/.png: {summary['camera']['frames']} camera frames")
+    out.print("; ".join(parts) + f" ({summary['seconds']:.1f} s)", highlight=False)
