@@ -107,8 +107,8 @@ def test_help_reads_well(runner):
 
 
 COMMANDS = [
-    [], ["template"], ["lsystem"], ["species"], ["recipes"], ["tree"], ["build"], ["sample"], ["preview"],
-    ["plot-sites"], ["scan"], ["fly"], ["validate"], ["info"], ["stats"],
+    [], ["template"], ["lsystem"], ["species"], ["recipes"], ["tree"], ["build"], ["sample"],
+    ["preview"], ["plot-sites"], ["scan"], ["fly"], ["validate"], ["info"], ["stats"],
     ["template", "import"], ["template", "extract"], ["template", "build"], ["template", "list"],
 ]  # fmt: skip
 

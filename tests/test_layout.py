@@ -99,3 +99,20 @@ def test_module_names_are_unique_and_long_modules_have_a_reason():
     assert [n for n, c in names.items() if c > 1] == []
     long = {m for m, p in mods.items() if len(p.read_text().splitlines()) > 650}
     assert long <= set(LONG), sorted(long - set(LONG))
+
+
+def test_every_subpackage_is_installed():
+    """pyproject.toml lists packages by hand: a subpackage missing there works in the
+    editable install and is absent from a wheel."""
+    import tomllib
+
+    pyproject = PKG.parent / "pyproject.toml"
+    if not pyproject.is_file():  # an installed copy, not the source tree
+        return
+    listed = set(tomllib.loads(pyproject.read_text())["tool"]["setuptools"]["packages"])
+    found = {
+        ".".join(("usdforest", *p.parent.relative_to(PKG).parts)).rstrip(".")
+        for p in PKG.rglob("__init__.py")
+        if "__pycache__" not in p.parts
+    }
+    assert found - listed == set()
