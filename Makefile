@@ -46,7 +46,7 @@ test: $(STAMP) $(PHYS_STAMP) $(CHECK_STAMP) $(BLENDER_STAMP)
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)
-	$(BIN)/ruff check usdforest tests benchmarks templates docs
+	$(BIN)/ruff check usdforest tests benchmarks templates docs pipelines
 
 templates: $(STAMP)
 	$(BIN)/python templates/make_cad.py

@@ -3,12 +3,10 @@ nothing printed; the example that writes randomised forests for a training run."
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
 import tomllib
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,8 +16,6 @@ import usdforest
 from usdforest.cli import app
 from usdforest.errors import UsdForestError
 from usdforest.usd.validate import errors, validate
-
-ROOT = Path(__file__).parents[1]
 
 
 def test_importing_usdforest_loads_neither_numpy_nor_pxr():
@@ -97,17 +93,9 @@ def test_scan_fly_and_grow_return_what_the_command_line_writes(tmp_path, runner)
     assert (tmp_path / "t.usdc").read_bytes() == (tmp_path / "cli" / "t.usdc").read_bytes()
 
 
-def _example():
-    spec = importlib.util.spec_from_file_location(
-        "random_forests", ROOT / "examples/random_forests.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_the_example_writes_randomised_forests_for_a_training_run(tmp_path, capsys):
-    example = _example()
+    from usdforest.pipelines import random_forests as example
+
     out = tmp_path / "run"
     written = example.main([str(out), "--count", "3", "--recipe", "quick-mixed", "--seed", "5"])
     assert [p.name for p in written] == [f"forest_{k:04d}.usda" for k in range(3)]

@@ -4,7 +4,7 @@ stages' modules), print, map errors to exit codes (0 success, 1 a check failed, 
 order ``--help`` lists them: one tree, forests and stages, sensors, templates."""
 
 # isort: off
-from usdforest.cli import grow, forests, sensors, templates  # noqa: F401  (registers them)
+from usdforest.cli import grow, stages, sensors, templates  # noqa: F401  (registers them)
 
 # isort: on
 from usdforest.cli.app import app, main

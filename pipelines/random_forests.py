@@ -1,7 +1,7 @@
 """Write many randomised forests for a training run, as robot-learning frameworks randomise
 their terrains: each forest a shipped recipe with its own seed, species mix and spacing.
 
-    python examples/random_forests.py out/ --count 100 --recipe quick-mixed
+    python -m usdforest.pipelines.random_forests out/ --count 100 --recipe quick-mixed
 
 writes ``out/forest_0000.usda`` ... (each with its ``_assets/`` folder) and
 ``out/forests.csv``: one row per forest with its seed, mix, hard core and tree counts. The

@@ -1,4 +1,4 @@
-"""Commands for forests and stages: ``recipes``, ``build``, ``sample``, ``preview``,
+"""Commands for recipes, forests and stages: ``recipes``, ``build``, ``sample``, ``preview``,
 ``plot-sites``, ``validate``, ``wrap``, ``info``, ``stats``."""
 
 from __future__ import annotations
