@@ -125,12 +125,14 @@ def fly(
     lidar: Any = "vlp-16",
     sonar: Any = None,
     camera: Any = None,
+    lidar_rate: float = 10.0,
+    camera_rate: float = 2.0,
     seed: int = 0,
-    **rates: float,
 ) -> Flight:
     """Fly sensors through ``stage`` along ``path`` (a CSV of poses or a
-    :class:`~usdforest.sensors.flight.Trajectory`) or a straight ``line`` at ``speed``;
-    see :func:`usdforest.sensors.survey.fly` (``lidar_rate``, ``camera_rate``)."""
+    :class:`~usdforest.sensors.flight.Trajectory`) or a straight ``line`` at ``speed``, the
+    lidar sweeping ``lidar_rate`` times and the camera ``camera_rate`` frames a second; see
+    :func:`usdforest.sensors.survey.fly`."""
     from usdforest.sensors import survey
 
     return survey.fly(
@@ -141,8 +143,9 @@ def fly(
         lidar=lidar,
         sonar=sonar,
         camera=camera,
+        lidar_rate=lidar_rate,
+        camera_rate=camera_rate,
         seed=seed,
-        **rates,
     )
 
 

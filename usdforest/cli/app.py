@@ -22,41 +22,29 @@ from usdforest import __version__
 from usdforest.errors import UsdForestError
 
 
+def _name_values(params: list) -> list:
+    """Help that names what each option takes: a flag (``--help`` included) shows no value,
+    not ``<bool>``; a text or path its own name (``--sensor SENSOR``, not ``<str>``)."""
+    for param in params:
+        if getattr(param, "is_flag", False):
+            param.metavar = ""
+        elif param.metavar is None and _takes_text(param):
+            param.metavar = param.name.upper()
+    return params
+
+
 class Command(typer.core.TyperCommand):
-    """A command whose help names what each option takes: a flag shows no value (not
-    ``<bool>``), a text or path its own name (``--sensor SENSOR``, not ``<str>``)."""
+    """A command whose help names what its options take (see :func:`_name_values`)."""
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        for param in self.params:
-            if getattr(param, "is_flag", False):
-                param.metavar = ""
-            elif param.metavar is None and _takes_text(param):
-                param.metavar = param.name.upper()
-
-    def get_help_option(self, ctx: Any) -> Any:
-        option = super().get_help_option(ctx)
-        if option is not None:
-            option.metavar = ""
-        return option
+    def get_params(self, ctx: Any) -> list:
+        return _name_values(super().get_params(ctx))
 
 
 class Group(typer.core.TyperGroup):
-    """The application and its sub-applications: ``--help`` and ``--version`` are flags, shown
-    without a value (see :class:`Command`)."""
-
-    def get_help_option(self, ctx: Any) -> Any:
-        option = super().get_help_option(ctx)
-        if option is not None:
-            option.metavar = ""
-        return option
+    """The application and its sub-applications, named as :class:`Command` is."""
 
     def get_params(self, ctx: Any) -> list:
-        params = super().get_params(ctx)
-        for param in params:
-            if getattr(param, "is_flag", False):
-                param.metavar = ""
-        return params
+        return _name_values(super().get_params(ctx))
 
 
 def _takes_text(param: Any) -> bool:
@@ -95,6 +83,8 @@ RecipeOption = Annotated[
         "default: the embedded one.",
     ),
 ]
+ForceOption = Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")]
+SummaryJsonOption = Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")]
 MAX_SEED = 2**64 - 1
 PLAIN_PROGRESS_SECONDS = 5.0
 SeedOverride = Annotated[

@@ -13,6 +13,8 @@ from usdforest.atomic import move_into_place, refuse_overwrite, staging_folder
 from usdforest.cli.app import (
     MAX_SEED,
     Command,
+    ForceOption,
+    SummaryJsonOption,
     app,
     err,
     handles_errors,
@@ -60,8 +62,8 @@ def scan_cmd(
     seed: Annotated[
         int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise and ground roughness.")
     ] = 0,
-    force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
-    as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
+    force: ForceOption = False,
+    as_json: SummaryJsonOption = False,
 ) -> None:
     """Scan a stage with a lidar (ray casting), a bat-like sonar (echoes of leaves, wood and
     ground) or a camera (depth, semantic and instance images, shaded RGB)."""
@@ -221,7 +223,7 @@ def fly_cmd(
     ] = 0,
     force: Annotated[bool, typer.Option("--force", help="Overwrite the outputs.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
-    as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
+    as_json: SummaryJsonOption = False,
 ) -> None:
     """Fly a lidar, a sonar and a camera through a stage: LAS 1.4 returns with GPS time,
     class and tree id; sonar pulses with Doppler (leaves, wood, ground), a WAV of the flight

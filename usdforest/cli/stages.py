@@ -14,9 +14,11 @@ from rich.table import Table
 from usdforest.atomic import refuse_overwrite
 from usdforest.cli.app import (
     Command,
+    ForceOption,
     HardCoreOverride,
     RecipeOption,
     SeedOverride,
+    SummaryJsonOption,
     app,
     handles_errors,
     out,
@@ -95,7 +97,7 @@ def wrap_cmd(
         str, typer.Option(metavar="m|cm|mm|dm|in|ft", help="The host's unit of length.")
     ] = "cm",
     name: Annotated[str, typer.Option(help="The host's default prim.")] = "World",
-    force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
+    force: ForceOption = False,
 ) -> None:
     """Write a host stage of another up axis and unit (Maya, Omniverse: Y-up centimetres)
     that references ASSET upright and to scale."""
@@ -176,7 +178,7 @@ def build_cmd(
     hard_core: HardCoreOverride = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing output.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
-    as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
+    as_json: SummaryJsonOption = False,
     no_thumbnail: Annotated[
         bool, typer.Option("--no-thumbnail", help="Do not render OUT_assets/thumbnail.png.")
     ] = False,
@@ -271,8 +273,8 @@ def sample_cmd(
     seed: SeedOverride = None,
     hard_core: HardCoreOverride = None,
     replicates: Annotated[int, typer.Option(min=1, max=100_000, help="Independent draws.")] = 1,
-    force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
-    as_json: Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")] = False,
+    force: ForceOption = False,
+    as_json: SummaryJsonOption = False,
 ) -> None:
     """Sample tree sites (and marks) from the recipe's point process into a CSV."""
     import numpy as np
@@ -359,7 +361,7 @@ def preview_cmd(
     view: Annotated[str, typer.Option(help="side, top or iso.")] = "iso",
     size: Annotated[str, typer.Option(metavar="WxH", help="Image size WIDTHxHEIGHT.")] = "800x800",
     plain: Annotated[bool, typer.Option("--plain", help="No caption or scale bar.")] = False,
-    force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
+    force: ForceOption = False,
 ) -> None:
     """Render a stage headlessly to an image (what composes is what is drawn)."""
     require_output(output)
@@ -392,7 +394,7 @@ def plot_sites_cmd(
     replicate: Annotated[int, typer.Option(min=0, help="Replicate to plot.")] = 0,
     seed: SeedOverride = None,
     hard_core: HardCoreOverride = None,
-    force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
+    force: ForceOption = False,
 ) -> None:
     """Plot the intensity map with sampled sites over it (the paper's IPP figure)."""
     require_output(output)

@@ -13,6 +13,7 @@ from rich.table import Table
 from usdforest.atomic import refuse_overwrite
 from usdforest.cli.app import (
     Command,
+    ForceOption,
     Group,
     app,
     handles_errors,
@@ -39,7 +40,7 @@ def template_import_cmd(
     ] = "auto",
     up: Annotated[str, typer.Option(help="Y, Z or auto (glTF/OBJ: Y, STL/PLY: Z).")] = "auto",
     name: Annotated[str | None, typer.Option(help="Template name (default: the part).")] = None,
-    force: Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")] = False,
+    force: ForceOption = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print measurements as JSON.")] = False,
 ) -> None:
     """Import one CAD part, normalise its frame and write a template layer."""

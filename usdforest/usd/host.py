@@ -19,7 +19,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom
 from usdforest.atomic import refuse_overwrite
 from usdforest.errors import UsdForestError
 from usdforest.paths import require_file, require_output, shown
-from usdforest.usd.layers import prim, save_layer
+from usdforest.usd.layers import T, attr, prim, save_layer
 
 UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
 UP_AXES = ("Y", "Z")
@@ -90,10 +90,9 @@ def wrap(
         placed.referenceList.prependedItems = [
             Sdf.Reference(ref if ref.startswith(".") else f"./{ref}")
         ]
-    stage = Usd.Stage.Open(host)
-    xf = UsdGeom.Xformable(stage.GetPrimAtPath(f"/{name}/{inner}"))
-    xf.ClearXformOpOrder()
-    xf.AddTransformOp().Set(Gf.Matrix4d(*correction(up, mpu).ravel().tolist()))
+        matrix = Gf.Matrix4d(*correction(up, mpu).ravel().tolist())
+        attr(placed, "xformOp:transform", T.Matrix4d, matrix)
+        attr(placed, "xformOpOrder", T.TokenArray, ["xformOp:transform"], uniform=True)
     return save_layer(host, out)
 
 
