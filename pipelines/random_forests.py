@@ -51,7 +51,6 @@ def main(argv: list[str] | None = None) -> list[Path]:
         recipe = usdforest.load_recipe(data, base=source.parent)
         out = args.out / f"forest_{k:04d}.usda"
         built = usdforest.build_forest(recipe, out, thumbnail=False, force=True)
-        counts = np.bincount(built.sites.species, minlength=len(built.sites.names))
         rows.append(
             {
                 "forest": out.name,
@@ -59,7 +58,7 @@ def main(argv: list[str] | None = None) -> list[Path]:
                 "hard_core": data["forest"]["hard_core"],
                 "mix": " ".join(f"{n}={w}" for n, w in data.get("mix", {}).items()),
                 "trees": built.n_trees,
-                **{f"trees_{n}": int(c) for n, c in zip(built.sites.names, counts, strict=True)},
+                **{f"trees_{n}": c for n, c in built.trees_by_species.items()},
             }
         )
         written.append(out)

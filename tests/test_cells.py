@@ -7,8 +7,10 @@ import pytest
 from scipy.spatial import cKDTree
 
 import usdforest.sites.cells as cells
+import usdforest.sites.local as local
 from usdforest.recipe import parse_recipe
 from usdforest.sites.sampling import sample_sites
+from usdforest.sites.table import Sites
 
 
 def _recipe(tmp_path, tiles=500.0, hard_core=0.0, side=1100.0, **extra):
@@ -18,7 +20,7 @@ def _recipe(tmp_path, tiles=500.0, hard_core=0.0, side=1100.0, **extra):
         "intensity": {"kind": "expression", "expr": "0.002 + 0.004 * (x / 1100) ** 2"},
         "species": {"pine": {}, "broadleaf": {}},
         "forest": {"variants": 2, "hard_core": hard_core},
-        "tiles": {"size": tiles},
+        **({"tiles": {"size": tiles}} if tiles else {}),
         **extra,
     }
     return parse_recipe(data, tmp_path, str(tmp_path / "r.toml"))
@@ -29,15 +31,43 @@ def _same(a, b) -> None:
         assert np.array_equal(getattr(a, f), getattr(b, f)), f
 
 
+def _joined(parts):
+    """Sites from several squares or blocks in one table, ordered by cell and rank."""
+    cell = np.concatenate([p[1] for p in parts])
+    rank = np.concatenate([p[2] for p in parts])
+    order = np.lexsort((rank, cell))
+    cols = {
+        f: np.concatenate([getattr(p[0], f) for p in parts])[order]
+        for f in ("xy", "species", "variant", "yaw", "scale")
+    }
+    return type("S", (), cols)
+
+
 @pytest.mark.parametrize("hard_core", [0.0, 6.0, 260.0])
-def test_sites_do_not_depend_on_tiles_or_blocks(tmp_path, monkeypatch, hard_core):
-    """Other tile sizes, and sampling tasks of 1 or 4 cells a side (a hard core wider than a
-    cell reaches two rings of cells), give the same sites in the same order."""
-    base = sample_sites(_recipe(tmp_path, hard_core=hard_core))
+def test_sites_do_not_depend_on_tiles_or_blocks(tmp_path, hard_core):
+    """Every recipe is sampled cell by cell: without tiles, with tiles of 37 or 500 m (each
+    square's own sites computed alone), and in blocks of one cell (a hard core wider than a
+    cell reaches two rings of cells), the same sites in the same order."""
+    untiled = _recipe(tmp_path, tiles=None, hard_core=hard_core)
+    base = sample_sites(untiled)
     assert len(base) > (3 if hard_core > 100 else 100)
-    _same(base, sample_sites(_recipe(tmp_path, tiles=37.0, hard_core=hard_core)))
-    monkeypatch.setattr(cells, "BLOCK", 1)
-    _same(base, sample_sites(_recipe(tmp_path, hard_core=hard_core)))
+    for size in (37.0, 500.0):
+        r = _recipe(tmp_path, tiles=size, hard_core=hard_core)
+        _same(base, sample_sites(r))
+        parts = []
+        for sq in local.squares(r):
+            loc = local.local_sites(r, sq)
+            o = loc.own
+            s = loc.sites
+            own = Sites(s.names, s.xy[o], s.species[o], s.variant[o], s.yaw[o], s.scale[o])
+            parts.append((own, loc.cell[o], loc.rank[o]))
+        assert sum(len(p[0]) for p in parts) == len(base)
+        _same(base, _joined(parts))
+    nx, ny = cells.grid(untiled)
+    one = [
+        cells.sample_cells(untiled, 0, (i, j, i + 1, j + 1)) for j in range(ny) for i in range(nx)
+    ]
+    _same(base, _joined([(c.sites, c.cell, c.rank) for c in one]))
     if hard_core:  # and no two sites closer than the hard core, across every cell edge
         pairs = cKDTree(base.xy).query_pairs(hard_core * (1 - 1e-12))
         assert not pairs

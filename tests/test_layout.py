@@ -16,7 +16,6 @@ STAGES = {"grow", "cad", "sites", "usd", "sensors", "view"}
 LONG = {
     "recipe": "one parser per recipe table, each naming its keys in errors",
     "view.preview": "one renderer: sampling, sprites and the z-buffer share their state",
-    "usd.forest": "the forest writer: tiles, Dask tasks and publishing in one place",
     "sites.pointprocess": "intensities and their bounds, thinning, marks: one model",
     "cad.parts": "one import path from a CAD file to a checked, measured part",
     "grow.species": "the presets themselves",

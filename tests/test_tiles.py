@@ -9,7 +9,7 @@ import pytest
 from pxr import Usd, UsdGeom
 
 from usdforest.errors import RecipeError
-from usdforest.recipe import default_recipe_path, load_toml, parse_recipe
+from usdforest.recipe import default_recipe_path, load_toml, parse_recipe, read_recipe
 from usdforest.usd.forest import write_forest
 from usdforest.usd.validate import validate
 
@@ -87,8 +87,20 @@ def test_tiles_compose_into_the_untiled_forest(built):
     ]
     assert len(caps[0]) == len(caps[1]) > 100
     np.testing.assert_allclose(caps[0], caps[1], atol=2e-3)
-    # every tree where trees.csv puts it
-    rows = _rows(tiled.parent / "tiled_assets" / "trees.csv")
+    # every tree where its tile's CSV puts it; tiles.csv indexes them (trees and extents)
+    assets = tiled.parent / "tiled_assets"
+    with (assets / "tiles.csv").open() as f:
+        index = list(csv.DictReader(f))
+    rows = {}
+    for t in index:
+        part = _rows(assets / t["csv"])
+        assert len(part) == int(t["trees"]) and (assets / t["layer"]).is_file()
+        lo = np.array([float(t[k]) for k in ("min_x", "min_y", "min_z")])
+        hi = np.array([float(t[k]) for k in ("max_x", "max_y", "max_z")])
+        for x in part.values():  # the trunk bases lie inside their tile's extent
+            assert np.all(x >= lo - 1e-3) and np.all(x <= hi + 1e-3)
+        rows.update(part)
+    assert sorted(rows) == sorted(b) == list(range(len(b)))
     for i, (x, _) in b.items():
         np.testing.assert_allclose(x, rows[i], atol=1e-3)
 
@@ -278,13 +290,13 @@ def test_a_failing_tile_task_is_an_error_and_leaves_nothing(tmp_path, monkeypatc
     pytest.importorskip("distributed", reason="Dask tiles need dask.distributed (usdforest[dask])")
     from distributed import LocalCluster
 
-    import usdforest.usd.forest as forest
+    import usdforest.usd.landscape as landscape
     from usdforest.errors import UsdForestError
 
     def full_disk(*args):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(forest, "_tile_job", full_disk)
+    monkeypatch.setattr(landscape, "tile_task", full_disk)
     out = tmp_path / "f.usda"
     with LocalCluster(n_workers=1, processes=False, dashboard_address=None) as cluster:
         with pytest.raises(UsdForestError, match=r"a tile task failed: OSError: .*No space left"):
@@ -299,10 +311,10 @@ def test_a_failing_tile_task_is_an_error_and_leaves_nothing(tmp_path, monkeypatc
 
 def test_a_tile_task_never_creates_its_folder(tmp_path):
     from usdforest.errors import UsdForestError
-    from usdforest.usd.forest import _tile_job
+    from usdforest.usd.landscape import tile_task
 
     with pytest.raises(UsdForestError, match="a shared disk is needed"):
-        _tile_job(tmp_path / "gone", None, None, None, None, None, "full", "none", None, [])
+        tile_task(tmp_path / "gone", None, None)
     assert not (tmp_path / "gone").exists()
 
 
@@ -311,3 +323,84 @@ def test_dask_options_need_a_tiled_recipe(tmp_path, runner):
 
     r = runner.invoke(app, ["build", str(tmp_path / "f.usda"), "--workers", "2", "-q"])
     assert r.exit_code == 2 and "apply to a tiled recipe" in r.stderr
+
+
+def _instances(stage: Usd.Stage) -> dict[int, tuple[np.ndarray, str]]:
+    """Every composed tree by id: its whole instance transform in the world (position,
+    turn and scale) and its prototype's name."""
+    out = {}
+    for p in stage.Traverse():
+        if not p.IsA(UsdGeom.PointInstancer) or Usd.ModelAPI(p).GetKind() != "group":
+            continue
+        pi = UsdGeom.PointInstancer(p)
+        xf = np.asarray(
+            pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
+        )
+        w = np.asarray(UsdGeom.Xformable(p).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+        names = [t.name for t in pi.GetPrototypesRel().GetTargets()]
+        idx = np.asarray(pi.GetProtoIndicesAttr().Get())
+        for i, m, k in zip(np.asarray(pi.GetIdsAttr().Get()), xf @ w, idx, strict=True):
+            out[int(i)] = (m, names[k])
+    return out
+
+
+def _csv_lines(folder) -> list[str]:
+    """Every tree row of a forest's ground truth: ``trees.csv``, or its tiles' CSVs."""
+    parts = sorted((folder / "tiles").glob("*.csv")) or [folder / "trees.csv"]
+    return sorted(line for p in parts for line in p.read_text().splitlines()[1:])
+
+
+def test_a_recipe_gives_the_same_trees_with_or_without_tiles(tmp_path):
+    """Issue 25: one sampling scheme. An allometric stand over 2 x 2 cells of 250 m, with a
+    hard core, built untiled and in tiles of 125 m (owning the trees in their boxes; an edge
+    on the cells' edge) and of 250 m (a cell each, owning its trees): the same tree assets
+    byte for byte (the size classes come from the whole stand), and every tree with the same
+    id, the same prototype and the same transform (its size, and its turn away from
+    neighbours that may stand in another tile), and the same row of ground truth."""
+    base = """
+seed = 5
+[region]
+bounds = [0, 0, 330, 290]
+[intensity]
+kind = "expression"
+expr = "0.004 + 0.03 * exp(-((x - 250) ** 2 + (y - 240) ** 2) / 2000)"
+[forest]
+hard_core = 1.2
+variants = 3
+colliders = "none"
+[species.pine]
+preset = "scots-pine"
+"""
+    builds = {}
+    for name, tiles in (
+        ("flat", ""),
+        ("t125", "[tiles]\nsize = 125\n"),
+        ("t250", "[tiles]\nsize = 250\n"),
+    ):
+        (tmp_path / f"{name}.toml").write_text(base + tiles)
+        out = tmp_path / f"{name}.usda"
+        b = write_forest(read_recipe(tmp_path / f"{name}.toml"), out, thumbnail=False)
+        builds[name] = (b, out)
+    flat, _ = builds["flat"]
+    assert flat.n_tiles == 0 and flat.n_trees > 400 and len(flat.prototypes) == 3
+    ref = _instances(Usd.Stage.Open(str(builds["flat"][1])))
+    assert sorted(ref) == list(range(flat.n_trees))
+    ref_csv = _csv_lines(tmp_path / "flat_assets")
+    assert len(ref_csv) == flat.n_trees
+    for name in ("t125", "t250"):
+        b, out = builds[name]
+        assert b.n_tiles > 1 and b.trees_by_species == flat.trees_by_species
+        assert validate(out) == []
+        for tree in (tmp_path / "flat_assets" / "trees").iterdir():
+            assert (
+                tmp_path / f"{name}_assets" / "trees" / tree.name
+            ).read_bytes() == tree.read_bytes()
+        got = _instances(Usd.Stage.Open(str(out)))
+        assert sorted(got) == sorted(ref)
+        for i, (m, proto) in ref.items():
+            assert got[i][1] == proto
+            np.testing.assert_allclose(got[i][0], m, atol=1e-4)
+        assert _csv_lines(tmp_path / f"{name}_assets") == ref_csv
+    # neighbours across tile edges press crowns: some trees are turned away from them
+    yaw = np.degrees(np.arctan2(*np.array([m[0, 1::-1] for m, _ in ref.values()]).T))
+    assert len(set(np.round(yaw, 3))) > 0.9 * len(ref)

@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from usdforest.grow.species import Species
     from usdforest.recipe import Recipe
     from usdforest.sensors.survey import Flight, Scan
-    from usdforest.usd.forest import ForestBuild
+    from usdforest.usd.instances import ForestBuild
     from usdforest.usd.tree import TreeBuild
 
 
@@ -62,12 +62,15 @@ def build_forest(
     force: bool = False,
     thumbnail: bool = True,
     workers: int = 1,
+    scheduler: str | None = None,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> ForestBuild:
     """Build a forest at ``out`` (a ``.usda`` interface layer and ``<stem>_assets/``) from
     ``recipe`` (a :class:`~usdforest.recipe.Recipe`, or anything :func:`load_recipe` takes),
-    with ``seed`` instead of the recipe's. Returns the sites, prototypes and extent; refuses
-    to overwrite unless ``force``; a failure leaves nothing behind."""
+    with ``seed`` instead of the recipe's. A tiled recipe's tiles are written by ``workers``
+    local processes or on the Dask cluster at ``scheduler``. Returns the trees per species,
+    prototypes and extent (and an untiled forest's sites; a tiled one's stay in its tiles);
+    refuses to overwrite unless ``force``; a failure leaves nothing behind."""
     from usdforest.recipe import Recipe
     from usdforest.usd.forest import write_forest
 
@@ -76,7 +79,13 @@ def build_forest(
     elif seed is not None:
         recipe = dataclasses.replace(recipe, seed=seed)  # the resolved recipe records it
     return write_forest(
-        recipe, out, force=force, thumbnail=thumbnail, workers=workers, progress=progress
+        recipe,
+        out,
+        force=force,
+        thumbnail=thumbnail,
+        workers=workers,
+        scheduler=scheduler,
+        progress=progress,
     )
 
 

@@ -207,7 +207,6 @@ def build_cmd(
     ] = False,
 ) -> None:
     """Build a forest: sample tree sites, grow tree variants, write the USD layers."""
-    import numpy as np
 
     require_output(output)
     import time
@@ -232,14 +231,13 @@ def build_cmd(
             untiled=untiled,
         )
     secs = time.perf_counter() - t0
-    counts = np.bincount(b.sites.species, minlength=len(b.sites.names))
     summary = {
         "output": str(output),
         "assets": str(b.assets),
         "seed": recipe.seed,
         "trees": b.n_trees,
         "expected_trees": round(recipe.expected_trees(), 3),
-        "trees_by_species": {n: int(c) for n, c in zip(b.sites.names, counts, strict=True)},
+        "trees_by_species": dict(b.trees_by_species),
         "prototypes": len(b.prototypes),
         "tiles": b.n_tiles,
         "extent": b.extent.tolist(),

@@ -1,13 +1,13 @@
 """Sites sampled cell by cell: the same forest whatever the tiles, workers or task order.
 
-A tiled recipe's region is cut into square cells of ``CELL`` metres from its south-west
-corner; each cell thins its own candidates, draws its sites' Matérn birth times and marks
-from its own random streams (seed, replicate and the cell's column and row), so a cell's
-sites never depend on which task samples it. Tasks take blocks of cells; a hard core looks
-into the cells around a block (a halo as deep as the hard-core distance), where the same
-streams give the same neighbours, so a site is kept or dropped exactly as it would be in one
-pass over the whole region. The sites come back in cell order (row by row from the south),
-and within a cell in the order drawn.
+Every recipe's region is cut into square cells of ``CELL`` metres from its south-west corner;
+each cell thins its own candidates, draws its sites' Matérn birth times and marks from its
+own random streams (seed, replicate and the cell's column and row), so a cell's sites never
+depend on which task samples it. A task samples a block of cells; a hard core looks into the
+cells around it (a ring as deep as the hard-core distance), where the same streams give the
+same neighbours, so a site is kept or dropped exactly as it would be in one pass over the
+whole region. The sites come back in cell order (row by row from the south), and within a
+cell in the order drawn (their ``rank``).
 """
 
 from __future__ import annotations
@@ -22,7 +22,6 @@ from usdforest.sites.pointprocess import draw_marks, matern_keep, thin
 from usdforest.sites.table import Sites
 
 CELL = 250.0  # metres: fixed, so the sites never depend on the tile size
-BLOCK = 4  # cells per side of a sampling task
 
 
 @dataclass(frozen=True)
@@ -36,20 +35,40 @@ class _CellRegion:
         return self.region.contains(x, y)
 
 
+@dataclass(frozen=True, eq=False)
+class CellSites:
+    """Sites with their ``cell`` (row-major index on the grid) and ``rank`` in it."""
+
+    sites: Sites
+    cell: np.ndarray
+    rank: np.ndarray
+
+
 def grid(recipe) -> tuple[int, int]:
     """Columns and rows of cells over the recipe's region."""
     x0, y0, x1, y1 = recipe.region.bounds
     return max(1, math.ceil((x1 - x0) / CELL)), max(1, math.ceil((y1 - y0) / CELL))
 
 
-def blocks(recipe) -> list[tuple[int, int, int, int]]:
-    """The sampling tasks: ``(i0, j0, i1, j1)`` ranges of cell columns and rows."""
+def cell_of(recipe, xy: np.ndarray) -> np.ndarray:
+    """The cell (row-major index) holding each point (points outside: the nearest edge's)."""
+    x0, y0, _, _ = recipe.region.bounds
     nx, ny = grid(recipe)
-    return [
-        (i, j, min(i + BLOCK, nx), min(j + BLOCK, ny))
-        for j in range(0, ny, BLOCK)
-        for i in range(0, nx, BLOCK)
-    ]
+    ij = np.floor((np.asarray(xy, dtype=float).reshape(-1, 2) - [x0, y0]) / CELL)
+    ij = np.clip(ij, 0, [nx - 1, ny - 1]).astype(np.int64)
+    return ij[:, 1] * nx + ij[:, 0]
+
+
+def cells_meeting(recipe, box: tuple[float, float, float, float]) -> tuple[int, int, int, int]:
+    """``(i0, j0, i1, j1)``: the half-open range of cells that meet the closed ``box``."""
+    x0, y0, _, _ = recipe.region.bounds
+    nx, ny = grid(recipe)
+    bx0, by0, bx1, by1 = box
+    i0 = min(max(math.floor((bx0 - x0) / CELL), 0), nx - 1)
+    j0 = min(max(math.floor((by0 - y0) / CELL), 0), ny - 1)
+    i1 = min(max(math.floor((bx1 - x0) / CELL) + 1, i0 + 1), nx)
+    j1 = min(max(math.floor((by1 - y0) / CELL) + 1, j0 + 1), ny)
+    return i0, j0, i1, j1
 
 
 def _cell_sites(recipe, replicate: int, i: int, j: int, lam_star: float) -> np.ndarray:
@@ -59,31 +78,36 @@ def _cell_sites(recipe, replicate: int, i: int, j: int, lam_star: float) -> np.n
     return thin(_CellRegion(recipe.region, box), recipe.intensity, rng, bound=lam_star)
 
 
-def sample_block(recipe, replicate: int, block: tuple[int, int, int, int]) -> dict:
-    """The sites of a block's cells (a task): ``cell`` (each site's cell, row-major),
-    ``xy`` and the marks."""
+def sample_cells(
+    recipe, replicate: int, block: tuple[int, int, int, int], ring: int = 0
+) -> CellSites:
+    """The sites of the cells of ``block`` (``(i0, j0, i1, j1)``, half-open) and of ``ring``
+    more cells around it, exactly as one pass over the whole region would give them."""
     i0, j0, i1, j1 = block
     nx, ny = grid(recipe)
     lam_star = recipe.intensity.bound(recipe.region)
-    ring = math.ceil(recipe.hard_core / CELL) if recipe.hard_core > 0 else 0
+    hc_ring = math.ceil(recipe.hard_core / CELL) if recipe.hard_core > 0 else 0
+    reach = ring + hc_ring
     cells = [
         (i, j)
-        for j in range(max(j0 - ring, 0), min(j1 + ring, ny))
-        for i in range(max(i0 - ring, 0), min(i1 + ring, nx))
+        for j in range(max(j0 - reach, 0), min(j1 + reach, ny))
+        for i in range(max(i0 - reach, 0), min(i1 + reach, nx))
     ]
     xy = [_cell_sites(recipe, replicate, i, j, lam_star) for i, j in cells]
-    own = np.concatenate(
+    wanted = np.concatenate(
         [
-            np.full(len(p), i0 <= i < i1 and j0 <= j < j1)
+            np.full(len(p), i0 - ring <= i < i1 + ring and j0 - ring <= j < j1 + ring)
             for p, (i, j) in zip(xy, cells, strict=True)
         ]
+        or [np.zeros(0, dtype=bool)]
     )
     cell = np.concatenate(
-        [np.full(len(p), j * nx + i) for p, (i, j) in zip(xy, cells, strict=True)]
+        [np.full(len(p), j * nx + i, dtype=np.int64) for p, (i, j) in zip(xy, cells, strict=True)]
+        or [np.zeros(0, dtype=np.int64)]
     )
-    pts = np.concatenate(xy) if xy else np.zeros((0, 2))
+    pts = np.concatenate(xy).reshape(-1, 2) if xy else np.zeros((0, 2))
     keep = np.ones(len(pts), dtype=bool)
-    if ring:
+    if hc_ring:
         birth = np.concatenate(
             [
                 stream(recipe.seed, "hard-core", replicate, "cell", i, j).uniform(size=len(p))
@@ -91,50 +115,33 @@ def sample_block(recipe, replicate: int, block: tuple[int, int, int, int]) -> di
             ]
         )
         keep = matern_keep(pts, recipe.hard_core, birth)
-    sel = own & keep
+    sel = wanted & keep
     pts, cell = pts[sel], cell[sel]
+    uniq, start, count = np.unique(cell, return_index=True, return_counts=True)
+    rank = np.arange(len(cell)) - np.repeat(start, count)
     names = recipe.species_names
-    marks = []
-    for c in np.unique(cell):
-        at = cell == c
-        marks.append(
-            draw_marks(
-                pts[at],
-                [w for _, w in recipe.mix],
-                [recipe.variants[n] for n in names],
-                recipe.scale.as_tuple(),
-                stream(recipe.seed, "marks", replicate, "cell", int(c % nx), int(c // nx)),
-                recipe.ground["field"].height if recipe.ground is not None else None,
-            )
+    marks = [
+        draw_marks(
+            pts[a : a + n],
+            [w for _, w in recipe.mix],
+            [recipe.variants[n_] for n_ in names],
+            recipe.scale.as_tuple(),
+            stream(recipe.seed, "marks", replicate, "cell", int(c % nx), int(c // nx)),
+            recipe.ground["field"].height if recipe.ground is not None else None,
         )
-    out = {"cell": cell, "xy": pts}
-    for f in ("species", "variant", "yaw", "scale"):
+        for c, a, n in zip(uniq, start, count, strict=True)
+    ]
+
+    def column(f, dtype):
         parts = [getattr(m, f) for m in marks]
-        out[f] = np.concatenate(parts) if parts else np.zeros(0)
-    out["species"] = out["species"].astype(np.int32)
-    out["variant"] = out["variant"].astype(np.int32)
-    return out
+        return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype)
 
-
-def sample_cells(recipe, replicate: int = 0, client=None):
-    """All the recipe's sites, block by block (as tasks on a dask.distributed ``client``,
-    or here), in cell order."""
-    jobs = blocks(recipe)
-    if client is None:
-        parts = [sample_block(recipe, replicate, b) for b in jobs]
-    else:
-        shared = client.scatter(recipe, broadcast=True)
-        parts = client.gather(
-            [client.submit(sample_block, shared, replicate, b, pure=False) for b in jobs]
-        )
-    cell = np.concatenate([p["cell"] for p in parts])
-    order = np.argsort(cell, kind="stable")
-    cols = {f: np.concatenate([p[f] for p in parts])[order] for f in parts[0] if f != "cell"}
-    return Sites(
-        recipe.species_names,
-        cols["xy"].reshape(-1, 2),
-        cols["species"],
-        cols["variant"],
-        cols["yaw"],
-        cols["scale"],
+    sites = Sites(
+        names,
+        pts,
+        column("species", np.int32),
+        column("variant", np.int32),
+        column("yaw", float),
+        column("scale", float),
     )
+    return CellSites(sites, cell, rank)

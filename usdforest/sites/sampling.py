@@ -10,28 +10,31 @@ from usdforest.atomic import atomic_path
 from usdforest.paths import require_file
 from usdforest.recipe import Recipe
 from usdforest.seeds import stream
-from usdforest.sites.cells import sample_cells
-from usdforest.sites.pointprocess import draw_marks, matern_ii, thin
+from usdforest.sites.cells import grid, sample_cells
+from usdforest.sites.pointprocess import draw_marks
 from usdforest.sites.table import Sites
 
 
-def sample_sites(recipe: Recipe, replicate: int = 0, client=None) -> Sites:
-    """Sites of one replicate: thinning (or the explicit sites), hard-core, marks.
+def sample_sites(recipe: Recipe, replicate: int = 0) -> Sites:
+    """Sites of one replicate: the recipe's explicit sites, or its point process sampled cell
+    by cell (:mod:`usdforest.sites.cells`: thinning, hard core, marks), in cell order.
 
-    Replicate 0 is what ``usdforest build`` places. Each replicate draws from its own stream
-    seeded by (seed, "sites", replicate) and (seed, "marks", replicate); a tiled recipe's
-    cell by cell (:mod:`usdforest.sites.cells`; on a dask.distributed ``client`` if given).
+    Replicate 0 is what ``usdforest build`` places. Each replicate draws from its own
+    streams, seeded by (seed, replicate and the cell; explicit sites: seed, "marks",
+    replicate). These are the sites' drawn marks: a build sizes allometric species' trees
+    on top (:mod:`usdforest.sites.stand`).
     """
-    names = recipe.species_names
-    if recipe.tiles is not None and recipe.sites is None:
-        return sample_cells(recipe, replicate, client)
     if recipe.sites is not None:
-        xy = np.array([[s["x"], s["y"]] for s in recipe.sites], dtype=float)
-    else:
-        xy = thin(recipe.region, recipe.intensity, stream(recipe.seed, "sites", replicate))
-        if recipe.hard_core > 0:
-            keep = matern_ii(xy, recipe.hard_core, stream(recipe.seed, "hard-core", replicate))
-            xy = xy[keep]
+        return inventory_sites(recipe, replicate)
+    nx, ny = grid(recipe)
+    return sample_cells(recipe, replicate, (0, 0, nx, ny)).sites
+
+
+def inventory_sites(recipe: Recipe, replicate: int = 0) -> Sites:
+    """The recipe's explicit sites (``[[sites]]`` or a stem map), in their order, with the
+    marks they do not give drawn from (seed, "marks", replicate)."""
+    names = recipe.species_names
+    xy = np.array([[s["x"], s["y"]] for s in recipe.sites], dtype=float).reshape(-1, 2)
     marks = draw_marks(
         xy,
         [w for _, w in recipe.mix],
@@ -41,14 +44,13 @@ def sample_sites(recipe: Recipe, replicate: int = 0, client=None) -> Sites:
         recipe.ground["field"].height if recipe.ground is not None else None,
     )
     species, yaw, scale = marks.species.copy(), marks.yaw.copy(), marks.scale.copy()
-    if recipe.sites is not None:
-        for i, s in enumerate(recipe.sites):
-            if "species" in s:
-                species[i] = names.index(s["species"])
-            if "yaw" in s:
-                yaw[i] = s["yaw"]
-            if "scale" in s:
-                scale[i] = s["scale"]
+    for i, s in enumerate(recipe.sites):
+        if "species" in s:
+            species[i] = names.index(s["species"])
+        if "yaw" in s:
+            yaw[i] = s["yaw"]
+        if "scale" in s:
+            scale[i] = s["scale"]
     variant = np.minimum(marks.variant, np.array([recipe.variants[n] for n in names])[species] - 1)
     return Sites(names, xy, species, variant.astype(np.int32), yaw, scale)
 

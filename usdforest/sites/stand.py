@@ -3,32 +3,44 @@
 Every tree of an allometric species gets its own size: a DBH drawn from the stand's Weibull
 distribution (``[species.NAME.stand]``: mean and coefficient of variation) or read from an
 inventory (``[[sites]]`` rows or a stem-map CSV with ``dbh`` and ``height``), and a height from
-the species' height curve with its residual scatter. Trees are grouped into size classes on a
-grid of log height (steps of 25 %) and log slenderness (steps of 8 %); each class is one tree
-asset grown to the class's mean size, and each tree instances its class scaled by its own
-height over the class's, so its height is exact and its DBH within half a slenderness step
-(4 %). Crown base comes from the crown-ratio model with each class's basal area of larger
-trees and the stand's crown competition factor, so it rises with density. Crowns give way to
+the species' height curve with its residual scatter. The draws come from each 250 m cell's own
+stream, so a tree's size never depends on which task sizes it. Trees are grouped into size
+classes on a grid of log height (steps of 25 %) and log slenderness (steps of 8 %), merged two
+by two until a species has no more classes than variants; each class is one tree asset grown
+to the class's mean size, and each tree instances its class scaled by its own height over the
+class's, so its height is exact and its DBH within half a slenderness step (4 %). Crown base
+comes from the crown-ratio model with the basal area of trees larger than the class's mean
+DBH and the stand's crown competition factor, so it rises with density. Crowns give way to
 neighbours: a tree whose open-grown crown overlaps others' is pressed away from them
 (:func:`crowding`); its class grows a one-sided crown (up to 35 % longer branches on one side
 and shorter on the other, as one-sided as its trees are pressed on average) and the tree is
-turned so that the long side faces away. Pure numpy.
+turned so that the long side faces away.
+
+What the classes need of the whole stand (per fine class: trees, sums of log height, log
+slenderness and pressure; the crown area; basal area by DBH) is kept as
+:class:`StandSums` in int64 fixed point, so sums from any number of tiles, added in any
+order, are exact and the same. Pure numpy.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from usdforest.grow.allometry import ALLOMETRY, basal_area_larger, weibull_for
+from usdforest.grow.allometry import ALLOMETRY, weibull_for
 from usdforest.grow.architecture import TreeSize
 from usdforest.grow.species import Species, tree_size
 from usdforest.seeds import stream
 
 HEIGHT_STEP = math.log(1.25)
 SLENDERNESS_STEP = math.log(1.08)
+FIXED = 1e9  # fixed point of the stand's sums (1e-9 of a unit; 9e9 units fit in int64)
+DBH_BIN = 0.001  # m: the bins of the stand's basal area by DBH
+MAX_ASYMMETRY = 0.35
+SUM_COLUMNS = ("trees", "log_height", "log_slenderness", "pressure", "crowns_given", "crown")
 
 
 @dataclass(frozen=True)
@@ -41,21 +53,6 @@ class StandSpec:
     dbh_min: float = 0.04
 
 
-@dataclass(frozen=True, eq=False)
-class StandSizes:
-    """Per site: ``dbh`` (m) and ``height`` (m), NaN for trees of non-allometric species;
-    per species: the class targets (one tree asset each); ``variant`` and ``scale`` are the
-    sites' new marks; ``away`` the direction (degrees from +x) a tree's crown grows away
-    from its neighbours, NaN where they do not press it to one side."""
-
-    dbh: np.ndarray
-    height: np.ndarray
-    variant: np.ndarray
-    scale: np.ndarray
-    classes: dict[str, tuple[TreeSize, ...]]
-    away: np.ndarray
-
-
 def draw_dbh(spec: StandSpec, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` DBHs (m) from the truncated Weibull of ``spec`` (inverse CDF above ``dbh_min``)."""
     k, lam = weibull_for(spec.dbh_mean, spec.dbh_cv)
@@ -64,17 +61,68 @@ def draw_dbh(spec: StandSpec, n: int, rng: np.random.Generator) -> np.ndarray:
     return lam * (-np.log1p(-u)) ** (1.0 / k)
 
 
+def _fixed(x) -> np.ndarray:
+    return np.round(np.asarray(x, dtype=float) * FIXED).astype(np.int64)
+
+
+def tree_sizes(
+    species: dict[str, Species],
+    stands: dict[str, StandSpec],
+    names: tuple[str, ...],
+    site_species: np.ndarray,
+    cell: np.ndarray,
+    given_dbh: np.ndarray,
+    given_height: np.ndarray,
+    given_crown: np.ndarray,
+    seed: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each site's DBH (m), height (m) and open-grown crown radius (m): NaN for trees of
+    non-allometric species. Draws come from the stream of the site's ``cell`` (and its
+    species), taken in site order; ``given_*`` (NaN where not given) come from an inventory:
+    a tree of known height and unknown DBH takes the DBH whose mean height it has."""
+    dbh = np.array(given_dbh, dtype=float, copy=True)
+    height = np.array(given_height, dtype=float, copy=True)
+    crown = np.full(len(site_species), np.nan)
+    for k, name in enumerate(names):
+        sp = species[name]
+        if sp.allometry is None:
+            continue
+        a = ALLOMETRY[sp.allometry]
+        spec = stands.get(name, StandSpec(sp.reference_dbh / 100.0))
+        idx = np.flatnonzero(site_species == k)
+        drawn = np.empty(len(idx))
+        noise = np.empty(len(idx))
+        order = np.argsort(cell[idx], kind="stable")  # each cell's trees, in site order
+        cells, start = np.unique(cell[idx][order], return_index=True)
+        ends = np.append(start[1:], len(idx))[: len(start)]
+        for c, a0, a1 in zip(cells, start, ends, strict=True):
+            at = order[a0:a1]
+            rng = stream(seed, "stand", name, "cell", int(c))
+            drawn[at] = draw_dbh(spec, len(at), rng)
+            noise[at] = rng.standard_normal(len(at))
+        d = np.where(np.isnan(dbh[idx]), drawn, dbh[idx])
+        h_curve = a.height(d * 100.0) * np.exp(a.height_sd * noise)
+        d = np.where(np.isnan(dbh[idx]) & ~np.isnan(height[idx]), a.dbh(height[idx]) / 100, d)
+        dbh[idx] = d
+        height[idx] = np.where(np.isnan(height[idx]), h_curve, height[idx])
+        own = a.crown_radius(d * 100.0)
+        crown[idx] = np.where(np.isnan(given_crown[idx]), own, given_crown[idx])
+    return dbh, height, crown
+
+
 def crowding(xy: np.ndarray, crown: np.ndarray, height: np.ndarray) -> np.ndarray:
     """Per tree, the crowding vector (n, 2), pointing at the neighbours that press it: the
     sum over every neighbour whose open-grown crown (radius ``crown``) overlaps the tree's of
     the unit vector towards it times the overlap's share of the two radii times its height
-    over the tree's (at most 2). Trees with NaN ``crown`` neither press nor are pressed."""
+    over the tree's (at most 2). Trees with NaN ``crown`` neither press nor are pressed. The
+    sums are exact (fixed point), so a tree's vector does not depend on the order or company
+    its neighbours come in."""
     from scipy.spatial import cKDTree
 
-    out = np.zeros((len(xy), 2))
+    out = np.zeros((len(xy), 2), dtype=np.int64)
     ok = np.flatnonzero(np.isfinite(crown))
     if len(ok) < 2:
-        return out
+        return out.astype(float)
     pairs = cKDTree(xy[ok]).query_pairs(2.0 * float(crown[ok].max()), output_type="ndarray")
     i, j = ok[pairs[:, 0]], ok[pairs[:, 1]]
     v = xy[j] - xy[i]
@@ -83,121 +131,176 @@ def crowding(xy: np.ndarray, crown: np.ndarray, height: np.ndarray) -> np.ndarra
     near = (d > 1e-9) & (d < reach)
     i, j, v, d, reach = i[near], j[near], v[near], d[near], reach[near]
     overlap = (1.0 - d / reach)[:, None] * v / d[:, None]
-    np.add.at(out, i, overlap * np.minimum(height[j] / height[i], 2.0)[:, None])
-    np.add.at(out, j, -overlap * np.minimum(height[i] / height[j], 2.0)[:, None])
-    return out
+    np.add.at(out, i, _fixed(overlap * np.minimum(height[j] / height[i], 2.0)[:, None]))
+    np.add.at(out, j, _fixed(-overlap * np.minimum(height[i] / height[j], 2.0)[:, None]))
+    return out / FIXED
 
 
-MAX_ASYMMETRY = 0.35
-
-
-def stand_sizes(
-    species: dict[str, Species],
-    stands: dict[str, StandSpec],
-    names: tuple[str, ...],
-    site_species: np.ndarray,
-    xy: np.ndarray,
-    given_dbh: np.ndarray,
-    given_height: np.ndarray,
-    given_crown: np.ndarray,
-    area_m2: float,
-    max_classes: dict[str, int],
-    seed: int,
-) -> StandSizes:
-    """Sizes and size classes for every site (see the module docstring).
-
-    ``given_dbh`` / ``given_height`` / ``given_crown`` (crown radius; m, NaN where not
-    given) come from an inventory; a class whose trees give crown radii grows to their mean.
-    """
-    n = len(site_species)
-    dbh = np.array(given_dbh, dtype=float, copy=True)
-    height = np.array(given_height, dtype=float, copy=True)
-    variant = np.zeros(n, dtype=np.int32)
-    scale = np.ones(n)
-    classes: dict[str, tuple[TreeSize, ...]] = {}
-    allometric = [s for s in names if species[s].allometry is not None]
-    for k, name in enumerate(names):
-        if name not in allometric:
-            continue
-        sp = species[name]
-        a = ALLOMETRY[sp.allometry or ""]
-        idx = np.flatnonzero(site_species == k)
-        rng = stream(seed, "stand", name)
-        spec = stands.get(name, StandSpec(sp.reference_dbh / 100.0))
-        drawn = draw_dbh(spec, len(idx), rng)
-        noise = rng.standard_normal(len(idx))
-        d = np.where(np.isnan(dbh[idx]), drawn, dbh[idx])
-        h_curve = a.height(d * 100.0) * np.exp(a.height_sd * noise)
-        # a tree of known height and unknown DBH takes the DBH whose mean height it has
-        d = np.where(np.isnan(dbh[idx]) & ~np.isnan(height[idx]), a.dbh(height[idx]) / 100, d)
-        dbh[idx] = d
-        height[idx] = np.where(np.isnan(height[idx]), h_curve, height[idx])
-    # competition: basal area of larger trees (all species) and the crown competition factor
-    known = ~np.isnan(dbh)
-    bal = np.zeros(n)
-    area_ha = area_m2 / 1e4
-    bal[known] = basal_area_larger(dbh[known] * 100.0, area_ha)
-    crown = np.full(n, np.nan)
-    for k, name in enumerate(names):
-        if name in allometric:
-            sel = site_species == k
-            own = ALLOMETRY[species[name].allometry or ""].crown_radius(dbh[sel] * 100.0)
-            crown[sel] = np.where(np.isnan(given_crown[sel]), own, given_crown[sel])
-    ccf = 100.0 * float(np.nansum(math.pi * crown**2)) / max(area_m2, 1e-9) if n else 100.0
-    # crowns grow away from their neighbours: each class's crowns are as one-sided as its
-    # trees' mean pressure, and each tree turns its long side away from it
-    push = crowding(np.asarray(xy, dtype=float), crown, height)
+def pressed(push: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pressure (0-1) of crowding vectors ``push`` and the direction (degrees from +x)
+    each crown grows away from its neighbours, NaN where they do not press it to one side."""
     pressure = np.minimum(np.hypot(push[:, 0], push[:, 1]), 1.0)
     away = np.where(
         pressure >= 0.05, np.round(np.degrees(np.arctan2(-push[:, 1], -push[:, 0])), 3), np.nan
     )
+    return pressure, away
+
+
+def fine_keys(height: np.ndarray, dbh: np.ndarray) -> np.ndarray:
+    """(n, 2) int64: each tree's cell on the grid of log height and log slenderness."""
+    lh = np.log(height)
+    ls = np.log(height / dbh)
+    return np.stack([np.floor(lh / HEIGHT_STEP), np.floor(ls / SLENDERNESS_STEP)], axis=1).astype(
+        np.int64
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class StandSums:
+    """What the size classes need of a stand, as exact int64 fixed-point sums: per
+    allometric species, its fine classes' ``keys`` (k, 2) and ``sums`` (k, 6) (see
+    ``SUM_COLUMNS``: trees, and sums of log height, log slenderness, pressure, given crowns'
+    count and radii); all trees' crown area (m²) and basal area (m²) per 1 mm DBH bin."""
+
+    keys: dict[str, np.ndarray]
+    sums: dict[str, np.ndarray]
+    crown_area: int
+    basal: np.ndarray
+
+
+def stand_sums(
+    names: tuple[str, ...],
+    allometric: set[str],
+    site_species: np.ndarray,
+    dbh: np.ndarray,
+    height: np.ndarray,
+    crown: np.ndarray,
+    given_crown: np.ndarray,
+    pressure: np.ndarray,
+) -> StandSums:
+    """The :class:`StandSums` of some trees (a tile's own)."""
+    keys, sums = {}, {}
     for k, name in enumerate(names):
         if name not in allometric:
             continue
         idx = np.flatnonzero(site_species == k)
-        if len(idx) == 0:
-            classes[name] = ()
-            continue
-        lh = np.log(height[idx])
-        ls = np.log(height[idx] / dbh[idx])
-        hs, ss = HEIGHT_STEP, SLENDERNESS_STEP
-        while True:
-            key = np.stack([np.floor(lh / hs), np.floor(ls / ss)], axis=1).astype(np.int64)
-            uniq, inverse = np.unique(key, axis=0, return_inverse=True)
-            if len(uniq) <= max_classes[name]:
-                break
-            hs, ss = hs * 1.3, ss * 1.3
+        uniq, inverse = np.unique(fine_keys(height[idx], dbh[idx]), axis=0, return_inverse=True)
         inverse = inverse.reshape(-1)
-        count = np.bincount(inverse)
-        mh = np.exp(np.bincount(inverse, lh) / count)
-        ms = np.exp(np.bincount(inverse, ls) / count)
-        mbal = np.bincount(inverse, bal[idx]) / count
-        mpress = np.bincount(inverse, pressure[idx]) / count
+        given = np.isfinite(given_crown[idx])
+        cols = [
+            np.ones(len(idx), dtype=np.int64),
+            _fixed(np.log(height[idx])),
+            _fixed(np.log(height[idx] / dbh[idx])),
+            _fixed(pressure[idx]),
+            given.astype(np.int64),
+            np.where(given, _fixed(np.where(given, given_crown[idx], 0.0)), 0),
+        ]
+        acc = np.zeros((len(uniq), len(cols)), dtype=np.int64)
+        for c, col in enumerate(cols):
+            np.add.at(acc[:, c], inverse, col)
+        keys[name], sums[name] = uniq.reshape(-1, 2).astype(np.int64), acc
+    known = np.isfinite(dbh)
+    bins = np.floor(dbh[known] / DBH_BIN).astype(np.int64)
+    basal = np.zeros(int(bins.max()) + 1 if len(bins) else 0, dtype=np.int64)
+    np.add.at(basal, bins, _fixed(math.pi / 4.0 * dbh[known] ** 2))
+    area = int(_fixed(math.pi * crown[np.isfinite(crown)] ** 2).sum())
+    return StandSums(keys, sums, area, basal)
+
+
+def merge_sums(parts: Iterable[StandSums]) -> StandSums:
+    """One :class:`StandSums` of several (exact: the same in any order)."""
+    keys: dict[str, list] = {}
+    sums: dict[str, list] = {}
+    area, basal = 0, np.zeros(0, dtype=np.int64)
+    for p in parts:
+        for name in p.keys:
+            keys.setdefault(name, []).append(p.keys[name])
+            sums.setdefault(name, []).append(p.sums[name])
+        area += p.crown_area
+        if len(p.basal) > len(basal):
+            basal = np.concatenate([basal, np.zeros(len(p.basal) - len(basal), np.int64)])
+        basal[: len(p.basal)] += p.basal
+    out_keys, out_sums = {}, {}
+    for name in keys:
+        k = np.concatenate(keys[name]).reshape(-1, 2)
+        s = np.concatenate(sums[name]).reshape(-1, len(SUM_COLUMNS))
+        uniq, inverse = np.unique(k, axis=0, return_inverse=True)
+        acc = np.zeros((len(uniq), s.shape[1]), dtype=np.int64)
+        np.add.at(acc, inverse.reshape(-1), s)
+        out_keys[name], out_sums[name] = uniq.reshape(-1, 2), acc
+    return StandSums(out_keys, out_sums, area, basal)
+
+
+@dataclass(frozen=True, eq=False)
+class SizeClasses:
+    """A species' size classes: fine keys divided by ``2**shift`` give the class ``keys``
+    (sorted); ``sizes`` the size each class's tree asset grows to."""
+
+    shift: int
+    keys: np.ndarray
+    sizes: tuple[TreeSize, ...]
+
+    def of(self, height: np.ndarray, dbh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each tree's class and its scale (its height over its class's)."""
+        coarse = np.floor_divide(fine_keys(height, dbh), 2**self.shift)
+        variant = np.full(len(height), -1, dtype=np.int32)
+        for c, key in enumerate(self.keys):
+            variant[np.all(coarse == key, axis=1)] = c
+        if np.any(variant < 0):
+            raise ValueError("a tree outside every size class (sizes differ from the survey)")
+        return variant, height / np.array([s.height for s in self.sizes])[variant]
+
+
+def size_classes(
+    species: dict[str, Species],
+    names: tuple[str, ...],
+    sums: StandSums,
+    max_classes: dict[str, int],
+    area_m2: float,
+    seed: int,
+) -> dict[str, SizeClasses]:
+    """Each allometric species' size classes from its stand's sums (see the module
+    docstring): at most ``max_classes`` per species, grown at the stand's crown competition
+    factor and each class's basal area of larger trees."""
+    area_m2 = max(area_m2, 1e-9)
+    ccf = 100.0 * sums.crown_area / FIXED / area_m2 if sums.keys else 100.0
+    larger = np.concatenate([np.cumsum(sums.basal[::-1])[::-1], [0]]) / FIXED  # m², bin and up
+    out = {}
+    for name in names:
+        if species[name].allometry is None:
+            continue
+        fine = sums.keys.get(name, np.zeros((0, 2), dtype=np.int64))
+        if len(fine) == 0:
+            out[name] = SizeClasses(0, np.zeros((0, 2), dtype=np.int64), ())
+            continue
+        shift = 0
+        while True:
+            coarse, inverse = np.unique(
+                np.floor_divide(fine, 2**shift), axis=0, return_inverse=True
+            )
+            if len(coarse) <= max_classes[name]:
+                break
+            shift += 1
+        inverse = inverse.reshape(-1)
+        acc = np.zeros((len(coarse), len(SUM_COLUMNS)), dtype=np.int64)
+        np.add.at(acc, inverse, sums.sums[name])
+        count = acc[:, 0].astype(float)
         rng = stream(seed, "classes", name)
         sizes = []
-        for c in range(len(uniq)):
+        for c in range(len(coarse)):
             # rounded so that the class's grammar (and its bytes) do not depend on the last
             # bits of a log-mean
-            hc = round(float(mh[c]), 3)
-            dc = round(hc / float(ms[c]) * 100.0, 2)
-            size = tree_size(species[name], rng, dbh=dc, height=hc, bal=float(mbal[c]), ccf=ccf)
-            size = replace(size, asymmetry=round(MAX_ASYMMETRY * float(mpress[c]), 3))
-            gc = given_crown[idx][inverse == c]
-            if np.isfinite(gc).any():  # the inventory's radii, the allometry's for the rest
-                mean = float(np.mean(np.where(np.isnan(gc), size.crown_radius, gc)))
-                size = replace(size, crown_radius=round(mean, 4))
+            hc = round(math.exp(acc[c, 1] / FIXED / count[c]), 3)
+            dc = round(hc / math.exp(acc[c, 2] / FIXED / count[c]) * 100.0, 2)
+            b = min(math.floor(dc / 100.0 / DBH_BIN) + 1, len(larger) - 1)
+            bal = float(larger[b]) / (area_m2 / 1e4)
+            size = tree_size(species[name], rng, dbh=dc, height=hc, bal=bal, ccf=ccf)
+            pressure = float(acc[c, 3] / FIXED / count[c])
+            size = replace(size, asymmetry=round(MAX_ASYMMETRY * pressure, 3))
+            n_given = int(acc[c, 4])
+            if n_given:  # the inventory's radii, the allometry's for the rest
+                total = acc[c, 5] / FIXED + (count[c] - n_given) * size.crown_radius
+                size = replace(size, crown_radius=round(float(total / count[c]), 4))
             sizes.append(size)
-        classes[name] = tuple(sizes)
-        variant[idx] = inverse.astype(np.int32)
-        scale[idx] = height[idx] / np.array([s.height for s in sizes])[inverse]
-    return StandSizes(dbh, height, variant, scale, classes, away)
-
-
-def with_sizes(sites, sizes: StandSizes, names_allometric: set[str]):
-    """``sites`` with the variant and scale of allometric species' trees replaced."""
-    is_allo = np.isin(sites.species, [sites.names.index(n) for n in names_allometric])
-    return replace(
-        sites,
-        variant=np.where(is_allo, sizes.variant, sites.variant).astype(np.int32),
-        scale=np.where(is_allo, sizes.scale, sites.scale),
-    )
+        out[name] = SizeClasses(shift, coarse.reshape(-1, 2), tuple(sizes))
+    return out
