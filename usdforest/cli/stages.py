@@ -188,7 +188,7 @@ def build_cmd(
             "--workers",
             min=1,
             max=256,
-            help="Dask worker processes writing a tiled forest's tiles (a local cluster).",
+            help="Dask worker processes for a tiled forest's tile tasks (a local cluster).",
         ),
     ] = 1,
     scheduler: Annotated[
@@ -196,7 +196,7 @@ def build_cmd(
         typer.Option(
             "--scheduler",
             metavar="ADDRESS",
-            help="Write the tiles on this Dask cluster (tcp://host:8786; shared disk).",
+            help="Run the tile tasks on this Dask cluster (tcp://host:8786; shared disk).",
         ),
     ] = None,
     untiled: Annotated[

@@ -160,12 +160,3 @@ def weibull_for(mean: float, cv: float) -> tuple[float, float]:
 
     k = brentq(lambda k: cv_of(k) - cv, 0.3, 50.0)
     return k, mean / gamma(1 + 1 / k)
-
-
-def basal_area_larger(dbh_cm: np.ndarray, area_ha: float) -> np.ndarray:
-    """BAL (m²/ha): the basal area of the trees thicker than each tree, per hectare."""
-    ba = math.pi * (np.asarray(dbh_cm, dtype=float) / 200.0) ** 2
-    order = np.argsort(-dbh_cm, kind="stable")
-    larger = np.empty_like(ba)
-    larger[order] = np.cumsum(ba[order]) - ba[order]
-    return larger / max(area_ha, 1e-9)
