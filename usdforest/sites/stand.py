@@ -5,16 +5,17 @@ distribution (``[species.NAME.stand]``: mean and coefficient of variation) or re
 inventory (``[[sites]]`` rows or a stem-map CSV with ``dbh`` and ``height``), and a height from
 the species' height curve with its residual scatter. The draws come from each 250 m cell's own
 stream, so a tree's size never depends on which task sizes it. Trees are grouped into size
-classes on a grid of log height (steps of 25 %) and log slenderness (steps of 8 %), merged two
-by two until a species has no more classes than variants; each class is one tree asset grown
-to the class's mean size, and each tree instances its class scaled by its own height over the
-class's, so its height is exact and its DBH within half a slenderness step (4 %). Crown base
-comes from the crown-ratio model with the basal area of trees larger than the class's mean
-DBH and the stand's crown competition factor, so it rises with density. Crowns give way to
-neighbours: a tree whose open-grown crown overlaps others' is pressed away from them
-(:func:`crowding`); its class grows a one-sided crown (up to 35 % longer branches on one side
-and shorter on the other, as one-sided as its trees are pressed on average) and the tree is
-turned so that the long side faces away.
+classes on a grid of log height (steps of 25 %) and log slenderness (steps of 8 %), merged
+two by two (slenderness, then height, in turn) until a species has no more classes than
+variants; each class is one tree asset grown to the class's mean size, and each tree
+instances its class scaled by its own height over the class's, so its height is exact and
+its DBH within half a slenderness step (4 %). Crown base comes from the crown-ratio model
+with the basal area of trees larger than the class's mean DBH and the stand's crown
+competition factor, so it rises with density. Crowns give way to neighbours: a tree whose
+open-grown crown overlaps others' is pressed away from them (:func:`crowding`); its class
+grows a one-sided crown (up to 35 % longer branches on one side and shorter on the other, as
+one-sided as its trees are pressed on average) and the tree is turned so that the long side
+faces away.
 
 What the classes need of the whole stand (per fine class: trees, sums of log height, log
 slenderness and pressure; the crown area; basal area by DBH) is kept as
@@ -233,16 +234,16 @@ def merge_sums(parts: Iterable[StandSums]) -> StandSums:
 
 @dataclass(frozen=True, eq=False)
 class SizeClasses:
-    """A species' size classes: fine keys divided by ``2**shift`` give the class ``keys``
-    (sorted); ``sizes`` the size each class's tree asset grows to."""
+    """A species' size classes: fine keys (height, slenderness) divided by ``2**shift`` give
+    the class ``keys`` (sorted); ``sizes`` the size each class's tree asset grows to."""
 
-    shift: int
+    shift: tuple[int, int]
     keys: np.ndarray
     sizes: tuple[TreeSize, ...]
 
     def of(self, height: np.ndarray, dbh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each tree's class and its scale (its height over its class's)."""
-        coarse = np.floor_divide(fine_keys(height, dbh), 2**self.shift)
+        coarse = np.floor_divide(fine_keys(height, dbh), np.left_shift(1, self.shift))
         variant = np.full(len(height), -1, dtype=np.int32)
         for c, key in enumerate(self.keys):
             variant[np.all(coarse == key, axis=1)] = c
@@ -271,16 +272,17 @@ def size_classes(
             continue
         fine = sums.keys.get(name, np.zeros((0, 2), dtype=np.int64))
         if len(fine) == 0:
-            out[name] = SizeClasses(0, np.zeros((0, 2), dtype=np.int64), ())
+            out[name] = SizeClasses((0, 0), np.zeros((0, 2), dtype=np.int64), ())
             continue
-        shift = 0
-        while True:
+        step = 0
+        while True:  # merge slenderness classes two by two, then height, and so on
+            shift = (step // 2, (step + 1) // 2)
             coarse, inverse = np.unique(
-                np.floor_divide(fine, 2**shift), axis=0, return_inverse=True
+                np.floor_divide(fine, np.left_shift(1, shift)), axis=0, return_inverse=True
             )
             if len(coarse) <= max_classes[name]:
                 break
-            shift += 1
+            step += 1
         inverse = inverse.reshape(-1)
         acc = np.zeros((len(coarse), len(SUM_COLUMNS)), dtype=np.int64)
         np.add.at(acc, inverse, sums.sums[name])
