@@ -130,7 +130,7 @@ def local_sites(recipe, square: Square, replicate: int = 0) -> Local:
     allometric = _allometric(recipe)
     ring = 1 if allometric else 0  # crowns press within 2 crown radii (< one cell)
     block, by_cell = _block(recipe, square)
-    n_given = None
+    yaw_given = None
     if recipe.sites is not None:
         s = inventory_sites(recipe, replicate)
         cell = cell_of(recipe, s.xy)
@@ -144,7 +144,7 @@ def local_sites(recipe, square: Square, replicate: int = 0) -> Local:
         )
         cell, rank = cell[rows], rows.astype(np.int64)
         given = {k: _given(recipe, k)[rows] for k in ("dbh", "height", "crown_radius")}
-        n_given = np.array(["yaw" in recipe.sites[r] for r in rows], dtype=bool)
+        yaw_given = np.array(["yaw" in recipe.sites[r] for r in rows], dtype=bool)
     else:
         cs = sample_cells(recipe, replicate, block, ring)
         sites, cell, rank = cs.sites, cs.cell, cs.rank
@@ -174,8 +174,8 @@ def local_sites(recipe, square: Square, replicate: int = 0) -> Local:
             "not supported"
         )
     pressure, away = pressed(crowding(sites.xy, crown, height))
-    if n_given is not None:  # a tree whose yaw the inventory gives keeps it
-        away = np.where(n_given, np.nan, away)
+    if yaw_given is not None:  # a tree whose yaw the inventory gives keeps it
+        away = np.where(yaw_given, np.nan, away)
     return Local(
         sites, own, cell, rank, block, dbh, height, crown, given["crown_radius"], pressure, away
     )
