@@ -19,7 +19,7 @@ def test_recipes_lists_every_shipped_forest_recipe(runner):
     assert "templates" not in names  # the template manifest is no forest
     assert [row["name"] for row in rows if row["default"]] == ["default"]
     one = next(row for row in rows if row["name"] == "stand-1ha")
-    assert one["description"].startswith("A 1 ha mixed stand (100 m x 100 m, about 540 trees)")
+    assert one["description"].startswith("A 1 ha mixed stand (100 m x 100 m, about 520 trees)")
     plain = runner.invoke(app, ["recipes"])
     assert plain.exit_code == 0 and "stand-1ha" in plain.stdout and "(default)" in plain.stdout
 
