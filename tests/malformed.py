@@ -817,6 +817,45 @@ def option_cases() -> list[Case]:
     ]
 
 
+def snapshot(folder: Path) -> set[str]:
+    """Every path under ``folder``."""
+    return {str(p.relative_to(folder)) for p in folder.rglob("*")}
+
+
+def check_case(case: Case, tmp_path: Path, monkeypatch, capfd) -> None:
+    """Run ``case`` in ``tmp_path`` as the console script does and assert what every case
+    must show: the exit code, no traceback, one ``error:`` line naming what it should,
+    nothing left behind, no payload run."""
+    import sys
+
+    import pytest
+
+    from usdforest.cli import main
+
+    for name, data in case.files.items():
+        (tmp_path / name).write_bytes(data)
+    if case.setup:
+        case.setup(tmp_path)
+    before = snapshot(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["usdforest", *case.argv])
+    with pytest.raises(SystemExit) as done:
+        main()
+    out, err = capfd.readouterr()
+    assert done.value.code == case.exit_code, (out, err)
+    assert "Traceback" not in err and "Traceback" not in out
+    if case.exit_code == 2:
+        lines = [line for line in err.splitlines() if line.strip()]
+        assert len(lines) == 1, err
+        assert lines[0].startswith("error: ") and "internal error" not in lines[0], lines[0]
+        assert case.mentions in lines[0], (case.mentions, lines[0])
+        assert "Warning" not in err
+        assert "allow_pickle" not in lines[0]  # no advice to load files unsafely
+    assert snapshot(tmp_path) == before, "something was left behind"
+    assert not (tmp_path / PAYLOAD).exists() and not Path(PAYLOAD).exists()
+    assert os.getcwd() == str(tmp_path)
+
+
 def corpus() -> list[Case]:
     return (
         cad_cases()

@@ -62,6 +62,69 @@ def settle(client, timeout: float = 30.0) -> None:
         time.sleep(0.1)
 
 
+CONNECT_TIMEOUT = 10.0  # seconds for a scheduler to answer
+WORKER_TIMEOUT = 30.0  # seconds for a scheduler to have a worker
+
+
+def scheduler_address(address: str) -> str:
+    """``address`` if it reads as a Dask scheduler's (``tcp://host:port``, ``tls://`` too;
+    ``host:port`` means tcp), else an error naming ``--scheduler``."""
+    import re
+
+    text = address.strip()
+    if "://" not in text:
+        text = "tcp://" + text
+    m = re.fullmatch(r"(tcp|tls)://([^\s/:]+|\[[0-9A-Fa-f:]+\]):(\d{1,5})", text)
+    if m is None or not 0 < int(m.group(3)) < 65536:
+        raise UsdForestError(
+            f"--scheduler: {address!r} is not a Dask scheduler's address (tcp://host:port, "
+            "e.g. tcp://10.0.0.5:8786)"
+        )
+    return text
+
+
+def connect(
+    address: str, timeout: float = CONNECT_TIMEOUT, workers_timeout: float = WORKER_TIMEOUT
+):
+    """A client of the scheduler at ``address`` that has at least one worker, or an error
+    naming ``--scheduler`` within about ``timeout + workers_timeout`` seconds: nothing
+    listening, something that is not a Dask scheduler (silent, or another protocol), a
+    scheduler without workers. The attempt runs in a daemon thread, so a peer that never
+    answers cannot hold the build."""
+    import threading
+
+    from distributed import Client
+
+    address = scheduler_address(address)
+    box: dict = {}
+
+    def attempt() -> None:
+        try:
+            box["client"] = Client(address, timeout=f"{timeout:g}s")
+        except BaseException as exc:  # reported below
+            box["error"] = exc
+
+    t = threading.Thread(target=attempt, daemon=True, name="usdforest-connect")
+    t.start()
+    t.join(timeout + 5.0)
+    if t.is_alive() or "client" not in box:
+        exc = box.get("error")
+        why = f"{type(exc).__name__}: {exc}".splitlines()[0][:160] if exc else "no answer"
+        raise UsdForestError(
+            f"--scheduler {address}: no Dask scheduler answered within {timeout:g} s ({why})"
+        )
+    client = box["client"]
+    try:
+        client.wait_for_workers(1, timeout=workers_timeout)
+    except Exception:
+        client.close()
+        raise UsdForestError(
+            f"--scheduler {address}: the scheduler has no workers (waited {workers_timeout:g} s); "
+            "start some with dask worker " + address
+        ) from None
+    return client
+
+
 @contextmanager
 def dask_client(workers: int, scheduler: str | None):
     """A dask.distributed client for a tiled build: the cluster at ``scheduler``, a local
@@ -81,10 +144,7 @@ def dask_client(workers: int, scheduler: str | None):
     logging.getLogger("distributed").setLevel(logging.ERROR)
     os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "error")  # (the workers too)
     if scheduler is not None:
-        try:
-            client = Client(scheduler, timeout="10s")
-        except (OSError, ValueError, TypeError) as exc:
-            raise UsdForestError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+        client = connect(scheduler)
         with client:
             yield client
         return

@@ -250,6 +250,11 @@ FOREST_KEYS = {
     "lod",
 }
 DEFAULT_MAX_TREES = 2_000_000
+# limits checked before any work (README, "Limits")
+MAX_CELLS = 4_000_000  # 250 m sampling cells: 250,000 km²
+MAX_TILES = 250_000  # payload tiles of a forest
+MIN_TILE, MAX_TILE = 1.0, 1_000_000.0  # metres
+MAX_MARGIN = 10_000.0  # metres of ground around the region
 # a recipe without [species.NAME] tables grows these presets (the default forest's), equally mixed
 DEFAULT_SPECIES = ("scots-pine", "norway-spruce", "european-beech", "silver-birch")
 DEFAULT_SIZE_CLASSES = 24
@@ -403,10 +408,18 @@ MIN_SLENDERNESS, MAX_SLENDERNESS = 20.0, 250.0  # height / DBH of any real tree
 
 
 def _parse_sites(
-    v: Any, names: tuple[str, ...], region: Any, where: str, species: dict | None = None
+    v: Any,
+    names: tuple[str, ...],
+    region: Any,
+    where: str,
+    species: dict | None = None,
+    labels: list[str] | None = None,
 ) -> tuple[dict, ...]:
+    """``[[sites]]`` rows checked; ``labels`` name each row in messages (a stem map's file
+    and line) instead of ``where[i]``."""
     out = []
-    for w, s in table_array(v, SITE_KEYS, where, required={"x", "y"}):
+    for i, (w, s) in enumerate(table_array(v, SITE_KEYS, where, required={"x", "y"})):
+        w = labels[i] if labels is not None else w
         site = {"x": _num(s.get("x"), f"{w}.x"), "y": _num(s.get("y"), f"{w}.y")}
         if "species" in s:
             if s["species"] not in names:
@@ -600,10 +613,12 @@ def parse_recipe(
         if "sites" in data:
             if "intensity" in data:
                 raise RecipeError("sites: give either explicit sites or an intensity, not both")
-            rows = data["sites"]
+            rows, labels = data["sites"], None
             if isinstance(rows, str):
+                name = Path(rows).name
                 rows = read_stem_map(base / rows, "sites")
-            sites = _parse_sites(rows, names, region, "sites", species)
+                labels = [f"sites: {name} line {k + 2}" for k in range(len(rows))]
+            sites = _parse_sites(rows, names, region, "sites", species, labels)
             intensity = None
         else:
             if "intensity" not in data:
@@ -612,7 +627,7 @@ def parse_recipe(
             intensity = parse_intensity(data["intensity"], region, base, "intensity")
         crs = _common_crs(
             [
-                ("crs", None if "crs" not in data else coerce(data["crs"], str, "crs")),
+                ("crs", data.get("crs")),
                 ("region.file", getattr(region, "crs", None)),
                 ("intensity.file", getattr(intensity, "crs", None)),
                 ("ground.file", (ground or {}).get("crs")),
@@ -647,14 +662,39 @@ def parse_recipe(
         expected = recipe.expected_trees()
     except RecipeError as exc:
         raise fail(exc) from None
+    if not math.isfinite(expected):
+        raise RecipeError(f"{source}: the intensity integrates to {expected} trees")
     if expected > max_trees:
         gib = expected * 120 / 2**30
+        count = f"{expected:,.0f}" if expected < 1e15 else f"{expected:.3g}"
         raise RecipeError(
-            f"{source}: the intensity expects {expected:,.0f} trees, more than forest.max_trees "
-            f"= {max_trees:,} (about {gib:.1f} GiB to build); raise forest.max_trees if you "
+            f"{source}: the intensity expects {count} trees, more than forest.max_trees "
+            f"= {max_trees:,} (about {gib:.3g} GiB to build); raise forest.max_trees if you "
             "mean it"
         )
+    _check_work(recipe, source)
     return recipe
+
+
+def _check_work(recipe: Recipe, source: str) -> None:
+    """The cells and tiles a build will make, within the stated limits (before any work)."""
+    from usdforest.sites.cells import CELL
+
+    x0, y0, x1, y1 = recipe.region.bounds
+    cells = math.ceil((x1 - x0) / CELL) * math.ceil((y1 - y0) / CELL)
+    if cells > MAX_CELLS:
+        raise RecipeError(
+            f"{source}: region: {(x1 - x0) / 1e3:.3g} km x {(y1 - y0) / 1e3:.3g} km makes "
+            f"{cells:.3g} sampling cells of {CELL:g} m, more than {MAX_CELLS:,} "
+            f"({MAX_CELLS * CELL**2 / 1e6:,.0f} km²); build it as several recipes"
+        )
+    if recipe.tiles is not None:
+        tiles = math.ceil((x1 - x0) / recipe.tiles) * math.ceil((y1 - y0) / recipe.tiles)
+        if tiles > MAX_TILES:
+            raise RecipeError(
+                f"{source}: tiles.size: {recipe.tiles:g} m tiles over the region make "
+                f"{tiles:,} tiles, more than {MAX_TILES:,}; use larger tiles"
+            )
 
 
 def _parse_tiles(t: Any) -> float | None:
@@ -666,46 +706,29 @@ def _parse_tiles(t: Any) -> float | None:
     check_keys(t, {"size"}, "tiles")
     if "size" not in t:
         raise RecipeError("tiles.size: missing (the side of a tile in metres)")
-    return _num(t["size"], "tiles.size", positive=True)
+    size = _num(t["size"], "tiles.size", positive=True)
+    if not MIN_TILE <= size <= MAX_TILE:
+        raise RecipeError(
+            f"tiles.size: {size:.3g} m is not a tile side (from {MIN_TILE:g} m to "
+            f"{MAX_TILE / 1e3:,.0f} km)"
+        )
+    return size
 
 
 def _common_crs(named: list[tuple[str, str | None]]) -> str | None:
     """The one CRS the recipe and its georeferenced files agree on (None if none names one):
-    the first named; any other that differs is an error naming both."""
-    given = [(k, c) for k, c in named if c]
+    each named one must be a projected CRS in metres (:func:`usdforest.sites.crs.check_crs`);
+    one that differs from the first is an error naming both."""
+    from usdforest.sites.crs import check_crs, same_crs
+
+    given = [(k, check_crs(c, k)) for k, c in named if c is not None]
     if not given:
         return None
     key, crs = given[0]
     for k, c in given[1:]:
-        if not _same_crs(crs, c):
+        if not same_crs(crs, c):
             raise RecipeError(f"{k}: the file is in {c}, but {key} says {crs}")
-    try:
-        from rasterio.crs import CRS
-    except ImportError:
-        return crs
-    try:
-        geographic = CRS.from_user_input(crs).is_geographic
-    except Exception as exc:  # rasterio's CRSError
-        raise RecipeError(f"{key}: {crs!r} is not a CRS rasterio knows: {exc}") from None
-    if geographic:
-        raise RecipeError(
-            f"{key}: {crs} is a geographic CRS (degrees); usdforest works in projected metres "
-            "(e.g. a UTM zone): reproject the inputs and name that CRS"
-        )
     return crs
-
-
-def _same_crs(a: str, b: str) -> bool:
-    if a == b:
-        return True
-    try:
-        from rasterio.crs import CRS
-    except ImportError:
-        return False
-    try:
-        return CRS.from_user_input(a) == CRS.from_user_input(b)
-    except Exception as exc:  # rasterio's CRSError
-        raise RecipeError(f"crs: cannot read {a!r} or {b!r} as a CRS: {exc}") from None
 
 
 def _parse_ground(t: Any, region: Any, base: Path) -> dict | None:
@@ -727,6 +750,10 @@ def _parse_ground(t: Any, region: Any, base: Path) -> dict | None:
     if kind == "none":
         return None
     margin = _num(t.get("margin", 0.0), "ground.margin", lo=0)
+    if margin > MAX_MARGIN:
+        raise RecipeError(
+            f"ground.margin: {margin:.3g} m is more than {MAX_MARGIN:,.0f} m around the region"
+        )
     color = coerce(t.get("color", [0.36, 0.30, 0.22]), tuple[float, float, float], "ground.color")
     if not all(math.isfinite(c) and 0 <= c <= 1 for c in color):
         raise RecipeError(f"ground.color: {list(color)} is outside 0..1 (linear RGB)")

@@ -6,6 +6,7 @@ Exit codes: 0 success, 1 a check failed (e.g. validation found errors), 2 bad in
 
 from __future__ import annotations
 
+import errno
 import functools
 import os
 import sys
@@ -108,6 +109,9 @@ def _shown(text: str) -> str:
     return " ".join(shown(line) for line in str(text).splitlines())
 
 
+FULL = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT}  # a write the disk refuses
+
+
 def handles_errors(fn: F) -> F:
     """Print a :class:`UsdForestError` as one line on stderr and exit with code 2."""
 
@@ -122,6 +126,17 @@ def handles_errors(fn: F) -> F:
             raise typer.Exit(2) from None
         except MemoryError:
             err.print("[bold red]error:[/] out of memory", markup=True)
+            raise typer.Exit(2) from None
+        except OSError as exc:
+            if exc.errno not in FULL:
+                raise
+            where = f"{Path(exc.filename).name}: " if exc.filename else ""
+            err.print(
+                f"[bold red]error:[/] {escape(where)}{escape(exc.strerror or str(exc))} "
+                "(nothing was replaced)",
+                markup=True,
+                highlight=False,
+            )
             raise typer.Exit(2) from None
 
     return wrapper  # type: ignore[return-value]

@@ -76,7 +76,7 @@ def scan_cmd(
     from usdforest.sensors import camera, lidar, sonar
     from usdforest.sensors.pose import parse_pose
     from usdforest.sensors.scene import class_counts
-    from usdforest.sensors.survey import SENSORS, scan, sensor_settings
+    from usdforest.sensors.survey import SENSORS, scan, sensor_settings, sensor_table
 
     if sensor not in SENSORS:
         raise UsdForestError(f"--sensor: {sensor!r} is not lidar, sonar or camera")
@@ -102,7 +102,7 @@ def scan_cmd(
     if config is not None:
         data = load_toml(config)
         check_keys(data, {sensor}, str(config))
-        table = dict(data.get(sensor, {}))
+        table = sensor_table(data.get(sensor), sensor, str(config))
     if occlusion and sensor == "sonar":
         table["occlusion"] = True
     settings = sensor_settings(sensor, name, table, where=str(config) if config else "")
@@ -222,6 +222,14 @@ def fly_cmd(
         int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise and ground roughness.")
     ] = 0,
     force: Annotated[bool, typer.Option("--force", help="Overwrite the outputs.")] = False,
+    long: Annotated[
+        bool,
+        typer.Option(
+            "--long",
+            help="Fly beyond the work limits (1e9 lidar rays, 20,000 sonar pulses or camera "
+            "frames).",
+        ),
+    ] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
     as_json: SummaryJsonOption = False,
 ) -> None:
@@ -236,7 +244,13 @@ def fly_cmd(
     from usdforest.config import check_keys, load_toml
     from usdforest.sensors import camera, flight
     from usdforest.sensors.scene import class_counts
-    from usdforest.sensors.survey import flight_settings, fly, trajectory
+    from usdforest.sensors.survey import (
+        check_work,
+        flight_settings,
+        fly,
+        planned_work,
+        trajectory,
+    )
 
     if (path is None) == (line is None):
         raise UsdForestError("give the flight as --path CSV or as --line x0,y0,z0:x1,y1,z1")
@@ -256,8 +270,9 @@ def fly_cmd(
     lidar_cfg, sonar_cfg, camera_cfg = flight_settings(
         lidar_preset, sonar_preset, camera_preset, tables, where=str(config) if config else ""
     )
+    check_work(planned_work(traj, lidar_cfg, sonar_cfg, camera_cfg, lidar_rate, camera_rate), long)
     if camera_cfg is not None:
-        camera.frame_times(camera_cfg, traj, camera_rate)  # checks the rate and the memory
+        camera.frame_times(camera_cfg, traj, camera_rate)  # checks the memory
     las = output.with_name(output.name + ".las")
     trajectory_csv = output.with_name(output.name + "_trajectory.csv")
     echo_stem = output.with_name(output.name + "_sonar")
@@ -284,7 +299,7 @@ def fly_cmd(
         done = fly(
             stage, path=traj, lidar=lidar_cfg, sonar=sonar_cfg, camera=camera_cfg,
             lidar_rate=lidar_rate, camera_rate=camera_rate, seed=seed, progress=tick,
-            warn=lambda w: err.print(f"warning: {w}", highlight=False),
+            warn=lambda w: err.print(f"warning: {w}", highlight=False), long=long,
         )  # fmt: skip
         staged = tmp / output.name
         if (r := done.lidar) is not None:

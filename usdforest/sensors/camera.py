@@ -219,15 +219,15 @@ def frame_times(cam: DepthCamera, traj, rate: float) -> np.ndarray:
     cam.check()
     if not 0 < rate <= 120:
         raise UsdForestError(f"--camera-rate: must be in (0, 120] frames per second, got {rate:g}")
-    times = traj.t[0] + np.arange(0.0, traj.duration + 1e-12, 1.0 / rate)
-    need = len(times) * cam.height * cam.width * BYTES_PER_PIXEL
+    count = math.floor(traj.duration * rate) + 1
+    need = count * cam.height * cam.width * BYTES_PER_PIXEL
     if need > MAX_FRAME_BYTES:
         raise UsdForestError(
-            f"--camera-rate: {len(times)} frames of {cam.width} x {cam.height} would hold "
+            f"--camera-rate: {count:,} frames of {cam.width} x {cam.height} would hold "
             f"{need / 2**30:.1f} GiB (at most {MAX_FRAME_BYTES / 2**30:.0f}); lower the rate or "
             "the resolution, or fly in parts"
         )
-    return times
+    return traj.t[0] + np.arange(0.0, traj.duration + 1e-12, 1.0 / rate)
 
 
 def fly_camera(

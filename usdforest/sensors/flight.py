@@ -33,6 +33,9 @@ from usdforest.sensors.raycast import SceneCaster
 from usdforest.sensors.scene import CLASSES, Scene
 from usdforest.sensors.sonar import SonarConfig, SonarScene
 
+MAX_COORDINATE = 1e8  # stage units: no flight goes further
+MAX_ANGLE = 3600.0  # degrees of yaw, pitch or roll in a path (ten turns)
+
 # ASPRS LAS classes for our semantic classes: unclassified, high vegetation (trunk, branch,
 # leaf) and ground; our own class is kept in the extra dimension "usdforest_class"
 ASPRS = {"unknown": 1, "trunk": 5, "branch": 5, "leaf": 5, "ground": 2}
@@ -57,6 +60,10 @@ class Trajectory:
             raise UsdForestError("path: times must be finite and strictly increasing")
         if not np.all(np.isfinite(self.position)):
             raise UsdForestError("path: positions must be finite")
+        for name in ("yaw", "pitch", "roll"):
+            a = getattr(self, name)
+            if a is not None and not np.all(np.isfinite(a)):
+                raise UsdForestError(f"path: {name} must be finite")
 
     @property
     def duration(self) -> float:
@@ -66,6 +73,10 @@ class Trajectory:
     def line(start, end, speed: float) -> Trajectory:
         """From ``start`` to ``end`` (x, y, z) at ``speed`` m/s."""
         a, b = np.asarray(start, dtype=float), np.asarray(end, dtype=float)
+        if not (np.all(np.isfinite([a, b])) and np.abs([a, b]).max() <= MAX_COORDINATE):
+            raise UsdForestError(
+                f"--line: the ends must be finite and within {MAX_COORDINATE:.0e} stage units"
+            )
         length = float(np.linalg.norm(b - a))
         if not speed > 0 or not math.isfinite(speed):
             raise UsdForestError(f"--speed: must be > 0 m/s, got {speed:g}")
@@ -104,25 +115,40 @@ class Trajectory:
 def read_path(path: Path) -> Trajectory:
     """A CSV with a header: ``t,x,y,z`` and optionally ``yaw,pitch,roll`` (degrees)."""
     require_file(path, "path")
-    with path.open(newline="") as f:
-        rows = list(csv.DictReader(f))
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError:
+        raise UsdForestError(
+            f"{path}: not UTF-8 text (expected a CSV t,x,y,z[,yaw,pitch,roll])"
+        ) from None
+    rows = list(csv.DictReader(text.splitlines()))
     if not rows:
         raise UsdForestError(f"{path}: no poses (expected a header t,x,y,z[,yaw,pitch,roll])")
     cols = set(rows[0])
     if not {"t", "x", "y", "z"} <= cols:
-        raise UsdForestError(f"{path}: needs columns t,x,y,z (has {', '.join(sorted(cols))})")
+        shown = ", ".join(sorted(str(c) for c in cols))
+        raise UsdForestError(f"{path}: needs columns t,x,y,z (has {shown})")
+    angles = ("yaw", "pitch", "roll") if "yaw" in cols else ()
+    values = []
+    for line, r in enumerate(rows, 2):
+        if None in r or None in r.values():
+            raise UsdForestError(f"{path}: line {line}: wrong number of fields")
+        try:
+            values.append([float(r[k]) for k in "txyz"] + [float(r.get(k) or 0.0) for k in angles])
+        except ValueError as exc:
+            raise UsdForestError(f"{path}: line {line}: {exc}") from None
+    v = np.array(values)
+    bad = ~np.isfinite(v)
+    if bad.any():
+        line, col = (int(i) for i in np.argwhere(bad)[0])
+        name = ("t", "x", "y", "z", *angles)[col]
+        raise UsdForestError(f"{path}: line {line + 2}: {name} is {v[line, col]}, not a number")
+    if np.abs(v[:, 1:4]).max() > MAX_COORDINATE:
+        raise UsdForestError(f"{path}: positions beyond {MAX_COORDINATE:.0e} stage units")
+    if angles and np.abs(v[:, 4:]).max() > MAX_ANGLE:
+        raise UsdForestError(f"{path}: yaw, pitch and roll must lie within ±{MAX_ANGLE:g} degrees")
     try:
-        t = np.array([float(r["t"]) for r in rows])
-        xyz = np.array([[float(r[k]) for k in "xyz"] for r in rows])
-        angles = (
-            [np.array([float(r.get(k) or 0.0) for r in rows]) for k in ("yaw", "pitch", "roll")]
-            if "yaw" in cols
-            else [None, None, None]
-        )
-    except ValueError as exc:
-        raise UsdForestError(f"{path}: {exc}") from None
-    try:
-        return Trajectory(t, xyz, *angles)
+        return Trajectory(v[:, 0], v[:, 1:4], *(v[:, 4 + k] if angles else None for k in range(3)))
     except UsdForestError as exc:
         raise UsdForestError(f"{path}: {exc}") from None
 

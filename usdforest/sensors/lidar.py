@@ -50,8 +50,8 @@ class SpinningLidar:
     return_separation: float = 1.0
 
     def check(self) -> None:
-        if self.channels < 1:
-            raise UsdForestError("lidar.channels: need at least 1 channel")
+        if not 1 <= self.channels <= 1024:
+            raise UsdForestError("lidar.channels: must be 1 to 1024")
         if not (np.isfinite(self.divergence) and 0 <= self.divergence <= 100):
             raise UsdForestError("lidar.divergence: must be in [0, 100] milliradians")
         if not 0 <= self.beam_rings <= 8:
@@ -64,8 +64,8 @@ class SpinningLidar:
             raise UsdForestError("lidar.max_returns: must be 1 to 15 (LAS 1.4 holds 15)")
         if not (np.isfinite(self.return_separation) and self.return_separation > 0):
             raise UsdForestError("lidar.return_separation: must be a finite number of metres > 0")
-        if not 0 < self.azimuth_step <= 360:
-            raise UsdForestError("lidar.azimuth_step: must be in (0, 360] degrees")
+        if not 0.01 <= self.azimuth_step <= 360:
+            raise UsdForestError("lidar.azimuth_step: must be in [0.01, 360] degrees")
         if not -90 <= self.vfov_min <= self.vfov_max <= 90:
             raise UsdForestError("lidar.vfov_min/vfov_max: need -90 <= min <= max <= 90")
         _check_common(self.max_range, self.range_noise)

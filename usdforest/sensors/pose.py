@@ -59,6 +59,6 @@ def parse_pose(text: str) -> Pose:
         raise UsdForestError(
             f"--pose: expected 3 to 6 numbers x,y,z[,yaw,pitch,roll], got {len(v)}"
         )
-    if not all(math.isfinite(x) for x in v):
-        raise UsdForestError(f"--pose: values must be finite, got {text!r}")
+    if not all(math.isfinite(x) for x in v) or max(abs(x) for x in v[:3]) > 1e8:
+        raise UsdForestError(f"--pose: values must be finite (x, y, z within 1e8), got {text!r}")
     return Pose(*v)

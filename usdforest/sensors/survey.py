@@ -8,6 +8,7 @@ the results are in metres, Z up (the sensors' frame)."""
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -34,6 +35,20 @@ CAMERA_MODULE = camera  # fly() names its camera settings `camera`
 Progress = Callable[[str, int, int], None]
 
 
+def sensor_table(value: Any, sensor: str, where: str = "") -> dict:
+    """A config file's ``[sensor]`` table as a dict (None: empty); anything else is an error
+    naming the file and the table."""
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        label = f"{where}: {sensor}" if where else sensor
+        raise UsdForestError(
+            f"{label}: expected a table ([{sensor}] with its settings), got "
+            f"{type(value).__name__} {value!r}"[:200]
+        )
+    return dict(value)
+
+
 def sensor_settings(
     sensor: str,
     preset: str | None = None,
@@ -53,8 +68,8 @@ def sensor_settings(
     if name not in presets:
         raise UsdForestError(f"unknown {sensor} preset {name!r}; known: " + ", ".join(presets))
     settings = presets[name]
-    table = dict(table or {})
     label = f"{where}: {sensor}" if where else sensor
+    table = sensor_table(table, sensor, where)
     if sensor == "camera":
         camera.refuse_lidar_keys(table, where or "settings")
     if sensor == "lidar" and table.get("kind") not in (None, settings.kind):
@@ -215,6 +230,58 @@ def flight_settings(
     return out[0], out[1], out[2]
 
 
+# planned work a flight refuses without ``long`` (README, "Limits")
+MAX_LIDAR_RAYS = 1e9  # about an hour of a VLP-16 (300,000 rays a second)
+MAX_SONAR_PULSES = 20_000  # about 17 minutes at 20 pulses a second
+MAX_CAMERA_FRAMES = 20_000
+
+
+def planned_work(
+    traj: flight.Trajectory,
+    lidar: Any,
+    sonar: Any,
+    camera: Any,
+    lidar_rate: float = 10.0,
+    camera_rate: float = 2.0,
+) -> dict[str, float]:
+    """What a flight will compute: lidar rays (sub-rays of a beam counted), sonar pulses and
+    camera frames, from the settings alone; the rates are checked here."""
+    out: dict[str, float] = {}
+    d = traj.duration
+    if lidar is not None:
+        if not (math.isfinite(lidar_rate) and 0 < lidar_rate <= 100):
+            raise UsdForestError(f"--lidar-rate: must be in (0, 100] Hz, got {lidar_rate:g}")
+        k = getattr(lidar, "beam_rings", 0)
+        per_sweep = lidar.channels * math.ceil(360.0 / lidar.azimuth_step) * (1 + 3 * k * (k + 1))
+        out["lidar rays"] = math.ceil(d * lidar_rate) * per_sweep
+    if sonar is not None:
+        out["sonar pulses"] = math.floor(d * sonar.pulse_rate) + 1
+    if camera is not None:
+        if not (math.isfinite(camera_rate) and 0 < camera_rate <= 120):
+            raise UsdForestError(
+                f"--camera-rate: must be in (0, 120] frames per second, got {camera_rate:g}"
+            )
+        out["camera frames"] = math.floor(d * camera_rate) + 1
+    return out
+
+
+def check_work(work: Mapping[str, float], long: bool = False) -> None:
+    """Refuse planned work beyond the limits unless ``long``."""
+    limits = {
+        "lidar rays": MAX_LIDAR_RAYS,
+        "sonar pulses": MAX_SONAR_PULSES,
+        "camera frames": MAX_CAMERA_FRAMES,
+    }
+    for what, n in work.items():
+        if n > limits[what] and not long:
+            sensor = what.split()[0]
+            count = f"{n:,.0f}" if n < 1e15 else f"{n:.3g}"
+            raise UsdForestError(
+                f"--{sensor}: the flight plans {count} {what}, more than {limits[what]:,.0f}; "
+                "fly it in parts, or pass --long to fly it anyway"
+            )
+
+
 def fly(
     stage: str | Path,
     *,
@@ -230,21 +297,24 @@ def fly(
     seed: int = 0,
     progress: Progress | None = None,
     warn: Callable[[str], None] | None = None,
+    long: bool = False,
 ) -> Flight:
     """Fly a lidar, a sonar and a camera through ``stage`` along ``path`` (a
     :class:`~usdforest.sensors.flight.Trajectory`, or a CSV of poses) or a straight ``line``
     at ``speed`` (see :func:`trajectory`). Each sensor is a preset's name, a settings object
     or None (see :func:`flight_settings`); ``progress(stage, done, total)`` after each sweep,
     pulse and frame; ``warn(message)`` as soon as a warning is known (they are in the
-    result's ``warnings`` too)."""
+    result's ``warnings`` too). Work beyond the limits (:func:`check_work`) is refused unless
+    ``long``."""
     traj = (
         path
         if isinstance(path, flight.Trajectory)
         else trajectory(stage, path=path, line=line, speed=speed)
     )
     lidar, sonar, camera = flight_settings(lidar, sonar, camera, tables)
+    check_work(planned_work(traj, lidar, sonar, camera, lidar_rate, camera_rate), long)
     if camera is not None:
-        CAMERA_MODULE.frame_times(camera, traj, camera_rate)  # checks the rate and the memory
+        CAMERA_MODULE.frame_times(camera, traj, camera_rate)  # checks the memory
     tick = progress or (lambda stage, done, total: None)
     t0 = time.perf_counter()
     reach = max(c.max_range for c in (lidar, sonar, camera) if c is not None)

@@ -28,6 +28,9 @@ GRID = 512  # quadrature grid per axis for integrals and bounds
 # --------------------------------------------------------------------------- regions
 
 
+MAX_COORDINATE = 1e8  # metres: no projected CRS reaches further
+
+
 @dataclass(frozen=True)
 class Rectangle:
     """An axis-aligned rectangle ``[x0, x1] x [y0, y1]`` in metres."""
@@ -39,8 +42,11 @@ class Rectangle:
 
     def __post_init__(self) -> None:
         vals = (self.x0, self.y0, self.x1, self.y1)
-        if not all(math.isfinite(v) for v in vals):
-            raise RecipeError(f"region: bounds must be finite numbers, got {list(vals)}")
+        if not all(math.isfinite(v) and abs(v) <= MAX_COORDINATE for v in vals):
+            raise RecipeError(
+                f"region: bounds must be finite numbers within {MAX_COORDINATE:.0e} m, got "
+                f"{list(vals)}"
+            )
         if not (self.x1 > self.x0 and self.y1 > self.y0):
             raise RecipeError(
                 f"region: bounds [x0, y0, x1, y1] = {list(vals)} are empty (need x1 > x0, y1 > y0)"
@@ -72,8 +78,10 @@ class Polygon:
         v = np.asarray(self.vertices, dtype=float)
         if v.ndim != 2 or v.shape[1] != 2 or len(v) < 3:
             raise RecipeError("region.vertices: a polygon needs at least 3 [x, y] vertices")
-        if not np.all(np.isfinite(v)):
-            raise RecipeError("region.vertices: vertices must be finite numbers")
+        if not np.all(np.isfinite(v)) or np.abs(v).max() > MAX_COORDINATE:
+            raise RecipeError(
+                f"region.vertices: vertices must be finite numbers within {MAX_COORDINATE:.0e} m"
+            )
         if np.allclose(v[0], v[-1]) and len(v) > 3:
             v = v[:-1]
         crossing = _self_intersection(v)
@@ -164,6 +172,8 @@ def read_shape(path: Path, where: str) -> Shape:
         raise RecipeError(f"{where}: {exc}") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise RecipeError(f"{where}: {path.name} is not GeoJSON: {exc}") from None
+    except RecursionError:
+        raise RecipeError(f"{where}: {path.name} is nested too deeply to be a stand") from None
     if not isinstance(data, dict):
         raise RecipeError(f"{where}: {path.name} is not a GeoJSON object")
     polys = []
@@ -187,15 +197,25 @@ def read_shape(path: Path, where: str) -> Shape:
             except Exception as exc:
                 raise RecipeError(f"{where}: {path.name} has a malformed polygon: {exc}") from None
 
-    walk(data)
+    try:
+        walk(data)
+    except RecursionError:
+        raise RecipeError(f"{where}: {path.name} is nested too deeply to be a stand") from None
     geometry = _union(polys, path, where)
     crs = _geojson_crs(data.get("crs"), path, where)
     x0, y0, x1, y1 = geometry.bounds
-    if crs is None and -180 <= x0 <= x1 <= 180 and -90 <= y0 <= y1 <= 90 and x1 - x0 < 5:
+    lonlat = -180 <= x0 <= x1 <= 180 and -90 <= y0 <= y1 <= 90
+    # (in metres such a file would be a plot narrower than 5 m or smaller than 1 ha)
+    if crs is None and lonlat and (x1 - x0 < 5 or geometry.area < 1e4):
         raise RecipeError(
             f"{where}: {path.name} names no CRS and its coordinates look like degrees "
             "(GeoJSON without a crs member is longitude/latitude, RFC 7946); usdforest needs "
             "projected metres: reproject it (e.g. ogr2ogr -t_srs EPSG:32633) and name the CRS"
+        )
+    if max(abs(v) for v in (x0, y0, x1, y1)) > MAX_COORDINATE:
+        raise RecipeError(
+            f"{where}: {path.name} has coordinates beyond {MAX_COORDINATE:.0e} m "
+            f"(bounds {[float(f'{v:.3g}') for v in (x0, y0, x1, y1)]})"
         )
     return Shape(geometry, path.name, crs)
 
@@ -529,6 +549,14 @@ def load_raster(
                 f"{where}: {path.name} covers {list(geo.extent)}, not the region "
                 f"{list(bounds)} (coordinates in the raster's CRS, {geo.crs or 'none given'})"
             )
+        valid = np.isfinite(geo.values)
+        if not valid.any():
+            raise RecipeError(
+                f"{where}: {path.name} has no valid cell over the region (every cell is "
+                "no-data or NaN)"
+            )
+        if np.isinf(geo.values).any():
+            raise RecipeError(f"{where}: {path.name} has infinite intensities")
         values = np.nan_to_num(geo.values, nan=0.0) * (1.0 if peak is None else peak)
         return Raster(values, geo.bounds, path.name, geo.crs)
     if path.suffix.lower() == ".npy":

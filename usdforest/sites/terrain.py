@@ -97,6 +97,9 @@ class HeightField:
         return pts, tri
 
 
+MAX_ELEVATION = 12_000.0  # metres: below the deepest trench and above Everest
+
+
 def load_height_field(
     path: Path,
     bounds: tuple[float, float, float, float],
@@ -138,4 +141,9 @@ def load_height_field(
     if not np.all(np.isfinite(z)):
         bad = int(np.count_nonzero(~np.isfinite(z)))
         raise RecipeError(f"{where}: {path.name} has {bad} missing or non-finite elevations")
+    if np.abs(z).max() > MAX_ELEVATION:
+        raise RecipeError(
+            f"{where}: {path.name} has elevations up to {np.abs(z).max():.3g} m; the Earth's lie "
+            f"within {MAX_ELEVATION:,.0f} m of sea level (wrong units or a no-data value?)"
+        )
     return HeightField(z, bounds)

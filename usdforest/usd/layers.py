@@ -112,9 +112,17 @@ def save_layer(layer: Sdf.Layer, path: str | Path) -> Path:
 
     The file format follows the extension (``.usda`` text, ``.usdc`` crate).
     """
+    from pxr import Tf
+
     path = Path(path)
     with atomic_path(path) as tmp:
-        if not layer.Export(str(tmp)):
+        try:
+            ok = layer.Export(str(tmp))
+        except Tf.ErrorException as exc:  # e.g. a full disk: USD reports the OS's error
+            reasons = re.findall(r"Error occurred writing file: ([^'\n]*)", str(exc))
+            why = reasons[0].strip() if reasons else str(exc).strip().splitlines()[0][:120]
+            raise UsdForestError(f"{path.name}: could not write the layer ({why})") from None
+        if not ok:
             raise UsdForestError(f"{path}: could not write the layer")
     return path
 

@@ -1,0 +1,219 @@
+"""Issue 26: bad input on the newer surfaces never crashes. Every case of
+``tests/malformed_geo.py`` (rasters, stands, CRSs, tiles, Dask options, flights, configs,
+cameras) ends in one clean line; a Dask scheduler that is silent, not Dask, or without
+workers ends the build with one line; Ctrl-C and SIGKILL during a tiled Dask build leave
+nothing but the staging folder the next build removes; a disk that fills during a build
+leaves the previous forest as it was."""
+
+from __future__ import annotations
+
+import http.server
+import json
+import os
+import resource
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from malformed import Case, check_case, snapshot
+from malformed_geo import corpus
+
+from usdforest.usd.validate import validate
+
+pytest.importorskip("rasterio", reason="the GeoTIFF cases need rasterio (usdforest[geo])")
+
+CASES = corpus()
+SCRIPT = Path(sys.executable).parent / "usdforest"
+TILED = """seed = 1
+[region]
+bounds = [0, 0, 200, 200]
+[intensity]
+kind = "constant"
+value = 0.05
+[species.pine]
+[tiles]
+size = 50
+"""
+
+
+def test_the_corpus_is_large_and_covers_every_category():
+    assert len(CASES) >= 300
+    assert {c.category for c in CASES} == {
+        "rasters",
+        "CRSs",
+        "stands",
+        "tiles",
+        "Dask",
+        "flights",
+        "configs",
+        "cameras",
+    }
+
+
+@pytest.mark.parametrize("case", CASES, ids=[f"{c.category}: {c.name}" for c in CASES])
+def test_bad_input_gives_one_clean_line(case: Case, tmp_path, monkeypatch, capfd):
+    check_case(case, tmp_path, monkeypatch, capfd)
+
+
+def _run(args: list[str], cwd: Path, **kw) -> subprocess.CompletedProcess:
+    command = [str(SCRIPT)] if SCRIPT.exists() else [sys.executable, "-m", "usdforest.entry"]
+    return subprocess.run(
+        [*command, *args], cwd=cwd, capture_output=True, text=True, check=False, **kw
+    )
+
+
+def _one_line(r: subprocess.CompletedProcess, mentions: str) -> None:
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert lines[0].startswith("error: ") and mentions in lines[0], lines[0]
+
+
+def _silent_server() -> int:
+    """A TCP server that accepts connections and never says a word."""
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    s.listen(8)
+    held = []
+
+    def serve() -> None:
+        while True:
+            held.append(s.accept()[0])
+
+    threading.Thread(target=serve, daemon=True).start()
+    return s.getsockname()[1]
+
+
+def _http_server() -> int:
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args) -> None:
+            pass
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Quiet)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    return srv.server_address[1]
+
+
+@pytest.mark.parametrize("peer", ["silent", "http"])
+def test_a_scheduler_that_is_not_dask_ends_the_build_in_one_line(tmp_path, peer):
+    """Within the connect timeout (10 s, and 5 s of grace; the subprocess is given 120 s so
+    a busy machine cannot fail it): exit 2, one line, nothing written."""
+    pytest.importorskip("distributed")
+    (tmp_path / "r.toml").write_text(TILED)
+    port = _silent_server() if peer == "silent" else _http_server()
+    r = _run(
+        ["build", "f.usda", "-p", "r.toml", "-q", "--scheduler", f"tcp://127.0.0.1:{port}"],
+        tmp_path,
+        timeout=120,
+    )
+    _one_line(r, "no Dask scheduler answered")
+    assert snapshot(tmp_path) == {"r.toml"}
+
+
+def test_a_scheduler_without_workers_ends_the_build_in_one_line(tmp_path):
+    pytest.importorskip("distributed")
+    (tmp_path / "r.toml").write_text(TILED)
+    exe = Path(sys.executable).parent / "dask"
+    if not exe.is_file():
+        pytest.skip("the dask command is not installed beside this Python")
+    info = tmp_path / "s.json"
+    sched = subprocess.Popen(
+        [str(exe), "scheduler", "--port", "0", "--scheduler-file", str(info), "--no-dashboard",
+         "--host", "127.0.0.1"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while not info.is_file() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        address = json.loads(info.read_text())["address"]
+        r = _run(
+            ["build", "f.usda", "-p", "r.toml", "-q", "--scheduler", address], tmp_path, timeout=180
+        )
+    finally:
+        sched.terminate()
+        sched.wait(timeout=30)
+    _one_line(r, "has no workers")
+    assert snapshot(tmp_path) - {"s.json"} == {"r.toml"}  # (the scheduler removes its file)
+
+
+def _tiled_build(tmp_path: Path) -> subprocess.Popen:
+    (tmp_path / "r.toml").write_text(TILED.replace("value = 0.05", "value = 0.4"))
+    command = [str(SCRIPT)] if SCRIPT.exists() else [sys.executable, "-m", "usdforest.entry"]
+    return subprocess.Popen(
+        [*command, "build", "f.usda", "-p", "r.toml", "--workers", "2", "--no-thumbnail"],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,
+    )  # fmt: skip
+
+
+def _wait_for_tiles(p: subprocess.Popen, tmp_path: Path) -> bool:
+    """Until the build's tasks are writing tiles into its staging folder."""
+    deadline = time.monotonic() + 180
+    while p.poll() is None and time.monotonic() < deadline:
+        if list(tmp_path.glob(".f.build-*/f_assets/tiles")):
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def test_ctrl_c_during_a_tiled_dask_build_leaves_nothing(tmp_path):
+    pytest.importorskip("distributed")
+    p = _tiled_build(tmp_path)
+    if not _wait_for_tiles(p, tmp_path):
+        p.communicate(timeout=120)
+        pytest.skip("the build finished before its tiles could be interrupted")
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=180)
+    assert p.returncode == 130, err
+    assert err.strip().splitlines()[-1] == "error: interrupted" and "Traceback" not in err, err
+    assert snapshot(tmp_path) == {"r.toml"}
+
+
+def test_sigkill_during_a_tiled_dask_build_leaves_the_folder_the_next_build_removes(tmp_path):
+    pytest.importorskip("distributed")
+    p = _tiled_build(tmp_path)
+    if not _wait_for_tiles(p, tmp_path):
+        p.communicate(timeout=120)
+        pytest.skip("the build finished before its tiles could be killed")
+    os.killpg(p.pid, signal.SIGKILL)  # the client and its local cluster's processes
+    p.communicate(timeout=60)
+    left = snapshot(tmp_path) - {"r.toml"}
+    assert left and all(x.startswith(".f.build-") for x in left), left
+    r = _run(["build", "f.usda", "-p", "r.toml", "-q", "--no-thumbnail"], tmp_path, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert not list(tmp_path.glob(".f.build-*"))
+    assert validate(tmp_path / "f.usda") == []
+
+
+def _limit_file_size(limit: int):
+    def apply() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past it fails with EFBIG
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    return apply
+
+
+def test_a_disk_that_fills_during_a_build_leaves_the_previous_forest(tmp_path):
+    """The operating system refuses a write (a file-size limit: EFBIG, as ENOSPC on a full
+    disk) while ``build --force`` replaces a forest: exit 2, one line, and every file of the
+    previous forest byte for byte as it was."""
+    (tmp_path / "r.toml").write_text(TILED.replace("[tiles]\nsize = 50\n", ""))
+    r = _run(["build", "f.usda", "-p", "r.toml", "-q", "--no-thumbnail"], tmp_path, timeout=600)
+    assert r.returncode == 0, r.stderr
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    command = [str(SCRIPT)] if SCRIPT.exists() else [sys.executable, "-m", "usdforest.entry"]
+    r = subprocess.run(
+        [*command, "build", "f.usda", "-p", "r.toml", "-q", "--force", "--seed", "2"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=600,
+        preexec_fn=_limit_file_size(64 * 1024),
+    )  # fmt: skip
+    _one_line(r, "")
+    assert "Traceback" not in r.stderr
+    after = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    assert after == before
+    assert validate(tmp_path / "f.usda") == []
