@@ -450,6 +450,11 @@ def tile_cases() -> list[Case]:
     out[-1] = _build("tiles", "tiles a string", 'tiles = "500"\n' + BASE, "tiles")
     out.append(_build("tiles", "tiles an array", "tiles = [500]\n" + BASE, "tiles"))
     tiled = BASE + "[tiles]\nsize = 50\n"
+    for n in (300, 250, 230):
+        argv = ("build", "t" * n + ".usda", "-p", "r.toml", "-q")
+        out.append(
+            Case("tiles", f"a {n}-character output name", argv, _recipe(tiled), mentions="name")
+        )
     for opt, value, m in (
         ("--workers", "0", "--workers"),
         ("--workers", "-2", "--workers"),

@@ -53,12 +53,24 @@ def require_file(path: str | Path, what: str = "file", error: type = UsdForestEr
     return path
 
 
+# bytes a name needs to spare for the names made from it (.<stem>.build-XXXXXXXX, <stem>_assets,
+# a temporary .<name>.XXXXXXXX.tmp)
+NAME_ROOM = 32
+NAME_MAX = 255  # bytes in a file name on Linux, macOS and Windows file systems
+
+
 def require_output(path: str | Path, what: str = "output") -> Path:
     """Refuse an output path that cannot become a file: an existing directory, ``.``, a path
     under a file, or a folder that cannot be written (checked before any work starts)."""
     path = Path(path)
     if str(path) in ("", ".", "..") or path.name in ("", ".", ".."):
         raise UsdForestError(f"{shown(path)}: the {what} must be a file name, not a folder")
+    size = len(path.name.encode())
+    if size + NAME_ROOM > NAME_MAX or any(len(p.encode()) > NAME_MAX for p in path.parts):
+        raise UsdForestError(
+            f"{shown(path.name[:40])}...: a {size}-byte file name; the names made beside it "
+            f"need it under {NAME_MAX - NAME_ROOM + 1} bytes"
+        )
     if path.is_dir():
         raise UsdForestError(f"{shown(path)}: is a directory; the {what} must be a file")
     if path.exists() and not path.is_file() and not path.is_symlink():
