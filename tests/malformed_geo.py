@@ -305,7 +305,7 @@ def stand_cases() -> list[Case]:
     poly = lambda coords: json.dumps({"type": "Polygon", "coordinates": coords}).encode()  # noqa: E731
     shapes = {
         "degrees spanning 10": _square_geojson(5.0, 45.0, 10.0),
-        "degrees spanning 60": _square_geojson(-30.0, 0.0, 60.0),
+        "degrees spanning 30": _square_geojson(-15.0, 0.0, 30.0),
         "degrees spanning 0.01": _square_geojson(12.0, 50.0, 0.01),
         "nested 100,000 deep": _nested(100_000),
         "nested 2,000 deep": _nested(2_000),

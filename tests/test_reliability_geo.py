@@ -217,3 +217,48 @@ def test_a_disk_that_fills_during_a_build_leaves_the_previous_forest(tmp_path):
     after = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
     assert after == before
     assert validate(tmp_path / "f.usda") == []
+
+
+def test_an_empty_forest_of_allometric_species_builds(tmp_path):
+    """No site at all: each allometric species still grows its variants (before, the build
+    stopped with an internal error)."""
+    (tmp_path / "r.toml").write_text(
+        'seed = 1\n[region]\nbounds = [0, 0, 10, 10]\n[intensity]\nkind = "constant"\n'
+        'value = 0\n[species.pine]\npreset = "scots-pine"\n'
+    )
+    r = _run(
+        ["build", "f.usda", "-p", "r.toml", "-q", "--no-thumbnail", "--json"], tmp_path, timeout=600
+    )
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["trees"] == 0
+    assert validate(tmp_path / "f.usda") == []
+
+
+def test_a_crs_is_metres_by_its_unit_not_its_spelling():
+    """A UTM zone whose WKT spells its unit "Meter" is metres; one in US feet is not."""
+    pytest.importorskip("pyproj")
+    from pyproj import CRS
+
+    from usdforest.errors import RecipeError
+    from usdforest.sites.crs import check_crs
+
+    wkt = CRS.from_epsg(32633).to_wkt(version="WKT1_GDAL").replace('"metre"', '"Meter"')
+    assert '"Meter"' in wkt
+    assert check_crs(wkt, "crs") == wkt
+    with pytest.raises(RecipeError, match="US survey foot"):
+        check_crs("EPSG:2263", "crs")
+
+
+def test_a_local_metre_plot_without_a_crs_is_not_taken_for_degrees(tmp_path):
+    """A 50 m square in local metres (a GeoJSON without a crs member) builds; a 30-unit
+    one inside longitude/latitude is refused as degrees."""
+    from usdforest.errors import RecipeError
+    from usdforest.sites.pointprocess import read_shape
+
+    ring = [[0, 0], [50, 0], [50, 50], [0, 50], [0, 0]]
+    (tmp_path / "plot.geojson").write_text(json.dumps({"type": "Polygon", "coordinates": [ring]}))
+    assert read_shape(tmp_path / "plot.geojson", "region.file").area == pytest.approx(2500)
+    small = [[v / 50 * 30 for v in p] for p in ring]
+    (tmp_path / "deg.geojson").write_text(json.dumps({"type": "Polygon", "coordinates": [small]}))
+    with pytest.raises(RecipeError, match="look like degrees"):
+        read_shape(tmp_path / "deg.geojson", "region.file")

@@ -345,7 +345,7 @@ def test_scan_cli_outputs(stand, tmp_path, runner):
         (["--sensor", "sonar"], "[sonar]\nground_slope = -1.0\n", "sonar.ground_slope"),
         (["--sensor", "sonar"], "[sonar]\nground_lambert = 2.0\n", "sonar.ground_lambert"),
         (["--sensor", "sonar"], "[sonar]\nground = 'yes'\n", "sonar.ground"),
-        (["--sensor", "lidar"], "[lidar]\nchannels = 0\n", "at least 1 channel"),
+        (["--sensor", "lidar"], "[lidar]\nchannels = 0\n", "must be 1 to 1024"),
         (["--sensor", "lidar"], "[lidar]\nchanels = 4\n", "unknown key 'chanels'"),
         (["--sensor", "lidar"], "[lidar]\nreturns = 'both'\n", "lidar.returns: 'both' is not"),
         (["--sensor", "lidar"], "[lidar]\ndivergence = -1.0\n", "lidar.divergence"),

@@ -38,7 +38,8 @@ def run_tasks(
                 exc = f.exception()
                 if isinstance(exc, UsdForestError):
                     raise exc
-                raise UsdForestError(f"a tile task failed: {type(exc).__name__}: {exc}")
+                kind = "survey" if stage == "sampling sites" else "tile"
+                raise UsdForestError(f"a {kind} task failed: {type(exc).__name__}: {exc}")
         tick(stage, len(jobs), len(jobs))
         return client.gather(futures)
     except BaseException:
@@ -72,6 +73,8 @@ def scheduler_address(address: str) -> str:
     import re
 
     text = address.strip()
+    if text.startswith("inproc://") and len(text) > len("inproc://"):  # a cluster in this process
+        return text
     if "://" not in text:
         text = "tcp://" + text
     m = re.fullmatch(r"(tcp|tls)://([^\s/:]+|\[[0-9A-Fa-f:]+\]):(\d{1,5})", text)
@@ -100,13 +103,18 @@ def connect(
 
     def attempt() -> None:
         try:
-            box["client"] = Client(address, timeout=f"{timeout:g}s")
+            client = Client(address, timeout=f"{timeout:g}s")
         except BaseException as exc:  # reported below
             box["error"] = exc
+            return
+        box["client"] = client
+        if box.get("abandoned"):  # the wait gave up: nobody will close it
+            client.close()
 
     t = threading.Thread(target=attempt, daemon=True, name="usdforest-connect")
     t.start()
     t.join(timeout + 5.0)
+    box["abandoned"] = True
     if t.is_alive() or "client" not in box:
         exc = box.get("error")
         why = f"{type(exc).__name__}: {exc}".splitlines()[0][:160] if exc else "no answer"

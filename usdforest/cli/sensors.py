@@ -226,7 +226,7 @@ def fly_cmd(
         bool,
         typer.Option(
             "--long",
-            help="Fly beyond the work limits (1e9 lidar rays, 20,000 sonar pulses or camera "
+            help="Fly beyond the work limits (5e9 lidar rays, 20,000 sonar pulses or camera "
             "frames).",
         ),
     ] = False,

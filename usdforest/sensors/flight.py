@@ -34,7 +34,7 @@ from usdforest.sensors.scene import CLASSES, Scene
 from usdforest.sensors.sonar import SonarConfig, SonarScene
 
 MAX_COORDINATE = 1e8  # stage units: no flight goes further
-MAX_ANGLE = 3600.0  # degrees of yaw, pitch or roll in a path (ten turns)
+MAX_ANGLE = 3600.0  # degrees of pitch or roll in a path (ten turns)
 
 # ASPRS LAS classes for our semantic classes: unclassified, high vegetation (trunk, branch,
 # leaf) and ground; our own class is kept in the extra dimension "usdforest_class"
@@ -145,8 +145,11 @@ def read_path(path: Path) -> Trajectory:
         raise UsdForestError(f"{path}: line {line + 2}: {name} is {v[line, col]}, not a number")
     if np.abs(v[:, 1:4]).max() > MAX_COORDINATE:
         raise UsdForestError(f"{path}: positions beyond {MAX_COORDINATE:.0e} stage units")
-    if angles and np.abs(v[:, 4:]).max() > MAX_ANGLE:
-        raise UsdForestError(f"{path}: yaw, pitch and roll must lie within ±{MAX_ANGLE:g} degrees")
+    if angles and (np.abs(v[:, 5:]).max() > MAX_ANGLE or np.abs(v[:, 4]).max() > 1e8):
+        raise UsdForestError(
+            f"{path}: pitch and roll must lie within ±{MAX_ANGLE:g} degrees (yaw, unwrapped, "
+            "within 1e8)"
+        )
     try:
         return Trajectory(v[:, 0], v[:, 1:4], *(v[:, 4 + k] if angles else None for k in range(3)))
     except UsdForestError as exc:

@@ -231,7 +231,9 @@ def flight_settings(
 
 
 # planned work a flight refuses without ``long`` (README, "Limits")
-MAX_LIDAR_RAYS = 1e9  # about an hour of a VLP-16 (300,000 rays a second)
+# (a VLP-16 with its 7-sub-ray beam casts 2 M rays a second: 5e9 is 40 minutes of flight,
+# hours of work here)
+MAX_LIDAR_RAYS = 5e9
 MAX_SONAR_PULSES = 20_000  # about 17 minutes at 20 pulses a second
 MAX_CAMERA_FRAMES = 20_000
 

@@ -64,10 +64,11 @@ def cells_meeting(recipe, box: tuple[float, float, float, float]) -> tuple[int, 
     x0, y0, _, _ = recipe.region.bounds
     nx, ny = grid(recipe)
     bx0, by0, bx1, by1 = box
-    i0 = min(max(math.floor((bx0 - x0) / CELL), 0), nx - 1)
-    j0 = min(max(math.floor((by0 - y0) / CELL), 0), ny - 1)
-    i1 = min(max(math.floor((bx1 - x0) / CELL) + 1, i0 + 1), nx)
-    j1 = min(max(math.floor((by1 - y0) / CELL) + 1, j0 + 1), ny)
+    eps = 1e-6  # metres: a box edge this close to a cell edge takes the cell beyond too
+    i0 = min(max(math.floor((bx0 - x0 - eps) / CELL), 0), nx - 1)
+    j0 = min(max(math.floor((by0 - y0 - eps) / CELL), 0), ny - 1)
+    i1 = min(max(math.floor((bx1 - x0 + eps) / CELL) + 1, i0 + 1), nx)
+    j1 = min(max(math.floor((by1 - y0 + eps) / CELL) + 1, j0 + 1), ny)
     return i0, j0, i1, j1
 
 

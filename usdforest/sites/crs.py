@@ -28,9 +28,10 @@ def check_crs(crs: object, where: str) -> str:
     if not c.is_projected:
         kind = c.type_name.removesuffix(" CRS").lower() or "non-projected"
         raise RecipeError(f"{where}: {crs} is a {kind} CRS, not a projected one; {REPROJECT}")
-    units = sorted({a.unit_name for a in c.axis_info[:2]})
-    if units != ["metre"]:
-        raise RecipeError(f"{where}: {crs} measures in {', '.join(units)}, not metres; {REPROJECT}")
+    axes = c.axis_info[:2]
+    if any(abs(a.unit_conversion_factor - 1.0) > 1e-12 for a in axes):
+        units = ", ".join(sorted({a.unit_name for a in axes}))
+        raise RecipeError(f"{where}: {crs} measures in {units}, not metres; {REPROJECT}")
     return crs
 
 

@@ -205,12 +205,13 @@ def read_shape(path: Path, where: str) -> Shape:
     crs = _geojson_crs(data.get("crs"), path, where)
     x0, y0, x1, y1 = geometry.bounds
     lonlat = -180 <= x0 <= x1 <= 180 and -90 <= y0 <= y1 <= 90
-    # (in metres such a file would be a plot narrower than 5 m or smaller than 1 ha)
-    if crs is None and lonlat and (x1 - x0 < 5 or geometry.area < 1e4):
+    # (in metres such a file would be a plot narrower than 5 m or smaller than 0.1 ha)
+    if crs is None and lonlat and (x1 - x0 < 5 or geometry.area < 1e3):
         raise RecipeError(
             f"{where}: {path.name} names no CRS and its coordinates look like degrees "
             "(GeoJSON without a crs member is longitude/latitude, RFC 7946); usdforest needs "
-            "projected metres: reproject it (e.g. ogr2ogr -t_srs EPSG:32633) and name the CRS"
+            "projected metres: reproject it (e.g. ogr2ogr -t_srs EPSG:32633) and name the CRS, "
+            'or give a plot in local metres as [region] kind = "polygon"'
         )
     if max(abs(v) for v in (x0, y0, x1, y1)) > MAX_COORDINATE:
         raise RecipeError(

@@ -188,9 +188,11 @@ def _write_forest(
     # the survey: per square, trees per cell and the stand's sums (nothing of the trees)
     cut = squares(recipe) if tiled else [whole(recipe)]
     surveys = run_tasks(client, survey_task, [(sq,) for sq in cut], recipe, tick, "sampling sites")
-    classes = classes_for(recipe, merge_sums(s.sums for s in surveys))
     names = recipe.species_names
     by_species = np.sum([s.by_species for s in surveys], axis=0, dtype=np.int64)
+    classes = classes_for(recipe, merge_sums(s.sums for s in surveys))
+    # a species without trees still has its variants (an empty forest has its prototypes)
+    classes = {n: c for n, c in classes.items() if len(c.sizes)}
     counts = {n: len(classes[n].sizes) if n in classes else recipe.variants[n] for n in names}
     prototypes = [(n, v) for n in names for v in range(counts[n])]
     proto_of = {p: i for i, p in enumerate(prototypes)}
