@@ -12,18 +12,10 @@ import json
 from pathlib import Path
 
 import numpy as np
-from malformed import Case
+from malformed import BASE, Case
 
 ROOT = Path(__file__).resolve().parents[1]
 
-BASE = """seed = 1
-[region]
-bounds = [0, 0, 100, 100]
-[intensity]
-kind = "constant"
-value = 0.01
-[species.pine]
-"""
 
 BUILD = ("build", "f.usda", "-p", "r.toml", "-q", "--no-thumbnail")
 

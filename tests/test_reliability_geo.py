@@ -60,10 +60,13 @@ def test_bad_input_gives_one_clean_line(case: Case, tmp_path, monkeypatch, capfd
     check_case(case, tmp_path, monkeypatch, capfd)
 
 
+def _command() -> list[str]:
+    return [str(SCRIPT)] if SCRIPT.exists() else [sys.executable, "-m", "usdforest.entry"]
+
+
 def _run(args: list[str], cwd: Path, **kw) -> subprocess.CompletedProcess:
-    command = [str(SCRIPT)] if SCRIPT.exists() else [sys.executable, "-m", "usdforest.entry"]
     return subprocess.run(
-        [*command, *args], cwd=cwd, capture_output=True, text=True, check=False, **kw
+        [*_command(), *args], cwd=cwd, capture_output=True, text=True, check=False, **kw
     )
 
 
@@ -116,36 +119,24 @@ def test_a_scheduler_that_is_not_dask_ends_the_build_in_one_line(tmp_path, peer)
 
 def test_a_scheduler_without_workers_ends_the_build_in_one_line(tmp_path):
     pytest.importorskip("distributed")
-    (tmp_path / "r.toml").write_text(TILED)
-    exe = Path(sys.executable).parent / "dask"
-    if not exe.is_file():
+    if not (Path(sys.executable).parent / "dask").is_file():
         pytest.skip("the dask command is not installed beside this Python")
-    info = tmp_path / "s.json"
-    sched = subprocess.Popen(
-        [str(exe), "scheduler", "--port", "0", "--scheduler-file", str(info), "--no-dashboard",
-         "--host", "127.0.0.1"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
-    try:
-        deadline = time.monotonic() + 120
-        while not info.is_file() and time.monotonic() < deadline:
-            time.sleep(0.1)
-        address = json.loads(info.read_text())["address"]
+    from usdforest.cluster import process_cluster
+
+    (tmp_path / "r.toml").write_text(TILED)
+    with process_cluster(0, tmp_path) as client:  # a `dask scheduler` process, no worker
+        address = client.scheduler.address
         r = _run(
             ["build", "f.usda", "-p", "r.toml", "-q", "--scheduler", address], tmp_path, timeout=180
         )
-    finally:
-        sched.terminate()
-        sched.wait(timeout=30)
     _one_line(r, "has no workers")
-    assert snapshot(tmp_path) - {"s.json"} == {"r.toml"}  # (the scheduler removes its file)
+    assert snapshot(tmp_path) - {"scheduler.json"} == {"r.toml"}  # (the scheduler's own file)
 
 
 def _tiled_build(tmp_path: Path) -> subprocess.Popen:
     (tmp_path / "r.toml").write_text(TILED.replace("value = 0.05", "value = 0.4"))
-    command = [str(SCRIPT)] if SCRIPT.exists() else [sys.executable, "-m", "usdforest.entry"]
     return subprocess.Popen(
-        [*command, "build", "f.usda", "-p", "r.toml", "--workers", "2", "--no-thumbnail"],
+        [*_command(), "build", "f.usda", "-p", "r.toml", "--workers", "2", "--no-thumbnail"],
         cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True,
     )  # fmt: skip
@@ -206,9 +197,8 @@ def test_a_disk_that_fills_during_a_build_leaves_the_previous_forest(tmp_path):
     r = _run(["build", "f.usda", "-p", "r.toml", "-q", "--no-thumbnail"], tmp_path, timeout=600)
     assert r.returncode == 0, r.stderr
     before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
-    command = [str(SCRIPT)] if SCRIPT.exists() else [sys.executable, "-m", "usdforest.entry"]
     r = subprocess.run(
-        [*command, "build", "f.usda", "-p", "r.toml", "-q", "--force", "--seed", "2"],
+        [*_command(), "build", "f.usda", "-p", "r.toml", "-q", "--force", "--seed", "2"],
         cwd=tmp_path, capture_output=True, text=True, timeout=600,
         preexec_fn=_limit_file_size(64 * 1024),
     )  # fmt: skip

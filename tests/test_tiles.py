@@ -26,21 +26,7 @@ def _recipe(tmp_path, **extra):
 def _trees(stage: Usd.Stage) -> dict[int, tuple[np.ndarray, int]]:
     """Every composed tree by id: its world position and its prototype's name (the forest's
     instancers, not the leaves' inside the trees)."""
-    out = {}
-    for p in stage.Traverse():
-        if not p.IsA(UsdGeom.PointInstancer) or Usd.ModelAPI(p).GetKind() != "group":
-            continue
-        pi = UsdGeom.PointInstancer(p)
-        xf = np.asarray(
-            pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
-        )
-        w = np.asarray(UsdGeom.Xformable(p).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
-        pos = xf[:, 3, :3] @ w[:3, :3] + w[3, :3]
-        names = [t.name for t in pi.GetPrototypesRel().GetTargets()]
-        idx = np.asarray(pi.GetProtoIndicesAttr().Get())
-        for i, x, k in zip(np.asarray(pi.GetIdsAttr().Get()), pos, idx, strict=True):
-            out[int(i)] = (x, names[k])
-    return out
+    return {i: (m[3, :3], name) for i, (m, name) in _instances(stage).items()}
 
 
 def _rows(path) -> dict[int, np.ndarray]:

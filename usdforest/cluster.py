@@ -199,7 +199,8 @@ def process_cluster(workers: int, folder: Path, timeout: float = 120.0):
             subprocess.Popen([*worker, "--memory-limit", "0"], **quiet) for _ in range(workers)
         ]
         with Client(scheduler_file=str(info), timeout=f"{timeout:g}s") as client:
-            client.wait_for_workers(workers, timeout=timeout)
+            if workers:
+                client.wait_for_workers(workers, timeout=timeout)
             yield client
     finally:
         for p in procs[::-1]:

@@ -678,10 +678,10 @@ def parse_recipe(
 
 def _check_work(recipe: Recipe, source: str) -> None:
     """The cells and tiles a build will make, within the stated limits (before any work)."""
-    from usdforest.sites.cells import CELL
+    from usdforest.sites.cells import CELL, grid_shape
 
     x0, y0, x1, y1 = recipe.region.bounds
-    cells = math.ceil((x1 - x0) / CELL) * math.ceil((y1 - y0) / CELL)
+    cells = math.prod(grid_shape(recipe.region.bounds, CELL))
     if cells > MAX_CELLS:
         raise RecipeError(
             f"{source}: region: {(x1 - x0) / 1e3:.3g} km x {(y1 - y0) / 1e3:.3g} km makes "
@@ -689,7 +689,7 @@ def _check_work(recipe: Recipe, source: str) -> None:
             f"({MAX_CELLS * CELL**2 / 1e6:,.0f} km²); build it as several recipes"
         )
     if recipe.tiles is not None:
-        tiles = math.ceil((x1 - x0) / recipe.tiles) * math.ceil((y1 - y0) / recipe.tiles)
+        tiles = math.prod(grid_shape(recipe.region.bounds, recipe.tiles))
         if tiles > MAX_TILES:
             raise RecipeError(
                 f"{source}: tiles.size: {recipe.tiles:g} m tiles over the region make "

@@ -213,12 +213,17 @@ class Frames:
         return len(self.t)
 
 
+def check_camera_rate(rate: float) -> None:
+    """Camera frames per second in (0, 120]."""
+    if not 0 < rate <= 120:
+        raise UsdForestError(f"--camera-rate: must be in (0, 120] frames per second, got {rate:g}")
+
+
 def frame_times(cam: DepthCamera, traj, rate: float) -> np.ndarray:
     """The times of a flight's frames, refusing a camera whose frames would not fit in
     memory (``MAX_FRAME_BYTES``) before any work is done."""
     cam.check()
-    if not 0 < rate <= 120:
-        raise UsdForestError(f"--camera-rate: must be in (0, 120] frames per second, got {rate:g}")
+    check_camera_rate(rate)
     count = math.floor(traj.duration * rate) + 1
     need = count * cam.height * cam.width * BYTES_PER_PIXEL
     if need > MAX_FRAME_BYTES:

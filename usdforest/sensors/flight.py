@@ -156,6 +156,12 @@ def read_path(path: Path) -> Trajectory:
         raise UsdForestError(f"{path}: {exc}") from None
 
 
+def check_lidar_rate(rate: float) -> None:
+    """Lidar sweeps per second in (0, 100]."""
+    if not 0 < rate <= 100:
+        raise UsdForestError(f"--lidar-rate: must be in (0, 100] Hz, got {rate:g}")
+
+
 @dataclass(frozen=True, eq=False)
 class FlightReturns:
     """Lidar returns of a whole flight."""
@@ -192,8 +198,7 @@ def fly_lidar(
     """Sweeps at ``rate`` Hz along ``traj`` (returns as the sensor's ``returns`` mode says;
     each pulse its own time and pose); ``progress(done, total)`` after each sweep."""
     sensor.check()
-    if not 0 < rate <= 100:
-        raise UsdForestError(f"--lidar-rate: must be in (0, 100] Hz, got {rate:g}")
+    check_lidar_rate(rate)
     caster = caster or SceneCaster(scene)
     az, el = sensor.angles()
     ring = np.unique(el, return_inverse=True)[1].astype(np.uint16)

@@ -251,18 +251,14 @@ def planned_work(
     out: dict[str, float] = {}
     d = traj.duration
     if lidar is not None:
-        if not (math.isfinite(lidar_rate) and 0 < lidar_rate <= 100):
-            raise UsdForestError(f"--lidar-rate: must be in (0, 100] Hz, got {lidar_rate:g}")
+        flight.check_lidar_rate(lidar_rate)
         k = getattr(lidar, "beam_rings", 0)
         per_sweep = lidar.channels * math.ceil(360.0 / lidar.azimuth_step) * (1 + 3 * k * (k + 1))
         out["lidar rays"] = math.ceil(d * lidar_rate) * per_sweep
     if sonar is not None:
         out["sonar pulses"] = math.floor(d * sonar.pulse_rate) + 1
     if camera is not None:
-        if not (math.isfinite(camera_rate) and 0 < camera_rate <= 120):
-            raise UsdForestError(
-                f"--camera-rate: must be in (0, 120] frames per second, got {camera_rate:g}"
-            )
+        CAMERA_MODULE.check_camera_rate(camera_rate)
         out["camera frames"] = math.floor(d * camera_rate) + 1
     return out
 

@@ -44,10 +44,16 @@ class CellSites:
     rank: np.ndarray
 
 
+def grid_shape(bounds: tuple[float, float, float, float], side: float) -> tuple[int, int]:
+    """Columns and rows of squares of ``side`` from the south-west corner of ``bounds``
+    that cover them (at least one each)."""
+    x0, y0, x1, y1 = bounds
+    return max(1, math.ceil((x1 - x0) / side)), max(1, math.ceil((y1 - y0) / side))
+
+
 def grid(recipe) -> tuple[int, int]:
     """Columns and rows of cells over the recipe's region."""
-    x0, y0, x1, y1 = recipe.region.bounds
-    return max(1, math.ceil((x1 - x0) / CELL)), max(1, math.ceil((y1 - y0) / CELL))
+    return grid_shape(recipe.region.bounds, CELL)
 
 
 def cell_of(recipe, xy: np.ndarray) -> np.ndarray:

@@ -14,13 +14,19 @@ same whatever the squares are.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from usdforest.errors import UsdForestError
-from usdforest.sites.cells import CELL, cell_of, cells_meeting, grid, sample_cells
+from usdforest.sites.cells import (
+    CELL,
+    cell_of,
+    cells_meeting,
+    grid,
+    grid_shape,
+    sample_cells,
+)
 from usdforest.sites.sampling import inventory_sites
 from usdforest.sites.stand import (
     SizeClasses,
@@ -70,7 +76,7 @@ def squares(recipe) -> list[Square]:
     """The recipe's tiles, row by row from the south (untiled: one square over the region)."""
     x0, y0, x1, y1 = recipe.region.bounds
     size = recipe.tiles if recipe.tiles is not None else max(x1 - x0, y1 - y0)
-    shape = (max(1, math.ceil((x1 - x0) / size)), max(1, math.ceil((y1 - y0) / size)))
+    shape = grid_shape(recipe.region.bounds, size)
     return [Square(i, j, (x0, y0), size, shape) for j in range(shape[1]) for i in range(shape[0])]
 
 
