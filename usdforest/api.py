@@ -116,13 +116,16 @@ def scan(
     preset: str | None = None,
     settings: Any = None,
     seed: int = 0,
+    device: str = "cpu",
 ) -> Scan:
     """Scan ``stage`` with a ``lidar``, ``sonar`` or ``camera`` at ``pose`` (x, y, z[, yaw,
-    pitch, roll]: the stage's units and axes, degrees); see
-    :func:`usdforest.sensors.survey.scan`."""
+    pitch, roll]: the stage's units and axes, degrees), casting rays on ``device`` ("cpu",
+    "cuda" or "cuda:N"); see :func:`usdforest.sensors.survey.scan`."""
     from usdforest.sensors import survey
 
-    return survey.scan(stage, sensor, pose, preset=preset, settings=settings, seed=seed)
+    return survey.scan(
+        stage, sensor, pose, preset=preset, settings=settings, seed=seed, device=device
+    )
 
 
 def fly(
@@ -137,11 +140,12 @@ def fly(
     lidar_rate: float = 10.0,
     camera_rate: float = 2.0,
     seed: int = 0,
+    device: str = "cpu",
 ) -> Flight:
     """Fly sensors through ``stage`` along ``path`` (a CSV of poses or a
     :class:`~usdforest.sensors.flight.Trajectory`) or a straight ``line`` at ``speed``, the
-    lidar sweeping ``lidar_rate`` times and the camera ``camera_rate`` frames a second; see
-    :func:`usdforest.sensors.survey.fly`."""
+    lidar sweeping ``lidar_rate`` times and the camera ``camera_rate`` frames a second, rays
+    cast on ``device`` ("cpu", "cuda" or "cuda:N"); see :func:`usdforest.sensors.survey.fly`."""
     from usdforest.sensors import survey
 
     return survey.fly(
@@ -155,6 +159,7 @@ def fly(
         lidar_rate=lidar_rate,
         camera_rate=camera_rate,
         seed=seed,
+        device=device,
     )
 
 

@@ -86,6 +86,14 @@ RecipeOption = Annotated[
 ]
 ForceOption = Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")]
 SummaryJsonOption = Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")]
+DeviceOption = Annotated[
+    str,
+    typer.Option(
+        "--device",
+        metavar="cpu|cuda",
+        help="Where rays are cast: cpu (Embree, every core) or cuda[:N] (Warp, NVIDIA GPU).",
+    ),
+]
 MAX_SEED = 2**64 - 1
 PLAIN_PROGRESS_SECONDS = 5.0
 SeedOverride = Annotated[

@@ -13,6 +13,7 @@ from usdforest.atomic import move_into_place, refuse_overwrite, staging_folder
 from usdforest.cli.app import (
     MAX_SEED,
     Command,
+    DeviceOption,
     ForceOption,
     SummaryJsonOption,
     app,
@@ -62,6 +63,7 @@ def scan_cmd(
     seed: Annotated[
         int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise and ground roughness.")
     ] = 0,
+    device: DeviceOption = "cpu",
     force: ForceOption = False,
     as_json: SummaryJsonOption = False,
 ) -> None:
@@ -107,7 +109,7 @@ def scan_cmd(
         table["occlusion"] = True
     settings = sensor_settings(sensor, name, table, where=str(config) if config else "")
     t0 = time.perf_counter()
-    done = scan(stage, sensor, p, settings=settings, seed=seed)
+    done = scan(stage, sensor, p, settings=settings, seed=seed, device=device)
     for w in done.warnings:
         err.print(f"warning: {w}", highlight=False)
     triangles = done.triangles
@@ -221,6 +223,7 @@ def fly_cmd(
     seed: Annotated[
         int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise and ground roughness.")
     ] = 0,
+    device: DeviceOption = "cpu",
     force: Annotated[bool, typer.Option("--force", help="Overwrite the outputs.")] = False,
     long: Annotated[
         bool,
@@ -300,6 +303,7 @@ def fly_cmd(
             stage, path=traj, lidar=lidar_cfg, sonar=sonar_cfg, camera=camera_cfg,
             lidar_rate=lidar_rate, camera_rate=camera_rate, seed=seed, progress=tick,
             warn=lambda w: err.print(f"warning: {w}", highlight=False), long=long,
+            device=device,
         )  # fmt: skip
         staged = tmp / output.name
         if (r := done.lidar) is not None:

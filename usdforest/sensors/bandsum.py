@@ -47,7 +47,7 @@ def _kernels():
     # evaluated as they are defined (this module has no postponed annotations), as Warp needs
     import warp as wp
 
-    from usdforest.sensors.raycast import _warp
+    from usdforest.sensors.warpcast import warp as _warp
 
     _warp()  # initialised once, quietly
     f64 = wp.float64

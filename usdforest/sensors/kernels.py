@@ -11,7 +11,9 @@ rest of usdforest starts without it. The layout the kernels read is built by
   form, ``local = inv @ (x - shift)``) and its shape's root in ``shapes``, a grouped mesh
   of the leaf shapes.
 * ``top``: a :class:`warp.Bvh` of the tree instances' world boxes, with their inverse
-  transforms and prototype.
+  transforms and prototype (:func:`first_hits`); or the boxes themselves, looped over
+  (:func:`first_hits_looped`, for CUDA, where a BVH query must not open inside another's
+  loop: :mod:`usdforest.sensors.warpcast`).
 
 Directions are never renormalised between spaces, so the ray parameter ``t`` is the
 world-space distance at every level and one running ``best`` prunes them all.
@@ -104,6 +106,86 @@ def first_hits(
         q = wp.bvh_query_ray(top, o, d)
         k = int(0)
         while wp.bvh_query_next(q, k, best):
+            a = inst_inv[k]
+            g = inst_proto[k] + 1
+            hit, t, lf, fc, nl = _part(
+                wood, wood_roots[g], leaf_bvh, leaf_roots[g], leaf_inv, leaf_shift,
+                leaf_shape, shapes, a * (o - inst_shift[k]), a * d, best,
+            )  # fmt: skip
+            if hit:
+                found = True
+                best = t
+                instance = k
+                leaf = lf
+                face = fc
+                normal = wp.normalize(wp.transpose(a) * nl)
+    out_t[i] = best
+    out_instance[i] = instance
+    out_leaf[i] = leaf
+    if not found:
+        face = -1
+    out_face[i] = face
+    out_normal[i] = normal
+
+
+@wp.func
+def _box_entry(lo: wp.vec3, hi: wp.vec3, o: wp.vec3, d: wp.vec3) -> float:
+    """Distance at which a ray enters a box (a huge value when it misses)."""
+    if lo[0] > hi[0]:  # an empty box: an instance that cannot be entered
+        return 1.0e30
+    t0 = float(0.0)
+    t1 = float(1.0e30)
+    for a in range(3):
+        if wp.abs(d[a]) < 1.0e-30:
+            if o[a] < lo[a] or o[a] > hi[a]:
+                return 1.0e30
+        else:
+            u = (lo[a] - o[a]) / d[a]
+            v = (hi[a] - o[a]) / d[a]
+            t0 = wp.max(t0, wp.min(u, v))
+            t1 = wp.min(t1, wp.max(u, v))
+    if t0 > t1:
+        return 1.0e30
+    return t0
+
+
+@wp.kernel
+def first_hits_looped(
+    origins: wp.array[wp.vec3],
+    directions: wp.array[wp.vec3],
+    limits: wp.array[float],
+    wood: wp.uint64,
+    wood_roots: wp.array[wp.int32],
+    leaf_bvh: wp.uint64,
+    leaf_roots: wp.array[wp.int32],
+    leaf_inv: wp.array[wp.mat33],
+    leaf_shift: wp.array[wp.vec3],
+    leaf_shape: wp.array[wp.int32],
+    shapes: wp.uint64,
+    inst_lo: wp.array[wp.vec3],
+    inst_hi: wp.array[wp.vec3],
+    n_instances: int,
+    inst_inv: wp.array[wp.mat33],
+    inst_shift: wp.array[wp.vec3],
+    inst_proto: wp.array[wp.int32],
+    out_t: wp.array[float],
+    out_instance: wp.array[wp.int32],
+    out_leaf: wp.array[wp.int32],
+    out_face: wp.array[wp.int32],
+    out_normal: wp.array[wp.vec3],
+):
+    """:func:`first_hits` with the tree level a loop over the instances' world boxes: one
+    BVH query open at a time, as CUDA needs."""
+    i = wp.tid()
+    o = origins[i]
+    d = directions[i]
+    found, best, leaf, face, normal = _part(
+        wood, wood_roots[0], leaf_bvh, leaf_roots[0], leaf_inv, leaf_shift, leaf_shape,
+        shapes, o, d, limits[i],
+    )  # fmt: skip
+    instance = int(-1)
+    for k in range(n_instances):
+        if _box_entry(inst_lo[k], inst_hi[k], o, d) < best:
             a = inst_inv[k]
             g = inst_proto[k] + 1
             hit, t, lf, fc, nl = _part(

@@ -117,11 +117,16 @@ def scan(
     preset: str | None = None,
     settings: Any = None,
     seed: int = 0,
+    device: str = "cpu",
 ) -> Scan:
     """Scan ``stage`` with ``sensor`` (``lidar``, ``sonar`` or ``camera``) at ``pose``
     (x, y, z[, yaw, pitch, roll] in the stage's units and axes, degrees). ``settings``: a
     sensor settings object, or a mapping of keys over ``preset`` (e.g. ``{"max_range":
-    30}``). ``seed``: range noise and ground roughness."""
+    30}``). ``seed``: range noise and ground roughness. ``device``: where rays are cast,
+    ``"cpu"`` (Embree on every core) or ``"cuda"``/``"cuda:N"`` (Warp on an NVIDIA GPU)."""
+    from usdforest.sensors.raycast import SceneCaster, resolve_device
+
+    device = resolve_device(device)
     if settings is None or isinstance(settings, Mapping):
         settings = sensor_settings(sensor, preset, settings)
     else:
@@ -143,10 +148,8 @@ def scan(
         w for w in [*pose_warnings(scene, p, settings.max_range), unseen_warning(scene)] if w
     )
     check_not_inside_wood(scene, p)
-    from usdforest.sensors.raycast import SceneCaster
-
     # a sonar without occlusion casts no rays into the trees: build nothing for them
-    caster = SceneCaster(scene) if sensor != "sonar" or occlusion else None
+    caster = SceneCaster(scene, device) if sensor != "sonar" or occlusion else None
     if sensor == "lidar":
         result = lidar.scan(scene, settings, p, seed=seed, caster=caster)
     elif sensor == "camera":
@@ -296,6 +299,7 @@ def fly(
     progress: Progress | None = None,
     warn: Callable[[str], None] | None = None,
     long: bool = False,
+    device: str = "cpu",
 ) -> Flight:
     """Fly a lidar, a sonar and a camera through ``stage`` along ``path`` (a
     :class:`~usdforest.sensors.flight.Trajectory`, or a CSV of poses) or a straight ``line``
@@ -303,7 +307,10 @@ def fly(
     or None (see :func:`flight_settings`); ``progress(stage, done, total)`` after each sweep,
     pulse and frame; ``warn(message)`` as soon as a warning is known (they are in the
     result's ``warnings`` too). Work beyond the limits (:func:`check_work`) is refused unless
-    ``long``."""
+    ``long``. ``device``: where rays are cast (see :func:`scan`)."""
+    from usdforest.sensors.raycast import SceneCaster, resolve_device
+
+    device = resolve_device(device)
     traj = (
         path
         if isinstance(path, flight.Trajectory)
@@ -330,20 +337,27 @@ def fly(
         if warn is not None:
             warn(w)
     crs, origin = flight.stage_georeference(stage)
+    # one caster for every sensor that casts rays (built once: seconds in a large forest)
+    caster = (
+        SceneCaster(scene, device)
+        if casts or (sonar is not None and sonar.occlusion)
+        else None
+    )
     returns = echoes = frames = None
     if lidar is not None:
         returns = flight.fly_lidar(
-            scene, lidar, traj, lidar_rate, seed=seed,
+            scene, lidar, traj, lidar_rate, seed=seed, caster=caster,
             progress=lambda d, n: tick("lidar sweeps", d, n),
         )  # fmt: skip
     if sonar is not None:
         echoes = flight.fly_sonar(
-            scene, sonar, traj, seed=seed, progress=lambda d, n: tick("sonar pulses", d, n)
-        )
+            scene, sonar, traj, seed=seed, caster=caster,
+            progress=lambda d, n: tick("sonar pulses", d, n),
+        )  # fmt: skip
     if camera is not None:
         colours = CAMERA_MODULE.path_colours(stage, scene.paths)
         frames = CAMERA_MODULE.fly_camera(
-            scene, camera, traj, camera_rate, colours,
+            scene, camera, traj, camera_rate, colours, caster=caster,
             progress=lambda d, n: tick("camera frames", d, n),
         )  # fmt: skip
     return Flight(traj, returns, echoes, frames, crs, origin, warnings, time.perf_counter() - t0)

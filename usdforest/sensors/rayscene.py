@@ -1,0 +1,185 @@
+"""A scene laid out for ray casting, and the hits read back from it.
+
+:class:`RayScene` is what every instanced caster (Embree on the CPU, Warp on CUDA) builds from:
+the scene's *owners* (group 0 the world's own geometry, group ``p + 1`` tree prototype ``p``),
+each with its wood triangles and its leaf instances in its own space, the leaf shapes, and the
+tree instances. Casters return raw hits in one convention (:class:`RawHits`), turned into
+:class:`Hits` by :meth:`RayScene.hits`, so both report the same classes, paths and tree ids.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from usdforest.sensors.scene import Scene, leaf_boxes, moved_boxes
+
+
+class Hits:
+    """First hits of a batch of rays: distance (inf: none), class, tree id, path index and the
+    hit triangle's unit world-space normal (as wound)."""
+
+    def __init__(self, n: int):
+        self.t = np.full(n, np.inf)
+        self.cls = np.zeros(n, dtype=np.uint8)
+        self.tree = np.full(n, -1, dtype=np.int64)
+        self.path = np.full(n, -1, dtype=np.int64)
+        self.normal = np.zeros((n, 3))
+
+    @property
+    def hit(self) -> np.ndarray:
+        return np.isfinite(self.t)
+
+
+@dataclass(frozen=True, eq=False)
+class RawHits:
+    """What a caster returns per ray: distance (float32, the limit when none), tree instance
+    (-1: the world's own), leaf (global index, -1: wood), face (a global wood face, or a
+    global face of the leaf shapes; -1: no hit) and the hit's unit world normal."""
+
+    t: np.ndarray
+    instance: np.ndarray
+    leaf: np.ndarray
+    face: np.ndarray
+    normal: np.ndarray
+
+
+def inverse_columns(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row-vector 4x4 transforms ``m`` (n, 4, 4) in column form: the inverse of the linear part
+    (``local = inv @ (x - shift)``), the shift, and which are invertible (float32)."""
+    rot = m[:, :3, :3]
+    ok = np.abs(np.linalg.det(rot)) > 1e-30
+    inv = np.zeros_like(rot)
+    inv[ok] = np.linalg.inv(rot[ok]).transpose(0, 2, 1)
+    return inv.astype(np.float32), m[:, 3, :3].astype(np.float32), ok
+
+
+def outward32(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes ``lo``/``hi`` in float32, rounded outward so they still contain what they held."""
+    lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
+    lo32 = np.where(lo32 > lo, np.nextafter(lo32, np.float32(-np.inf)), lo32)
+    hi32 = np.where(hi32 < hi, np.nextafter(hi32, np.float32(np.inf)), hi32)
+    return lo32, hi32
+
+
+@dataclass(frozen=True, eq=False)
+class RayScene:
+    """A :class:`~usdforest.sensors.scene.Scene` as flat arrays, grouped by owner.
+
+    Wood: ``wood`` (m, 3, 3) float32 triangles, owner ``g``'s are
+    ``wood[wood_first[g]:wood_first[g + 1]]``, with class, tree id (-1 in a prototype) and
+    path per triangle. Leaves (the invertible ones): column-form inverse and shift, float32
+    owner-space boxes, shape and tree id, owner ``g``'s from ``leaf_first[g]``. Shapes:
+    ``shape_tri[k]`` with their faces' class and path, face ``f`` of shape ``k`` numbered
+    ``shape_first[k] + f``. Tree instances: inverse, shift, prototype, tree id, world boxes and
+    whether each can be entered (an uninvertible transform cannot).
+    """
+
+    wood: np.ndarray
+    wood_first: np.ndarray
+    wood_cls: np.ndarray
+    wood_tree: np.ndarray
+    wood_path: np.ndarray
+    leaf_inv: np.ndarray
+    leaf_shift: np.ndarray
+    leaf_lo: np.ndarray
+    leaf_hi: np.ndarray
+    leaf_shape: np.ndarray
+    leaf_tree: np.ndarray
+    leaf_first: np.ndarray
+    shape_tri: tuple[np.ndarray, ...]
+    shape_first: np.ndarray
+    shape_cls: np.ndarray
+    shape_path: np.ndarray
+    inst_inv: np.ndarray
+    inst_shift: np.ndarray
+    inst_proto: np.ndarray
+    inst_tree: np.ndarray
+    inst_lo: np.ndarray
+    inst_hi: np.ndarray
+    inst_ok: np.ndarray
+
+    @property
+    def owners(self) -> int:
+        return len(self.wood_first) - 1
+
+    @staticmethod
+    def of(scene: Scene) -> RayScene:
+        protos = scene.protos
+        owners = [
+            (scene.triangles, scene.cls, scene.tree, scene.path, scene.leaf_instances),
+            *(
+                (p.triangles, p.cls, np.full(len(p.cls), -1), p.path, p.leaf_instances)
+                for p in protos
+            ),
+        ]
+        n_tri = np.array([len(o[0]) for o in owners], dtype=np.int64)
+        wood = np.concatenate(
+            [np.asarray(o[0], np.float32).reshape(-1, 3, 3) for o in owners]
+        ).reshape(-1, 3, 3)
+        shapes = scene.shapes
+        s_tri = tuple(np.asarray(s.triangles, np.float32).reshape(-1, 3, 3) for s in shapes)
+        inv, shift, lo, hi, shape, tree, n_leaf = [], [], [], [], [], [], []
+        for *_, li in owners:
+            a, b, good = inverse_columns(li.matrix)
+            lo_k, hi_k = leaf_boxes(li, shapes)
+            inv.append(a[good])
+            shift.append(b[good])
+            lo.append(lo_k[good])
+            hi.append(hi_k[good])
+            shape.append(li.shape[good])
+            tree.append(li.tree[good])
+            n_leaf.append(int(good.sum()))
+        leaf_lo, leaf_hi = outward32(np.concatenate(lo), np.concatenate(hi))
+        inst = scene.instances
+        box = np.array([p.box for p in protos]).reshape(-1, 2, 3)[inst.proto]
+        a, b, good = inverse_columns(inst.matrix)
+        w_lo, w_hi = moved_boxes(box[:, 0], box[:, 1], inst.matrix)
+        return RayScene(
+            wood=wood,
+            wood_first=np.concatenate([[0], np.cumsum(n_tri)]),
+            wood_cls=np.concatenate([o[1] for o in owners]).astype(np.uint8),
+            wood_tree=np.concatenate([o[2] for o in owners]).astype(np.int64),
+            wood_path=np.concatenate([o[3] for o in owners]).astype(np.int64),
+            leaf_inv=np.concatenate(inv).reshape(-1, 3, 3),
+            leaf_shift=np.concatenate(shift).reshape(-1, 3),
+            leaf_lo=leaf_lo.reshape(-1, 3),
+            leaf_hi=leaf_hi.reshape(-1, 3),
+            leaf_shape=np.concatenate(shape).astype(np.int64),
+            leaf_tree=np.concatenate(tree).astype(np.int64),
+            leaf_first=np.concatenate([[0], np.cumsum(n_leaf)]).astype(np.int64),
+            shape_tri=s_tri,
+            shape_first=np.concatenate([[0], np.cumsum([len(t) for t in s_tri])]).astype(
+                np.int64
+            ),
+            shape_cls=np.concatenate([s.cls for s in shapes] or [np.zeros(0)]).astype(np.uint8),
+            shape_path=np.concatenate([s.path for s in shapes] or [np.zeros(0)]).astype(
+                np.int64
+            ),
+            inst_inv=a,
+            inst_shift=b,
+            inst_proto=inst.proto.astype(np.int64),
+            inst_tree=inst.tree.astype(np.int64),
+            inst_lo=w_lo,
+            inst_hi=w_hi,
+            inst_ok=good,
+        )
+
+    def hits(self, raw: RawHits, max_range: float) -> Hits:
+        """Raw caster output as :class:`Hits`: classes, paths and tree ids looked up; hits
+        beyond ``max_range`` dropped."""
+        t, inst, leaf, face = raw.t, raw.instance, raw.leaf, raw.face
+        h = Hits(len(t))
+        hit = (face >= 0) & (t <= max_range)
+        wood = hit & (leaf < 0)
+        green = hit & (leaf >= 0)
+        h.t[hit] = t[hit]
+        h.normal[hit] = raw.normal[hit]
+        h.cls[wood], h.path[wood] = self.wood_cls[face[wood]], self.wood_path[face[wood]]
+        h.cls[green], h.path[green] = self.shape_cls[face[green]], self.shape_path[face[green]]
+        h.tree[wood] = self.wood_tree[face[wood]]
+        h.tree[green] = self.leaf_tree[leaf[green]]
+        placed = hit & (inst >= 0)
+        h.tree[placed] = self.inst_tree[inst[placed]]
+        return h
