@@ -12,6 +12,22 @@ SHARED = ROOT.parent / "shared"
 CAD_SAMPLES = SHARED / "cad-samples"
 
 
+@pytest.fixture(scope="session", autouse=True)
+def scene_cache(tmp_path_factory) -> Path:
+    """The scene cache of every test (and of the commands they run) in a folder of the
+    session's own, not the user's ~/.cache."""
+    import os
+
+    folder = tmp_path_factory.mktemp("scene-cache")
+    saved = os.environ.get("USDFOREST_CACHE")
+    os.environ["USDFOREST_CACHE"] = str(folder)
+    yield folder
+    if saved is None:
+        os.environ.pop("USDFOREST_CACHE", None)
+    else:
+        os.environ["USDFOREST_CACHE"] = saved
+
+
 @pytest.fixture
 def runner() -> CliRunner:
     return CliRunner()

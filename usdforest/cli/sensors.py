@@ -65,6 +65,7 @@ def scan_cmd(
     ] = 0,
     device: DeviceOption = "cpu",
     force: ForceOption = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
     as_json: SummaryJsonOption = False,
 ) -> None:
     """Scan a stage with a lidar (ray casting), a bat-like sonar (echoes of leaves, wood and
@@ -109,7 +110,8 @@ def scan_cmd(
         table["occlusion"] = True
     settings = sensor_settings(sensor, name, table, where=str(config) if config else "")
     t0 = time.perf_counter()
-    done = scan(stage, sensor, p, settings=settings, seed=seed, device=device)
+    with progress_bars(not (quiet or as_json), t0) as tick:
+        done = scan(stage, sensor, p, settings=settings, seed=seed, device=device, progress=tick)
     for w in done.warnings:
         err.print(f"warning: {w}", highlight=False)
     triangles = done.triangles
@@ -306,9 +308,12 @@ def fly_cmd(
             device=device,
         )  # fmt: skip
         staged = tmp / output.name
+        writes = sum(x is not None for x in (done.lidar, done.sonar, done.camera))
+        tick("writing outputs", 0, writes)
         if (r := done.lidar) is not None:
             flight.write_las(r, staged.with_name(las.name), crs=done.crs, origin=done.origin)
             flight.write_trajectory(traj, staged.with_name(trajectory_csv.name), origin=done.origin)
+            tick("writing outputs", 1, writes)
             summary["lidar"] = {
                 "sweeps": r.sweeps,
                 "rays": r.n_rays,
@@ -317,6 +322,7 @@ def fly_cmd(
             }
         if (f := done.sonar) is not None:
             flight.write_flight_echo(f, staged.with_name(echo_stem.name))
+            tick("writing outputs", (done.lidar is not None) + 1, writes)
             summary["sonar"] = {
                 "pulses": len(f.t),
                 "max_leaves_in_range": int(f.leaves.max()),
@@ -324,6 +330,7 @@ def fly_cmd(
             }
         if (frames := done.camera) is not None:
             camera.write_frames(frames, staged.with_name(frames_stem.name))
+            tick("writing outputs", writes, writes)
             summary["camera"] = {
                 "frames": len(frames),
                 "trees_seen": int(np.unique(frames.instance[frames.instance >= 0]).size),

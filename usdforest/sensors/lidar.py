@@ -178,7 +178,7 @@ def cast_pulses(
         beam, mode, most, apart = beam_pattern(0.0, 0), "first", 1, 1.0
     n, s = len(dirs), len(beam)
     sub = subray_directions(dirs, beam)
-    h = caster.first_hit(np.repeat(origins, s, axis=0), sub, sensor.max_range)
+    h = caster.first_hit(np.repeat(origins, s, axis=0), sub, sensor.max_range, group=s)
     hit = h.hit
     cos = np.abs(np.einsum("nk,nk->n", sub[hit], h.normal[hit]))
     energy, spread = np.zeros(n * s), np.zeros(n * s)

@@ -12,6 +12,7 @@ hits (to float32 rounding), classes, paths and tree ids.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -116,9 +117,15 @@ class SceneCaster:
     :class:`~usdforest.sensors.embree.EmbreeCaster`); ``device="cuda"`` casts on an NVIDIA
     GPU with Warp (:class:`~usdforest.sensors.warpcast.WarpCaster`); ``"warp-cpu"`` runs
     those Warp kernels on the CPU (slower; kept to compare the two paths).
+    ``progress(stage, done, total)`` as the CPU's scene is built.
     """
 
-    def __init__(self, scene: Scene, device: str | None = None):
+    def __init__(
+        self,
+        scene: Scene,
+        device: str | None = None,
+        progress: Callable[[str, int, int], None] | None = None,
+    ):
         self.scene = scene
         self._rs = RayScene.of(scene)
         if device == "warp-cpu":
@@ -131,19 +138,30 @@ class SceneCaster:
         if self.device == "cpu":
             from usdforest.sensors.embree import EmbreeCaster
 
-            self._impl = EmbreeCaster(self._rs)
+            self._impl = EmbreeCaster(self._rs, progress)
         else:
             from usdforest.sensors.warpcast import WarpCaster
 
             self._impl = WarpCaster(self._rs, self.device)
 
     def first_hit(
-        self, origins: np.ndarray, directions: np.ndarray, max_range: float = np.inf
+        self,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        max_range: float = np.inf,
+        *,
+        group: int = 1,
     ) -> Hits:
-        """Unit ``directions``; hits beyond ``max_range`` are dropped."""
+        """Unit ``directions``; hits beyond ``max_range`` are dropped. ``group``: the rays
+        come in nearly parallel groups of this many (a lidar beam's sub-rays, one pulse
+        after another), which the CPU casts together; the hits are the same."""
         o = np.ascontiguousarray(origins, dtype=np.float32).reshape(-1, 3)
         d = np.ascontiguousarray(directions, dtype=np.float32).reshape(-1, 3)
         if not len(o):
             return Hits(0)
         limit = np.full(len(o), np.float32(min(max_range, np.finfo(np.float32).max)))
-        return self._rs.hits(self._impl.cast(o, d, limit), max_range)
+        if self.device == "cpu":
+            raw = self._impl.cast(o, d, limit, group)
+        else:
+            raw = self._impl.cast(o, d, limit)
+        return self._rs.hits(raw, max_range)

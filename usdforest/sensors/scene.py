@@ -16,13 +16,23 @@ tree and fifty per shoot. ``instancing=False`` copies every triangle instead.
 
 from __future__ import annotations
 
-import functools
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from usdforest.sensors.implicit import IMPLICIT, shape_triangles
+from usdforest.sensors.scenecache import PrototypeStore, adopted, stored
+from usdforest.sensors.scenetypes import (
+    Instances,
+    LeafInstances,
+    Leaves,
+    Prototype,
+    Scene,
+    Shape,
+    no_leaves,
+)
 from usdforest.usd.layers import class_labels, mesh_triangles, open_stage, rendered
 
 CLASSES = ("unknown", "trunk", "branch", "leaf", "ground")
@@ -33,162 +43,6 @@ def class_counts(cls: np.ndarray) -> dict[str, int]:
     """How many of ``cls`` (class indices) fall in each class, by name."""
     counts = np.bincount(np.asarray(cls, dtype=np.int64), minlength=len(CLASSES))
     return {c: int(n) for c, n in zip(CLASSES, counts, strict=True)}
-
-
-@dataclass(frozen=True, eq=False)
-class Leaves:
-    """Leaves as reflectors: centre, unit normal, one-sided area (m²), tree id."""
-
-    centre: np.ndarray
-    normal: np.ndarray
-    area: np.ndarray
-    tree: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.centre.shape[0])
-
-    @property
-    def radius(self) -> np.ndarray:
-        """Equivalent disk radius sqrt(area / pi)."""
-        return np.sqrt(self.area / np.pi)
-
-    @staticmethod
-    def concat(parts: list[Leaves]) -> Leaves:
-        if not parts:
-            return Leaves(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
-        return Leaves(
-            *(
-                np.concatenate([getattr(p, f) for p in parts])
-                for f in ("centre", "normal", "area", "tree")
-            )
-        )
-
-
-@dataclass(frozen=True, eq=False)
-class Shape:
-    """A leaf (or shoot) prototype's triangles in its own space, with class and path."""
-
-    triangles: np.ndarray
-    cls: np.ndarray
-    path: np.ndarray
-
-    @functools.cached_property
-    def box(self) -> np.ndarray:
-        """``(2, 3)`` lower and upper corner of the shape (zeros when empty)."""
-        pts = np.asarray(self.triangles, dtype=float).reshape(-1, 3)
-        return np.array([pts.min(axis=0), pts.max(axis=0)]) if len(pts) else np.zeros((2, 3))
-
-
-@dataclass(frozen=True, eq=False)
-class LeafInstances:
-    """Leaves kept as instances: shape index, row-vector 4x4 shape-to-owner transform and
-    tree id (-1 inside a tree prototype: the tree instance gives it)."""
-
-    shape: np.ndarray
-    matrix: np.ndarray
-    tree: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.shape.shape[0])
-
-    @staticmethod
-    def concat(parts: list[LeafInstances]) -> LeafInstances:
-        if not parts:
-            return LeafInstances(np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros(0, np.int64))
-        return LeafInstances(
-            *(np.concatenate([getattr(p, f) for p in parts]) for f in ("shape", "matrix", "tree"))
-        )
-
-    def triangles(self, shapes: tuple[Shape, ...]) -> int:
-        """How many triangles these leaves stand for."""
-        per = np.array([len(s.triangles) for s in shapes], dtype=np.int64)
-        return int(per[self.shape].sum()) if len(self) else 0
-
-
-def _no_leaves() -> LeafInstances:
-    return LeafInstances.concat([])
-
-
-@dataclass(frozen=True, eq=False)
-class Prototype:
-    """A tree prototype in its own space: wood triangles with class and path, leaf
-    instances, leaves as reflectors, bounds (of wood and leaves)."""
-
-    triangles: np.ndarray
-    cls: np.ndarray
-    path: np.ndarray
-    leaves: Leaves
-    box: np.ndarray  # (2, 3) lower and upper corner of its wood and leaves
-    leaf_instances: LeafInstances = field(default_factory=_no_leaves)
-
-    @property
-    def centre(self) -> np.ndarray:
-        """Centre of the bounding sphere (the box's)."""
-        return self.box.mean(axis=0)
-
-    @property
-    def radius(self) -> float:
-        """Radius of the bounding sphere (half the box's diagonal)."""
-        return float(np.linalg.norm(self.box[1] - self.box[0]) / 2)
-
-
-@dataclass(frozen=True, eq=False)
-class Instances:
-    """Placed prototypes: index, row-vector 4x4 prototype-to-world transform, tree id."""
-
-    proto: np.ndarray
-    matrix: np.ndarray
-    tree: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.proto.shape[0])
-
-
-@dataclass(frozen=True, eq=False)
-class Scene:
-    """World-space triangles (m, 3, 3) with class, tree id and path index, plus instances of
-    tree prototypes, and every leaf in reach as a reflector."""
-
-    triangles: np.ndarray
-    cls: np.ndarray
-    tree: np.ndarray
-    path: np.ndarray
-    paths: tuple[str, ...]
-    leaves: Leaves
-    bounds: np.ndarray  # (2, 3) of the whole stage (not only what was expanded)
-    protos: tuple[Prototype, ...] = ()
-    instances: Instances = field(
-        default_factory=lambda: Instances(
-            np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros(0, np.int64)
-        )
-    )
-    unseen: tuple[str, ...] = ()  # geometry prims the scene cannot hold (curves, points...)
-    shapes: tuple[Shape, ...] = ()  # leaf shapes of every LeafInstances
-    leaf_instances: LeafInstances = field(default_factory=_no_leaves)  # in world space
-
-    def instance_spheres(self) -> tuple[np.ndarray, np.ndarray]:
-        """World-space bounding spheres (centres ``(n, 3)``, radii ``(n,)``) of the tree
-        instances: each prototype's sphere placed by its instance's transform."""
-        inst = self.instances
-        if not len(inst):
-            return np.zeros((0, 3)), np.zeros(0)
-        rot = inst.matrix[:, :3, :3]
-        centres = np.array([p.centre for p in self.protos]).reshape(-1, 3)
-        radii = np.array([p.radius for p in self.protos])
-        centre = np.einsum("nj,njk->nk", centres[inst.proto], rot) + inst.matrix[:, 3, :3]
-        return centre, radii[inst.proto] * np.linalg.norm(rot, axis=2).max(axis=1)
-
-    def __len__(self) -> int:
-        """Triangles in the scene, every instance (of trees and of leaves) counted."""
-        per = np.array(
-            [len(p.triangles) + p.leaf_instances.triangles(self.shapes) for p in self.protos],
-            dtype=np.int64,
-        )
-        return int(
-            self.triangles.shape[0]
-            + self.leaf_instances.triangles(self.shapes)
-            + (per[self.instances.proto].sum() if len(per) else 0)
-        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -301,7 +155,7 @@ def _realise(
         kept = (
             LeafInstances(np.full(n, b.shape, np.int64), xf, np.full(n, b.tree, np.int64))
             if triangles == "instance"
-            else _no_leaves()
+            else no_leaves()
         )
         return leaves, _Part.concat([]), kept
     tri = (
@@ -314,7 +168,7 @@ def _realise(
         np.full(n * t, b.tree, np.int32),
         np.tile(b.path, n),
     )
-    return leaves, part, _no_leaves()
+    return leaves, part, no_leaves()
 
 
 def moved_boxes(
@@ -389,6 +243,8 @@ def extract_scene(
     instancing: bool = True,
     leaf_triangles: bool = True,
     reflectors: bool = True,
+    cache: bool = True,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> Scene:
     """Triangles and leaf reflectors of a stage, culled to a sphere around ``centre``, in
     metres with Z up whatever the stage's own units and up axis (:func:`stage_frame`).
@@ -409,6 +265,11 @@ def extract_scene(
     reflectors
         Gather every leaf in reach as a reflector (default; the sonar's input). A lidar or
         camera needs none: ``False`` saves a tuple of arrays per leaf.
+    cache
+        Reuse tree prototypes gathered by an earlier call on the same stage content, and keep
+        the ones gathered now (:mod:`usdforest.sensors.scenecache`; default).
+    progress
+        ``progress(stage, done, total)`` as tree prototypes are gathered.
     """
     from pxr import Usd, UsdGeom
 
@@ -426,39 +287,63 @@ def extract_scene(
     placed: list[tuple[int, np.ndarray, int]] = []
     shapes: list[Shape] = []
     shape_of: dict = {}
+    shape_keys: list[str] = []
     geometry = ("instance" if instancing else "copy") if leaf_triangles else None
+    store = PrototypeStore.of(stage) if cache and instancing else None
+    gathered = [0, 0]  # prototypes gathered, prototypes met
+    tick = progress or (lambda stage, done, total: None)
+
+    def gather(prim, with_reflectors: bool) -> Prototype:
+        """A (tree) prototype's wood and leaves, in its own space."""
+        part = subtree(prim)
+        realised = [_realise(b, None, None, geometry, with_reflectors) for b in part.batches]
+        whole = replace(part, batches=())
+        kept = LeafInstances.concat([r[2] for r in realised])
+        lo, hi = leaf_boxes(kept, tuple(shapes))
+        pts = np.concatenate([whole.tri.reshape(-1, 3).astype(float), lo, hi])
+        lo, hi = (pts.min(axis=0), pts.max(axis=0)) if len(pts) else (np.zeros(3),) * 2
+        return Prototype(
+            whole.tri,
+            whole.cls,
+            whole.path,
+            Leaves.concat([r[0] for r in realised]),
+            np.array([lo, hi]),
+            kept,
+        )
 
     def prototype(prim) -> int:
-        """Index of the (tree) prototype ``prim``, gathered once, its leaves as instances."""
+        """Index of the (tree) prototype ``prim``, gathered once (or read from the store),
+        its leaves as instances."""
         key = prim.GetPath()
         if key not in proto_of:
-            part = subtree(prim)
-            realised = [_realise(b, None, None, geometry, reflectors) for b in part.batches]
-            whole = replace(part, batches=())
-            kept = LeafInstances.concat([r[2] for r in realised])
-            lo, hi = leaf_boxes(kept, tuple(shapes))
-            pts = np.concatenate([whole.tri.reshape(-1, 3).astype(float), lo, hi])
-            lo, hi = (pts.min(axis=0), pts.max(axis=0)) if len(pts) else (np.zeros(3),) * 2
+            entry = store.get(str(key), str(geometry)) if store is not None else None
+            if entry is None:
+                seen = (len(unseen), len(paths), len(shapes))
+                proto = gather(prim, reflectors or store is not None)
+                if store is not None:
+                    local = stored(proto, paths, shapes, shape_keys, seen, unseen[seen[0] :])
+                    store.put(str(key), str(geometry), local)
+            else:
+                proto = adopted(entry, pid, add_shape)
+                unseen.extend(entry["unseen"])
+            if not reflectors:
+                proto = replace(proto, leaves=Leaves.concat([]))
             proto_of[key] = len(protos)
-            protos.append(
-                Prototype(
-                    whole.tri,
-                    whole.cls,
-                    whole.path,
-                    Leaves.concat([r[0] for r in realised]),
-                    np.array([lo, hi]),
-                    kept,
-                )
-            )
+            protos.append(proto)
+            gathered[0] += 1
+            tick("tree prototypes", gathered[0], gathered[1])
         return proto_of[key]
+
+    def add_shape(key: str, s: Shape) -> int:
+        if key not in shape_of:
+            shape_of[key] = len(shapes)
+            shapes.append(s)
+            shape_keys.append(key)
+        return shape_of[key]
 
     def shape(prim, local: _Part) -> int:
         """Index of the leaf shape ``prim`` (its triangles gathered once)."""
-        key = prim.GetPath()
-        if key not in shape_of:
-            shape_of[key] = len(shapes)
-            shapes.append(Shape(local.tri, local.cls, local.path))
-        return shape_of[key]
+        return add_shape(str(prim.GetPath()), Shape(local.tri, local.cls, local.path))
 
     def pid(p: str) -> int:
         if p not in path_index:
@@ -526,7 +411,13 @@ def extract_scene(
         )
         to_world = _m(cache.GetLocalToWorldTransform(p)) @ frame
         out = []
-        for k, target in enumerate(pi.GetPrototypesRel().GetTargets()):
+        targets = pi.GetPrototypesRel().GetTargets()
+        if top and instancing and "leaf" not in class_labels(p):
+            met = sum(1 for t in targets if t not in proto_of)
+            gathered[1] += met
+            if met:
+                tick("tree prototypes", gathered[0], gathered[1])
+        for k, target in enumerate(targets):
             sel = np.flatnonzero(idx == k)
             proto = stage.GetPrimAtPath(target)
             if sel.size == 0 or not proto:

@@ -118,12 +118,14 @@ def scan(
     settings: Any = None,
     seed: int = 0,
     device: str = "cpu",
+    progress: Progress | None = None,
 ) -> Scan:
     """Scan ``stage`` with ``sensor`` (``lidar``, ``sonar`` or ``camera``) at ``pose``
     (x, y, z[, yaw, pitch, roll] in the stage's units and axes, degrees). ``settings``: a
     sensor settings object, or a mapping of keys over ``preset`` (e.g. ``{"max_range":
     30}``). ``seed``: range noise and ground roughness. ``device``: where rays are cast,
-    ``"cpu"`` (Embree on every core) or ``"cuda"``/``"cuda:N"`` (Warp on an NVIDIA GPU)."""
+    ``"cpu"`` (Embree on every core) or ``"cuda"``/``"cuda:N"`` (Warp on an NVIDIA GPU).
+    ``progress(stage, done, total)`` as the scene is gathered and its casting scene built."""
     from usdforest.sensors.raycast import SceneCaster, resolve_device
 
     device = resolve_device(device)
@@ -143,13 +145,18 @@ def scan(
         radius=settings.max_range,
         leaf_triangles=sensor != "sonar" or occlusion,
         reflectors=sensor == "sonar",
+        progress=progress,
     )
     warnings = tuple(
         w for w in [*pose_warnings(scene, p, settings.max_range), unseen_warning(scene)] if w
     )
     check_not_inside_wood(scene, p)
     # a sonar without occlusion casts no rays into the trees: build nothing for them
-    caster = SceneCaster(scene, device) if sensor != "sonar" or occlusion else None
+    caster = (
+        SceneCaster(scene, device, progress=progress)
+        if sensor != "sonar" or occlusion
+        else None
+    )
     if sensor == "lidar":
         result = lidar.scan(scene, settings, p, seed=seed, caster=caster)
     elif sensor == "camera":
@@ -331,6 +338,7 @@ def fly(
         radius=float(np.linalg.norm(hi - lo) / 2 + reach),
         leaf_triangles=casts or bool(sonar is not None and sonar.occlusion),
         reflectors=sonar is not None,
+        progress=tick,
     )
     warnings = tuple(w for w in [unseen_warning(scene)] if w)
     for w in warnings:
@@ -339,7 +347,7 @@ def fly(
     crs, origin = flight.stage_georeference(stage)
     # one caster for every sensor that casts rays (built once: seconds in a large forest)
     caster = (
-        SceneCaster(scene, device)
+        SceneCaster(scene, device, progress=tick)
         if casts or (sonar is not None and sonar.occlusion)
         else None
     )

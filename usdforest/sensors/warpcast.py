@@ -146,8 +146,11 @@ class WarpCaster:
             return bvh, np.zeros(0, np.int32)
         return bvh, self._roots(self._kern.bvh_roots, bvh, groups, n)
 
-    def cast(self, o: np.ndarray, d: np.ndarray, limit: np.ndarray) -> RawHits:
-        """Raw hits of rays ``o``, ``d`` (float32 (n, 3)) within ``limit``."""
+    def cast(
+        self, o: np.ndarray, d: np.ndarray, limit: np.ndarray, looped: bool | None = None
+    ) -> RawHits:
+        """Raw hits of rays ``o``, ``d`` (float32 (n, 3)) within ``limit``. ``looped``: the
+        tree level a loop over boxes (default: on CUDA, where it must be) or a BVH walk."""
         wp, n = self._wp, len(o)
         out = (
             np.empty(n, np.float32),
@@ -159,7 +162,7 @@ class WarpCaster:
         types = (float, wp.int32, wp.int32, wp.int32, wp.vec3)
         handle = [0 if x is None else x.id for x in (self._wood, self._leaf_bvh, self._shapes)]
         cuda = self.device.is_cuda
-        if cuda:
+        if cuda if looped is None else looped:
             kernel = self._kern.first_hits_looped
             top = [self._inst_lo, self._inst_hi]
         else:

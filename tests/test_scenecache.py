@@ -1,0 +1,162 @@
+"""The scene cache: tree prototypes gathered once per stage content, reused by later scans,
+never read stale, and harmless when damaged, read-only or turned off."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from usdforest.cli import app
+from usdforest.recipe import read_recipe
+from usdforest.sensors.scene import extract_scene
+from usdforest.usd.forest import write_forest
+
+PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
+CENTRE = np.array([5.25, 5.25, 2.0])
+
+
+def _forest(folder: Path, seed: int) -> Path:
+    out = folder / "stand.usda"
+    write_forest(
+        read_recipe(PIPELINES / "paper-two-tree-stand.toml"), out, thumbnail=False, force=True
+    )
+    if seed:  # the same recipe at another seed: other trees at the same path
+        recipe = read_recipe(PIPELINES / "paper-two-tree-stand.toml")
+        import dataclasses
+
+        write_forest(dataclasses.replace(recipe, seed=seed), out, thumbnail=False, force=True)
+    return out
+
+
+def _same(a, b) -> None:
+    """Two scenes are the same, array for array."""
+    assert a.paths == b.paths and a.unseen == b.unseen
+    for f in ("triangles", "cls", "tree", "path", "bounds"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    for f in ("centre", "normal", "area", "tree"):
+        np.testing.assert_array_equal(getattr(a.leaves, f), getattr(b.leaves, f))
+    for f in ("proto", "matrix", "tree"):
+        np.testing.assert_array_equal(getattr(a.instances, f), getattr(b.instances, f))
+    assert len(a.protos) == len(b.protos) and len(a.shapes) == len(b.shapes)
+    for p, q in zip(a.protos, b.protos, strict=True):
+        for f in ("triangles", "cls", "path", "box"):
+            np.testing.assert_array_equal(getattr(p, f), getattr(q, f))
+        li, lj = p.leaf_instances, q.leaf_instances
+        for f in ("shape", "matrix", "tree"):
+            np.testing.assert_array_equal(getattr(li, f), getattr(lj, f))
+        for f in ("centre", "normal", "area", "tree"):
+            np.testing.assert_array_equal(getattr(p.leaves, f), getattr(q.leaves, f))
+    for s, t in zip(a.shapes, b.shapes, strict=True):
+        for f in ("triangles", "cls", "path"):
+            np.testing.assert_array_equal(getattr(s, f), getattr(t, f))
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch) -> Path:
+    folder = tmp_path / "cache"
+    monkeypatch.setenv("USDFOREST_CACHE", str(folder))
+    return folder
+
+
+def test_a_second_extraction_reads_the_prototypes_and_equals_the_first(tmp_path, cache):
+    """The first extraction gathers each prototype and stores it; the second reads them and
+    returns the same scene as one made without the cache, for a lidar (leaf instances) and a
+    sonar (reflectors), culled or whole."""
+    out = _forest(tmp_path, 0)
+    ticks: list[tuple[str, int, int]] = []
+    first = extract_scene(out, centre=CENTRE, radius=30.0, progress=lambda *a: ticks.append(a))
+    stored = sorted(cache.rglob("*.pkl"))
+    assert len(stored) == len(first.protos) == 2
+    assert ticks[-1] == ("tree prototypes", 2, 2)
+    second = extract_scene(out, centre=CENTRE, radius=30.0)
+    assert sorted(cache.rglob("*.pkl")) == stored
+    _same(first, second)
+    _same(second, extract_scene(out, centre=CENTRE, radius=30.0, cache=False))
+    for kw in ({"reflectors": False}, {"leaf_triangles": False}, {}):
+        _same(extract_scene(out, **kw), extract_scene(out, cache=False, **kw))
+
+
+def test_a_rebuilt_forest_is_gathered_again(tmp_path, cache):
+    """The key is the content of every layer the stage uses: the same path rebuilt at another
+    seed is gathered anew, and a tree moved in the instancer layer is seen where it now is,
+    never read stale."""
+    from pxr import Sdf, Vt
+
+    out = _forest(tmp_path, 0)
+    extract_scene(out)
+    _forest(tmp_path, 7)
+    rebuilt = extract_scene(out)
+    _same(rebuilt, extract_scene(out, cache=False))
+    assert len([p for p in cache.iterdir() if p.is_dir()]) == 2
+    layer = Sdf.Layer.FindOrOpen(str(tmp_path / "stand_assets" / "instances.usdc"))
+    attr = layer.GetAttributeAtPath("/Forest/Trees.positions")
+    moved = [tuple(p) for p in attr.default]
+    moved[0] = (moved[0][0] + 3.0, moved[0][1], moved[0][2])
+    attr.default = Vt.Vec3fArray(moved)
+    layer.Save()
+    after = extract_scene(out)
+    assert len([p for p in cache.iterdir() if p.is_dir()]) == 3
+    shift = after.instances.matrix[:, 3, :3] - rebuilt.instances.matrix[:, 3, :3]
+    moved_one = np.all(np.abs(shift - [3.0, 0.0, 0.0]) < 1e-5, axis=1)
+    assert moved_one.sum() == 1 and np.abs(shift[~moved_one]).max() < 1e-9
+    _same(after, extract_scene(out, cache=False))
+
+
+def test_one_edited_tree_layer_is_enough_to_gather_again(tmp_path, cache):
+    """Editing one tree asset (not the forest's own layers) changes the key too."""
+    from pxr import Sdf
+
+    out = _forest(tmp_path, 0)
+    before = extract_scene(out)
+    tree = sorted((tmp_path / "stand_assets" / "trees").glob("*.usd*"))[0]
+    layer = Sdf.Layer.FindOrOpen(str(tree))
+    layer.customLayerData = {**layer.customLayerData, "edited": True}
+    layer.Save()
+    assert len([p for p in cache.iterdir() if p.is_dir()]) == 1
+    after = extract_scene(out)
+    assert len([p for p in cache.iterdir() if p.is_dir()]) == 2
+    _same(before, after)  # a change that moves nothing: the same scene, newly gathered
+
+
+def test_a_damaged_entry_is_gathered_again(tmp_path, cache):
+    out = _forest(tmp_path, 0)
+    first = extract_scene(out)
+    for f in cache.rglob("*.pkl"):
+        f.write_bytes(f.read_bytes()[:100])
+    _same(first, extract_scene(out))
+    _same(first, extract_scene(out))  # and stored whole again
+
+
+def test_off_or_read_only_the_cache_writes_nothing(tmp_path, monkeypatch):
+    out = _forest(tmp_path, 0)
+    monkeypatch.setenv("USDFOREST_CACHE", "off")
+    a = extract_scene(out)
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        monkeypatch.setenv("USDFOREST_CACHE", str(locked))
+        b = extract_scene(out)
+        if os.geteuid() != 0:  # root writes anywhere
+            assert not list(locked.iterdir())
+    finally:
+        locked.chmod(0o700)
+    _same(a, b)
+
+
+def test_scan_shows_its_stages(tmp_path, cache, runner):
+    """``usdforest scan`` reports gathering the prototypes and building the casting scene
+    (a line each on a log), and a second scan reads the stored prototypes."""
+    out = _forest(tmp_path, 0)
+    args = ["scan", str(out), "--sensor", "lidar", "--pose", "5,1,2", "-o"]
+    r = runner.invoke(app, [*args, str(tmp_path / "a.npz")])
+    assert r.exit_code == 0, r.output
+    assert "tree prototypes: 2/2" in r.stderr and "ray-casting scene:" in r.stderr
+    r2 = runner.invoke(app, [*args, str(tmp_path / "b.npz"), "--quiet"])
+    assert r2.exit_code == 0 and r2.stderr == ""
+    a, b = np.load(tmp_path / "a.npz"), np.load(tmp_path / "b.npz")
+    np.testing.assert_array_equal(a["range"], b["range"])
+    np.testing.assert_array_equal(a["tree"], b["tree"])

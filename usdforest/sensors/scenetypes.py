@@ -1,0 +1,166 @@
+"""The scene a sensor sees, as plain arrays: leaves as reflectors, leaf shapes and their
+instances, tree prototypes and their instances, and the whole
+(:class:`Scene`, made by :func:`usdforest.sensors.scene.extract_scene`)."""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class Leaves:
+    """Leaves as reflectors: centre, unit normal, one-sided area (m²), tree id."""
+
+    centre: np.ndarray
+    normal: np.ndarray
+    area: np.ndarray
+    tree: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.centre.shape[0])
+
+    @property
+    def radius(self) -> np.ndarray:
+        """Equivalent disk radius sqrt(area / pi)."""
+        return np.sqrt(self.area / np.pi)
+
+    @staticmethod
+    def concat(parts: list[Leaves]) -> Leaves:
+        if not parts:
+            return Leaves(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
+        return Leaves(
+            *(
+                np.concatenate([getattr(p, f) for p in parts])
+                for f in ("centre", "normal", "area", "tree")
+            )
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class Shape:
+    """A leaf (or shoot) prototype's triangles in its own space, with class and path."""
+
+    triangles: np.ndarray
+    cls: np.ndarray
+    path: np.ndarray
+
+    @functools.cached_property
+    def box(self) -> np.ndarray:
+        """``(2, 3)`` lower and upper corner of the shape (zeros when empty)."""
+        pts = np.asarray(self.triangles, dtype=float).reshape(-1, 3)
+        return np.array([pts.min(axis=0), pts.max(axis=0)]) if len(pts) else np.zeros((2, 3))
+
+
+@dataclass(frozen=True, eq=False)
+class LeafInstances:
+    """Leaves kept as instances: shape index, row-vector 4x4 shape-to-owner transform and
+    tree id (-1 inside a tree prototype: the tree instance gives it)."""
+
+    shape: np.ndarray
+    matrix: np.ndarray
+    tree: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.shape.shape[0])
+
+    @staticmethod
+    def concat(parts: list[LeafInstances]) -> LeafInstances:
+        if not parts:
+            return LeafInstances(np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros(0, np.int64))
+        return LeafInstances(
+            *(np.concatenate([getattr(p, f) for p in parts]) for f in ("shape", "matrix", "tree"))
+        )
+
+    def triangles(self, shapes: tuple[Shape, ...]) -> int:
+        """How many triangles these leaves stand for."""
+        per = np.array([len(s.triangles) for s in shapes], dtype=np.int64)
+        return int(per[self.shape].sum()) if len(self) else 0
+
+
+def no_leaves() -> LeafInstances:
+    return LeafInstances.concat([])
+
+
+@dataclass(frozen=True, eq=False)
+class Prototype:
+    """A tree prototype in its own space: wood triangles with class and path, leaf
+    instances, leaves as reflectors, bounds (of wood and leaves)."""
+
+    triangles: np.ndarray
+    cls: np.ndarray
+    path: np.ndarray
+    leaves: Leaves
+    box: np.ndarray  # (2, 3) lower and upper corner of its wood and leaves
+    leaf_instances: LeafInstances = field(default_factory=no_leaves)
+
+    @property
+    def centre(self) -> np.ndarray:
+        """Centre of the bounding sphere (the box's)."""
+        return self.box.mean(axis=0)
+
+    @property
+    def radius(self) -> float:
+        """Radius of the bounding sphere (half the box's diagonal)."""
+        return float(np.linalg.norm(self.box[1] - self.box[0]) / 2)
+
+
+@dataclass(frozen=True, eq=False)
+class Instances:
+    """Placed prototypes: index, row-vector 4x4 prototype-to-world transform, tree id."""
+
+    proto: np.ndarray
+    matrix: np.ndarray
+    tree: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.proto.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """World-space triangles (m, 3, 3) with class, tree id and path index, plus instances of
+    tree prototypes, and every leaf in reach as a reflector."""
+
+    triangles: np.ndarray
+    cls: np.ndarray
+    tree: np.ndarray
+    path: np.ndarray
+    paths: tuple[str, ...]
+    leaves: Leaves
+    bounds: np.ndarray  # (2, 3) of the whole stage (not only what was expanded)
+    protos: tuple[Prototype, ...] = ()
+    instances: Instances = field(
+        default_factory=lambda: Instances(
+            np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros(0, np.int64)
+        )
+    )
+    unseen: tuple[str, ...] = ()  # geometry prims the scene cannot hold (curves, points...)
+    shapes: tuple[Shape, ...] = ()  # leaf shapes of every LeafInstances
+    leaf_instances: LeafInstances = field(default_factory=no_leaves)  # in world space
+
+    def instance_spheres(self) -> tuple[np.ndarray, np.ndarray]:
+        """World-space bounding spheres (centres ``(n, 3)``, radii ``(n,)``) of the tree
+        instances: each prototype's sphere placed by its instance's transform."""
+        inst = self.instances
+        if not len(inst):
+            return np.zeros((0, 3)), np.zeros(0)
+        rot = inst.matrix[:, :3, :3]
+        centres = np.array([p.centre for p in self.protos]).reshape(-1, 3)
+        radii = np.array([p.radius for p in self.protos])
+        centre = np.einsum("nj,njk->nk", centres[inst.proto], rot) + inst.matrix[:, 3, :3]
+        return centre, radii[inst.proto] * np.linalg.norm(rot, axis=2).max(axis=1)
+
+    def __len__(self) -> int:
+        """Triangles in the scene, every instance (of trees and of leaves) counted."""
+        per = np.array(
+            [len(p.triangles) + p.leaf_instances.triangles(self.shapes) for p in self.protos],
+            dtype=np.int64,
+        )
+        return int(
+            self.triangles.shape[0]
+            + self.leaf_instances.triangles(self.shapes)
+            + (per[self.instances.proto].sum() if len(per) else 0)
+        )
