@@ -56,7 +56,7 @@ def main() -> None:
     )
     caster = SceneCaster(scene)
     rows.append(
-        ("scene: extract and Warp build", time.perf_counter() - t,
+        ("scene: extract and build the caster", time.perf_counter() - t,
          f"{len(scene.instances)} trees, {len(scene):,} triangles, {len(scene.leaves):,} leaves")
     )  # fmt: skip
     if "lidar" in only:

@@ -44,7 +44,7 @@ def lidar_1m_rays() -> tuple[int, str, str]:
         "rays",
         (
             f"{len(scene):,} triangles ({t_scene:.1f} s to extract, "
-            f"{t_bvh:.1f} s Warp build), {len(r):,} returns"
+            f"{t_bvh:.1f} s caster build), {len(r):,} returns"
         ),
     )
 

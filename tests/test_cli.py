@@ -121,3 +121,26 @@ def test_help_names_what_options_take(runner, command):
     assert "<bool>" not in r.stdout and "<str>" not in r.stdout, r.stdout
     if command == ["scan"]:
         assert "SENSOR" in r.stdout and "OUTPUT" in r.stdout
+
+
+def test_a_progress_lines_first_time_left_comes_from_a_measured_rate(monkeypatch, capsys):
+    """On a log (not a terminal) progress is a line every few seconds; the time left is the
+    rate since the stage was first heard of, never a guess from its first tick (a stage whose
+    first report is 1 of 10 at 6 s had been 'about 0 s left')."""
+    import time
+
+    from usdforest.cli.app import progress_bars
+
+    clock = iter([0.0, 6.0, 12.0, 13.0, 30.0])
+    monkeypatch.setattr(time, "perf_counter", lambda: next(clock))
+    with progress_bars(True, 0.0) as tick:
+        tick("lidar sweeps", 1, 10)  # t = 6: the first report, nothing measured yet
+        tick("lidar sweeps", 2, 10)  # t = 12: 6 s for one sweep, 8 to go
+        tick("lidar sweeps", 3, 10)  # t = 13: under 5 s since the last line, not printed
+        tick("lidar sweeps", 10, 10)  # t = 30: done
+    lines = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+    assert lines == [
+        "lidar sweeps: 1/10 (6 s)",
+        "lidar sweeps: 2/10 (12 s, about 48 s left)",
+        "lidar sweeps: 10/10 (30 s)",
+    ]

@@ -193,7 +193,7 @@ def progress_bars(show: bool, t0: float) -> Iterator[Callable[[str, int, int], N
         transient=True,
     ) as bar:
         tasks: dict[str, int] = {}
-        began: dict[str, float] = {}
+        began: dict[str, tuple[float, int]] = {}  # when each stage was first heard of, at what
         plain = show and not err.is_terminal  # a log file or CI: a short line now and then
         last = [time.perf_counter()]
 
@@ -201,13 +201,14 @@ def progress_bars(show: bool, t0: float) -> Iterator[Callable[[str, int, int], N
             now = time.perf_counter()
             if stage not in tasks:
                 tasks[stage] = bar.add_task(stage, total=total)
-                began[stage] = now
+                began[stage] = (now, done)
             bar.update(tasks[stage], completed=done, total=total)
             if plain and (now - last[0] >= PLAIN_PROGRESS_SECONDS or done == total):
                 last[0] = now
                 left = ""
-                if 0 < done < total:
-                    left = f", about {(now - began[stage]) / done * (total - done):.0f} s left"
+                since, first = began[stage]
+                if first < done < total:  # a rate from what was seen done, never from one tick
+                    left = f", about {(now - since) / (done - first) * (total - done):.0f} s left"
                 err.print(f"{stage}: {done:,}/{total:,} ({now - t0:.0f} s{left})", highlight=False)
 
         yield tick

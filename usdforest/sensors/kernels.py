@@ -1,8 +1,8 @@
 """NVIDIA Warp kernels for first hits through instances of instances (trees, then leaves).
 
-Imported only when rays are cast (Warp compiles these on first use and caches them), so the
-rest of usdforest starts without it. The layout the kernels read is built by
-:class:`~usdforest.sensors.raycast.SceneCaster`:
+Imported only when Warp casts rays (on CUDA; Warp compiles these on first use and caches
+them), so the rest of usdforest starts without it. The layout the kernels read is built by
+:class:`~usdforest.sensors.warpcast.WarpCaster`:
 
 * ``wood``: one grouped :class:`warp.Mesh`, group 0 the world's own triangles, group
   ``p + 1`` tree prototype ``p``'s; ``wood_roots[g]`` its BVH root (-2: empty group).
