@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
+from stands import SPECIES
 
 from usdforest.errors import RecipeError
 from usdforest.grow.species import get_species
@@ -41,7 +42,8 @@ def birch_leaf_area(d_cm):  # Repola 2008 (over 11 cm) x 13.55 m²/kg
     return 13.55 * math.exp(-29.566 + 33.372 * ds / (ds + 2) + 0.0385)
 
 
-INVENTORY = """
+INVENTORY = (
+    """
 seed = 3
 sites = [
   {{ x = 5, y = 5, species = "pine", dbh = 0.22, height = 19.0 }},
@@ -52,16 +54,11 @@ sites = [
 ]
 [region]
 bounds = [0, 0, 30, 30]
-[species.pine]
-preset = "scots-pine"
-[species.beech]
-preset = "european-beech"
-[species.birch]
-preset = "silver-birch"
-[species.spruce]
-preset = "norway-spruce"
-{extra}
 """
+    + SPECIES
+    + """{extra}
+"""
+)
 
 
 @pytest.fixture(scope="module")

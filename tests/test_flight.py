@@ -260,6 +260,9 @@ def test_a_flight_reports_progress_and_an_interrupted_one_leaves_nothing(
     r = runner.invoke(app, [*args, "-o", str(tmp_path / "a")])
     assert r.exit_code == 0, r.output
     assert "lidar sweeps: 10/10" in r.stderr and "sonar" not in r.stderr
+    # the work before the first sweep and after the last shows too
+    for stage in ("tree prototypes: 2/2", "ray-casting scene:", "writing outputs: 1/1"):
+        assert stage in r.stderr, r.stderr
     assert sorted(p.name for p in tmp_path.glob("a*")) == ["a.las", "a_trajectory.csv"]
     r = runner.invoke(app, [*args, "-o", str(tmp_path / "b"), "--sonar", "paper", "-q"])
     assert r.exit_code == 0 and r.stderr == ""

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from stands import allometric_stand
 
 from usdforest import api
 from usdforest.cli import app
@@ -21,27 +22,17 @@ from usdforest.sensors.scene import extract_scene
 from usdforest.sensors.warpcast import cuda_devices
 from usdforest.usd.forest import write_forest
 
-ALLOMETRIC = """
-seed = 5
-sites = [
-  { x = 4, y = 5, species = "pine", dbh = 0.12, height = 13.5 },
-  { x = 12, y = 6, species = "beech", dbh = 0.1, height = 11.0 },
-  { x = 7, y = 12, species = "birch", dbh = 0.09, height = 10.5 },
-  { x = 13, y = 13, species = "spruce", dbh = 0.1, height = 11.5 },
-]
-[region]
-bounds = [0, 0, 16, 16]
-[species.pine]
-preset = "scots-pine"
-[species.beech]
-preset = "european-beech"
-[species.birch]
-preset = "silver-birch"
-[species.spruce]
-preset = "norway-spruce"
-[ground]
-kind = "plane"
-"""
+ALLOMETRIC = allometric_stand(
+    5,
+    16,
+    [
+        'x = 4, y = 5, species = "pine", dbh = 0.12, height = 13.5',
+        'x = 12, y = 6, species = "beech", dbh = 0.1, height = 11.0',
+        'x = 7, y = 12, species = "birch", dbh = 0.09, height = 10.5',
+        'x = 13, y = 13, species = "spruce", dbh = 0.1, height = 11.5',
+    ],
+    '[ground]\nkind = "plane"\n',
+)
 POSE = Pose(8.0, -2.0, 3.0, yaw=90, pitch=10)
 REACH = 40.0
 NO_CUDA = "no CUDA device (an NVIDIA GPU and its driver): the CUDA path is not run here"

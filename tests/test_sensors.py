@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from hosts import host_stage
 from pxr import Usd, UsdGeom, Vt
+from stands import allometric_stand
 
 from usdforest.cli import app
 from usdforest.grow.species import get_species
@@ -479,27 +480,13 @@ def test_leaf_instances_cast_like_their_triangles_copied(tmp_path, tiles):
     forest too): every ray meets what Embree meets on all the triangles copied - the same
     hit or miss, distance (1e-4 m), class and tree id - while the scene keeps one copy of
     each shoot."""
-    (tmp_path / "r.toml").write_text(
-        """
-seed = 5
-sites = [
-  { x = 4, y = 5, species = "pine", dbh = 0.12, height = 13.5 },
-  { x = 12, y = 6, species = "beech", dbh = 0.1, height = 11.0 },
-  { x = 7, y = 12, species = "birch", dbh = 0.09, height = 10.5 },
-]
-[region]
-bounds = [0, 0, 16, 16]
-[species.pine]
-preset = "scots-pine"
-[species.beech]
-preset = "european-beech"
-[species.birch]
-preset = "silver-birch"
-[ground]
-kind = "plane"
-"""
-        + ("[tiles]\nsize = 8\n" if tiles else "")
-    )
+    sites = [
+        'x = 4, y = 5, species = "pine", dbh = 0.12, height = 13.5',
+        'x = 12, y = 6, species = "beech", dbh = 0.1, height = 11.0',
+        'x = 7, y = 12, species = "birch", dbh = 0.09, height = 10.5',
+    ]
+    extra = '[ground]\nkind = "plane"\n' + ("[tiles]\nsize = 8\n" if tiles else "")
+    (tmp_path / "r.toml").write_text(allometric_stand(5, 16, sites, extra))
     out = tmp_path / "f.usda"
     write_forest(read_recipe(tmp_path / "r.toml"), out, thumbnail=False)
     inst, flat, h, t, prim = _cast_both_ways(out, Pose(8.0, -2.0, 4.0, yaw=90, pitch=10), 40.0)

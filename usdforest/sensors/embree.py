@@ -13,7 +13,6 @@ from __future__ import annotations
 import ctypes
 import functools
 import importlib.util
-import sys
 import weakref
 from collections.abc import Callable
 from pathlib import Path
@@ -136,15 +135,59 @@ def embree() -> Embree:
     errors = []
     for path in paths:
         try:
-            return Embree(path)
+            lib = Embree(path)
         except (OSError, AttributeError) as exc:
             errors.append(f"{path.name}: {exc}")
+            continue
+        _self_check(lib)
+        return lib
     raise UsdForestError("cannot load Embree 4: " + "; ".join(errors))
 
 
-def platform_ok() -> bool:
-    """Whether this platform's calling convention matches the kernels' (64-bit pointers)."""
-    return sys.maxsize > 2**32
+def _self_check(lib: Embree) -> None:
+    """Cast one ray through a two-entry instance array of one triangle, through ctypes alone:
+    the hit must be the second entry's, at its distance, reported in ``instPrimID``, as the
+    caster reads hits. A library built otherwise (no instance arrays, several instance levels,
+    another hit layout) is refused by name instead of casting wrong hits."""
+    tri, n = _padded(np.array([[[0, -1, -1], [0, 1, -1], [0, 0, 1]]], np.float32))
+    inner = lib.scene()
+    kept = lib.triangles(inner, tri, n, 0)
+    lib.rtcCommitScene(inner)
+    top = lib.scene()
+    geom = lib.rtcNewGeometry(lib.device, GEOMETRY_INSTANCE_ARRAY)
+    table = np.array([inner], np.uint64)
+    xf = np.zeros((2, 3, 4), np.float32)
+    xf[:, :, :3] = np.eye(3)
+    xf[:, 0, 3] = [5.0, 10.0]
+    idx = np.zeros(2, np.uint32)
+    lib.rtcSetGeometryInstancedScenes(geom, table.ctypes.data, 1)
+    lib.rtcSetSharedGeometryBuffer(
+        geom, BUFFER_TRANSFORM, 0, FORMAT_FLOAT3X4_ROW_MAJOR, xf.ctypes.data, 0, 48, 2
+    )
+    lib.rtcSetSharedGeometryBuffer(geom, BUFFER_INDEX, 0, FORMAT_UINT, idx.ctypes.data, 0, 4, 2)
+    lib.rtcCommitGeometry(geom)
+    lib.rtcAttachGeometryByID(top, geom, 0)
+    lib.rtcReleaseGeometry(geom)
+    lib.rtcCommitScene(top)
+    raw = np.zeros(RAYHIT_WORDS + 4, np.float32)  # room to align to 16 bytes
+    at = (-raw.ctypes.data % 16) // 4
+    ray = raw[at : at + RAYHIT_WORDS]
+    words = ray.view(np.uint32)
+    ray[:9] = [7.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 100.0]  # from x = 7 along +x
+    words[9] = INVALID
+    words[17:21] = INVALID
+    lib.rtcIntersect1(top, ray.ctypes.data, None)
+    got = (float(ray[8]), int(words[18]), int(words[19]), int(words[20]))
+    lib.rtcReleaseScene(top)
+    lib.rtcReleaseScene(inner)
+    del kept
+    lib.check("checking the library")
+    if got != (3.0, 0, 0, 1):
+        raise UsdForestError(
+            f"Embree ({lib.path.name}) does not report instance-array hits as the ray caster "
+            f"reads them (distance, geometry, instance, entry: {got}, expected (3.0, 0, 0, 1)); "
+            "install the embreex wheel from PyPI (its Embree 4.4)"
+        )
 
 
 def _release(lib, scenes: list[int]) -> None:
@@ -245,10 +288,9 @@ class EmbreeCaster:
         used, index = np.unique(self._entry_owner, return_inverse=True)
         xf = np.zeros((len(self._entry_inst), 3, 4), np.float32)
         xf[:, :, :3] = np.eye(3, dtype=np.float32)
-        if len(inst):  # object to world: the inverse of the column-form inverse
-            k = len(world)
-            xf[k:, :, :3] = np.linalg.inv(rs.inst_inv[inst].astype(np.float64))
-            xf[k:, :, 3] = rs.inst_shift[inst]
+        if len(inst):  # object to world, column form
+            xf[len(world) :, :, :3] = rs.inst_fwd[inst]
+            xf[len(world) :, :, 3] = rs.inst_shift[inst]
         self._top = new_scene()
         if len(xf):
             table = np.ascontiguousarray(owner_scene[used], np.uint64)

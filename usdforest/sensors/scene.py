@@ -269,7 +269,8 @@ def extract_scene(
         Reuse tree prototypes gathered by an earlier call on the same stage content, and keep
         the ones gathered now (:mod:`usdforest.sensors.scenecache`; default).
     progress
-        ``progress(stage, done, total)`` as tree prototypes are gathered.
+        ``progress(stage, done, total)`` as tree prototypes are gathered and each tree's
+        leaves placed as reflectors.
     """
     from pxr import Usd, UsdGeom
 
@@ -289,7 +290,13 @@ def extract_scene(
     shape_of: dict = {}
     shape_keys: list[str] = []
     geometry = ("instance" if instancing else "copy") if leaf_triangles else None
-    store = PrototypeStore.of(stage) if cache and instancing else None
+    store_of: list = []  # the stage's prototype store, keyed when the first prototype is met
+
+    def store_get() -> PrototypeStore | None:
+        if not store_of:
+            store_of.append(PrototypeStore.of(stage) if cache and instancing else None)
+        return store_of[0]
+
     gathered = [0, 0]  # prototypes gathered, prototypes met
     tick = progress or (lambda stage, done, total: None)
 
@@ -316,6 +323,7 @@ def extract_scene(
         its leaves as instances."""
         key = prim.GetPath()
         if key not in proto_of:
+            store = store_get()
             entry = store.get(str(key), str(geometry)) if store is not None else None
             if entry is None:
                 seen = (len(unseen), len(paths), len(shapes))
@@ -487,10 +495,11 @@ def extract_scene(
         np.array([m for _, m, _ in placed]).reshape(-1, 4, 4),
         np.array([t for _, _, t in placed], dtype=np.int64),
     )
-    leaves = Leaves.concat(
-        [r[0] for r in realised]
-        + [_placed_leaves(protos[k], m, t, centre, radius) for k, m, t in placed if reflectors]
-    )
+    placed_leaves = []
+    for i, (k, m, t) in enumerate(placed if reflectors else []):
+        placed_leaves.append(_placed_leaves(protos[k], m, t, centre, radius))
+        tick("leaf reflectors", i + 1, len(placed))
+    leaves = Leaves.concat([r[0] for r in realised] + placed_leaves)
     tree, leaf_tree = whole.tree, leaves.tree
     # a stage holding one tree that is not instanced: tree id 0
     if (

@@ -162,12 +162,11 @@ class WarpCaster:
         types = (float, wp.int32, wp.int32, wp.int32, wp.vec3)
         handle = [0 if x is None else x.id for x in (self._wood, self._leaf_bvh, self._shapes)]
         cuda = self.device.is_cuda
-        if cuda if looped is None else looped:
-            kernel = self._kern.first_hits_looped
-            top = [self._inst_lo, self._inst_hi]
-        else:
-            kernel = self._kern.first_hits
-            top = [0 if self._top is None else self._top.id]
+        top = [
+            0 if self._top is None else self._top.id, self._inst_lo, self._inst_hi,
+            int(cuda if looped is None else looped),
+        ]  # fmt: skip
+        kernel = self._kern.first_hits
 
         def run(sl: slice) -> None:
             arrays = [
