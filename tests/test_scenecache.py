@@ -59,6 +59,8 @@ def test_a_second_extraction_reads_the_prototypes_and_equals_the_first(tmp_path,
     returns the same scene as one made without the cache, for a lidar (leaf instances) and a
     sonar (reflectors), culled or whole."""
     out = _forest(tmp_path)
+    extract_scene(out, cache=False)
+    assert not cache.exists()  # cache=False neither reads nor writes the store
     ticks: list[tuple[str, int, int]] = []
     first = extract_scene(out, centre=CENTRE, radius=30.0, progress=lambda *a: ticks.append(a))
     stored = sorted(cache.rglob("*.pkl"))

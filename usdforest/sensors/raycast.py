@@ -21,10 +21,10 @@ from usdforest.errors import UsdForestError
 from usdforest.sensors.rayscene import Hits, RayScene
 from usdforest.sensors.scene import Scene
 
-__all__ = ["DEVICES", "Hits", "RayCaster", "SceneCaster", "resolve_device"]
+__all__ = ["Hits", "RayCaster", "SceneCaster", "resolve_device"]
 
 CHUNK = 65_536
-DEVICES = ("cpu", "cuda")
+
 
 class RayCaster:
     """Embree scene over ``triangles (m, 3, 3)``; :meth:`first_hit` returns distance and id."""

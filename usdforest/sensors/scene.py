@@ -275,6 +275,7 @@ def extract_scene(
     from pxr import Usd, UsdGeom
 
     path = Path(stage_path)
+    use_store = cache and instancing  # read before ``cache`` names the transform cache
     stage = open_stage(path, sound=True)
     frame = stage_frame(path)
     cache = UsdGeom.XformCache()
@@ -294,7 +295,7 @@ def extract_scene(
 
     def store_get() -> PrototypeStore | None:
         if not store_of:
-            store_of.append(PrototypeStore.of(stage) if cache and instancing else None)
+            store_of.append(PrototypeStore.of(stage) if use_store else None)
         return store_of[0]
 
     gathered = [0, 0]  # prototypes gathered, prototypes met
