@@ -82,15 +82,36 @@ def main() -> None:
 
 
 def sonar_rows(scene, sonar, traj, caster, rows) -> None:
+    from usdforest.sensors import bandsum
     from usdforest.sensors.flight import fly_sonar
     from usdforest.sensors.sonar import SonarScene
 
     t = time.perf_counter()
     prepared = SonarScene(scene, sonar, caster=caster)
     prep = time.perf_counter() - t
-    t = time.perf_counter()
-    f = fly_sonar(scene, sonar, traj, caster=caster)
-    dt = time.perf_counter() - t
+    # the band-sum kernels' share of the flight, timed as they are called
+    spent = dict.fromkeys(("group_fit_deposit", "beam_deposit", "deposit"), 0.0)
+
+    def timed(name, kernel):
+        def run(*args):
+            start = time.perf_counter()
+            try:
+                return kernel(*args)
+            finally:
+                spent[name] += time.perf_counter() - start
+
+        return run
+
+    kernels = {name: getattr(bandsum, name) for name in spent}
+    for name, kernel in kernels.items():
+        setattr(bandsum, name, timed(name, kernel))
+    try:
+        t = time.perf_counter()
+        f = fly_sonar(scene, sonar, traj, caster=caster)
+        dt = time.perf_counter() - t
+    finally:
+        for name, kernel in kernels.items():
+            setattr(bandsum, name, kernel)
     heard = sum(
         int(n)
         for index in prepared._index
@@ -101,6 +122,13 @@ def sonar_rows(scene, sonar, traj, caster, rows) -> None:
          f"{len(f.t)} pulses, {len(f.t) / dt:.2f} echoes/s; {heard / dt / 1e3:,.0f} k leaves and "
          f"cylinders/s (+ ground facets); {len(prepared.wood):,} wood cylinders fitted in "
          f"{prep:.1f} s")
+    )  # fmt: skip
+    per = {name: spent[name] / len(f.t) for name in spent}
+    rows.append(
+        ("sonar: per pulse, band-sum kernels", sum(per.values()), "-",
+         f"leaves (group fit) {per['group_fit_deposit']:.3f} s, ground facets "
+         f"{per['beam_deposit']:.3f} s, wood {per['deposit']:.3f} s; the rest of a pulse "
+         f"{dt / len(f.t) - sum(per.values()):.3f} s")
     )  # fmt: skip
 
 
@@ -124,12 +152,17 @@ def report(rows, traj, start) -> None:
     print(f"100 m at {SPEED:g} m/s ({traj.duration:g} s of flight), 2 m up, default forest\n")
     print("| part | wall time | real time | figures |")
     print("| --- | --- | --- | --- |")
-    for name, seconds, note in rows:
+    for name, seconds, *rest in rows:
+        note = rest[-1]
         if note is None:  # a ratio row
             print(f"| {name} | {seconds:.2f}x | | |")
             continue
-        factor = "-" if name.startswith("scene") else f"{traj.duration / seconds:.2f}x"
-        print(f"| {name} | {seconds:,.1f} s | {factor} | {note} |")
+        factor = (
+            rest[0] if len(rest) == 2 else "-" if name.startswith("scene") else
+            f"{traj.duration / seconds:.2f}x"
+        )  # fmt: skip
+        shown = f"{seconds:,.1f}" if seconds >= 10 else f"{seconds:.2f}"
+        print(f"| {name} | {shown} s | {factor} | {note} |")
     print(
         f"| whole flight | {total:,.1f} s | {traj.duration / total:.2f}x | "
         f"peak memory {peak:,.0f} MiB |"

@@ -312,9 +312,7 @@ class EmbreeCaster:
         lib.check("building the forest's scene")
         tick("ray-casting scene", rs.owners + 1, rs.owners + 1)
 
-    def cast(
-        self, o: np.ndarray, d: np.ndarray, limit: np.ndarray, group: int = 1
-    ) -> RawHits:
+    def cast(self, o: np.ndarray, d: np.ndarray, limit: np.ndarray, group: int = 1) -> RawHits:
         """Raw hits of rays ``o``, ``d`` (float32 (n, 3)) within ``limit``; rays that come in
         nearly parallel groups of ``group`` (2 to 8: a beam's sub-rays) are cast as packets."""
         rs, n = self._rs, len(o)

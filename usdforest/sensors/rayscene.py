@@ -157,13 +157,9 @@ class RayScene:
             leaf_tree=np.concatenate(tree).astype(np.int64),
             leaf_first=np.concatenate([[0], np.cumsum(n_leaf)]).astype(np.int64),
             shape_tri=s_tri,
-            shape_first=np.concatenate([[0], np.cumsum([len(t) for t in s_tri])]).astype(
-                np.int64
-            ),
+            shape_first=np.concatenate([[0], np.cumsum([len(t) for t in s_tri])]).astype(np.int64),
             shape_cls=np.concatenate([s.cls for s in shapes] or [np.zeros(0)]).astype(np.uint8),
-            shape_path=np.concatenate([s.path for s in shapes] or [np.zeros(0)]).astype(
-                np.int64
-            ),
+            shape_path=np.concatenate([s.path for s in shapes] or [np.zeros(0)]).astype(np.int64),
             inst_inv=a,
             inst_fwd=inst.matrix[:, :3, :3].transpose(0, 2, 1).astype(np.float32),
             inst_shift=b,

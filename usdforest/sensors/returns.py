@@ -26,8 +26,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from usdforest.runs import run_starts
-
 MODES = ("first", "last", "strongest", "dual", "all")
 
 
@@ -107,11 +105,6 @@ class Echoes:
         return len(self.pulse)
 
 
-def _first_per(key: np.ndarray, order: np.ndarray) -> np.ndarray:
-    """Indices (into ``key``) of the first element of each run of equal ``key[order]``."""
-    return order[run_starts(key[order])]
-
-
 def merge_echoes(
     t: np.ndarray,
     energy: np.ndarray,
@@ -142,58 +135,13 @@ def merge_echoes(
     """
     if mode not in MODES:
         raise ValueError(f"mode {mode!r} is not one of {MODES}")
-    n, s = t.shape
-    order = np.argsort(t, axis=1, kind="stable")
-    t = np.take_along_axis(t, order, axis=1)
-    energy = np.take_along_axis(energy, order, axis=1)
-    spread = np.zeros_like(t) if spread is None else np.take_along_axis(spread, order, axis=1)
-    labels = tuple(np.take_along_axis(x, order, axis=1) for x in labels)
-    valid = np.isfinite(t)
-    gap = np.ones_like(valid)
-    with np.errstate(invalid="ignore"):  # inf - inf past the last hit
-        gap[:, 1:] = (t[:, 1:] - spread[:, 1:]) - (t[:, :-1] + spread[:, :-1]) > separation
-    echo = np.cumsum(gap & valid, axis=1) - 1  # echo index within the pulse, by range
-    p, j = np.nonzero(valid)
-    key = p * s + echo[p, j]  # non-decreasing: rows in order, echoes in range order
-    tv, ev = t[p, j], energy[p, j]
-    start = run_starts(key)
-    e_sum = np.add.reduceat(ev, start) if len(start) else np.zeros(0)
-    et_sum = np.add.reduceat(ev * tv, start) if len(start) else np.zeros(0)
-    safe = np.where(e_sum > 0, e_sum, 1.0)
-    rng = np.where(e_sum > 0, et_sum / safe, tv[start])  # grazing hits: the nearest
-    # the strongest sub-ray of each echo labels it
-    strongest = _first_per(key, np.lexsort((-ev, key)))
-    cls, tree, path = (x[p, j][strongest] for x in labels)
-    pulse = p[start]
-    number = echo[p, j][start]
-    count = np.bincount(pulse, minlength=n)[pulse]
-    is_last = number == count - 1
-    if mode == "first":
-        keep = number == 0
-    elif mode == "last":
-        keep = is_last
-    elif mode == "all":
-        keep = number < max_returns
-    else:
-        idx = np.arange(len(pulse))
-        pool = idx if mode == "strongest" else idx[~is_last]
-        best = _first_per(pulse, pool[np.lexsort((number[pool], -e_sum[pool], pulse[pool]))])
-        keep = np.zeros(len(pulse), dtype=bool)
-        keep[best] = True
-        if mode == "dual":
-            keep |= is_last
-    kept = np.flatnonzero(keep)
-    kp = pulse[kept]
-    per = np.bincount(kp, minlength=n)
-    first_of = np.cumsum(per) - per
-    ret = np.arange(len(kept)) - first_of[kp] + 1
-    return Echoes(
-        kp,
-        rng[kept],
-        e_sum[kept],
-        cls[kept],
-        tree[kept],
-        path[kept],
-        ret.astype(np.uint8),
-        per[kp].astype(np.uint8),
-    )
+    from usdforest.sensors import returns_kernels
+
+    t = np.ascontiguousarray(t, dtype=np.float64)
+    spread = np.zeros_like(t) if spread is None else np.ascontiguousarray(spread, np.float64)
+    cls, tree, path = (np.ascontiguousarray(x) for x in labels)
+    out = returns_kernels.merge(
+        t, np.ascontiguousarray(energy, np.float64), spread, cls, tree, path,
+        float(separation), MODES.index(mode), int(max_returns),
+    )  # fmt: skip
+    return Echoes(*out)

@@ -120,9 +120,7 @@ class PrototypeStore:
 def _evict(root: Path) -> None:
     """Keep the ``KEEP_STAGES`` most recently used stage folders."""
     try:
-        folders = sorted(
-            (p for p in root.iterdir() if p.is_dir()), key=lambda p: p.stat().st_mtime
-        )
+        folders = sorted((p for p in root.iterdir() if p.is_dir()), key=lambda p: p.stat().st_mtime)
     except OSError:
         return
     for old in folders[:-KEEP_STAGES]:
@@ -141,9 +139,7 @@ def stored(
     turned into its own lists of path names and shapes (those it uses, and those its gathering
     met first: ``before`` is how many unseen prims, paths and shapes there were before it)."""
     li = proto.leaf_instances
-    used = np.unique(np.concatenate([li.shape, np.arange(before[2], len(shapes))])).astype(
-        np.int64
-    )
+    used = np.unique(np.concatenate([li.shape, np.arange(before[2], len(shapes))])).astype(np.int64)
     ids = np.unique(
         np.concatenate(
             [np.asarray(proto.path, np.int64), np.arange(before[1], len(paths))]
@@ -163,8 +159,7 @@ def stored(
         "box": proto.box,
         "instances": (np.searchsorted(used, li.shape).astype(np.int64), li.matrix, li.tree),
         "shapes": [
-            (shape_keys[k], shapes[k].triangles, shapes[k].cls, local(shapes[k].path))
-            for k in used
+            (shape_keys[k], shapes[k].triangles, shapes[k].cls, local(shapes[k].path)) for k in used
         ],
         "unseen": list(unseen),
     }

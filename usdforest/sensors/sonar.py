@@ -68,11 +68,13 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+from scipy.signal import fftconvolve
 from scipy.special import j1
 
 from usdforest.atomic import atomic_path, save_npz
 from usdforest.errors import UsdForestError
 from usdforest.runs import run_starts
+from usdforest.sensors import bandsum
 from usdforest.sensors.backscatter import (
     LEAF_MODELS,
     cylinder_backscatter,
@@ -305,10 +307,11 @@ def wood_amplitudes(
     return _propagation(surface, tb, f, cfg) * s, surface
 
 
-def ground_amplitudes(
-    facets: Facets, pose: Pose, cfg: SonarConfig, f: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(n, len(f))`` amplitudes of ground facets and their ranges."""
+def ground_backscatter(
+    facets: Facets, pose: Pose, cfg: SonarConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Range, beam angle (rad) and backscatter S (complex, the same in every band) of
+    ground facets."""
     r, u, tb = _sight(facets.centre, pose)
     theta = np.arccos(np.clip(np.abs(np.sum(u * facets.normal, axis=1)), 0, 1))
     s = facet_backscatter(
@@ -319,6 +322,14 @@ def ground_amplitudes(
         cfg.ground_reflection,
         cfg.ground_lambert,
     )
+    return r, tb, s
+
+
+def ground_amplitudes(
+    facets: Facets, pose: Pose, cfg: SonarConfig, f: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(n, len(f))`` amplitudes of ground facets and their ranges."""
+    r, tb, s = ground_backscatter(facets, pose, cfg)
     return _propagation(r, tb, f, cfg) * s[:, None], r
 
 
@@ -455,15 +466,15 @@ def _band_constants(
 @dataclass(frozen=True)
 class _Source:
     """One class of a pulse's reflectors: ``amplitudes(indices)`` gives the band amplitudes
-    ``(n, B)`` and delay ranges of a subset; ``geometry(indices)``, where the kernel models
-    the reflectors itself (group-fit leaves in a Gaussian beam), their range, beam angle,
-    incidence and radius instead."""
+    ``(n, B)`` and ranges of a subset; ``modelled(indices)``, where a kernel computes the
+    amplitudes itself (group-fit leaves, and the ground, in a Gaussian beam), their ranges
+    and ``deposit(delays) -> (histograms, energies)``."""
 
     cls: int
     tree: np.ndarray
     position: np.ndarray
     amplitudes: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
-    geometry: Callable[[np.ndarray], tuple[np.ndarray, ...]] | None = None
+    modelled: Callable[[np.ndarray], tuple[np.ndarray, Callable]] | None = None
 
 
 def _coherent(
@@ -476,8 +487,6 @@ def _coherent(
     """Spectrum, impulse response and echo of ``source``'s reflectors, plus each one's
     band-mean energy and delay range (the coherent sum of the module docstring; Doppler as
     in :func:`echo_from_targets`)."""
-    from usdforest.sensors import bandsum
-
     c = cfg.speed_of_sound
     position = source.position
     d = position - pose.position
@@ -508,12 +517,10 @@ def _coherent(
 
         # each band's share of H: sum_l a_lk exp(-i 2 pi f tau_l) near its centre f0, as the
         # spectrum of a delay histogram of the amplitudes moved to baseband
-        if source.geometry is not None:
-            r, theta_b, theta_i, radius = source.geometry(group)
+        if source.modelled is not None:
+            r, deposit = source.modelled(group)
             ranges[group] = r
-            hist, energy[group] = bandsum.group_fit_deposit(
-                r, theta_b, theta_i, radius, delay(r, group), grid.sums
-            )
+            hist, energy[group] = deposit(delay(r, group))
         else:
             hist = np.zeros((grid.centres.size, grid.n_base), complex)
             for start in range(0, group.size, LEAF_CHUNK):
@@ -527,9 +534,9 @@ def _coherent(
         for k, (idx, hat, base, _) in enumerate(grid.bands):
             part[idx] += hat * spread[k, base]
         spectrum += part
-        impulse_part = (np.fft.irfft(part * grid.weight, grid.n_fine) * grid.fs_fine)[::OVERSAMPLE]
+        impulse_part = _impulse(part, grid)
         impulse += impulse_part
-        rest = np.convolve(impulse_part, grid.call)[: grid.n_out] / cfg.sample_rate
+        rest = fftconvolve(impulse_part, grid.call)[: grid.n_out] / cfg.sample_rate
         if factor == 1.0:
             echo += rest
         else:  # the echo at rest, time-compressed by the factor about the group's centre
@@ -540,6 +547,17 @@ def _coherent(
             )
             echo += np.nan_to_num(scaled)  # outside the window: silence
     return spectrum, impulse, echo, energy, ranges
+
+
+def _impulse(part: np.ndarray, grid: _Grid) -> np.ndarray:
+    """The impulse response at the output rate of a spectrum on the fine grid's bins:
+    ``irfft(part * weight, n_fine)[::OVERSAMPLE] * fs_fine``, computed at the output rate
+    (``part`` is zero above the output's Nyquist frequency, so taking every OVERSAMPLE-th
+    sample folds nothing: the short transform's first bins are the long one's, over
+    OVERSAMPLE)."""
+    half = grid.n_out // 2 + 1
+    assert not part[half:].any()
+    return np.fft.irfft(part[:half] * grid.weight[:half], grid.n_out) * (grid.fs_fine / OVERSAMPLE)
 
 
 def echo_from_targets(
@@ -566,10 +584,14 @@ def echo_from_targets(
         return np.flatnonzero(np.linalg.norm(points - pose.position, axis=1) <= cfg.max_range)
 
     leaf_in = near(lv.centre)
+    gaussian = cfg.beam == "gaussian"
 
-    def leaf_geometry_of(sel: np.ndarray) -> tuple[np.ndarray, ...]:
+    def group_fit_leaves(sel: np.ndarray) -> tuple[np.ndarray, Callable]:
         sub = _leaf_subset(lv, leaf_in[sel])
-        return (*leaf_geometry(sub, pose), sub.radius)
+        r, theta_b, theta_i = leaf_geometry(sub, pose)
+        return r, lambda tau: bandsum.group_fit_deposit(
+            r, theta_b, theta_i, sub.radius, tau, grid.sums
+        )
 
     # one coherent sum per class
     sources = [
@@ -579,7 +601,7 @@ def echo_from_targets(
             lv.centre[leaf_in],
             lambda sel: leaf_amplitudes(_leaf_subset(lv, leaf_in[sel]), pose, cfg, grid.centres),
             # the kernel's own model: the group's fit through a Gaussian beam
-            leaf_geometry_of if (cfg.leaf_model, cfg.beam) == ("group-fit", "gaussian") else None,
+            group_fit_leaves if gaussian and cfg.leaf_model == "group-fit" else None,
         )
     ]
     if cfg.wood and len(wood):
@@ -597,12 +619,18 @@ def echo_from_targets(
                 )
     if cfg.ground and len(ground):
         g = ground.take(near(ground.centre))
+
+        def ground_facets(sel: np.ndarray) -> tuple[np.ndarray, Callable]:
+            r, theta_b, s = ground_backscatter(g.take(sel), pose, cfg)
+            return r, lambda tau: bandsum.beam_deposit(s, r, theta_b, tau, grid.sums)
+
         sources.append(
             _Source(
                 CLASS_ID["ground"],
                 np.full(len(g), -1, np.int64),
                 g.centre,
                 lambda sel: ground_amplitudes(g.take(sel), pose, cfg, grid.centres),
+                ground_facets if gaussian else None,
             )
         )
     spectrum = np.zeros(grid.freqs.size, dtype=complex)
@@ -658,15 +686,18 @@ def _leaf_subset(lv: Leaves, sel: np.ndarray) -> Leaves:
 def _labels(tree: np.ndarray, cls: np.ndarray, energy: np.ndarray, r: np.ndarray) -> np.ndarray:
     """One row per (tree id, class): summed energy, first and last range."""
     key = np.asarray(tree, np.int64) * 256 + np.asarray(cls, np.int64)
-    uniq, inv = np.unique(key, return_inverse=True)
+    # a scene's reflectors come tree by tree: already sorted, no sort needed
+    order = None if np.all(key[1:] >= key[:-1]) else np.argsort(key, kind="stable")
+    ordered = key if order is None else key[order]
+    starts = run_starts(ordered)
+    uniq = ordered[starts]
     out = np.zeros(len(uniq), LABEL_DTYPE)
     out["tree"], out["cls"] = uniq // 256, uniq % 256
-    out["energy"] = np.bincount(inv, energy, minlength=len(uniq))
     if len(uniq):
-        order = np.argsort(inv, kind="stable")
-        starts = run_starts(inv[order])
-        out["range_min"] = np.minimum.reduceat(r[order], starts)
-        out["range_max"] = np.maximum.reduceat(r[order], starts)
+        e, r = (energy, r) if order is None else (energy[order], r[order])
+        out["energy"] = np.add.reduceat(e, starts)
+        out["range_min"] = np.minimum.reduceat(r, starts)
+        out["range_max"] = np.maximum.reduceat(r, starts)
     return out
 
 

@@ -153,9 +153,7 @@ def scan(
     check_not_inside_wood(scene, p)
     # a sonar without occlusion casts no rays into the trees: build nothing for them
     caster = (
-        SceneCaster(scene, device, progress=progress)
-        if sensor != "sonar" or occlusion
-        else None
+        SceneCaster(scene, device, progress=progress) if sensor != "sonar" or occlusion else None
     )
     if sensor == "lidar":
         result = lidar.scan(scene, settings, p, seed=seed, caster=caster)
