@@ -108,9 +108,7 @@ def _instanced(device: str):
         from usdforest.sensors.raycast import SceneCaster
         from usdforest.sensors.scene import extract_scene
 
-        scene = extract_scene(
-            str(z["forest"]), centre=z["origin"], radius=REACH, reflectors=False
-        )
+        scene = extract_scene(str(z["forest"]), centre=z["origin"], radius=REACH, reflectors=False)
         t = time.perf_counter()
         caster = SceneCaster(scene, device)
         caster.first_hit(np.zeros((1, 3)), np.array([[0.0, 0, 1]]))  # compiled, loaded

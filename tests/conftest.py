@@ -28,6 +28,26 @@ def scene_cache(tmp_path_factory) -> Path:
         os.environ["USDFOREST_CACHE"] = saved
 
 
+@pytest.fixture(scope="session", autouse=True)
+def every_written_recipe_loads_back(tmp_path_factory):
+    """After the whole session: every ``pipeline.toml`` a test's build wrote (the record a
+    forest keeps of its resolved recipe) loads back as a recipe, so any forest can be built
+    again from its own record."""
+    yield
+    from usdforest.errors import UsdForestError
+    from usdforest.recipe import read_recipe
+
+    base = tmp_path_factory.getbasetemp()
+    bad = []
+    found = sorted(base.rglob("*_assets/pipeline.toml"))
+    for path in found:
+        try:
+            read_recipe(path)
+        except (UsdForestError, OSError) as exc:
+            bad.append(f"{path}: {exc}")
+    assert not bad, "written recipes that do not load back:\n" + "\n".join(bad)
+
+
 @pytest.fixture
 def runner() -> CliRunner:
     return CliRunner()

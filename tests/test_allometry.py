@@ -373,11 +373,48 @@ def test_a_stem_map_csv_builds_and_bad_ones_exit_2(tmp_path):
     write_forest(read_recipe(tmp_path / "r.toml"), out, thumbnail=False)
     f = stand_figures(out)
     assert sorted(np.round(f["per_tree"]["dbh"], 2)) == [0.1, 0.2]
-    (tmp_path / "stems.csv").write_text("x,y,dbh\n3,4,0.2\n")
+    # a bad one beside it (the forest's pipeline.toml still reads stems.csv)
+    (tmp_path / "bad.csv").write_text("x,y,dbh\n3,4,0.2\n")
+    (tmp_path / "bad.toml").write_text(text.replace('"stems.csv"', '"bad.csv"'))
     script = Path(sys.executable).parent / "usdforest"
     cmd = [str(script)] if script.exists() else [sys.executable, "-m", "usdforest.entry"]
     p = subprocess.run(
-        [*cmd, "build", "g.usda", "-p", "r.toml"], cwd=tmp_path, capture_output=True, text=True
+        [*cmd, "build", "g.usda", "-p", "bad.toml"], cwd=tmp_path, capture_output=True, text=True
     )
     assert p.returncode == 2 and "needs the columns" in p.stderr and "Traceback" not in p.stderr
     assert not (tmp_path / "g.usda").exists()
+
+
+@pytest.mark.parametrize(
+    ("rows", "message"),
+    [
+        (
+            "3,4,pine,0.2,18\n12,9,pine,0.1,12.5\n3,4,pine,0.3,20\n",
+            r"stems.csv line 4: \(3, 4\) is within 1 cm of sites: stems.csv line 2; two trunks",
+        ),
+        ("3,4,pine,0.2,18\n3.005,4,pine,0.1,12.5\n", r"line 3: \(3.005, 4\) is within 1 cm of"),
+        ("".join("5,5,pine,0.2,18\n" for _ in range(1000)), r"line 3: \(5, 5\) is within 1 cm"),
+    ],
+    ids=["a-row-twice", "5-mm-apart", "1000-at-one-point"],
+)
+def test_trunks_at_one_point_are_refused_naming_both_rows(tmp_path, rows, message):
+    (tmp_path / "stems.csv").write_text("x,y,species,dbh,height\n" + rows)
+    text = INVENTORY.format(extra="")
+    start = text.index("sites = [")
+    text = text[:start] + 'sites = "stems.csv"\n' + text[text.index("]\n", start) + 2 :]
+    (tmp_path / "r.toml").write_text(text)
+    with pytest.raises(RecipeError, match=message):
+        read_recipe(tmp_path / "r.toml")
+
+
+@pytest.mark.parametrize("yaw", ["1e300", "-361", "720", "inf"])
+def test_an_absurd_yaw_is_refused_with_its_row(tmp_path, yaw):
+    (tmp_path / "stems.csv").write_text(
+        f"x,y,species,dbh,height,yaw\n3,4,pine,0.2,18,10\n12,9,pine,0.1,12.5,{yaw}\n"
+    )
+    text = INVENTORY.format(extra="")
+    start = text.index("sites = [")
+    text = text[:start] + 'sites = "stems.csv"\n' + text[text.index("]\n", start) + 2 :]
+    (tmp_path / "r.toml").write_text(text)
+    with pytest.raises(RecipeError, match=r"stems.csv line 3\.yaw: "):
+        read_recipe(tmp_path / "r.toml")

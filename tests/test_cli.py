@@ -144,3 +144,27 @@ def test_a_progress_lines_first_time_left_comes_from_a_measured_rate(monkeypatch
         "lidar sweeps: 2/10 (12 s, about 48 s left)",
         "lidar sweeps: 10/10 (30 s)",
     ]
+
+
+def test_info_on_an_empty_stage_says_so_without_usd_warnings(tmp_path):
+    """USD's diagnostics go to the process's stderr, past Python: run the command itself."""
+    from pathlib import Path
+
+    (tmp_path / "empty.usda").write_text("#usda 1.0\n")
+    script = Path(sys.executable).parent / "usdforest"
+    cmd = [str(script)] if script.exists() else [sys.executable, "-m", "usdforest.entry"]
+    p = subprocess.run([*cmd, "info", "empty.usda", "--json"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert p.returncode == 0 and p.stderr == "", p.stderr
+    info = json.loads(p.stdout)
+    assert (info["prims"], info["meshes"], info["trees"]) == (1, 0, 0)
+
+
+@pytest.mark.parametrize("suffix", ["", ".toml"])
+def test_a_recipe_name_too_long_for_any_file_system_is_named(tmp_path, runner, suffix):
+    name = "a" * 300 + suffix
+    r = runner.invoke(app, ["build", str(tmp_path / "f.usda"), "-p", name])
+    assert r.exit_code == 2, r.output
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {name}: "), r.stderr
+    assert list(tmp_path.iterdir()) == []

@@ -109,3 +109,58 @@ def test_wrap_refuses_what_is_not_a_usdforest_asset_and_existing_hosts(tmp_path,
     r = runner.invoke(app, ["wrap", str(forest), "-o", str(host), "--up", "Z"])
     assert r.exit_code == 2 and "exists; pass --force" in r.stderr
     assert runner.invoke(app, ["wrap", str(forest), "-o", str(host), "--force"]).exit_code == 0
+
+
+def test_wrap_never_replaces_its_asset_or_a_layer_it_composes(tmp_path, runner, forest):
+    """`wrap a.usda -o a.usda --force` wrote a host that referenced itself over its input;
+    a host written over one of the forest's own layers (here: through a symbolic link to
+    it) would break the forest. Both are refused, whatever --force says, and nothing
+    changes."""
+    import shutil
+
+    copy = tmp_path / "stand.usda"
+    shutil.copy(forest, copy)
+    shutil.copytree(forest.parent / "stand_assets", tmp_path / "stand_assets")
+    before = copy.read_bytes()
+    r = runner.invoke(app, ["wrap", str(copy), "-o", str(copy), "--force"])
+    assert r.exit_code == 2, r.output
+    assert f"{copy}: is an input of this command" in r.stderr
+    assert copy.read_bytes() == before
+    inner = sorted((tmp_path / "stand_assets").rglob("*.usd*"))[0]
+    inner_bytes = inner.read_bytes()
+    link = tmp_path / "host.usda"
+    link.symlink_to(inner)
+    r = runner.invoke(app, ["wrap", str(copy), "-o", str(link), "--force"])
+    assert r.exit_code == 2 and "is an input of this command" in r.stderr, r.output
+    assert inner.read_bytes() == inner_bytes
+    assert errors(validate(copy)) == []
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["host.usda", "stand.usda", "stand_assets"]
+
+
+@pytest.mark.parametrize(
+    ("suffix", "content", "fragment"),
+    [
+        (".txt", b"hello\n", "Cannot determine file format"),
+        (".png", b"\x89PNG\r\n\x1a\n" + bytes(range(256)), "Cannot determine file format"),
+        (".usda", bytes(range(256)) * 8, "is not a valid usda layer"),
+        (".usdc", None, "crate file corrupt, possibly truncated"),
+    ],
+    ids=["text", "png", "random", "truncated-crate"],
+)
+def test_wrap_names_a_file_that_is_no_usd_layer(
+    tmp_path, runner, forest, suffix, content, fragment
+):
+    if content is None:  # the first half of the forest's largest crate file
+        crate = max(
+            (forest.parent / "stand_assets").rglob("*.usdc"), key=lambda p: p.stat().st_size
+        )
+        content = crate.read_bytes()[: crate.stat().st_size // 2]
+    bad = tmp_path / f"bad{suffix}"
+    bad.write_bytes(content)
+    host = tmp_path / "h.usda"
+    r = runner.invoke(app, ["wrap", str(bad), "-o", str(host)])
+    assert r.exit_code == 2, r.output
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {bad}: not a USD layer"), r.stderr
+    assert fragment in lines[0], lines[0]
+    assert not host.exists()

@@ -79,15 +79,21 @@ def _maps(pid: int) -> str:
         return ""
 
 
-def _one_line_interrupt(p: subprocess.Popen, tmp_path: Path) -> None:
-    p.send_signal(signal.SIGINT)
+STOPPED = {signal.SIGINT: (130, "error: interrupted"), signal.SIGTERM: (143, "error: terminated")}
+
+
+def _one_line_interrupt(
+    p: subprocess.Popen, tmp_path: Path, sig: int = signal.SIGINT, keep: tuple = ()
+) -> None:
+    p.send_signal(sig)
     _, err = p.communicate(timeout=60)
     if p.returncode == 0:  # finished between the check and the signal
         return
-    assert p.returncode == 130, err
-    errors = [line for line in err.splitlines() if line.startswith("error")]
-    assert errors == ["error: interrupted"] and "Traceback" not in err, err
-    assert sorted(x.name for x in tmp_path.iterdir()) == []
+    status, line = STOPPED[sig]
+    assert p.returncode == status, err
+    errors = [x for x in err.splitlines() if x.startswith("error")]
+    assert errors == [line] and "Traceback" not in err, err
+    assert sorted(x.name for x in tmp_path.iterdir() if x.name not in keep) == []
 
 
 @pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs Linux /proc")
@@ -101,10 +107,29 @@ def test_ctrl_c_while_the_modules_load_ends_in_one_line(tmp_path):
         p.communicate(timeout=60)
 
 
-def test_ctrl_c_during_a_build_ends_in_one_line(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_or_sigterm_during_a_build_ends_in_one_line(tmp_path, sig):
+    """SIGTERM (what timeout, SLURM, Kubernetes and docker stop send) is Ctrl-C: one line,
+    exit 143, no staging folder and no output left."""
     p = _usdforest("build", "f.usda", "-p", str(TWO_TREES), cwd=tmp_path)
     if _wait_for(p, lambda: bool(list(tmp_path.glob(".f.build-*")))):
-        _one_line_interrupt(p, tmp_path)
+        _one_line_interrupt(p, tmp_path, sig)
+    else:
+        p.communicate(timeout=60)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_or_sigterm_during_a_flight_ends_in_one_line(tmp_path, sig):
+    """A flight stopped while it stages its outputs leaves its stage and nothing else."""
+    write_forest(read_recipe(TWO_TREES), tmp_path / "f.usda", thumbnail=False)
+    keep = tuple(x.name for x in tmp_path.iterdir())
+    p = _usdforest(
+        "fly", "f.usda", "--line", "0,0,2:8,0,2", "--speed", "2", "--sonar", "paper",
+        "-o", "out/run", "-q", cwd=tmp_path,
+    )  # fmt: skip
+    if _wait_for(p, lambda: bool(list((tmp_path / "out").glob(".run.build-*")))):
+        _one_line_interrupt(p, tmp_path, sig, keep=(*keep, "out"))
+        assert not list((tmp_path / "out").iterdir())
     else:
         p.communicate(timeout=60)
 
@@ -169,3 +194,29 @@ def test_a_copied_forest_validates_and_packs_into_usdz(tmp_path):
     pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
     assert len(pi.GetPositionsAttr().Get()) == 2
     assert not stage.GetCompositionErrors()
+
+
+@pytest.mark.parametrize("force", [False, True], ids=["plain", "force"])
+def test_two_builds_into_one_output_one_wins_the_other_is_refused(tmp_path, force):
+    """Two builds of different recipes into one output: the second, started while the first
+    writes, is refused in one line (with --force too) and the first's forest is the one
+    left; a third, started after, is refused unless forced."""
+    first = _usdforest("build", "f.usda", "-p", "quick-mixed", "-q", cwd=tmp_path)
+    assert _wait_for(first, lambda: (tmp_path / ".f.build-lock").exists()), first.communicate()
+    second = _usdforest(
+        "build", "f.usda", "-p", str(TWO_TREES), *(["--force"] if force else []), cwd=tmp_path
+    )
+    _, err2 = second.communicate(timeout=120)
+    _, err1 = first.communicate(timeout=600)
+    assert first.returncode == 0, err1
+    assert second.returncode == 2, err2
+    lines = err2.strip().splitlines()
+    assert lines == ["error: f.usda: another usdforest process is writing it; wait for it to "
+                     "finish or write elsewhere"], err2  # fmt: skip
+    stage = Usd.Stage.Open(str(tmp_path / "f.usda"))
+    ids = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees")).GetProtoIndicesAttr()
+    assert len(ids.Get()) > 100  # quick-mixed's trees, not the two of the refused recipe
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["f.usda", "f_assets"]
+    third = _usdforest("build", "f.usda", "-p", str(TWO_TREES), cwd=tmp_path)
+    _, err3 = third.communicate(timeout=120)
+    assert third.returncode == 2 and "f.usda exists; pass --force" in err3, err3

@@ -11,6 +11,7 @@ import http.server
 import json
 import os
 import resource
+import shutil
 import signal
 import socket
 import subprocess
@@ -252,3 +253,37 @@ def test_a_local_metre_plot_without_a_crs_is_not_taken_for_degrees(tmp_path):
     (tmp_path / "deg.geojson").write_text(json.dumps({"type": "Polygon", "coordinates": [small]}))
     with pytest.raises(RecipeError, match="look like degrees"):
         read_shape(tmp_path / "deg.geojson", "region.file")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_a_quiet_dask_build_prints_nothing_and_a_stopped_one_one_line(tmp_path, sig):
+    """``build --workers 2 -q`` is silent on stderr (Dask's logs, heartbeats to a closing
+    cluster and tornado's cancelled callbacks among them, are not a user's business); one
+    stopped while its tiles are written ends in one line, whatever Dask logs as it closes."""
+    pytest.importorskip("distributed")
+    (tmp_path / "r.toml").write_text(TILED)
+    r = _run(["build", "f.usda", "-p", "r.toml", "--workers", "2", "-q", "--no-thumbnail"],
+             tmp_path, timeout=600)  # fmt: skip
+    assert r.returncode == 0 and r.stderr == "", r.stderr
+    shutil.rmtree(tmp_path / "f_assets")
+    (tmp_path / "f.usda").unlink()
+    p = _tiled_build(tmp_path)
+    if not _wait_for_tiles(p, tmp_path):
+        p.communicate(timeout=120)
+        pytest.skip("the build finished before its tiles could be stopped")
+    p.send_signal(sig)
+    _, err = p.communicate(timeout=180)
+    want = {signal.SIGINT: (130, "error: interrupted"), signal.SIGTERM: (143, "error: terminated")}
+    assert (p.returncode, [x for x in err.splitlines() if not _progress(x)]) == (
+        want[sig][0],
+        [want[sig][1]],
+    ), err
+    assert snapshot(tmp_path) == {"r.toml"}
+
+
+def _progress(line: str) -> bool:
+    """A progress line of a build whose stderr is not a terminal (``stage: n/N (s)``), or
+    the blank line that ends them."""
+    import re
+
+    return not line.strip() or re.fullmatch(r"[a-z ]+: [\d,]+/[\d,]+ \(.*\)", line) is not None

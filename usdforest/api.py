@@ -18,6 +18,8 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from usdforest.errors import UsdForestError
+
 if TYPE_CHECKING:
     from usdforest.grow.species import Species
     from usdforest.recipe import Recipe
@@ -44,8 +46,10 @@ def load_recipe(
     None (the embedded default), or the recipe's data as a mapping (what ``tomllib`` reads;
     its relative file names are taken from ``base``, default the current folder). ``seed``
     and ``hard_core`` override the recipe's."""
+    from usdforest import arguments
     from usdforest.recipe import parse_recipe, read_recipe, recipe_path
 
+    seed = arguments.optional_seed(seed)
     if isinstance(recipe, Mapping):
         folder = Path(base) if base is not None else Path.cwd()
         return parse_recipe(
@@ -71,9 +75,11 @@ def build_forest(
     local processes or on the Dask cluster at ``scheduler``. Returns the trees per species,
     prototypes and extent (and an untiled forest's sites; a tiled one's stay in its tiles);
     refuses to overwrite unless ``force``; a failure leaves nothing behind."""
+    from usdforest import arguments
     from usdforest.recipe import Recipe
     from usdforest.usd.forest import write_forest
 
+    seed = arguments.optional_seed(seed)
     if not isinstance(recipe, Recipe):
         recipe = load_recipe(recipe, seed=seed)
     elif seed is not None:
@@ -100,11 +106,18 @@ def grow_tree(
 ) -> TreeBuild:
     """Grow one tree of ``species`` (a preset's name or a
     :class:`~usdforest.grow.species.Species`) and write it at ``out`` (``.usda`` or ``.usdc``)."""
-    from usdforest.grow.species import get_species
+    from usdforest import arguments
+    from usdforest.grow.species import Species, get_species
     from usdforest.usd.tree import write_tree
 
+    seed = arguments.seed(seed)
+    variant = arguments.integer(variant, "variant", 0, what="a variant number")
+    arguments.path(out, "out")
+    arguments.flag(force, "force")
     if isinstance(species, str):
         species = get_species(species)
+    elif not isinstance(species, Species):
+        raise UsdForestError(f"species: expected a preset's name or a Species, got {species!r}")
     return write_tree(species, out, seed=seed, variant=variant, colliders=colliders, force=force)
 
 

@@ -56,17 +56,75 @@ def refuse_overwrite(*paths: str | Path, force: bool) -> None:
 
 
 BUILD_MARK = ".build-"
+LOCK_NAME = "lock"  # .<stem>.build-lock: a killed writer's is reused, then removed, by the next
+
+
+@contextmanager
+def output_lock(out: Path) -> Iterator[None]:
+    """Hold ``.<stem>.build-lock`` beside ``out`` while the block runs: a second usdforest process
+    writing the same output is refused in one line instead of racing this one. An advisory
+    ``flock``, so the kernel releases it whatever ends the process (a SIGKILL leaves the
+    file, which the next writer reuses); on a platform without ``fcntl``, no lock."""
+    from usdforest.errors import UsdForestError
+    from usdforest.paths import shown
+
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield
+        return
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    lock = out.parent / f".{out.stem}{BUILD_MARK}{LOCK_NAME}"
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise UsdForestError(
+                f"{shown(out)}: another usdforest process is writing it; wait for it to finish "
+                "or write elsewhere"
+            ) from None
+        try:  # the holder before us may have removed the file we locked: lock the new one
+            if os.fstat(fd).st_ino == os.stat(lock).st_ino:
+                break
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+    try:
+        os.write(fd, f"{os.getpid()}\n".encode())
+        yield
+    finally:
+        lock.unlink(missing_ok=True)
+        os.close(fd)
+
+
+def refuse_appeared(*paths: Path, force: bool) -> None:
+    """Before outputs move into place: without ``force``, refuse one that appeared while
+    they were written (another program made it; usdforest's own writers hold the lock)."""
+    from usdforest.errors import UsdForestError
+
+    if force:
+        return
+    for p in paths:
+        if p.exists() or p.is_symlink():
+            raise UsdForestError(
+                f"{p} appeared while this one was written; pass --force to overwrite it "
+                "(nothing was replaced)"
+            )
 
 
 @contextmanager
 def staging_folder(out: Path) -> Iterator[Path]:
     """A hidden folder beside ``out`` to build in (``.<stem>.build-XXXX``), holding a ``pid``
     file, removed when the block ends (moved files are gone from it by then); stale ones that
-    a killed build left behind are removed first.
+    a killed build left behind are removed first. Callers hold :func:`output_lock` on
+    ``out`` from before their first check of it.
 
-    Ctrl-C is held back from the folder's creation until the block that removes it is
-    entered, so an interrupt at any moment leaves nothing (SIGKILL leaves the folder, which
-    the next build sweeps away).
+    Ctrl-C and SIGTERM are held back from the folder's creation until the block that removes
+    it is entered, so an interrupt at any moment leaves nothing (SIGKILL leaves the folder,
+    which the next build sweeps away).
     """
     import shutil
 
@@ -74,7 +132,7 @@ def staging_folder(out: Path) -> Iterator[Path]:
     sweep_stale_builds(out)
     tmp = None
     try:
-        with sigint_held():  # an interrupt held here arrives inside the try: tmp is removed
+        with interrupts_held():  # an interrupt held here arrives inside the try: tmp is removed
             tmp = Path(tempfile.mkdtemp(prefix=f".{out.stem}{BUILD_MARK}", dir=out.parent))
             (tmp / "pid").write_text(str(os.getpid()))
         yield tmp
@@ -84,19 +142,20 @@ def staging_folder(out: Path) -> Iterator[Path]:
 
 
 @contextmanager
-def sigint_held() -> Iterator[None]:
-    """Hold Ctrl-C (SIGINT) back while the block runs; a held one arrives when it ends (where
-    the platform cannot block signals, the block is not protected)."""
+def interrupts_held() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) and SIGTERM back while the block runs; a held one arrives when it
+    ends (where the platform cannot block signals, the block is not protected)."""
     import signal
 
     held = hasattr(signal, "pthread_sigmask")
+    both = {signal.SIGINT, signal.SIGTERM}
     if held:
-        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        signal.pthread_sigmask(signal.SIG_BLOCK, both)
     try:
         yield
     finally:
         if held:
-            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, both)
 
 
 def _alive(pid: int) -> bool:
@@ -129,11 +188,15 @@ def sweep_stale_builds(out: Path) -> list[Path]:
     return removed
 
 
-def publish(tmp: Path, out: Path, staged_out: Path, moves: list[tuple[Path, Path]]) -> None:
+def publish(
+    tmp: Path, out: Path, staged_out: Path, moves: list[tuple[Path, Path]], *, force: bool
+) -> None:
     """Move a staged build into place so that ``out`` (the layer that references the rest) is
     never paired with a mix of old and new files: the old ``out`` leaves first, the other
     files are swapped, the new ``out`` arrives last. Whatever is replaced goes into ``tmp``
-    (removed by the caller); a kill half-way leaves no ``out`` rather than a wrong one."""
+    (removed by the caller); a kill half-way leaves no ``out`` rather than a wrong one.
+    Without ``force``, outputs that appeared meanwhile are refused (:func:`refuse_appeared`)."""
+    refuse_appeared(out, *(dest for _, dest in moves), force=force)
     if out.exists() or out.is_symlink():
         os.replace(out, tmp / f"old-{out.name}")
     for src, dest in moves:
@@ -143,9 +206,11 @@ def publish(tmp: Path, out: Path, staged_out: Path, moves: list[tuple[Path, Path
     os.replace(staged_out, out)
 
 
-def move_into_place(moves: list[tuple[Path, Path]]) -> None:
-    """Rename each staged ``(src, dest)`` onto ``dest`` with Ctrl-C held back until the last
-    one has moved, so a set of outputs appears together or not at all."""
-    with sigint_held():
+def move_into_place(moves: list[tuple[Path, Path]], *, force: bool) -> None:
+    """Rename each staged ``(src, dest)`` onto ``dest`` with Ctrl-C and SIGTERM held back
+    until the last one has moved, so a set of outputs appears together or not at all;
+    without ``force``, refuse if one appeared meanwhile (:func:`refuse_appeared`)."""
+    refuse_appeared(*(dest for _, dest in moves), force=force)
+    with interrupts_held():
         for src, dest in moves:
             os.replace(src, dest)

@@ -149,8 +149,12 @@ def dask_client(workers: int, scheduler: str | None):
     import logging
     import os
 
-    logging.getLogger("distributed").setLevel(logging.ERROR)
-    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "error")  # (the workers too)
+    # Dask reports what matters as the exceptions a build raises (a worker lost, a task's
+    # error); its logs (heartbeats to a closing cluster, tornado callbacks cancelled by a
+    # Ctrl-C) are noise on a user's terminal: silent here and in the workers
+    for name in ("distributed", "tornado", "tornado.application"):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "critical")  # (the workers too)
     if scheduler is not None:
         client = connect(scheduler)
         with client:

@@ -1,4 +1,5 @@
-"""The console script: a Ctrl-C at any moment once usdforest's code runs ends in one line.
+"""The console script: a Ctrl-C or SIGTERM at any moment once usdforest's code runs ends in one
+line (exit 130, or 143 for SIGTERM).
 
 ``usdforest.cli`` imports numpy, typer and rich before its own handler can catch an interrupt,
 and between that import and the handler there is a gap; this small module covers both.
@@ -13,13 +14,17 @@ import sys
 
 
 def main() -> None:
+    from usdforest import signals
+
+    signals.terminate_as_interrupt()
     try:
         from usdforest.cli import main as cli_main
 
         cli_main()
     except KeyboardInterrupt:
-        sys.stderr.write("error: interrupted\n")
-        sys.exit(130)
+        line, status = signals.stopped()
+        sys.stderr.write(line + "\n")
+        sys.exit(status)
 
 
 if __name__ == "__main__":

@@ -94,6 +94,41 @@ def require_output(path: str | Path, what: str = "output") -> Path:
     return path
 
 
+def _real(path: str | Path) -> Path:
+    return Path(os.path.realpath(path))
+
+
+def refuse_inputs(outputs: list[Path], inputs: list[Path], folders: tuple[Path, ...] = ()) -> None:
+    """Refuse, whatever ``--force`` says, an output that is (or resolves to, through links
+    and ``..``) one of the command's ``inputs``, or an output folder (replaced whole) that
+    holds one: a command never replaces what it reads."""
+    real_inputs = {_real(p): p for p in inputs if p is not None and os.path.lexists(p)}
+    for out in outputs:
+        found = real_inputs.get(_real(out))
+        if found is not None:
+            raise UsdForestError(
+                f"{shown(out)}: is an input of this command ({shown(found)}); write the "
+                "output elsewhere"
+            )
+    for folder in folders:
+        real = _real(folder)
+        for path, given in real_inputs.items():
+            if real == path or real in path.parents:
+                raise UsdForestError(
+                    f"{shown(folder)}: would be replaced, but holds an input of this command "
+                    f"({shown(given)}); write the output elsewhere"
+                )
+
+
+def layer_inputs(stage: str | Path) -> list[Path]:
+    """The stage's file and every layer it composes (sublayers, references and payloads, as
+    far as they go)."""
+    from pxr import UsdUtils
+
+    layers, _, _ = UsdUtils.ComputeAllDependencies(str(stage))
+    return [Path(stage), *(Path(layer.realPath) for layer in layers if layer.realPath)]
+
+
 IMAGE_FORMATS = {
     ".png": "png",
     ".jpg": "jpeg",

@@ -417,9 +417,10 @@ def _parse_sites(
 ) -> tuple[dict, ...]:
     """``[[sites]]`` rows checked; ``labels`` name each row in messages (a stem map's file
     and line) instead of ``where[i]``."""
-    out = []
+    out, rows = [], []
     for i, (w, s) in enumerate(table_array(v, SITE_KEYS, where, required={"x", "y"})):
         w = labels[i] if labels is not None else w
+        rows.append(w)
         site = {"x": _num(s.get("x"), f"{w}.x"), "y": _num(s.get("y"), f"{w}.y")}
         if "species" in s:
             if s["species"] not in names:
@@ -427,13 +428,38 @@ def _parse_sites(
             site["species"] = s["species"]
         if "yaw" in s:
             site["yaw"] = _num(s["yaw"], f"{w}.yaw")
+            if not -360.0 <= site["yaw"] <= 360.0:
+                raise RecipeError(
+                    f"{w}.yaw: {site['yaw']:g} is not an angle in degrees (-360 to 360)"
+                )
         if "scale" in s:
             site["scale"] = _num(s["scale"], f"{w}.scale", positive=True)
         _site_sizes(s, site, w, names, species)
         if not bool(region.contains(np.array([site["x"]]), np.array([site["y"]]))[0]):
             raise RecipeError(f"{w}: ({site['x']:g}, {site['y']:g}) is outside the region")
         out.append(site)
+    _refuse_coincident(out, rows)
     return tuple(out)
+
+
+MIN_TRUNK_SPACING = 0.01  # m: two stems closer than this are one point, not two trees
+
+
+def _refuse_coincident(sites: list[dict], labels: list[str]) -> None:
+    """Two sites closer than ``MIN_TRUNK_SPACING`` (a row entered twice, a column of zeros)
+    are refused, naming both rows."""
+    if len(sites) < 2:
+        return
+    from scipy.spatial import cKDTree
+
+    xy = np.array([(s["x"], s["y"]) for s in sites], dtype=float)
+    pairs = cKDTree(xy).query_pairs(MIN_TRUNK_SPACING, output_type="ndarray")
+    if len(pairs):
+        i, j = sorted(pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))][0])
+        raise RecipeError(
+            f"{labels[j]}: ({xy[j, 0]:g}, {xy[j, 1]:g}) is within {MIN_TRUNK_SPACING * 100:g} cm "
+            f"of {labels[i]}; two trunks cannot stand at one point"
+        )
 
 
 def _site_sizes(
@@ -859,7 +885,11 @@ def recipe_path(spec: str | Path | None) -> Path:
     if spec is None:
         return default_recipe_path()
     path = Path(spec)
-    if path.exists() or path.suffix or len(path.parts) != 1:
+    try:
+        exists = path.exists()
+    except OSError:  # a name no file system holds (ENAMETOOLONG): not a file here
+        exists = False
+    if exists or path.suffix or len(path.parts) != 1:
         return path  # reading it reports a missing file with its path
     shipped = shipped_recipes()
     if path.name in shipped:
@@ -900,3 +930,27 @@ def resolved_toml(recipe: Recipe, to_dir: Path) -> dict:
                 rebase(b) if b.endswith((".usdc", ".usda", ".usd")) else b for b in g["branches"]
             ]
     return data
+
+
+def recipe_inputs(recipe: Recipe) -> list[Path]:
+    """The files a recipe reads: its own file and every string in it that names an existing
+    file beside it (rasters, stem maps, profiles, template layers, species files)."""
+    found = [Path(recipe.source)]
+
+    def walk(value: Any) -> None:
+        if isinstance(value, Mapping):
+            for v in value.values():
+                walk(v)
+        elif isinstance(value, list | tuple):
+            for v in value:
+                walk(v)
+        elif isinstance(value, str) and value and len(value) < 4096:
+            candidate = recipe.base / value
+            try:
+                if candidate.is_file():
+                    found.append(candidate)
+            except OSError:  # a name too long or otherwise impossible: no file
+                pass
+
+    walk(recipe.data)
+    return found

@@ -1,7 +1,8 @@
 """The ``usdforest`` application: its options, error handling, progress and entry point (the
 commands are in this package's other modules, by pipeline stage).
 
-Exit codes: 0 success, 1 a check failed (e.g. validation found errors), 2 bad input.
+Exit codes: 0 success, 1 a check failed (e.g. validation found errors), 2 bad input, 3 an
+internal error, 130 interrupted (Ctrl-C), 143 terminated (SIGTERM).
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-from usdforest import __version__
+from usdforest import __version__, signals
+from usdforest.arguments import MAX_SEED
 from usdforest.errors import UsdForestError
 
 
@@ -94,7 +96,6 @@ DeviceOption = Annotated[
         help="Where rays are cast: cpu (Embree, every core) or cuda[:N] (Warp, NVIDIA GPU).",
     ),
 ]
-MAX_SEED = 2**64 - 1
 PLAIN_PROGRESS_SECONDS = 5.0
 SeedOverride = Annotated[
     int | None,
@@ -230,10 +231,12 @@ def main() -> None:
     # numpy's RuntimeWarnings (overflow, invalid values) never reach a user: the code checks
     # its results and reports what matters as an error
     warnings.simplefilter("ignore", RuntimeWarning)
+    signals.terminate_as_interrupt()  # also when called without the console script
     try:
         code = app(standalone_mode=False)
         if code == 130:  # typer turns a Ctrl-C inside a command into a silent exit 130
-            err.print("error: interrupted", highlight=False)
+            line, code = signals.stopped()
+            err.print(line, highlight=False)
     except ce.UsageError as exc:
         if type(exc).__name__.startswith("NoArgsIsHelp") and exc.ctx is not None:
             out.print(exc.ctx.get_help(), highlight=False)  # a bare command shows its help
@@ -245,8 +248,8 @@ def main() -> None:
             )
         code = 2
     except (typer.Abort, KeyboardInterrupt):
-        err.print("error: interrupted", highlight=False)
-        code = 130
+        line, code = signals.stopped()
+        err.print(line, highlight=False)
     except typer.Exit as exc:
         code = exc.exit_code
     except Exception as exc:  # a bug, not bad input: one line unless asked for the trace

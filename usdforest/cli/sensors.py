@@ -9,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from usdforest.atomic import move_into_place, refuse_overwrite, staging_folder
+from usdforest.atomic import move_into_place, output_lock, refuse_overwrite, staging_folder
 from usdforest.cli.app import (
     MAX_SEED,
     Command,
@@ -23,7 +23,7 @@ from usdforest.cli.app import (
     progress_bars,
 )
 from usdforest.errors import UsdForestError
-from usdforest.paths import require_output
+from usdforest.paths import refuse_inputs, require_output
 
 
 @app.command("scan", cls=Command)
@@ -93,6 +93,7 @@ def scan_cmd(
             for k in ("rgb", "depth", "semantic", "instance")
         ],
     }.get(sensor, [])
+    refuse_inputs([output, *companions], [stage, config])
     refuse_overwrite(output, *companions, force=force)
     p = parse_pose(pose)
     presets, default = SENSORS[sensor]
@@ -267,6 +268,7 @@ def fly_cmd(
                 raise ValueError
         except ValueError:
             raise UsdForestError(f"--line: expected x0,y0,z0:x1,y1,z1, got {line!r}") from None
+    require_output(output, "output stem")
     traj = trajectory(stage, path=path, line=ends, speed=speed)
     tables = {}
     if config is not None:
@@ -297,10 +299,16 @@ def fly_cmd(
     )
     for o in outs:
         require_output(o)
+    refuse_inputs(outs, [stage, path, config])
     refuse_overwrite(*outs, force=force)
     t0 = time.perf_counter()
     summary: dict = {"duration_s": traj.duration, "outputs": [str(o) for o in outs]}
-    with progress_bars(not (quiet or as_json), t0) as tick, staging_folder(output) as tmp:
+    with (
+        output_lock(output),
+        progress_bars(not (quiet or as_json), t0) as tick,
+        staging_folder(output) as tmp,
+    ):
+        refuse_overwrite(*outs, force=force)  # again, now that no other flight can write them
         done = fly(
             stage, path=traj, lidar=lidar_cfg, sonar=sonar_cfg, camera=camera_cfg,
             lidar_rate=lidar_rate, camera_rate=camera_rate, seed=seed, progress=tick,
@@ -335,7 +343,7 @@ def fly_cmd(
                 "frames": len(frames),
                 "trees_seen": int(np.unique(frames.instance[frames.instance >= 0]).size),
             }
-        move_into_place([(tmp / o.name, o) for o in outs])
+        move_into_place([(tmp / o.name, o) for o in outs], force=force)
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     if as_json:
         sys.stdout.write(json.dumps(summary) + "\n")

@@ -215,10 +215,6 @@ def build_cmd(
 
     t0 = time.perf_counter()
     recipe = _load_recipe(pipeline, seed, hard_core)
-    if (workers > 1 or scheduler is not None or untiled) and recipe.tiles is None:
-        raise UsdForestError(
-            "--workers, --scheduler and --untiled apply to a tiled recipe ([tiles] size = ...)"
-        )
     with progress_bars(not (quiet or as_json), t0) as tick:
         b = write_forest(
             recipe,

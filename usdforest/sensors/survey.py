@@ -126,13 +126,20 @@ def scan(
     30}``). ``seed``: range noise and ground roughness. ``device``: where rays are cast,
     ``"cpu"`` (Embree on every core) or ``"cuda"``/``"cuda:N"`` (Warp on an NVIDIA GPU).
     ``progress(stage, done, total)`` as the scene is gathered and its casting scene built."""
+    from usdforest import arguments
     from usdforest.sensors.raycast import SceneCaster, resolve_device
 
     device = resolve_device(device)
+    seed = arguments.seed(seed)
     if settings is None or isinstance(settings, Mapping):
         settings = sensor_settings(sensor, preset, settings)
     else:
         sensor_settings(sensor, preset)  # the sensor's name checked
+        if not dataclasses.is_dataclass(settings) or not hasattr(settings, "check"):
+            raise UsdForestError(
+                f"settings: expected a mapping of {sensor} keys (e.g. {{'max_range': 30}}) or "
+                f"a {sensor} settings object, got {settings!r}"
+            )
         settings.check()
     p = _pose(pose)
     x, y, z = to_frame(p.position, stage_frame(stage))
@@ -313,9 +320,11 @@ def fly(
     pulse and frame; ``warn(message)`` as soon as a warning is known (they are in the
     result's ``warnings`` too). Work beyond the limits (:func:`check_work`) is refused unless
     ``long``. ``device``: where rays are cast (see :func:`scan`)."""
+    from usdforest import arguments
     from usdforest.sensors.raycast import SceneCaster, resolve_device
 
     device = resolve_device(device)
+    seed = arguments.seed(seed)
     traj = (
         path
         if isinstance(path, flight.Trajectory)

@@ -31,11 +31,12 @@ import numpy as np
 import tomli_w
 from pxr import Gf, Sdf, Vt
 
-from usdforest.atomic import publish, refuse_overwrite, staging_folder
+from usdforest.atomic import output_lock, publish, refuse_overwrite, staging_folder
 from usdforest.cluster import Progress, dask_client, run_tasks
 from usdforest.errors import UsdForestError
 from usdforest.grow.bounds import EMPTY_EXTENT
-from usdforest.recipe import Recipe, resolved_toml
+from usdforest.paths import refuse_inputs
+from usdforest.recipe import Recipe, recipe_inputs, resolved_toml
 from usdforest.sites.local import Plan, classes_for, first_ids, place, squares, whole
 from usdforest.sites.stand import merge_sums
 from usdforest.sites.terrain import HeightField
@@ -165,13 +166,23 @@ def write_forest(
     cluster at ``scheduler``) when asked, else here: the same bytes either way. ``untiled``
     writes a tiled recipe's trees (the same sites) as one instancer layer.
     """
-    out = Path(out)
+    from usdforest import arguments
+
+    out = Path(arguments.path(out, "out"))
     if out.suffix != ".usda":
         raise UsdForestError(f"{out}: the forest's interface layer must end in .usda")
-    refuse_overwrite(out, out.parent / f"{out.stem}_assets", force=force)
-    tiled = recipe.tiles is not None
-    with dask_client(workers, scheduler) if tiled else nullcontext() as client:
-        return _write_forest(recipe, out, progress, thumbnail, client, tiled and not untiled)
+    arguments.seed(recipe.seed, "seed")
+    arguments.flag(force, "force")
+    arguments.workers(workers, scheduler, recipe.tiles is not None, untiled)
+    assets = out.parent / f"{out.stem}_assets"
+    with output_lock(out):
+        refuse_inputs([out], recipe_inputs(recipe), folders=(assets,))
+        refuse_overwrite(out, assets, force=force)
+        tiled = recipe.tiles is not None
+        with dask_client(workers, scheduler) if tiled else nullcontext() as client:
+            return _write_forest(
+                recipe, out, progress, thumbnail, client, tiled and not untiled, force
+            )
 
 
 def _write_forest(
@@ -181,6 +192,7 @@ def _write_forest(
     thumbnail: bool,
     client,
     tiled: bool,
+    force: bool,
 ) -> ForestBuild:
     assets = out.parent / f"{out.stem}_assets"
     tick = progress or (lambda stage, done, total: None)
@@ -348,7 +360,7 @@ def _write_forest(
                 tick("thumbnail", 1, 1)
             if csv is not None:
                 csv.result()
-        publish(tmp, out, tmp / out.name, [(staged, assets)])
+        publish(tmp, out, tmp / out.name, [(staged, assets)], force=force)
     return build
 
 

@@ -14,11 +14,11 @@ import os
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, UsdGeom
+from pxr import Gf, Sdf, Tf, Usd, UsdGeom
 
-from usdforest.atomic import refuse_overwrite
+from usdforest.atomic import output_lock, refuse_overwrite
 from usdforest.errors import UsdForestError
-from usdforest.paths import require_file, require_output, shown
+from usdforest.paths import layer_inputs, refuse_inputs, require_file, require_output, shown
 from usdforest.usd.layers import T, attr, prim, save_layer
 
 UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
@@ -61,10 +61,30 @@ def wrap(
         raise UsdForestError(f"--name: {name!r} is not a valid prim name")
     require_file(asset, "USD layer")
     require_output(out)
-    refuse_overwrite(out, force=force)
-    layer = Sdf.Layer.FindOrOpen(str(asset))
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(asset))
+    except Tf.ErrorException as exc:  # text, an image, random bytes, a truncated crate
+        raise UsdForestError(f"{shown(asset)}: not a USD layer ({_first_reason(exc)})") from None
     if layer is None:
         raise UsdForestError(f"{shown(asset)}: not a USD layer")
+    with output_lock(out):
+        # a host that replaced its own asset (or a layer the asset composes) would reference
+        # itself: refused whatever --force says
+        refuse_inputs([out], layer_inputs(asset))
+        refuse_overwrite(out, force=force)
+        return _write_host(layer, asset, out, up, units, name)
+
+
+def _first_reason(exc: Exception) -> str:
+    """The first message of a USD error, without where in USD's sources it was raised."""
+    import re
+
+    text = " ".join(str(exc).split())
+    found = re.search(r" : '(.*?)'(?: Error in |$)", text)
+    return (found.group(1) if found else text)[:160].rstrip(".")
+
+
+def _write_host(layer: Sdf.Layer, asset: Path, out: Path, up: str, units: str, name: str) -> Path:
     inner = layer.defaultPrim
     if not inner:
         raise UsdForestError(f"{shown(asset)}: has no defaultPrim to reference")

@@ -237,7 +237,10 @@ def rendered(prim: Usd.Prim) -> bool:
 
 
 def class_labels(prim: Usd.Prim) -> list[str]:
-    """The prim's ``semantics:labels:class`` labels (empty when it has none)."""
+    """The prim's ``semantics:labels:class`` labels (empty when it has none; the pseudo-root,
+    which has no properties, has none)."""
+    if prim.IsPseudoRoot():
+        return []
     a = prim.GetAttribute("semantics:labels:class")
     v = a.Get() if a and a.HasValue() else None
     return list(v) if v else []

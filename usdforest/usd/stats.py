@@ -93,6 +93,8 @@ def stage_info(path: str | Path) -> dict:
     axes: dict[int, set] = {}
     for p in Usd.PrimRange(root, Usd.TraverseInstanceProxies()):
         prims += 1
+        if p.IsPseudoRoot():  # an empty stage's root: no properties to ask for
+            continue
         a = p.GetAttribute("usdforest:order")
         if a and a.HasValue():
             order = int(a.Get())

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Vt
 
-from usdforest.atomic import publish, refuse_overwrite, staging_folder
+from usdforest.atomic import output_lock, publish, refuse_overwrite, staging_folder
 from usdforest.cad.library import template_dir, template_path
 from usdforest.errors import UsdForestError
 from usdforest.grow.architecture import TreeSize
@@ -608,7 +608,21 @@ def write_tree(
     if out.suffix not in (".usda", ".usdc", ".usd"):
         raise UsdForestError(f"{out}: the tree layer must end in .usda, .usdc or .usd")
     assets = out.parent / f"{out.stem}_assets"
-    refuse_overwrite(out, assets, force=force)
+    with output_lock(out):
+        refuse_overwrite(out, assets, force=force)
+        return _write_tree(species, seed, variant, out, assets, template_base, colliders, force)
+
+
+def _write_tree(
+    species: Species,
+    seed: int,
+    variant: int,
+    out: Path,
+    assets: Path,
+    template_base: Path | None,
+    colliders: str,
+    force: bool,
+) -> TreeBuild:
     build = build_tree(species, seed, variant, template_base=template_base, colliders=colliders)
     with staging_folder(out) as tmp:
         if out.suffix == ".usdc":  # binary already: one layer
@@ -628,5 +642,5 @@ def write_tree(
                 interface_tree_layer(build, f"./{assets.name}/{TREE_PAYLOAD}", out),
                 tmp / out.name,
             )
-        publish(tmp, out, tmp / out.name, [(tmp / "assets", assets)])
+        publish(tmp, out, tmp / out.name, [(tmp / "assets", assets)], force=force)
     return build

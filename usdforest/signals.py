@@ -1,0 +1,42 @@
+"""SIGTERM handled like Ctrl-C: what ``timeout``, SLURM, Kubernetes and ``docker stop`` send
+ends a command the way an interrupt does (its staging folders removed, one line, nothing
+replaced), with the status a terminated process has (143).
+
+Importing this module costs nothing but :mod:`signal`: the console script installs the
+handler before it loads numpy and pxr.
+"""
+
+from __future__ import annotations
+
+import signal
+
+TERMINATED_STATUS = 128 + signal.SIGTERM
+INTERRUPTED_STATUS = 130
+_received: list[int] = []
+
+
+class Terminated(KeyboardInterrupt):
+    """Raised in the main thread when SIGTERM arrives: every ``except KeyboardInterrupt``
+    and ``finally`` that cleans up after Ctrl-C cleans up after it too."""
+
+
+def _raise(signum: int, _frame) -> None:
+    _received.append(signum)
+    raise Terminated
+
+
+def terminate_as_interrupt() -> None:
+    """Make SIGTERM raise :class:`Terminated` in the main thread (from now on)."""
+    signal.signal(signal.SIGTERM, _raise)
+
+
+def terminated() -> bool:
+    """Whether a SIGTERM has arrived in this process."""
+    return bool(_received)
+
+
+def stopped() -> tuple[str, int]:
+    """The line and the exit status of a command stopped by Ctrl-C or SIGTERM."""
+    if terminated():
+        return "error: terminated", TERMINATED_STATUS
+    return "error: interrupted", INTERRUPTED_STATUS
