@@ -150,9 +150,9 @@ def dask_client(workers: int, scheduler: str | None):
     import os
 
     # Dask reports what matters as the exceptions a build raises (a worker lost, a task's
-    # error); its logs (heartbeats to a closing cluster, tornado callbacks cancelled by a
-    # Ctrl-C) are noise on a user's terminal: silent here and in the workers
-    for name in ("distributed", "tornado", "tornado.application"):
+    # error); its logs (heartbeats to a closing cluster, tornado callbacks and asyncio tasks
+    # a Ctrl-C cut short) are noise on a user's terminal: silent here and in the workers
+    for name in ("distributed", "tornado", "tornado.application", "asyncio"):
         logging.getLogger(name).setLevel(logging.CRITICAL)
     os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "critical")  # (the workers too)
     if scheduler is not None:

@@ -22,7 +22,7 @@ This module reads the species part of a recipe::
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -900,6 +900,35 @@ def recipe_path(spec: str | Path | None) -> Path:
     )
 
 
+def _file_references(data: dict) -> Iterator[tuple[Any, Any]]:
+    """``(container, key)`` of every file name a recipe's data holds (a stem map, rasters
+    and vector files, profiles, template layers), relative to the recipe's folder."""
+    if isinstance(data.get("sites"), str):
+        yield data, "sites"
+    for table in ("intensity", "ground", "region"):
+        t = data.get(table)
+        if isinstance(t, dict) and isinstance(t.get("file"), str):
+            yield t, "file"
+    for t in data.get("species", {}).values():
+        if not isinstance(t, dict):
+            continue
+        if isinstance(t.get("profile"), str):
+            yield t, "profile"
+        g = t.get("geometry", {})
+        if not isinstance(g, dict):
+            continue
+        for k in ("trunk", "twig", "leaf"):
+            if isinstance(g.get(k), str) and g[k].endswith(LAYER_SUFFIXES):
+                yield g, k
+        if isinstance(g.get("branches"), list):
+            for i, b in enumerate(g["branches"]):
+                if isinstance(b, str) and b.endswith(LAYER_SUFFIXES):
+                    yield g["branches"], i
+
+
+LAYER_SUFFIXES = (".usdc", ".usda", ".usd")
+
+
 def resolved_toml(recipe: Recipe, to_dir: Path) -> dict:
     """The recipe's data with the seed filled in and relative paths rebased to ``to_dir``."""
     import copy
@@ -907,50 +936,14 @@ def resolved_toml(recipe: Recipe, to_dir: Path) -> dict:
 
     data = copy.deepcopy(recipe.data)
     data["seed"] = recipe.seed
-
-    def rebase(p: str) -> str:
-        src = (recipe.base / p).resolve()
-        return os.path.relpath(src, to_dir.resolve())
-
-    if isinstance(data.get("sites"), str):
-        data["sites"] = rebase(data["sites"])
-    for table in ("intensity", "ground", "region"):
-        t = data.get(table)
-        if isinstance(t, dict) and "file" in t:
-            t["file"] = rebase(t["file"])
-    for t in data.get("species", {}).values():
-        if "profile" in t:
-            t["profile"] = rebase(t["profile"])
-        g = t.get("geometry", {})
-        for k in ("trunk", "twig", "leaf"):
-            if isinstance(g.get(k), str) and g[k].endswith((".usdc", ".usda", ".usd")):
-                g[k] = rebase(g[k])
-        if isinstance(g.get("branches"), list):
-            g["branches"] = [
-                rebase(b) if b.endswith((".usdc", ".usda", ".usd")) else b for b in g["branches"]
-            ]
+    for container, key in list(_file_references(data)):
+        src = (recipe.base / container[key]).resolve()
+        container[key] = os.path.relpath(src, to_dir.resolve())
     return data
 
 
 def recipe_inputs(recipe: Recipe) -> list[Path]:
-    """The files a recipe reads: its own file and every string in it that names an existing
-    file beside it (rasters, stem maps, profiles, template layers, species files)."""
-    found = [Path(recipe.source)]
-
-    def walk(value: Any) -> None:
-        if isinstance(value, Mapping):
-            for v in value.values():
-                walk(v)
-        elif isinstance(value, list | tuple):
-            for v in value:
-                walk(v)
-        elif isinstance(value, str) and value and len(value) < 4096:
-            candidate = recipe.base / value
-            try:
-                if candidate.is_file():
-                    found.append(candidate)
-            except OSError:  # a name too long or otherwise impossible: no file
-                pass
-
-    walk(recipe.data)
-    return found
+    """The files a recipe reads: its own file and every file it names (a stem map, rasters
+    and vector files, profiles, template layers)."""
+    refs = [recipe.base / c[k] for c, k in _file_references(recipe.data)]
+    return [Path(recipe.source), *refs]
