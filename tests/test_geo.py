@@ -318,6 +318,47 @@ def test_a_geopackage_stand(tmp_path):
         _recipe(tmp_path, region={"kind": "file", "file": "junk.gpkg"})
 
 
+def test_a_geopackage_of_several_layers_needs_the_stands_layer(tmp_path, capfd):
+    """GDAL reads a multi-layer file's first layer when none is named; a recipe must name
+    it (the error lists the layers), and pyogrio's warning about the choice never reaches
+    the terminal."""
+    pyogrio = pytest.importorskip("pyogrio", reason="vector files need pyogrio (usdforest[geo])")
+    import shapely
+
+    gpkg = tmp_path / "estate.gpkg"
+    stand = shapely.box(E0 + 10, N0 + 10, E0 + 110, N0 + 60)
+    road = shapely.LineString([(E0, N0), (E0 + 200, N0 + 5)])
+    for name, geom, kind in (("roads", road, "LineString"), ("stands", stand, "Polygon")):
+        pyogrio.raw.write(
+            gpkg, geometry=np.array([shapely.to_wkb(geom)], dtype=object), field_data=[],
+            fields=[], crs="EPSG:32633", geometry_type=kind, driver="GPKG", layer=name,
+            append=gpkg.exists(),
+        )  # fmt: skip
+    assert [str(n) for n in pyogrio.list_layers(gpkg)[:, 0]] == ["roads", "stands"]
+    capfd.readouterr()
+    with pytest.raises(RecipeError) as err:
+        _recipe(tmp_path, region={"kind": "file", "file": "estate.gpkg"})
+    assert str(err.value).endswith(
+        "region.file: estate.gpkg has 2 layers ('roads', 'stands'); "
+        'name the stand\'s with layer = "..."'
+    )
+    r = _recipe(tmp_path, region={"kind": "file", "file": "estate.gpkg", "layer": "stands"})
+    assert r.region.area == pytest.approx(100 * 50) and r.region.layer == "stands"
+    with pytest.raises(RecipeError, match=r"region\.file: estate\.gpkg has no Polygon"):
+        _recipe(tmp_path, region={"kind": "file", "file": "estate.gpkg", "layer": "roads"})
+    with pytest.raises(RecipeError, match=r"has no layer 'lakes'; its layers are 'roads', "):
+        _recipe(tmp_path, region={"kind": "file", "file": "estate.gpkg", "layer": "lakes"})
+    with pytest.raises(RecipeError, match=r"region\.layer: expected"):
+        _recipe(tmp_path, region={"kind": "file", "file": "estate.gpkg", "layer": 3})
+    (tmp_path / "s.geojson").write_text(json.dumps(shapely.geometry.mapping(stand)))
+    with pytest.raises(RecipeError, match=r"s\.geojson is GeoJSON, one layer; layer = 'x'"):
+        _recipe(
+            tmp_path, region={"kind": "file", "file": "s.geojson", "layer": "x"}, crs="EPSG:32633"
+        )
+    out, errs = capfd.readouterr()
+    assert (out, errs) == ("", "")
+
+
 def test_a_flight_over_a_georeferenced_forest_writes_map_coordinates_and_its_crs(tmp_path, runner):
     """A forest in UTM 33N whose stage origin is its plot's centre, flown 3 m over its ground
     (z is the DEM's elevation, about 107 m there): the flight's LAS carries

@@ -350,8 +350,13 @@ def parse_region(t: Any, where: str, base: Path = Path(".")) -> Any:
         except RecipeError as exc:
             raise _under(where, exc) from None
     if kind == "file":
-        check_keys(t, {"kind", "file"}, where)
-        return read_shape(base / coerce(t.get("file"), str, f"{where}.file"), f"{where}.file")
+        check_keys(t, {"kind", "file", "layer"}, where)
+        layer = t.get("layer")
+        return read_shape(
+            base / coerce(t.get("file"), str, f"{where}.file"),
+            f"{where}.file",
+            None if layer is None else coerce(layer, str, f"{where}.layer"),
+        )
     raise RecipeError(f"{where}.kind: {kind!r} is not one of rectangle, polygon, file")
 
 

@@ -129,6 +129,7 @@ class Shape:
     geometry: object  # shapely Polygon or MultiPolygon
     source: str
     crs: str | None = None
+    layer: str | None = None
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
@@ -150,13 +151,15 @@ class Shape:
         return shapely.intersects_xy(self.geometry, np.asarray(x), np.asarray(y))
 
     def describe(self) -> dict:
-        return {"kind": "file", "file": self.source}
+        layer = {} if self.layer is None else {"layer": self.layer}
+        return {"kind": "file", "file": self.source, **layer}
 
 
-def read_shape(path: Path, where: str) -> Shape:
+def read_shape(path: Path, where: str, layer: str | None = None) -> Shape:
     """The polygons of a vector file as one region: GeoJSON (a geometry, feature or feature
     collection; a legacy ``crs`` member such as ``urn:ogc:def:crs:EPSG::32633`` names its
-    CRS) read here, any other format GDAL reads (Shapefile, GeoPackage, ...) with pyogrio."""
+    CRS) read here, any other format GDAL reads (Shapefile, GeoPackage, ...) with pyogrio.
+    A file of several layers (a GeoPackage of stands and roads) needs ``layer``, its name."""
     import json
 
     from shapely.geometry import shape as to_shape
@@ -164,7 +167,12 @@ def read_shape(path: Path, where: str) -> Shape:
     from usdforest.paths import require_file
 
     if path.suffix.lower() not in (".geojson", ".json"):
-        return _read_vector(path, where)
+        return _read_vector(path, where, layer)
+    if layer is not None:
+        raise RecipeError(
+            f"{where}: {path.name} is GeoJSON, one layer; layer = {layer!r} is for files of "
+            "several (GeoPackage, a folder of Shapefiles): remove it"
+        )
     try:
         require_file(path, "vector file", RecipeError)
         data = json.loads(path.read_text(encoding="utf-8"))
@@ -221,8 +229,12 @@ def read_shape(path: Path, where: str) -> Shape:
     return Shape(geometry, path.name, crs)
 
 
-def _read_vector(path: Path, where: str) -> Shape:
-    """A Shapefile, GeoPackage or any vector file GDAL reads (pyogrio): its polygons."""
+def _read_vector(path: Path, where: str, layer: str | None = None) -> Shape:
+    """A Shapefile, GeoPackage or any vector file GDAL reads (pyogrio): the polygons of its
+    one layer, or of ``layer``; a file of several layers without ``layer`` is refused with
+    their names rather than read from the first (GDAL's default)."""
+    import warnings
+
     import shapely
 
     from usdforest.paths import require_file
@@ -238,9 +250,26 @@ def _read_vector(path: Path, where: str) -> Shape:
             f"{where}: reading {path.name} needs pyogrio: pip install 'usdforest[geo]' "
             "(or give the stand as GeoJSON)"
         ) from None
+    from pyogrio import list_layers
+
     try:
-        meta, _, wkb, _ = read(path)
+        with warnings.catch_warnings():  # the choices pyogrio warns of are refused below
+            warnings.simplefilter("ignore")
+            names = [str(n) for n in list_layers(path)[:, 0]]
+            if layer is None and len(names) > 1:
+                raise RecipeError(
+                    f"{where}: {path.name} has {len(names)} layers "
+                    f"({', '.join(map(repr, names))}); name the stand's with layer = \"...\""
+                )
+            if layer is not None and layer not in names:
+                raise RecipeError(
+                    f"{where}: {path.name} has no layer {layer!r}; its layers are "
+                    f"{', '.join(map(repr, names))}"
+                )
+            meta, _, wkb, _ = read(path, layer=layer)
         geoms = shapely.from_wkb(wkb)
+    except RecipeError:
+        raise
     except Exception as exc:
         raise RecipeError(f"{where}: cannot read {path.name}: {exc}") from None
     polys = [
@@ -250,7 +279,7 @@ def _read_vector(path: Path, where: str) -> Shape:
         for p in getattr(g, "geoms", [g])
         if p.geom_type in ("Polygon", "MultiPolygon")
     ]
-    return Shape(_union(polys, path, where), path.name, meta.get("crs") or None)
+    return Shape(_union(polys, path, where), path.name, meta.get("crs") or None, layer)
 
 
 def _union(polys: list, path: Path, where: str):
