@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from usdforest.errors import UsdForestError
+from usdforest.signals import interruptible
 
 if TYPE_CHECKING:
     from usdforest.grow.species import Species
@@ -58,6 +59,7 @@ def load_recipe(
     return read_recipe(recipe_path(recipe), seed=seed, hard_core=hard_core)
 
 
+@interruptible
 def build_forest(
     recipe: Recipe | str | Path | None,
     out: str | Path,
@@ -95,6 +97,7 @@ def build_forest(
     )
 
 
+@interruptible
 def grow_tree(
     species: Species | str,
     out: str | Path,
@@ -121,6 +124,7 @@ def grow_tree(
     return write_tree(species, out, seed=seed, variant=variant, colliders=colliders, force=force)
 
 
+@interruptible
 def scan(
     stage: str | Path,
     sensor: str,
@@ -141,6 +145,7 @@ def scan(
     )
 
 
+@interruptible
 def fly(
     stage: str | Path,
     *,

@@ -8,7 +8,12 @@ handler before it loads numpy and pxr.
 
 from __future__ import annotations
 
+import functools
 import signal
+from collections.abc import Callable
+from typing import TypeVar
+
+F = TypeVar("F", bound=Callable)
 
 TERMINATED_STATUS = 128 + signal.SIGTERM
 INTERRUPTED_STATUS = 130
@@ -40,3 +45,34 @@ def stopped() -> tuple[str, int]:
     if terminated():
         return "error: terminated", TERMINATED_STATUS
     return "error: interrupted", INTERRUPTED_STATUS
+
+
+def interrupt_within(exc: BaseException | None) -> KeyboardInterrupt | None:
+    """The Ctrl-C or SIGTERM that ``exc`` is, or was raised from. A signal handled while
+    compiled code hands back a value (numba's dispatcher boxing a kernel's result) surfaces
+    as ``SystemError: ... returned a result with an exception set`` whose cause is the
+    KeyboardInterrupt; it is an interrupt, not a bug."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def interruptible(fn: F) -> F:
+    """Let a Ctrl-C reach the caller of ``fn`` as a KeyboardInterrupt wherever it lands (see
+    :func:`interrupt_within`)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except SystemError as exc:
+            stop = interrupt_within(exc)
+            if stop is None:
+                raise
+            raise stop from None
+
+    return wrapper  # type: ignore[return-value]

@@ -253,6 +253,10 @@ def main() -> None:
     except typer.Exit as exc:
         code = exc.exit_code
     except Exception as exc:  # a bug, not bad input: one line unless asked for the trace
+        if signals.interrupt_within(exc) is not None:
+            line, code = signals.stopped()
+            err.print(line, highlight=False)
+            sys.exit(code)
         if os.environ.get("USDFOREST_DEBUG"):
             raise
         err.print(

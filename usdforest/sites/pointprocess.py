@@ -259,7 +259,7 @@ def _read_vector(path: Path, where: str, layer: str | None = None) -> Shape:
             if layer is None and len(names) > 1:
                 raise RecipeError(
                     f"{where}: {path.name} has {len(names)} layers "
-                    f"({', '.join(map(repr, names))}); name the stand's with layer = \"...\""
+                    f'({", ".join(map(repr, names))}); name the stand\'s with layer = "..."'
                 )
             if layer is not None and layer not in names:
                 raise RecipeError(
