@@ -118,3 +118,88 @@ def test_the_example_writes_randomised_forests_for_a_training_run(tmp_path, caps
     )
     a, b = (d / "forest_0000_assets" / "instances.usdc" for d in (out, tmp_path / "again"))
     assert a.read_bytes() == b.read_bytes()
+
+
+TWO_TREES = usdforest.recipes()["paper-two-tree-stand"]
+LINE = ((0.0, 0.0, 2.0), (1.0, 0.0, 2.0))
+BAD_ARGUMENTS = {
+    "build-seed-negative": (
+        lambda d: usdforest.build_forest(TWO_TREES, d / "f.usda", seed=-5),
+        "seed: expected an integer from 0 to 2**64-1, got -5",
+    ),
+    "build-seed-text": (
+        lambda d: usdforest.build_forest(TWO_TREES, d / "f.usda", seed="3"),
+        "seed: expected an integer from 0 to 2**64-1, got '3'",
+    ),
+    "build-workers-negative": (
+        lambda d: usdforest.build_forest(TWO_TREES, d / "f.usda", workers=-2),
+        "workers: ",
+    ),
+    "build-workers-million": (
+        lambda d: usdforest.build_forest(TWO_TREES, d / "f.usda", workers=10**6),
+        "workers: ",
+    ),
+    "build-scheduler-untiled": (
+        lambda d: usdforest.build_forest(TWO_TREES, d / "f.usda", scheduler="not a url"),
+        "scheduler: ",
+    ),
+    "build-thumbnail-text": (
+        lambda d: usdforest.build_forest(TWO_TREES, d / "f.usda", thumbnail="yes"),
+        "thumbnail: expected True or False, got 'yes'",
+    ),
+    "grow-species-number": (
+        lambda d: usdforest.grow_tree(123, d / "t.usda"),
+        "species: expected a preset's name or a Species, got 123",
+    ),
+    "grow-seed-negative": (lambda d: usdforest.grow_tree("pine", d / "t.usda", seed=-1), "seed: "),
+    "grow-seed-fraction": (
+        lambda d: usdforest.grow_tree("pine", d / "t.usda", seed=0.5),
+        "seed: ",
+    ),
+    "grow-variant-negative": (
+        lambda d: usdforest.grow_tree("pine", d / "t.usda", variant=-1),
+        "variant: ",
+    ),
+    "grow-variant-text": (
+        lambda d: usdforest.grow_tree("pine", d / "t.usda", variant="a"),
+        "variant: ",
+    ),
+    "scan-seed-fraction": (
+        lambda d: usdforest.scan(d / "f.usda", "lidar", (0, 0, 2), seed=0.5),
+        "seed: ",
+    ),
+    "scan-settings-text": (
+        lambda d: usdforest.scan(d / "f.usda", "lidar", (0, 0, 2), settings="max_range=5"),
+        "settings: ",
+    ),
+    "fly-speed-text": (
+        lambda d: usdforest.fly(d / "f.usda", line=LINE, speed="fast"),
+        "speed: expected a finite number, got 'fast'",
+    ),
+    "fly-rate-none": (
+        lambda d: usdforest.fly(d / "f.usda", line=LINE, lidar_rate=None),
+        "lidar_rate: expected a finite number, got None",
+    ),
+}
+
+
+@pytest.fixture(scope="module")
+def small_forest(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("api-forest")
+    usdforest.build_forest(TWO_TREES, folder / "f.usda", thumbnail=False)
+    return folder
+
+
+@pytest.mark.parametrize("case", list(BAD_ARGUMENTS), ids=list(BAD_ARGUMENTS))
+def test_the_api_names_a_bad_argument_and_writes_nothing(small_forest, tmp_path, case):
+    """Each of issue 36's API cases (and their kind): UsdForestError naming the argument,
+    never a builtin TypeError or AttributeError, and no file written."""
+    call, start = BAD_ARGUMENTS[case]
+    for name in ("f.usda", "f_assets"):
+        (tmp_path / name).symlink_to(small_forest / name)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    with pytest.raises(UsdForestError) as err:
+        call(tmp_path)
+    assert str(err.value).startswith(start), str(err.value)
+    assert len(str(err.value).splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == before

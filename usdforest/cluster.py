@@ -67,9 +67,9 @@ CONNECT_TIMEOUT = 10.0  # seconds for a scheduler to answer
 WORKER_TIMEOUT = 30.0  # seconds for a scheduler to have a worker
 
 
-def scheduler_address(address: str) -> str:
+def scheduler_address(address: str, name: str = "scheduler") -> str:
     """``address`` if it reads as a Dask scheduler's (``tcp://host:port``, ``tls://`` too;
-    ``host:port`` means tcp), else an error naming ``--scheduler``."""
+    ``host:port`` means tcp), else an error naming ``name`` (the argument)."""
     import re
 
     text = address.strip()
@@ -80,7 +80,7 @@ def scheduler_address(address: str) -> str:
     m = re.fullmatch(r"(tcp|tls)://([^\s/:]+|\[[0-9A-Fa-f:]+\]):(\d{1,5})", text)
     if m is None or not 0 < int(m.group(3)) < 65536:
         raise UsdForestError(
-            f"--scheduler: {address!r} is not a Dask scheduler's address (tcp://host:port, "
+            f"{name}: {address!r} is not a Dask scheduler's address (tcp://host:port, "
             "e.g. tcp://10.0.0.5:8786)"
         )
     return text

@@ -79,7 +79,7 @@ class Trajectory:
             )
         length = float(np.linalg.norm(b - a))
         if not speed > 0 or not math.isfinite(speed):
-            raise UsdForestError(f"--speed: must be > 0 m/s, got {speed:g}")
+            raise UsdForestError(f"--speed: must be a finite speed > 0 m/s, got {speed:g}")
         if length == 0:
             raise UsdForestError("--line: start and end are the same point")
         return Trajectory(np.array([0.0, length / speed]), np.stack([a, b]))

@@ -325,6 +325,10 @@ def fly(
 
     device = resolve_device(device)
     seed = arguments.seed(seed)
+    speed, lidar_rate, camera_rate = (
+        arguments.number(v, name)
+        for v, name in ((speed, "speed"), (lidar_rate, "lidar_rate"), (camera_rate, "camera_rate"))
+    )  # their ranges are checked where they are used, with the CLI's words
     traj = (
         path
         if isinstance(path, flight.Trajectory)

@@ -173,6 +173,7 @@ def write_forest(
         raise UsdForestError(f"{out}: the forest's interface layer must end in .usda")
     arguments.seed(recipe.seed, "seed")
     arguments.flag(force, "force")
+    arguments.flag(thumbnail, "thumbnail")
     arguments.workers(workers, scheduler, recipe.tiles is not None, untiled)
     assets = out.parent / f"{out.stem}_assets"
     with output_lock(out):
