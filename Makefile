@@ -19,25 +19,30 @@ BLENDER_STAMP := $(BLENDER)/.installed
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "usdforest needs Python >= 3.11")'
+	@echo "== installing usdforest and its dependencies into $(VENV) (first time: a few minutes, 1.6 GB)"
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -m pip install --progress-bar on -e '.[dev]'
+	@echo "== installed: run $(BIN)/usdforest, or 'source $(BIN)/activate' for plain usdforest"
 	touch $(STAMP)
 
 forest: $(STAMP)
 	$(BIN)/usdforest build forest.usda --force
 
 $(PHYS_STAMP):
+	@echo "== installing the physics engine the collider tests drive into $(PHYS) (newton, 2.1 GB; optional)"
 	-test -x $(PHYS)/bin/python || $(PYTHON) -m venv $(PHYS)
-	-$(PHYS)/bin/python -m pip install --quiet 'newton[importers]>=1.8' && touch $(PHYS_STAMP)
+	-$(PHYS)/bin/python -m pip install --progress-bar on 'newton[importers]>=1.8' && touch $(PHYS_STAMP)
 
 $(CHECK_STAMP):
+	@echo "== installing NVIDIA's asset validator into $(CHECK) (0.2 GB; optional)"
 	-test -x $(CHECK)/bin/python || $(PYTHON) -m venv $(CHECK)
-	-$(CHECK)/bin/python -m pip install --quiet 'usd-validation-nvidia>=1.22' usd-core && touch $(CHECK_STAMP)
+	-$(CHECK)/bin/python -m pip install --progress-bar on 'usd-validation-nvidia>=1.22' usd-core && touch $(CHECK_STAMP)
 
 $(BLENDER_STAMP):
+	@echo "== installing Blender as a Python module into $(BLENDER) (bpy, 1.0 GB; optional)"
 	-test -x $(BLENDER)/bin/python || $(PYTHON) -m venv $(BLENDER)
-	-$(BLENDER)/bin/python -m pip install --quiet 'bpy>=4.2' && touch $(BLENDER_STAMP)
+	-$(BLENDER)/bin/python -m pip install --progress-bar on 'bpy>=4.2' && touch $(BLENDER_STAMP)
 
 test: $(STAMP) $(PHYS_STAMP) $(CHECK_STAMP) $(BLENDER_STAMP)
 	USDFOREST_PHYSICS_PYTHON=$(abspath $(PHYS))/bin/python \

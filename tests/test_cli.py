@@ -168,3 +168,17 @@ def test_a_recipe_name_too_long_for_any_file_system_is_named(tmp_path, runner, s
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"error: {name}: "), r.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_error_off_a_terminal_is_its_one_line_and_nothing_before_it(tmp_path):
+    """A build refused before its progress starts printed a blank line first when stderr was
+    not a terminal (a log, CI): rich's bar, disabled there, still closed its line."""
+    from pathlib import Path
+
+    (tmp_path / "f.usda").write_text("#usda 1.0\n")
+    script = Path(sys.executable).parent / "usdforest"
+    cmd = [str(script)] if script.exists() else [sys.executable, "-m", "usdforest.entry"]
+    p = subprocess.run([*cmd, "build", "f.usda", "-p", "quick-mixed"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert p.returncode == 2
+    assert p.stderr == "error: f.usda exists; pass --force to overwrite it\n"

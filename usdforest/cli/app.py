@@ -66,13 +66,21 @@ app = typer.Typer(
     "processes, written as OpenUSD.",
     no_args_is_help=True,
     pretty_exceptions_enable=False,
-    add_completion=False,
+    add_completion=True,  # --install-completion for bash, zsh, fish and PowerShell
     rich_markup_mode="rich",
 )
 out = Console(soft_wrap=True, markup=False)
 err = Console(stderr=True, soft_wrap=True, markup=False)
 
 F = TypeVar("F", bound=Callable[..., Any])
+
+
+def complete_recipe(incomplete: str) -> list[str]:
+    """Shell completion of a recipe: the shipped names that start with what was typed; with
+    none, the shell completes file names (typer's scripts fall back to them)."""
+    from usdforest.recipe import shipped_recipes
+
+    return [n for n in shipped_recipes() if n.startswith(incomplete)]
 
 
 # options shared by the commands that read a forest recipe
@@ -82,6 +90,7 @@ RecipeOption = Annotated[
         "--pipeline",
         "-p",
         metavar="RECIPE",
+        autocompletion=complete_recipe,
         help="Recipe: a TOML file, or a shipped recipe's name (see 'usdforest recipes'); "
         "default: the embedded one.",
     ),
@@ -190,7 +199,7 @@ def progress_bars(show: bool, t0: float) -> Iterator[Callable[[str, int, int], N
         TextColumn("left"),
         TimeRemainingColumn(),
         console=err,
-        disable=not show,
+        disable=not (show and err.is_terminal),  # off a terminal it only printed a blank line
         transient=True,
     ) as bar:
         tasks: dict[str, int] = {}
