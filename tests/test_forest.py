@@ -54,11 +54,20 @@ def test_default_forest_validates_and_composes(default_forest):
     ids = np.asarray(pi.GetIdsAttr().Get())
     assert ids.dtype == np.int64 and np.array_equal(ids, np.arange(build.n_trees))
     assert pi.GetOrientationsAttr().GetTypeName() == "quath[]"
-    info = stage_info(out)
-    assert info["trees"] == build.n_trees
+    # clients open the forest at lod = medium (leaf clusters); sensors and stats see it full
+    info, full = stage_info(out), stage_info(out, full=True)
+    assert info["trees"] == full["trees"] == build.n_trees
+    assert info["lod"] == {"medium": len(protos)} and full["lod"] == {"full": len(protos)}
     per_proto = {k: tb.placement.n_leaves for k, tb in build.trees.items()}
     expected = sum(per_proto[build.prototypes[i]] for i in idx)
-    assert info["leaves"] == expected  # nested instancing expanded
+    assert full["leaves"] == expected  # nested instancing expanded
+    clusters = {k: len(tb.levels.clusters["position"]) for k, tb in build.trees.items()}
+    assert info["leaves"] == sum(clusters[build.prototypes[i]] for i in idx)
+    assert full["triangles"] > 5 * info["triangles"]
+    stage = Usd.Stage.Open(str(out))  # the files are untouched by full=True
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+    assert {stage.GetPrimAtPath(t).GetVariantSet("lod").GetVariantSelection()
+            for t in pi.GetPrototypesRel().GetTargets()} == {"medium"}  # fmt: skip
 
 
 def test_layout_and_ground_truth(default_forest):
@@ -68,6 +77,7 @@ def test_layout_and_ground_truth(default_forest):
         "colliders.usdc",
         "ground.usdc",
         "instances.usdc",
+        "physics.usda",
         "pipeline.toml",
         "templates",
         "thumbnail.png",

@@ -17,6 +17,7 @@ from usdforest.grow.species import get_species
 from usdforest.recipe import default_recipe_path, read_recipe
 from usdforest.usd.forest import write_forest
 from usdforest.usd.tree import write_tree
+from usdforest.usd.validate import validate
 
 PIPELINES = default_recipe_path().parent
 PROBE = Path(__file__).with_name("physics_probe.py")
@@ -100,9 +101,9 @@ def test_newton_stops_a_ball_at_a_trunk_of_a_built_forest(tmp_path):
         first = next(csv.DictReader(f))
     x0, y0 = float(first["x"]), float(first["y"])
 
-    def roll(y: float) -> dict:
+    def roll(y: float, stage: Path = out) -> dict:
         r = subprocess.run(
-            [py, str(PROBE), str(out), str(x0 - 2.0), str(y), "1.0", "3", "0", "0", "2"],
+            [py, str(PROBE), str(stage), str(x0 - 2.0), str(y), "1.0", "3", "0", "0", "2"],
             capture_output=True,
             text=True,
             check=False,
@@ -116,6 +117,17 @@ def test_newton_stops_a_ball_at_a_trunk_of_a_built_forest(tmp_path):
     assert hit["position"][0] < x0 - radius + 0.05, hit  # stopped at the trunk
     free = roll(y0 - 2.0)  # 2 m to the side of it, clear of both trees
     assert free["position"][0] == pytest.approx(x0 - 2.0 + 3 * 2, abs=0.05), free
+    # the physics layer alone (colliders, no visual meshes): the same colliders, the same roll
+    physics = tmp_path / "f_assets" / "physics.usda"
+    assert validate(physics) == []
+    alone = roll(y0, physics)  # newton made 150 shapes of the whole forest, visual meshes too
+    assert (alone["position"], alone["velocity"]) == (hit["position"], hit["velocity"])
+    assert hit["colliders"] > alone["colliders"]
+    stage = Usd.Stage.Open(str(physics))
+    assert not [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh) or p.IsA(UsdGeom.PointInstancer)]
+    forest = Usd.Stage.Open(str(out))
+    placed = forest.GetPrimAtPath("/Forest/Colliders").GetChildren()
+    assert len(_capsules(stage)) == len(placed) == alone["colliders"] >= 2
 
 
 def test_default_forest_stands_on_a_labelled_ground_collider(tmp_path):

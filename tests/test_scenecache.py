@@ -24,11 +24,12 @@ def _forest(folder: Path) -> Path:
     return out
 
 
-def _same(a, b) -> None:
-    """Two scenes are the same, array for array."""
+def _same(a, b, bounds: float = 0.0) -> None:
+    """Two scenes are the same, array for array (``bounds`` to that many metres)."""
     assert a.paths == b.paths and a.unseen == b.unseen
-    for f in ("triangles", "cls", "tree", "path", "bounds"):
+    for f in ("triangles", "cls", "tree", "path"):
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    np.testing.assert_allclose(a.bounds, b.bounds, rtol=0, atol=bounds)
     for f in ("centre", "normal", "area", "tree"):
         np.testing.assert_array_equal(getattr(a.leaves, f), getattr(b.leaves, f))
     for f in ("proto", "matrix", "tree"):
@@ -151,3 +152,36 @@ def test_scan_shows_its_stages(tmp_path, cache, runner):
     a, b = np.load(tmp_path / "a.npz"), np.load(tmp_path / "b.npz")
     np.testing.assert_array_equal(a["range"], b["range"])
     np.testing.assert_array_equal(a["tree"], b["tree"])
+
+
+@pytest.mark.parametrize("level", ["medium", "proxy"])
+def test_sensors_and_stand_figures_see_every_leaf_at_any_selected_level(tmp_path, cache, level):
+    """A forest that selects a lighter level for clients (the default selects ``medium``)
+    is extracted, measured and drawn at ``full``: the same scene as the full forest's, from
+    its own cache entries (the session layer's selections are part of the key), and the
+    same stand figures; its files still select ``level``."""
+    from pxr import Usd
+
+    from usdforest.recipe import parse_recipe
+    from usdforest.usd.inventory import stand_figures
+
+    base = read_recipe(PIPELINES / "paper-two-tree-stand.toml")
+    full = _forest(tmp_path / "full")
+    data = dict(base.data, forest=dict(base.data.get("forest", {}), lod=level))
+    light = tmp_path / "light" / "stand.usda"
+    write_forest(parse_recipe(data, base.base, base.source), light, thumbnail=False)
+    reference = extract_scene(full, cache=False)
+    # the scene's bounds (for pose warnings only) come from the extent the forest's files
+    # author for the level they select: the medium clusters (every 8th leaf scaled by the
+    # square root of 8) reach up to 0.27 m beyond the full crowns of these two trees
+    near = 0.3
+    _same(extract_scene(light, cache=False), reference, near)
+    _same(extract_scene(light), reference, near)  # fills the light forest's store
+    _same(extract_scene(light), reference, near)  # reads it
+    assert len(list(cache.iterdir())) == 1
+    a, b = stand_figures(full), stand_figures(light)
+    a.pop("stage", None), b.pop("stage", None)
+    np.testing.assert_equal(a, b)
+    stage = Usd.Stage.Open(str(light))
+    protos = stage.GetPrimAtPath("/Forest/Trees/Prototypes").GetChildren()
+    assert {p.GetVariantSet("lod").GetVariantSelection() for p in protos} == {level}

@@ -134,11 +134,20 @@ def _stats_value(_k: str, v):
 def info_cmd(
     stage: Annotated[Path, typer.Argument(help="A usdforest stage (tree or forest).")],
     as_json: Annotated[bool, typer.Option("--json", help="Print as JSON.")] = False,
+    full: Annotated[
+        bool,
+        typer.Option(
+            "--full",
+            help="Count every tree at its full level of detail (what sensors see), not at the "
+            "level the forest selects (what a client opens).",
+        ),
+    ] = False,
 ) -> None:
-    """Composed statistics: prims, meshes, branches by order, leaves, triangles, extent."""
+    """Composed statistics: prims, meshes, branches by order, leaves, triangles, extent, and
+    the trees' levels of detail."""
     from usdforest.usd.stats import stage_info
 
-    info = stage_info(stage)
+    info = stage_info(stage, full=full)
     if as_json:
         sys.stdout.write(json.dumps(info) + "\n")
         return

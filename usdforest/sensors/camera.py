@@ -81,7 +81,7 @@ def path_colours(stage_path: str | Path, paths: tuple[str, ...]) -> np.ndarray:
     from usdforest.usd.layers import open_stage
     from usdforest.view.preview import mesh_color
 
-    stage = open_stage(stage_path)
+    stage = open_stage(stage_path, full=True)
     out = np.full((len(paths), 3), 0.6)
     for i, p in enumerate(paths):
         prim = stage.GetPrimAtPath(p)

@@ -276,7 +276,7 @@ def extract_scene(
 
     path = Path(stage_path)
     use_store = cache and instancing  # read before ``cache`` names the transform cache
-    stage = open_stage(path, sound=True)
+    stage = open_stage(path, sound=True, full=True)
     frame = stage_frame(path)
     cache = UsdGeom.XformCache()
     bbox = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"], True)

@@ -43,10 +43,15 @@ def stage_key(stage) -> str | None:
     """A digest of the content of every layer ``stage`` uses (None when one is only in memory:
     an edited or anonymous layer with content cannot be keyed)."""
     h = hashlib.blake2b(FORMAT, digest_size=20)
+    session = stage.GetSessionLayer()
     for layer in sorted(stage.GetUsedLayers(), key=lambda x: x.identifier):
+        if layer == session:  # empty, or the full detail the sensors select there
+            if not layer.empty:
+                h.update(layer.ExportToString().encode())
+            continue
         if layer.anonymous:
             if layer.empty:
-                continue  # the session layer every stage has
+                continue
             return None
         if layer.dirty or not layer.realPath:
             return None

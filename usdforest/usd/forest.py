@@ -13,6 +13,8 @@
       templates/<name>.usdc     the CAD templates the trees reference
       colliders.usdc            /Forest/Colliders: one capsule per trunk where the tree stands
       ground.usdc               /Forest/Ground: the plane or height field (collider, label)
+      physics.usda              colliders and ground alone (no visual meshes), for physics
+                                engines; /Forest/PhysicsScene when the forest has one
       trees.csv                 ground truth, one row per instance
       pipeline.toml             the resolved recipe (seed included)
     forest_assets/thumbnail.png a 256x256 thumbnail (customLayerData.thumbnail)
@@ -64,6 +66,33 @@ from usdforest.usd.tree import TreeBuild, build_tree, copy_templates, tree_layer
 THUMBNAIL = "thumbnail.png"  # inside the assets folder
 
 
+def _place_origin(forest: Sdf.PrimSpec, build: ForestBuild, recipe: Recipe) -> None:
+    """With ``origin = "centre"`` the stage puts the plot's centre at 0, 0 (recipe
+    coordinates stay in trees.csv)."""
+    if recipe.origin != "centre":
+        return
+    cx, cy = _stage_origin(build, recipe) - build.anchor
+    attr(forest, "xformOp:translate", T.Double3, Gf.Vec3d(-cx, -cy, 0))
+    attr(forest, "xformOpOrder", T.TokenArray, Vt.TokenArray(["xformOp:translate"]), uniform=True)
+
+
+def physics_layer(sublayers: list[str], build: ForestBuild, recipe: Recipe) -> Sdf.Layer:
+    """``physics.usda`` in the assets folder: the collision and ground layers without the
+    trees' visual meshes, so a physics engine loads 380 capsules and a plane rather than
+    composing millions of leaves to find them (newton's ``add_usd`` on the default forest
+    took 637 s); with the forest's physics scene when it has one."""
+    layer = new_layer("Forest", comment="usdforest forest physics: colliders and ground only")
+    for sub in sublayers:
+        layer.subLayerPaths.append(f"./{sub}")
+    with Sdf.ChangeBlock():
+        forest = prim(layer, "Forest", "Xform")
+        forest.kind = "assembly"
+        _place_origin(forest, build, recipe)
+        if recipe.physics_scene:
+            add_physics_scene(forest)
+    return layer
+
+
 def interface_layer(
     build: ForestBuild,
     recipe: Recipe,
@@ -92,17 +121,7 @@ def interface_layer(
             "name": build.out.stem,
             "identifier": Sdf.AssetPath(f"./{build.out.name}"),
         }
-        if recipe.origin == "centre":
-            # recipe coordinates stay in trees.csv; the stage puts the plot's centre at 0, 0
-            cx, cy = _stage_origin(build, recipe) - build.anchor
-            attr(forest, "xformOp:translate", T.Double3, Gf.Vec3d(-cx, -cy, 0))
-            attr(
-                forest,
-                "xformOpOrder",
-                T.TokenArray,
-                Vt.TokenArray(["xformOp:translate"]),
-                uniform=True,
-            )
+        _place_origin(forest, build, recipe)
         forest.customData = {
             "usdforest": {
                 "seed": recipe.seed,
@@ -326,6 +345,9 @@ def _write_forest(
             if ground is not None:
                 save_layer(ground_layer(ground, recipe.ground["color"]), staged / "ground.usdc")
                 sublayers.append(f"./{assets.name}/ground.usdc")
+            bodies = [s.removeprefix(f"./{assets.name}/") for s in sublayers[1:]]
+            if bodies:
+                save_layer(physics_layer(bodies, build, recipe), staged / "physics.usda")
         # the ground truth is written while the thumbnail renders (numpy lets go of the GIL);
         # leaving the block waits for it, also on an error
         with ThreadPoolExecutor(1) as pool:

@@ -138,7 +138,7 @@ def _cover(grid: tuple[np.ndarray, np.ndarray], pts: np.ndarray, mats: np.ndarra
 
 def stand_figures(path: str | Path) -> dict:
     """Stand figures of the forest at ``path`` (see the module docstring)."""
-    stage = open_stage(Path(path), sound=True)
+    stage = open_stage(Path(path), sound=True, full=True)
     root = stage.GetDefaultPrim()
     if not root:
         raise UsdForestError(f"{path}: no default prim")

@@ -58,12 +58,13 @@ def _reason(exc: Exception) -> str:
     return shown(quoted[0] if quoted else text)[:300]
 
 
-def open_stage(path: str | Path, *, sound: bool = False) -> Usd.Stage:
+def open_stage(path: str | Path, *, sound: bool = False, full: bool = False) -> Usd.Stage:
     """Open the stage at ``path``, with a one-line error if it is missing, not a file, not
     USD, corrupt, or composes with errors (a reference to a missing or corrupt layer).
 
     ``sound``: also refuse structurally broken geometry (see :mod:`usdforest.usd.integrity`),
-    for commands that walk or draw it.
+    for commands that walk or draw it. ``full``: every tree at its full level of detail
+    whatever its layers select (:func:`select_full_detail`), for what measures the forest.
     """
     path = require_file(path, "stage")
     with quiet_stderr():
@@ -81,11 +82,40 @@ def open_stage(path: str | Path, *, sound: bool = False) -> Usd.Stage:
         raise UsdForestError(
             f"{shown(path)}: does not compose: {_reason(Exception(str(errors[0])))}{more}"
         )
+    if full:
+        select_full_detail(stage)
     if sound:
         from usdforest.usd.integrity import require_sound
 
         require_sound(stage, path)
     return stage
+
+
+LOD_SET = "lod"
+FULL = "full"
+
+
+def select_full_detail(stage: Usd.Stage) -> list[str]:
+    """Select ``lod = full`` on every prim whose ``lod`` variant set selects another level,
+    in the stage's session layer (its files are untouched): sensors, stand figures and
+    pictures measure the trees as grown, while clients open the forest at the level its
+    layers select. Returns the prims switched. A tree inside an instance of someone else's
+    stage (an instance proxy) cannot be switched and keeps its level."""
+    switched = []
+    it = iter(Usd.PrimRange.Stage(stage))
+    for prim in it:
+        sets = prim.GetVariantSets()
+        if not sets.HasVariantSet(LOD_SET):
+            continue
+        it.PruneChildren()  # a tree: nothing below it selects a level of its own
+        if sets.GetVariantSet(LOD_SET).GetVariantSelection() != FULL:
+            switched.append(prim.GetPath())
+    if switched:
+        session = stage.GetSessionLayer()
+        with Sdf.ChangeBlock():
+            for path in switched:
+                Sdf.CreatePrimInLayer(session, path).variantSelections[LOD_SET] = FULL
+    return [str(p) for p in switched]
 
 
 def mesh_triangles(prim: Usd.Prim, to_root: np.ndarray) -> np.ndarray:

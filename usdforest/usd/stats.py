@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom
 
-from usdforest.usd.layers import class_labels, open_stage, rendered
+from usdforest.usd.layers import LOD_SET, class_labels, open_stage, rendered
 
 
 @dataclass
@@ -79,22 +79,26 @@ def _expand(prim: Usd.Prim, cache: dict) -> _Tally:
     return t
 
 
-def stage_info(path: str | Path) -> dict:
-    """Composed statistics for the stage at ``path``.
+def stage_info(path: str | Path, *, full: bool = False) -> dict:
+    """Composed statistics for the stage at ``path``, at the levels of detail its layers
+    select (what a client opens), or with every tree at ``full`` detail (what sensors see).
 
     Triangles and leaves count every instance: a forest of 1,000 trees of 500 leaves reports
-    500,000 leaves.
+    500,000 leaves. ``lod`` counts the tree prims by the level they show.
     """
     path = Path(path)
-    stage = open_stage(path, sound=True)
+    stage = open_stage(path, sound=True, full=full)
     root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
     prims = 0
     by_order: Counter = Counter()
     axes: dict[int, set] = {}
+    levels: Counter = Counter()
     for p in Usd.PrimRange(root, Usd.TraverseInstanceProxies()):
         prims += 1
         if p.IsPseudoRoot():  # an empty stage's root: no properties to ask for
             continue
+        if p.GetVariantSets().HasVariantSet(LOD_SET):
+            levels[p.GetVariantSet(LOD_SET).GetVariantSelection()] += 1
         a = p.GetAttribute("usdforest:order")
         if a and a.HasValue():
             order = int(a.Get())
@@ -124,6 +128,7 @@ def stage_info(path: str | Path) -> dict:
         "leaves": tally.leaves,
         "instances": tally.instances,
         "trees": tally.trees,
+        "lod": dict(sorted(levels.items())),
         "wood_prims_by_order": {str(k): v for k, v in sorted(by_order.items())},
         "branches_by_order": {str(k): len(v) for k, v in sorted(axes.items())},
         "extent": [list(box.GetMin()), list(box.GetMax())] if not box.IsEmpty() else None,

@@ -622,7 +622,7 @@ def render_stage(
     from usdforest.usd.layers import open_stage
 
     path = Path(path)
-    stage = open_stage(path, sound=True)
+    stage = open_stage(path, sound=True, full=True)
     frame = stage_frame(path)
     native = np.allclose(frame, np.eye(4))
     basis = view_basis(view)
