@@ -15,7 +15,7 @@ CHECK_STAMP := $(CHECK)/.installed
 BLENDER       ?= .venv-blender
 BLENDER_STAMP := $(BLENDER)/.installed
 
-.PHONY: forest test lint bench figures templates clean
+.PHONY: forest test lint bench figures templates docs clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "usdforest needs Python >= 3.11")'
@@ -56,6 +56,10 @@ lint: $(STAMP)
 templates: $(STAMP)
 	$(BIN)/python templates/make_cad.py
 	$(BIN)/usdforest template build pipelines/templates.toml --force
+
+docs: $(STAMP)
+	$(BIN)/sphinx-build -W --keep-going -q -b html docs docs/_build/html
+	@echo "== the documentation site: docs/_build/html/index.html"
 
 figures: $(STAMP)
 	$(BIN)/python docs/make_figures.py docs/figures
