@@ -98,3 +98,10 @@ def test_the_readme_is_short_and_its_links_lead_somewhere():
     assert len(local) >= 10
     assert [x for x in local if not (ROOT / x).exists()] == []
     assert not re.search(r"\bissue \d+", text, re.IGNORECASE)
+
+
+def test_the_trees_guide_names_every_species_preset():
+    from usdforest.grow.species import PRESETS
+
+    text = (DOCS / "guide" / "trees.md").read_text()
+    assert [n for n in PRESETS if f"`{n}`" not in text] == []
