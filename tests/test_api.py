@@ -4,6 +4,7 @@ nothing printed; the example that writes randomised forests for a training run."
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 import tomllib
@@ -176,6 +177,14 @@ BAD_ARGUMENTS = {
         lambda d: usdforest.fly(d / "f.usda", line=LINE, speed="fast"),
         "speed: expected a finite number, got 'fast'",
     ),
+    "scan-progress-text": (
+        lambda d: usdforest.scan(d / "f.usda", "lidar", (0, 0, 2), progress="yes"),
+        "progress: expected True, False, None or a callable",
+    ),
+    "fly-long-text": (
+        lambda d: usdforest.fly(d / "f.usda", line=LINE, long="no"),
+        "long: expected True or False, got 'no'",
+    ),
     "fly-rate-none": (
         lambda d: usdforest.fly(d / "f.usda", line=LINE, lidar_rate=None),
         "lidar_rate: expected a finite number, got None",
@@ -203,3 +212,23 @@ def test_the_api_names_a_bad_argument_and_writes_nothing(small_forest, tmp_path,
     assert str(err.value).startswith(start), str(err.value)
     assert len(str(err.value).splitlines()) == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_progress_reaches_a_notebook_as_lines_or_a_callback(small_forest, capsys):
+    """The API prints nothing unless asked: ``progress=True`` writes the command line's log
+    lines to stderr (each stage when it completes, then every 5 s), a callable gets every
+    tick."""
+    stage = small_forest / "f.usda"
+    usdforest.scan(stage, "lidar", (0, 0, 2))
+    assert capsys.readouterr() == ("", "")
+    usdforest.scan(stage, "lidar", (0, 0, 2), progress=True)
+    out, err = capsys.readouterr()
+    assert out == ""
+    lines = err.strip().splitlines()
+    assert lines and all(re.fullmatch(r"[a-z -]+: [\d,]+/[\d,]+ \(\d+ s(, about \d+ s left)?\)", x)
+                         for x in lines), lines  # fmt: skip
+    assert any(x.startswith("tree prototypes: 2/2") for x in lines), lines
+    ticks = []
+    usdforest.fly(stage, line=LINE, lidar_rate=10, progress=lambda *t: ticks.append(t))
+    sweeps = [t for t in ticks if t[0] == "lidar sweeps"]
+    assert sweeps and sweeps[-1][1] == sweeps[-1][2] > 1

@@ -69,19 +69,23 @@ def build_forest(
     thumbnail: bool = True,
     workers: int = 1,
     scheduler: str | None = None,
-    progress: Callable[[str, int, int], None] | None = None,
+    progress: Callable[[str, int, int], None] | bool | None = None,
 ) -> ForestBuild:
     """Build a forest at ``out`` (a ``.usda`` interface layer and ``<stem>_assets/``) from
     ``recipe`` (a :class:`~usdforest.recipe.Recipe`, or anything :func:`load_recipe` takes),
     with ``seed`` instead of the recipe's. A tiled recipe's tiles are written by ``workers``
     local processes or on the Dask cluster at ``scheduler``. Returns the trees per species,
     prototypes and extent (and an untiled forest's sites; a tiled one's stay in its tiles);
-    refuses to overwrite unless ``force``; a failure leaves nothing behind."""
+    refuses to overwrite unless ``force``; a failure leaves nothing behind. ``progress``: a
+    callable ``(stage, done, total)``, or True for a line on stderr every few seconds
+    (:func:`usdforest.progress.progress_lines`)."""
     from usdforest import arguments
+    from usdforest.progress import resolve_progress
     from usdforest.recipe import Recipe
     from usdforest.usd.forest import write_forest
 
     seed = arguments.optional_seed(seed)
+    progress = resolve_progress(progress)
     if not isinstance(recipe, Recipe):
         recipe = load_recipe(recipe, seed=seed)
     elif seed is not None:
@@ -134,15 +138,19 @@ def scan(
     settings: Any = None,
     seed: int = 0,
     device: str = "cpu",
+    progress: Callable[[str, int, int], None] | bool | None = None,
 ) -> Scan:
     """Scan ``stage`` with a ``lidar``, ``sonar`` or ``camera`` at ``pose`` (x, y, z[, yaw,
     pitch, roll]: the stage's units and axes, degrees), casting rays on ``device`` ("cpu",
-    "cuda" or "cuda:N"); see :func:`usdforest.sensors.survey.scan`."""
+    "cuda" or "cuda:N"); ``progress`` as :func:`build_forest` takes it; see
+    :func:`usdforest.sensors.survey.scan`."""
+    from usdforest.progress import resolve_progress
     from usdforest.sensors import survey
 
     return survey.scan(
-        stage, sensor, pose, preset=preset, settings=settings, seed=seed, device=device
-    )
+        stage, sensor, pose, preset=preset, settings=settings, seed=seed, device=device,
+        progress=resolve_progress(progress),
+    )  # fmt: skip
 
 
 @interruptible
@@ -159,11 +167,17 @@ def fly(
     camera_rate: float = 2.0,
     seed: int = 0,
     device: str = "cpu",
+    long: bool = False,
+    progress: Callable[[str, int, int], None] | bool | None = None,
 ) -> Flight:
     """Fly sensors through ``stage`` along ``path`` (a CSV of poses or a
     :class:`~usdforest.sensors.flight.Trajectory`) or a straight ``line`` at ``speed``, the
     lidar sweeping ``lidar_rate`` times and the camera ``camera_rate`` frames a second, rays
-    cast on ``device`` ("cpu", "cuda" or "cuda:N"); see :func:`usdforest.sensors.survey.fly`."""
+    cast on ``device`` ("cpu", "cuda" or "cuda:N"). Work beyond the command line's limits is
+    refused unless ``long``; ``progress`` as :func:`build_forest` takes it; see
+    :func:`usdforest.sensors.survey.fly`."""
+    from usdforest import arguments
+    from usdforest.progress import resolve_progress
     from usdforest.sensors import survey
 
     return survey.fly(
@@ -178,6 +192,8 @@ def fly(
         camera_rate=camera_rate,
         seed=seed,
         device=device,
+        long=arguments.flag(long, "long"),
+        progress=resolve_progress(progress),
     )
 
 

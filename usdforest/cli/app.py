@@ -177,12 +177,14 @@ def _root(
 
 
 @contextmanager
-def progress_bars(show: bool, t0: float) -> Iterator[Callable[[str, int, int], None]]:
+def progress_bars(
+    show: bool, t0: float, completions: bool = True
+) -> Iterator[Callable[[str, int, int], None]]:
     """A ``tick(stage, done, total)`` for long work: rich bars with the time left on a
     terminal; on a log file or CI a line every few seconds with the time left (each stage's
-    rate so far); nothing when ``show`` is false."""
-    import time
-
+    rate so far, :func:`usdforest.progress.progress_lines`), and a line as each stage
+    completes unless not ``completions`` (then work under 5 s prints nothing); nothing when
+    ``show`` is false."""
     from rich.progress import (
         BarColumn,
         Progress,
@@ -191,6 +193,11 @@ def progress_bars(show: bool, t0: float) -> Iterator[Callable[[str, int, int], N
         TimeRemainingColumn,
     )
 
+    from usdforest.progress import progress_lines
+
+    if show and not err.is_terminal:  # a log file or CI: a short line now and then
+        yield progress_lines(every=PLAIN_PROGRESS_SECONDS, t0=t0, completions=completions)
+        return
     with Progress(
         TextColumn("{task.description:<18}"),
         BarColumn(),
@@ -199,27 +206,15 @@ def progress_bars(show: bool, t0: float) -> Iterator[Callable[[str, int, int], N
         TextColumn("left"),
         TimeRemainingColumn(),
         console=err,
-        disable=not (show and err.is_terminal),  # off a terminal it only printed a blank line
+        disable=not show,
         transient=True,
     ) as bar:
         tasks: dict[str, int] = {}
-        began: dict[str, tuple[float, int]] = {}  # when each stage was first heard of, at what
-        plain = show and not err.is_terminal  # a log file or CI: a short line now and then
-        last = [time.perf_counter()]
 
         def tick(stage: str, done: int, total: int) -> None:
-            now = time.perf_counter()
             if stage not in tasks:
                 tasks[stage] = bar.add_task(stage, total=total)
-                began[stage] = (now, done)
             bar.update(tasks[stage], completed=done, total=total)
-            if plain and (now - last[0] >= PLAIN_PROGRESS_SECONDS or done == total):
-                last[0] = now
-                left = ""
-                since, first = began[stage]
-                if first < done < total:  # a rate from what was seen done, never from one tick
-                    left = f", about {(now - since) / (done - first) * (total - done):.0f} s left"
-                err.print(f"{stage}: {done:,}/{total:,} ({now - t0:.0f} s{left})", highlight=False)
 
         yield tick
 

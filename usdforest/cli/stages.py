@@ -28,6 +28,14 @@ from usdforest.errors import UsdForestError
 from usdforest.paths import require_output
 
 
+def _progress(quiet: bool):
+    """Progress of a command that reads a stage: a bar on a terminal, on a log a line only
+    once the work has taken 5 s (a quick look at a small stage prints nothing there)."""
+    import time
+
+    return progress_bars(not quiet, time.perf_counter(), completions=False)
+
+
 @app.command("recipes", cls=Command)
 @handles_errors
 def recipes_cmd(
@@ -60,11 +68,13 @@ def recipes_cmd(
 def validate_cmd(
     stage: Annotated[Path, typer.Argument(help="Any USD stage.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print findings as JSON.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
 ) -> None:
     """Run every pxr.UsdValidation validator plus usdforest's rules; exit 0 only if clean."""
     from usdforest.usd.validate import validate
 
-    findings = validate(stage)
+    with _progress(quiet) as tick:
+        findings = validate(stage, progress=tick)
     if as_json:
         sys.stdout.write(
             json.dumps(
@@ -142,12 +152,14 @@ def info_cmd(
             "level the forest selects (what a client opens).",
         ),
     ] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
 ) -> None:
     """Composed statistics: prims, meshes, branches by order, leaves, triangles, extent, and
     the trees' levels of detail."""
     from usdforest.usd.stats import stage_info
 
-    info = stage_info(stage, full=full)
+    with _progress(quiet) as tick:
+        info = stage_info(stage, full=full, progress=tick)
     if as_json:
         sys.stdout.write(json.dumps(info) + "\n")
         return
@@ -159,12 +171,14 @@ def info_cmd(
 def stats_cmd(
     stage: Annotated[Path, typer.Argument(help="A forest built by usdforest build.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print as JSON.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
 ) -> None:
     """Stand figures measured on the composed forest: stems/ha, basal area, DBH and height
     distributions, slenderness, leaf and wood area indices, nadir canopy cover."""
     from usdforest.usd.inventory import stand_figures
 
-    f = stand_figures(stage)
+    with _progress(quiet) as tick:
+        f = stand_figures(stage, progress=tick)
     f.pop("per_tree")
     if as_json:
         sys.stdout.write(json.dumps(f) + "\n")
@@ -365,6 +379,7 @@ def preview_cmd(
     size: Annotated[str, typer.Option(metavar="WxH", help="Image size WIDTHxHEIGHT.")] = "800x800",
     plain: Annotated[bool, typer.Option("--plain", help="No caption or scale bar.")] = False,
     force: ForceOption = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
 ) -> None:
     """Render a stage headlessly to an image (what composes is what is drawn)."""
     require_output(output)
@@ -378,7 +393,10 @@ def preview_cmd(
         raise UsdForestError(f"--view: {view!r} is not one of {', '.join(VIEWS)}")
     refuse_overwrite(output, force=force)
     t0 = time.perf_counter()
-    info = preview(stage, output, view=view, size=_parse_size(size), annotate=not plain)
+    with _progress(quiet) as tick:
+        info = preview(
+            stage, output, view=view, size=_parse_size(size), annotate=not plain, progress=tick
+        )
     out.print(
         f"{output}: {info.kind}, {view} view, {info.size[0]}x{info.size[1]} "
         f"({time.perf_counter() - t0:.1f} s)",

@@ -21,6 +21,7 @@ from pxr import Usd, UsdGeom
 
 from usdforest.cad.parts import face_areas, one_sided_area
 from usdforest.errors import UsdForestError
+from usdforest.progress import Progress
 from usdforest.usd.layers import open_stage, rendered
 
 CELL = 0.25  # m, the cover raster
@@ -136,9 +137,14 @@ def _cover(grid: tuple[np.ndarray, np.ndarray], pts: np.ndarray, mats: np.ndarra
         g[cy[ok], cx[ok]] = True
 
 
-def stand_figures(path: str | Path) -> dict:
-    """Stand figures of the forest at ``path`` (see the module docstring)."""
+def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
+    """Stand figures of the forest at ``path`` (see the module docstring);
+    ``progress(stage, done, total)`` as the stage opens and each tree prototype is measured."""
+    tick = progress or (lambda stage, done, total: None)
+    tick("opening the stage", 0, 1)
     stage = open_stage(Path(path), sound=True, full=True)
+    tick("opening the stage", 1, 1)
+    measured = [0]
     root = stage.GetDefaultPrim()
     if not root:
         raise UsdForestError(f"{path}: no default prim")
@@ -169,8 +175,11 @@ def stand_figures(path: str | Path) -> dict:
         )
         world = np.asarray(UsdGeom.XformCache().GetLocalToWorldTransform(p), dtype=float)
         scale = np.abs(np.linalg.det(mats[:, :3, :3])) ** (1.0 / 3.0)
-        for k, target in enumerate(pi.GetPrototypesRel().GetTargets()):
+        targets = pi.GetPrototypesRel().GetTargets()
+        for k, target in enumerate(targets):
             sel = np.flatnonzero(idx == k)
+            measured[0] += 1
+            tick("measuring trees", measured[0], len(targets))
             if not len(sel):
                 continue
             proto = stage.GetPrimAtPath(target)

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom
 
+from usdforest.progress import Progress
 from usdforest.usd.layers import LOD_SET, class_labels, open_stage, rendered
 
 
@@ -79,15 +80,19 @@ def _expand(prim: Usd.Prim, cache: dict) -> _Tally:
     return t
 
 
-def stage_info(path: str | Path, *, full: bool = False) -> dict:
+def stage_info(path: str | Path, *, full: bool = False, progress: Progress | None = None) -> dict:
     """Composed statistics for the stage at ``path``, at the levels of detail its layers
     select (what a client opens), or with every tree at ``full`` detail (what sensors see).
 
     Triangles and leaves count every instance: a forest of 1,000 trees of 500 leaves reports
     500,000 leaves. ``lod`` counts the tree prims by the level they show.
+    ``progress(stage, done, total)`` as each of its three steps ends.
     """
+    tick = progress or (lambda stage, done, total: None)
+    tick("reading the stage", 0, 3)
     path = Path(path)
     stage = open_stage(path, sound=True, full=full)
+    tick("reading the stage", 1, 3)
     root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
     prims = 0
     by_order: Counter = Counter()
@@ -106,6 +111,7 @@ def stage_info(path: str | Path, *, full: bool = False) -> dict:
             ax = p.GetAttribute("usdforest:axis")
             tree = str(p.GetPath()).split("/Branches/")[0].replace("/Trunk", "")
             axes.setdefault(order, set()).add((tree, int(ax.Get()) if ax else -1))
+    tick("reading the stage", 2, 3)
     tally = _expand(root, {})
     bbox = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"], True)
     box = bbox.ComputeWorldBound(root).ComputeAlignedRange()
@@ -119,6 +125,7 @@ def stage_info(path: str | Path, *, full: bool = False) -> dict:
             layers.append(str(real.relative_to(base)) if real else layer.identifier)
         except ValueError:
             layers.append(str(real))
+    tick("reading the stage", 3, 3)
     return {
         "stage": str(path),
         "default_prim": str(root.GetPath()),

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Usd, UsdGeom, UsdValidation
 
+from usdforest.progress import Progress
 from usdforest.usd.host import placement_problems
 from usdforest.usd.integrity import structural_problems
 from usdforest.usd.layers import open_stage
@@ -115,19 +116,29 @@ def structure_findings(stage: Usd.Stage) -> list[Finding]:
     ]
 
 
-def validate(path: str | Path) -> list[Finding]:
-    """All findings for the stage at ``path`` (pxr validators and project rules).
+def validate(path: str | Path, progress: Progress | None = None) -> list[Finding]:
+    """All findings for the stage at ``path`` (pxr validators and project rules);
+    ``progress(stage, done, total)`` as each of the four steps ends.
 
     Broken indexing (faces or instances pointing outside their arrays, an instancer that
     instances itself) is reported on its own: pxr's validators and the project rules would
     index out of range or recurse, so they run only on a stage without it.
     """
+    tick = progress or (lambda stage, done, total: None)
+    tick("validating", 0, 4)
     path = Path(path)
     stage = open_stage(path)
+    tick("validating", 1, 4)
     broken = structure_findings(stage)
+    tick("validating", 2, 4)
     if broken:
+        tick("validating", 4, 4)
         return broken
-    return pxr_findings(stage) + project_findings(stage)
+    found = pxr_findings(stage)
+    tick("validating", 3, 4)
+    found += project_findings(stage)
+    tick("validating", 4, 4)
+    return found
 
 
 def errors(findings: list[Finding]) -> list[Finding]:

@@ -25,6 +25,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from usdforest.errors import UsdForestError
+from usdforest.progress import Progress
 from usdforest.runs import run_starts
 
 VIEWS = ("side", "top", "iso")
@@ -612,10 +613,14 @@ def render_stage(
     size: tuple[int, int] = (800, 800),
     budget: int | None = None,
     ground: bool = True,
+    progress: Progress | None = None,
 ) -> tuple[np.ndarray, tuple, str]:
     """Render a stage to an RGB array; returns (image, window, kind). Drawn in metres with Z
     up whatever the stage's ``metersPerUnit`` and ``upAxis`` (a Y-up centimetre host that
-    references a forest draws it upright, its scale bar in metres)."""
+    references a forest draws it upright, its scale bar in metres). ``progress(stage, done,
+    total)`` as each of its three steps (open, sample, draw) ends."""
+    tick = progress or (lambda stage, done, total: None)
+    tick("drawing", 0, 3)
     from pxr import Usd, UsdGeom
 
     from usdforest.sensors.scene import moved_boxes, stage_frame
@@ -623,6 +628,7 @@ def render_stage(
 
     path = Path(path)
     stage = open_stage(path, sound=True, full=True)
+    tick("drawing", 1, 3)
     frame = stage_frame(path)
     native = np.allclose(frame, np.eye(4))
     basis = view_basis(view)
@@ -664,6 +670,7 @@ def render_stage(
     stamps: list[Stamps] | None = [] if kind == "forest" and native else None
     spacing = max(extent * 0.7, 1e-4) / _scale(frame)
     cloud = stage_cloud(stage, root, spacing=spacing, budget=budget, stamps=stamps)
+    tick("drawing", 2, 3)
     if not native:
         cloud = cloud.transformed(frame)
     window = None
@@ -672,6 +679,7 @@ def render_stage(
         if ground:
             cloud = Cloud.concat([_ground(lo, hi, extent, _ground_meshes(stage), frame), cloud])
     img, window = splat(cloud, basis, size, window=window, stamps=stamps or ())
+    tick("drawing", 3, 3)
     return img, window, kind
 
 
@@ -749,14 +757,15 @@ def preview(
     view: str = "iso",
     size: tuple[int, int] = (800, 800),
     annotate: bool = True,
+    progress: Progress | None = None,
 ) -> PreviewInfo:
     """Render ``path`` to an image at ``out`` (atomically; PNG, JPEG, WebP or TIFF by its
-    suffix)."""
+    suffix); ``progress`` as :func:`render_stage` calls it."""
     from usdforest.atomic import atomic_path
     from usdforest.paths import image_format
 
     fmt = image_format(out)
-    img, window, kind = render_stage(path, view=view, size=size)
+    img, window, kind = render_stage(path, view=view, size=size, progress=progress)
     with atomic_path(out) as tmp:
         if annotate:
             dpi = 100

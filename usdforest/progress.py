@@ -1,0 +1,66 @@
+"""Progress of long work as ``tick(stage, done, total)`` calls, and the lines that report it
+where no progress bar can be drawn (a log file, CI, a notebook).
+
+Every long function of the API takes ``progress=``: a callable of that form, or ``True`` for
+:func:`progress_lines` on stderr.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+from typing import Any, TextIO
+
+from usdforest.errors import UsdForestError
+
+Progress = Callable[[str, int, int], None]
+EVERY_SECONDS = 5.0  # a line at most this often per run (and when a stage completes)
+
+
+def progress_lines(
+    stream: TextIO | None = None,
+    every: float = EVERY_SECONDS,
+    t0: float | None = None,
+    completions: bool = True,
+) -> Progress:
+    """A ``tick`` that prints ``stage: done/total (elapsed s, about N s left)`` to ``stream``
+    (stderr) at most every ``every`` seconds, and when a stage completes. Without
+    ``completions`` a completed stage is printed only once a line has been (a command's log:
+    work shorter than ``every`` prints nothing). The time left comes from each stage's rate
+    since it was first heard of, never from a single tick."""
+    last = [time.perf_counter()]  # the first line comes after ``every`` seconds of work
+    start = last[0] if t0 is None else t0
+    began: dict[str, tuple[float, int]] = {}
+    printed = [completions]
+
+    def tick(stage: str, done: int, total: int) -> None:
+        now = time.perf_counter()
+        if stage not in began:
+            began[stage] = (now, done)
+        if now - last[0] < every and not (done == total and printed[0]):
+            return
+        last[0] = now
+        printed[0] = True
+        since, first = began[stage]
+        left = ""
+        if first < done < total:
+            left = f", about {(now - since) / (done - first) * (total - done):.0f} s left"
+        out = sys.stderr if stream is None else stream
+        print(f"{stage}: {done:,}/{total:,} ({now - start:.0f} s{left})", file=out, flush=True)
+
+    return tick
+
+
+def resolve_progress(progress: Any, name: str = "progress") -> Progress | None:
+    """``progress=`` as the API takes it: None or False (silent), True (lines on stderr) or a
+    callable ``(stage, done, total)``."""
+    if progress is None or progress is False:
+        return None
+    if progress is True:
+        return progress_lines()
+    if callable(progress):
+        return progress
+    raise UsdForestError(
+        f"{name}: expected True, False, None or a callable (stage, done, total), got {progress!r}"
+    )
