@@ -160,7 +160,8 @@ def stands(out: Path, work: Path) -> None:
         ("stand-1ha", "top", (560, 560)),
         ("stress-1m", "iso", (700, 520)),
     ):
-        path = work / f"{name}.usda"
+        # the default forest as make forest names it, so its caption's command draws it
+        path = work / ("forest.usda" if name == "default" else f"{name}.usda")
         write_forest(read_recipe(PIPELINES / f"{name}.toml"), path, thumbnail=False)
         preview(path, out / f"{name}.png", view=view, size=size)
     r = read_recipe(PIPELINES / "default.toml")
