@@ -135,6 +135,8 @@ def sample_cells(
             recipe.scale.as_tuple(),
             stream(recipe.seed, "marks", replicate, "cell", int(c % nx), int(c // nx)),
             recipe.ground["field"].height if recipe.ground is not None else None,
+            names,
+            recipe.region.bounds,
         )
         for c, a, n in zip(uniq, start, count, strict=True)
     ]

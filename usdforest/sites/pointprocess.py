@@ -725,9 +725,13 @@ def species_weights(
     x: np.ndarray,
     y: np.ndarray,
     z: np.ndarray | None = None,
+    names: Sequence[str] | None = None,
+    region: Sequence[float] | None = None,
 ) -> np.ndarray:
     """``(n, k)`` non-negative species weights at each site (numbers or expressions in x, y
-    and z, the ground's height there: 0 without one)."""
+    and z, the ground's height there: 0 without one). A weight that is negative or not finite
+    at a site is refused naming its species (``names``), expression, value, the site and the
+    ``region`` bounds: an expression written for one plot may not hold on a larger one."""
     env = {"x": x, "y": y, "z": np.zeros(np.shape(x)) if z is None else z}
     cols = []
     for w in weights:
@@ -737,8 +741,20 @@ def species_weights(
             v = np.full(np.shape(x), float(w))
         cols.append(v)
     out = np.stack(cols, axis=1) if cols else np.zeros((len(x), 0))
-    if not np.all(np.isfinite(out)) or np.any(out < 0):
-        raise RecipeError("mix: a species weight is negative or not finite at a site")
+    bad = ~np.isfinite(out) | (out < 0)
+    if bad.any():
+        i, k = (int(v) for v in np.argwhere(bad)[0])
+        name = names[k] if names is not None else str(k)
+        w = weights[k]
+        what = repr(w.source) if isinstance(w, Expression) else f"{float(w):g}"
+        where = (
+            f" of the region {[float(f'{b:.6g}') for b in region]}" if region is not None else ""
+        )
+        raise RecipeError(
+            f"mix.{name}: {what} is {out[i, k]:.3g} at ({float(x[i]):.2f}, {float(y[i]):.2f})"
+            f"{where}; a weight must be a finite number >= 0 everywhere trees may stand "
+            "(write max(0, ...) to let a species fade out)"
+        )
     return out
 
 
@@ -749,6 +765,8 @@ def draw_marks(
     scale: tuple[str, float, float],
     rng: np.random.Generator,
     height=None,
+    names: Sequence[str] | None = None,
+    region: Sequence[float] | None = None,
 ) -> Marks:
     """Species (from the mixture at each site, which may use the ground's ``height(x, y)``
     as ``z``), variant, yaw in [0, 360) and scale."""
@@ -756,7 +774,7 @@ def draw_marks(
     x, y = sites[:, 0], sites[:, 1]
     uses_z = any(isinstance(w, Expression) and "z" in w.variables for w in weights)
     z = height(x, y) if uses_z and height is not None else None
-    w = species_weights(weights, x, y, z)
+    w = species_weights(weights, x, y, z, names, region)
     total = w.sum(axis=1)
     if n and np.any(total <= 0):
         k = int(np.argmax(total <= 0))

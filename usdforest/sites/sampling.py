@@ -42,6 +42,8 @@ def inventory_sites(recipe: Recipe, replicate: int = 0) -> Sites:
         recipe.scale.as_tuple(),
         stream(recipe.seed, "marks", replicate),
         recipe.ground["field"].height if recipe.ground is not None else None,
+        names,
+        recipe.region.bounds,
     )
     species, yaw, scale = marks.species.copy(), marks.yaw.copy(), marks.scale.copy()
     for i, s in enumerate(recipe.sites):
