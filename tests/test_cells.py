@@ -43,16 +43,23 @@ def _joined(parts):
     return type("S", (), cols)
 
 
-@pytest.mark.parametrize("hard_core", [0.0, 6.0, 260.0])
-def test_sites_do_not_depend_on_tiles_or_blocks(tmp_path, hard_core):
+@pytest.mark.parametrize(
+    ("hard_core", "clusters"),
+    [(0.0, None), (6.0, None), (260.0, None), (0.0, ("thomas", 30.0)), (2.0, ("matern", 80.0))],
+    ids=["poisson", "hard-core-6m", "hard-core-260m", "thomas-30m", "matern-80m-hard-core"],
+)
+def test_sites_do_not_depend_on_tiles_or_blocks(tmp_path, hard_core, clusters):
     """Every recipe is sampled cell by cell: without tiles, with tiles of 37 or 500 m (each
     square's own sites computed alone), and in blocks of one cell (a hard core wider than a
     cell reaches two rings of cells), the same sites in the same order."""
-    untiled = _recipe(tmp_path, tiles=None, hard_core=hard_core)
+    extra = {}
+    if clusters:  # clusters wide enough to cross the 250 m cells' edges (Thomas: 120 m)
+        extra = {"clusters": {"kind": clusters[0], "scale": clusters[1], "offspring": 12}}
+    untiled = _recipe(tmp_path, tiles=None, hard_core=hard_core, **extra)
     base = sample_sites(untiled)
     assert len(base) > (3 if hard_core > 100 else 100)
     for size in (37.0, 500.0):
-        r = _recipe(tmp_path, tiles=size, hard_core=hard_core)
+        r = _recipe(tmp_path, tiles=size, hard_core=hard_core, **extra)
         _same(base, sample_sites(r))
         parts = []
         for sq in local.squares(r):

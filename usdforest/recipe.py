@@ -237,7 +237,9 @@ TOP_KEYS = {
     "forest",
     "ground",
     "tiles",
+    "clusters",
 }
+CLUSTER_KEYS = {"kind", "scale", "offspring"}
 GROUND_KEYS = {"kind", "margin", "color", "file", "max", "bounds"}
 FOREST_KEYS = {
     "variants",
@@ -296,6 +298,7 @@ class Recipe:
     lod: str = "full"  # the tree assets' lod variant the forest selects: full, medium, proxy
     crs: str | None = None  # the projected CRS of the recipe's coordinates, when one is named
     tiles: float | None = None  # tile side in metres: the forest as payload tiles
+    clusters: Any = None  # sites.cluster.Clusters: trees in clusters around unseen parents
 
     @property
     def species_names(self) -> tuple[str, ...]:
@@ -320,6 +323,29 @@ def _under(where: str, exc: Exception) -> RecipeError:
     """``exc`` as a RecipeError naming ``where`` once (messages may name it already)."""
     msg = str(exc)
     return RecipeError(msg if msg.startswith(where) else f"{where}: {msg}")
+
+
+def _parse_clusters(t: Any, explicit_sites: bool) -> Any:
+    """``[clusters]``: a Thomas or Matérn cluster process over the recipe's intensity."""
+    if t is None:
+        return None
+    from usdforest.sites.cluster import Clusters
+
+    if not isinstance(t, Mapping):
+        raise RecipeError("clusters: expected a table")
+    if explicit_sites:
+        raise RecipeError("clusters: explicit sites are not sampled; remove [clusters]")
+    check_keys(t, CLUSTER_KEYS, "clusters")
+    for key in CLUSTER_KEYS:
+        if key not in t:
+            raise RecipeError(
+                f'clusters.{key}: missing (e.g. kind = "thomas", scale = 3.0, offspring = 8)'
+            )
+    return Clusters(
+        coerce(t["kind"], str, "clusters.kind"),
+        _num(t["scale"], "clusters.scale", positive=True),
+        _num(t["offspring"], "clusters.offspring", positive=True),
+    )
 
 
 def parse_region(t: Any, where: str, base: Path = Path(".")) -> Any:
@@ -665,6 +691,7 @@ def parse_recipe(
             ]
         )
         tiles = _parse_tiles(data.get("tiles"))
+        clusters = _parse_clusters(data.get("clusters"), sites is not None)
     except RecipeError as exc:
         raise fail(exc) from None
     recipe = Recipe(
@@ -688,6 +715,7 @@ def parse_recipe(
         lod,
         crs,
         tiles,
+        clusters,
     )
     try:
         expected = recipe.expected_trees()

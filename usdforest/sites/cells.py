@@ -78,11 +78,52 @@ def cells_meeting(recipe, box: tuple[float, float, float, float]) -> tuple[int, 
     return i0, j0, i1, j1
 
 
-def _cell_sites(recipe, replicate: int, i: int, j: int, lam_star: float) -> np.ndarray:
+def _cell_sites(
+    recipe, replicate: int, i: int, j: int, lam_star: float, families: dict | None = None
+) -> np.ndarray:
+    if recipe.clusters is not None:
+        return _cluster_cell_sites(recipe, replicate, i, j, lam_star, {} if families is None
+                                   else families)  # fmt: skip
     x0, y0, x1, y1 = recipe.region.bounds
     box = (x0 + i * CELL, y0 + j * CELL, min(x0 + (i + 1) * CELL, x1), min(y0 + (j + 1) * CELL, y1))
     rng = stream(recipe.seed, "sites", replicate, "cell", i, j)
     return thin(_CellRegion(recipe.region, box), recipe.intensity, rng, bound=lam_star)
+
+
+def _cluster_cell_sites(
+    recipe, replicate: int, i: int, j: int, lam_star: float, families: dict
+) -> np.ndarray:
+    """The trees of a cluster process that land in cell ``(i, j)``: the families of the
+    parents of every cell within the clusters' reach (their own streams, so a cell's trees
+    never depend on who samples it), kept where the region is and with probability
+    ``lambda(x) / lambda*`` (:mod:`usdforest.sites.cluster`)."""
+    from usdforest.sites.cluster import family
+    from usdforest.sites.pointprocess import _refuse
+
+    c = recipe.clusters
+    x0, y0, _, _ = recipe.region.bounds
+    kappa = lam_star / c.offspring
+    reach = math.ceil(c.reach / CELL)
+    out = []
+    for pj in range(j - reach, j + reach + 1):
+        for pi in range(i - reach, i + reach + 1):
+            key = (pi, pj)
+            if key not in families:
+                box = (x0 + pi * CELL, y0 + pj * CELL, x0 + (pi + 1) * CELL, y0 + (pj + 1) * CELL)
+                rng = stream(recipe.seed, "clusters", replicate, "cell", pi, pj)
+                families[key] = family(c, kappa, box, rng)
+            pts, u = families[key]
+            mine = (np.floor((pts[:, 0] - x0) / CELL) == i) & (
+                np.floor((pts[:, 1] - y0) / CELL) == j
+            )
+            pts, u = pts[mine], u[mine]
+            inside = recipe.region.contains(pts[:, 0], pts[:, 1])
+            pts, u = pts[inside], u[inside]
+            lam = recipe.intensity.evaluate(pts[:, 0], pts[:, 1])
+            if len(lam) and not (lam.min() >= 0 and lam.max() <= lam_star * (1 + 1e-9)):
+                _refuse(pts[:, 0], pts[:, 1], lam, lam_star)
+            out.append(pts[u * lam_star < lam])
+    return np.concatenate(out) if out else np.zeros((0, 2))
 
 
 def sample_cells(
@@ -100,7 +141,8 @@ def sample_cells(
         for j in range(max(j0 - reach, 0), min(j1 + reach, ny))
         for i in range(max(i0 - reach, 0), min(i1 + reach, nx))
     ]
-    xy = [_cell_sites(recipe, replicate, i, j, lam_star) for i, j in cells]
+    families: dict = {}  # a cluster process's parents, drawn once per call
+    xy = [_cell_sites(recipe, replicate, i, j, lam_star, families) for i, j in cells]
     wanted = np.concatenate(
         [
             np.full(len(p), i0 - ring <= i < i1 + ring and j0 - ring <= j < j1 + ring)
