@@ -153,6 +153,20 @@ def ipp_levels(out: Path) -> None:
     save_figure(fig, out / "paper-ipp-levels.png")
 
 
+def stand_pattern(out: Path, work: Path) -> None:
+    """usdforest pattern on the default forest that :func:`stands` built."""
+    from typer.testing import CliRunner
+
+    from usdforest.cli import app
+
+    forest = work / "forest.usda"
+    r = CliRunner().invoke(
+        app, ["pattern", str(forest), "-o", str(out / "pattern-default.png"), "--force", "-q"]
+    )
+    if r.exit_code:
+        raise SystemExit(r.output)
+
+
 def stands(out: Path, work: Path) -> None:
     for name, view, size in (
         ("paper-two-tree-stand", "iso", (700, 600)),
@@ -397,6 +411,7 @@ def main(out: Path) -> None:
         profile_trees(out, work)
         ipp_levels(out)
         stands(out, work)
+        stand_pattern(out, work)
         gallery(out, work)
         allometric(out, work)
         sensors(out, work)

@@ -134,3 +134,41 @@ def test_a_clustered_recipe_keeps_its_intensity_and_clusters_its_trees(tmp_path)
 def test_bad_clusters_are_refused_by_key(tmp_path, clusters, message):
     with pytest.raises(RecipeError, match=message):
         _recipe(tmp_path, clusters)
+
+
+def test_usdforest_pattern_on_a_forest_and_on_a_csv(tmp_path, runner):
+    """The command reads a built forest (its trees.csv and region) or any CSV of x,y, prints
+    the figures and the envelope test, writes the plot, and refuses bad input in one line."""
+    import json
+
+    from usdforest.cli import app
+    from usdforest.recipe import default_recipe_path, read_recipe
+    from usdforest.usd.forest import write_forest
+
+    recipe = read_recipe(default_recipe_path().parent / "paper-ipp-dense.toml")
+    write_forest(recipe, tmp_path / "f.usda", thumbnail=False)
+    r = runner.invoke(app, ["pattern", str(tmp_path / "f.usda"), "--json", "--nsim", "9", "-q"])
+    assert r.exit_code == 0, r.output
+    data = json.loads(r.stdout)
+    xy = sample_sites(recipe).xy
+    assert data["trees"] == len(xy) and data["window"] == list(recipe.region.bounds)
+    # trees.csv holds positions to the millimetre
+    assert data["clark_evans"] == pytest.approx(clark_evans(xy, recipe.region.bounds), rel=1e-4)
+    assert len(data["r"]) == len(data["g"]) == len(data["l_minus_r_hi"]) == 50
+    (tmp_path / "stems.csv").write_text(
+        "x,y,dbh\n" + "".join(f"{x:.3f},{y:.3f},0.2\n" for x, y in xy)
+    )
+    png = tmp_path / "p.png"
+    r = runner.invoke(app, ["pattern", str(tmp_path / "stems.csv"), "--region",
+                            ",".join(map(str, recipe.region.bounds)), "--nsim", "9", "-o",
+                            str(png)])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert "clark_evans" in r.stdout and png.stat().st_size > 10_000
+    for args, message in (
+        ([str(tmp_path / "f_assets" / "pipeline.toml")], "expected a header with x and y"),
+        ([str(tmp_path / "stems.csv"), "--region", "0,0,5"], "--region: expected x0,y0,x1,y1"),
+        ([str(tmp_path / "stems.csv"), "-o", str(png)], "exists; pass --force"),
+    ):
+        r = runner.invoke(app, ["pattern", *args])
+        assert r.exit_code == 2 and message in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -184,6 +185,118 @@ def stats_cmd(
         sys.stdout.write(json.dumps(f) + "\n")
         return
     _print_pairs(f, _stats_value)
+
+
+@app.command("pattern", cls=Command)
+@handles_errors
+def pattern_cmd(
+    source: Annotated[
+        Path,
+        typer.Argument(
+            help="A forest built by usdforest build (its trees.csv), or a CSV with x and y "
+            "columns (a stem map, usdforest sample's output)."
+        ),
+    ],
+    region: Annotated[
+        str | None,
+        typer.Option(
+            metavar="x0,y0,x1,y1",
+            help="The window the trees were mapped in (default: a forest's region; a CSV's "
+            "trees' bounding box).",
+        ),
+    ] = None,
+    rmax: Annotated[
+        float | None, typer.Option(min=0.01, help="Largest distance r in metres.")
+    ] = None,
+    nsim: Annotated[int, typer.Option(min=1, max=999, help="CSR simulations.")] = 39,
+    replicate: Annotated[int, typer.Option(min=0, help="Replicate of a sample CSV.")] = 0,
+    output: Annotated[
+        Path | None, typer.Option("--output", "-o", help="Plot L(r) - r and g(r) here.")
+    ] = None,
+    force: ForceOption = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print as JSON.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+) -> None:
+    """Stand pattern: stems/ha, nearest neighbours, Clark-Evans R, and L(r) - r and g(r)
+    against envelopes of complete spatial randomness (clustered above, regular below)."""
+    from usdforest.sites.pattern import describe
+
+    if output is not None:
+        from usdforest.paths import image_format
+
+        require_output(output)
+        image_format(output)
+        refuse_overwrite(output, force=force)
+    xy, window = _pattern_points(source, replicate)
+    if region is not None:
+        window = _parse_bounds(region, "--region")
+    elif window is None:
+        window = (*xy.min(axis=0), *xy.max(axis=0)) if len(xy) else (0.0, 0.0, 0.0, 0.0)
+    with _progress(quiet) as tick:
+        summary = describe(xy, tuple(float(v) for v in window), rmax=rmax, nsim=nsim,
+                           progress=tick)  # fmt: skip
+    if output is not None:
+        from usdforest.view.plots import plot_pattern
+
+        plot_pattern(output, summary, title=source.name)
+    if as_json:
+        sys.stdout.write(json.dumps(summary) + "\n")
+        return
+    r = summary["r"]
+    picks = sorted({min(len(r) - 1, round(k * (len(r) - 1) / 5)) for k in range(6)})
+    rows = {
+        "trees": f"{summary['trees']:,}",
+        "window": ", ".join(f"{v:g}" for v in summary["window"]),
+        "stems_per_ha": f"{summary['stems_per_ha']:.1f}",
+        "nearest_neighbour": f"mean {summary['nearest_neighbour_mean']:.2f} m, "
+        f"min {summary['nearest_neighbour_min']:.2f} m",
+        "clark_evans": f"{summary['clark_evans']:.3f} (1: random, < 1 clustered, > 1 regular)",
+    }
+    for k in picks:
+        env = (summary["l_minus_r_lo"][k], summary["l_minus_r_hi"][k])
+        where = "above" if summary["l_minus_r"][k] > env[1] else (
+            "below" if summary["l_minus_r"][k] < env[0] else "inside")  # fmt: skip
+        rows[f"r = {r[k]:.2f} m"] = (
+            f"L-r {summary['l_minus_r'][k]:+.2f} (CSR {env[0]:+.2f} to {env[1]:+.2f}, {where}), "
+            f"g {summary['g'][k]:.2f}"
+        )
+    _print_pairs(rows, lambda _k, v: v)
+    if output is not None:
+        out.print(f"{output}: L(r) - r and g(r) with their envelopes", highlight=False)
+
+
+def _pattern_points(source: Path, replicate: int):
+    """A forest's tree positions and region, or a CSV's positions (no window)."""
+    from usdforest.sites.pattern import read_points
+
+    if source.suffix.lower() in (".usda", ".usdc", ".usd"):
+        from usdforest.usd.layers import open_stage
+
+        stage = open_stage(source)
+        root = stage.GetDefaultPrim()
+        data = (root.GetCustomDataByKey("usdforest") if root else None) or {}
+        trees = source.parent / f"{source.stem}_assets" / "trees.csv"
+        if "regionBounds" not in data or not trees.is_file():
+            raise UsdForestError(
+                f"{source}: not a forest built by usdforest build with its "
+                f"{source.stem}_assets/trees.csv (give a CSV of x,y instead)"
+            )
+        return read_points(trees), tuple(float(v) for v in data["regionBounds"])
+    return read_points(source, replicate), None
+
+
+def _parse_bounds(text: str, name: str) -> tuple[float, float, float, float]:
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        vals = ()
+    if (
+        len(vals) != 4
+        or not all(math.isfinite(v) for v in vals)
+        or not (vals[2] > vals[0] and vals[3] > vals[1])
+    ):
+        raise UsdForestError(f"{name}: expected x0,y0,x1,y1 with x1 > x0 and y1 > y0, got {text!r}")
+    return vals  # type: ignore[return-value]
 
 
 def _load_recipe(pipeline: Path | None, seed: int | None, hard_core: float | None = None):

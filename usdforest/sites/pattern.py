@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -141,24 +142,22 @@ def csr_envelope(
     statistic: Callable[[np.ndarray, Bounds, np.ndarray], np.ndarray] = l_function,
     nsim: int = 99,
     seed: int = 0,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> Envelope:
     """``statistic`` of the pattern and its min-max envelope over ``nsim`` patterns of CSR
     with as many points in the same window (binomial processes), theory for CSR alongside
-    (``pi r^2`` for K, ``r`` for L, 1 for g)."""
+    (``pi r^2`` for K, ``r`` for L, 1 for g); ``progress(stage, done, nsim)`` after each."""
     pts, *_ = _checked(xy, bounds)
     r = np.asarray(r, dtype=float)
     rng = np.random.default_rng(seed)
     x0, y0, x1, y1 = bounds
-    sims = np.array(
-        [
-            statistic(
-                np.column_stack([rng.uniform(x0, x1, len(pts)), rng.uniform(y0, y1, len(pts))]),
-                bounds,
-                r,
-            )
-            for _ in range(nsim)
-        ]
-    )
+    tick = progress or (lambda stage, done, total: None)
+    runs = []
+    for k in range(nsim):
+        sim = np.column_stack([rng.uniform(x0, x1, len(pts)), rng.uniform(y0, y1, len(pts))])
+        runs.append(statistic(sim, bounds, r))
+        tick("CSR envelope", k + 1, nsim)
+    sims = np.array(runs).reshape(nsim, len(r))
     theory = {k_function: math.pi * r**2, l_function: r, pair_correlation: np.ones_like(r)}
     return Envelope(
         r,
@@ -168,3 +167,72 @@ def csr_envelope(
         theory.get(statistic, np.full_like(r, np.nan)),
         nsim,
     )
+
+
+def read_points(path: str | Path, replicate: int = 0) -> np.ndarray:
+    """``(n, 2)`` tree positions from a CSV with ``x`` and ``y`` columns (a stem map, a
+    forest's ``trees.csv``, or ``usdforest sample``'s output, of which ``replicate``)."""
+    import csv
+    import io
+
+    from usdforest.paths import require_file
+
+    path = Path(path)
+    require_file(path, "CSV file")
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError:
+        raise UsdForestError(f"{path}: not a text file (expected a CSV with x,y)") from None
+    reader = csv.DictReader(io.StringIO(text, newline=""))
+    if not reader.fieldnames or not {"x", "y"} <= set(reader.fieldnames):
+        raise UsdForestError(f"{path}: expected a header with x and y columns")
+    pts = []
+    for line, row in enumerate(reader, 2):
+        try:
+            if row.get("replicate") and int(row["replicate"]) != replicate:
+                continue
+            x, y = float(row["x"]), float(row["y"])
+        except (TypeError, ValueError):
+            raise UsdForestError(f"{path}: line {line}: x and y must be numbers") from None
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise UsdForestError(f"{path}: line {line}: x and y must be finite")
+        pts.append((x, y))
+    return np.array(pts, dtype=float).reshape(-1, 2)
+
+
+def describe(
+    xy: np.ndarray,
+    bounds: Bounds,
+    *,
+    rmax: float | None = None,
+    steps: int = 50,
+    nsim: int = 39,
+    seed: int = 0,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> dict:
+    """A stand's pattern in one dict: trees, stems/ha, nearest-neighbour distances,
+    Clark-Evans R and, at ``steps`` distances up to ``rmax`` (default a quarter of the
+    window's shorter side, at most 25 m), L(r) - r and g(r) with their CSR envelopes
+    (``nsim`` simulations: the pointwise 2/(nsim + 1) test)."""
+    pts, w, h, area = _checked(xy, bounds)
+    top = min(min(w, h) / 4, 25.0) if rmax is None else float(rmax)
+    r = np.linspace(top / steps, top, steps)
+    nn = cKDTree(pts).query(pts, k=2)[0][:, 1]
+    env_l = csr_envelope(pts, bounds, r, l_function, nsim, seed, progress)
+    env_g = csr_envelope(pts, bounds, r, pair_correlation, nsim, seed, progress)
+    return {
+        "trees": len(pts),
+        "window": [float(v) for v in bounds],
+        "stems_per_ha": len(pts) / area * 1e4,
+        "nearest_neighbour_mean": float(nn.mean()),
+        "nearest_neighbour_min": float(nn.min()),
+        "clark_evans": clark_evans(pts, bounds),
+        "nsim": nsim,
+        "r": r.tolist(),
+        "l_minus_r": (env_l.observed - r).tolist(),
+        "l_minus_r_lo": (env_l.lo - r).tolist(),
+        "l_minus_r_hi": (env_l.hi - r).tolist(),
+        "g": env_g.observed.tolist(),
+        "g_lo": env_g.lo.tolist(),
+        "g_hi": env_g.hi.tolist(),
+    }

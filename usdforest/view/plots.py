@@ -118,6 +118,29 @@ def _save(fig, out: str | Path) -> None:
     plt.close(fig)
 
 
+def plot_pattern(out: str | Path, summary: dict, *, title: str = "") -> None:
+    """L(r) - r and g(r) of a pattern (:func:`usdforest.sites.pattern.describe`) with their
+    CSR envelopes: above the band, clustered at that distance; below it, regular."""
+    r = np.asarray(summary["r"])
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=100)
+    panels = (("l_minus_r", "L(r) - r (m)", 0.0), ("g", "g(r)", 1.0))
+    for ax, (key, label, csr) in zip(axes, panels, strict=True):
+        band = f"CSR envelope ({summary['nsim']} simulations)"
+        ax.fill_between(r, summary[f"{key}_lo"], summary[f"{key}_hi"], color="0.85", label=band)
+        ax.axhline(csr, color="0.5", lw=0.8, ls="--", label="CSR")
+        ax.plot(r, summary[key], color="tab:green", lw=1.8, label="stand")
+        ax.set_xlabel("r (m)")
+        ax.set_ylabel(label)
+        ax.set_xlim(0, r[-1])
+    axes[0].legend(fontsize=8, loc="best")
+    head = (
+        f"{summary['trees']:,} trees, {summary['stems_per_ha']:.0f} stems/ha, "
+        f"Clark-Evans R {summary['clark_evans']:.2f}"
+    )
+    fig.suptitle(f"{title}: {head}" if title else head, fontsize=10)
+    save_figure(fig, out)
+
+
 def image_panel(ax, png: str | Path, title: str) -> None:
     import matplotlib.image as mpimg
 
@@ -131,4 +154,11 @@ def save_figure(fig, out: str | Path) -> None:
     _save(fig, out)
 
 
-__all__: Sequence[str] = ("draw_sites", "draw_skeleton", "image_panel", "plot_sites", "save_figure")
+__all__: Sequence[str] = (
+    "draw_sites",
+    "draw_skeleton",
+    "image_panel",
+    "plot_pattern",
+    "plot_sites",
+    "save_figure",
+)
