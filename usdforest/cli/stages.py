@@ -265,6 +265,131 @@ def pattern_cmd(
         out.print(f"{output}: L(r) - r and g(r) with their envelopes", highlight=False)
 
 
+@app.command("fit", cls=Command)
+@handles_errors
+def fit_cmd(
+    stem_map: Annotated[
+        Path, typer.Argument(help="A stem map CSV: x, y (metres) and optional species, dbh.")
+    ],
+    output: Annotated[Path, typer.Option("--output", "-o", help="The recipe to write (.toml).")],
+    region: Annotated[
+        str | None,
+        typer.Option(
+            metavar="x0,y0,x1,y1", help="The mapped plot (default: the trees' bounding box)."
+        ),
+    ] = None,
+    force: ForceOption = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the fit as JSON.")] = False,
+) -> None:
+    """Fit a recipe to a stem map (intensity, clustering or inhibition, species and sizes):
+    build and sample then make more stands like it."""
+    import tomli_w
+
+    from usdforest.atomic import atomic_path
+    from usdforest.sites.fit import fit_stand, recipe_toml
+
+    require_output(output)
+    if output.suffix.lower() != ".toml":
+        raise UsdForestError(f"{output}: the fitted recipe is written as .toml")
+    refuse_overwrite(output, force=force)
+    xy, species, dbh = _stem_map(stem_map)
+    if region is not None:
+        window = _parse_bounds(region, "--region")
+    else:
+        window = (*xy.min(axis=0), *xy.max(axis=0)) if len(xy) else (0.0, 0.0, 0.0, 0.0)
+    fitted = fit_stand(xy, tuple(float(v) for v in window), species, dbh)
+    data = recipe_toml(fitted, stem_map.name)
+    head = (
+        f"# Fitted by usdforest fit to {stem_map.name}: {fitted.trees:,} trees, intensity "
+        f"{'log-linear in x, y' if fitted.trend else 'constant'} (maximum Poisson likelihood), "
+        f"{fitted.interaction} ({_fit_method(fitted)}).\n"
+    )
+    with atomic_path(output) as tmp:
+        tmp.write_text(head + tomli_w.dumps(data))
+    summary = {
+        "trees": fitted.trees,
+        "window": list(fitted.window),
+        "intensity": "log-linear" if fitted.trend else "constant",
+        "beta": list(fitted.beta),
+        "beta_se": list(fitted.beta_se),
+        "interaction": fitted.interaction,
+        "method": _fit_method(fitted),
+        "clark_evans": fitted.clark_evans,
+        "clusters": fitted.clusters.describe() if fitted.clusters else None,
+        "kappa": fitted.kappa,
+        "hard_core": fitted.hard_core,
+        "species": fitted.species,
+        "dbh": {k: {"mean": m, "cv": cv} for k, (m, cv) in fitted.dbh.items()},
+        "recipe": str(output),
+    }
+    if as_json:
+        sys.stdout.write(json.dumps(summary) + "\n")
+        return
+    b, se = fitted.beta, fitted.beta_se
+    rows = {
+        "trees": f"{fitted.trees:,} in {', '.join(f'{v:g}' for v in fitted.window)}",
+        "intensity": (
+            f"exp(b0 + b1 u + b2 v), u, v in [-1, 1]: b0 {b[0]:.3f} ± {se[0]:.3f}, "
+            f"b1 {b[1]:.3f} ± {se[1]:.3f}, b2 {b[2]:.3f} ± {se[2]:.3f}"
+            if fitted.trend
+            else f"constant {math.exp(b[0]):.5g} trees/m² (no trend at 5 %)"
+        ),
+        "interaction": f"{fitted.interaction}: {_fit_method(fitted)}",
+        "clark_evans": f"{fitted.clark_evans:.3f}",
+    }
+    if fitted.clusters is not None:
+        c = fitted.clusters
+        rows["clusters"] = (
+            f"kappa {fitted.kappa:.4g} parents/m², scale {c.scale:.3g} m, "
+            f"{c.offspring:.3g} trees each before thinning"
+        )
+    if fitted.hard_core:
+        rows["hard_core"] = f"{fitted.hard_core:.3g} m"
+    if fitted.species:
+        rows["species"] = ", ".join(f"{k} {v:.0%}" for k, v in fitted.species.items())
+    rows["recipe"] = str(output)
+    _print_pairs(rows, lambda _k, v: v)
+
+
+def _fit_method(f) -> str:
+    if f.interaction == "thomas":
+        return "Thomas process, minimum contrast on K (q = 1/4)"
+    if f.interaction == "hard core":
+        return "below the Poisson envelope: Matérn II at the shortest neighbour distance"
+    return "inside the fitted Poisson process's envelope (39 simulations)"
+
+
+def _stem_map(path: Path):
+    """Positions, species (or None) and DBH (or None) of a stem map CSV."""
+    import csv
+    import io
+
+    import numpy as np
+
+    from usdforest.grow.species import PRESETS
+    from usdforest.sites.pattern import read_points
+
+    xy = read_points(path)
+    reader = csv.DictReader(io.StringIO(path.read_text(encoding="utf-8-sig"), newline=""))
+    rows = list(reader)
+    fields = set(reader.fieldnames or ())
+    species = [r["species"].strip() for r in rows] if "species" in fields else None
+    if species is not None:
+        unknown = sorted({s for s in species if s not in PRESETS})
+        if unknown:
+            raise UsdForestError(
+                f"{path}: species {', '.join(map(repr, unknown))} not among the presets "
+                "('usdforest species' lists them); rename them in the map"
+            )
+    dbh = None
+    if "dbh" in fields:
+        try:
+            dbh = np.array([float(r["dbh"]) if r["dbh"].strip() else math.nan for r in rows])
+        except ValueError:
+            raise UsdForestError(f"{path}: dbh must be numbers (metres)") from None
+    return xy, species, dbh
+
+
 def _pattern_points(source: Path, replicate: int):
     """A forest's tree positions and region, or a CSV's positions (no window)."""
     from usdforest.sites.pattern import read_points

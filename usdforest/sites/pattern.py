@@ -48,15 +48,15 @@ def _checked(xy: np.ndarray, bounds: Bounds) -> tuple[np.ndarray, float, float, 
     return pts, w, h, w * h
 
 
-def _pairs(pts: np.ndarray, w: float, h: float, rmax: float) -> tuple[np.ndarray, np.ndarray]:
-    """Distances of the unordered pairs within ``rmax`` and their translation weights
-    ``1 / |W ∩ W_ij|`` (a rectangle: ``(w - |dx|)(h - |dy|)``)."""
-    ij = cKDTree(pts).query_pairs(rmax, output_type="ndarray")
-    if len(ij) == 0:
-        return np.zeros(0), np.zeros(0)
+def _pairs(
+    pts: np.ndarray, w: float, h: float, rmax: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The unordered pairs within ``rmax`` (``(m, 2)`` indices), their distances and their
+    translation weights ``1 / |W ∩ W_ij|`` (a rectangle: ``(w - |dx|)(h - |dy|)``)."""
+    ij = cKDTree(pts).query_pairs(rmax, output_type="ndarray").reshape(-1, 2)
     d = pts[ij[:, 0]] - pts[ij[:, 1]]
     overlap = (w - np.abs(d[:, 0])) * (h - np.abs(d[:, 1]))
-    return np.hypot(d[:, 0], d[:, 1]), 1.0 / overlap
+    return ij, np.hypot(d[:, 0], d[:, 1]), 1.0 / overlap
 
 
 def k_function(xy: np.ndarray, bounds: Bounds, r: np.ndarray) -> np.ndarray:
@@ -65,7 +65,7 @@ def k_function(xy: np.ndarray, bounds: Bounds, r: np.ndarray) -> np.ndarray:
     pts, w, h, area = _checked(xy, bounds)
     r = np.asarray(r, dtype=float)
     _check_r(r, w, h)
-    d, e = _pairs(pts, w, h, float(r.max()) if r.size else 0.0)
+    _, d, e = _pairs(pts, w, h, float(r.max()) if r.size else 0.0)
     order = np.argsort(d)
     cum = np.concatenate([[0.0], np.cumsum(e[order])])
     within = np.searchsorted(d[order], r, side="right")
@@ -90,7 +90,7 @@ def pair_correlation(
         raise UsdForestError("g(r) needs r > 0")
     n = len(pts)
     bw = 0.15 / math.sqrt(n / area) if bandwidth is None else float(bandwidth)
-    d, e = _pairs(pts, w, h, float(r.max()) + bw)
+    _, d, e = _pairs(pts, w, h, float(r.max()) + bw)
     out = np.empty(len(r))
     for k, rk in enumerate(r):
         u = (rk - d) / bw

@@ -1,0 +1,247 @@
+"""A recipe fitted to a stem map: more stands like the one that was mapped.
+
+Three steps, each a published method (Baddeley, Rubak and Turner 2015, chapters 9 and 12):
+
+1. **Intensity**, log-linear in the coordinates, ``lambda(x, y) = exp(b0 + b1 u + b2 v)``
+   with ``u, v`` the coordinates scaled to [-1, 1] over the window, by maximum Poisson
+   likelihood (the integral over the rectangle is exact). The trend is kept only when the
+   likelihood-ratio test against a constant intensity rejects it at 5 % (chi-squared, 2
+   degrees of freedom).
+2. **Interaction.** The pattern is compared with 39 patterns of the fitted Poisson process
+   (its L(r) - r, with the inhomogeneous K when the intensity has a trend). Above the
+   envelope at short range: a Thomas cluster process fitted by minimum contrast on K
+   (Diggle 1983; ``sum (K^q - K_theory^q)^2`` with q = 1/4 over ``r`` up to a quarter of the
+   shorter side). Below it: a Matérn II hard core at the shortest nearest-neighbour distance.
+   Inside: Poisson.
+3. **Marks**: species shares from a ``species`` column, and per species the mean and
+   coefficient of variation of ``dbh`` (metres) when the map has them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from usdforest.errors import UsdForestError
+from usdforest.sites.cluster import Clusters
+from usdforest.sites.pattern import Bounds, _checked, _pairs, clark_evans
+
+CHI2_2DF_95 = 5.991  # the 95 % quantile of chi-squared with 2 degrees of freedom
+NSIM = 39
+
+
+@dataclass(frozen=True)
+class FittedStand:
+    """What :func:`fit_stand` found, with the method of each part."""
+
+    window: Bounds
+    trees: int
+    beta: tuple[float, float, float]  # b0, b1, b2 (b1 = b2 = 0: constant intensity)
+    beta_se: tuple[float, float, float]
+    trend: bool
+    clusters: Clusters | None
+    kappa: float | None
+    hard_core: float
+    clark_evans: float
+    interaction: str  # "poisson", "thomas" or "hard core"
+    species: dict[str, float] = field(default_factory=dict)
+    dbh: dict[str, tuple[float, float]] = field(default_factory=dict)  # mean, cv
+
+    def intensity(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        u, v = _scaled(self.window, x, y)
+        b0, b1, b2 = self.beta
+        return np.exp(b0 + b1 * u + b2 * v)
+
+    @property
+    def bound(self) -> float:
+        """The intensity's maximum over the window (at a corner)."""
+        x0, y0, x1, y1 = self.window
+        return float(self.intensity(np.array([x0, x0, x1, x1]), np.array([y0, y1, y0, y1])).max())
+
+    def expression(self) -> str:
+        """The intensity as a recipe expression in x and y."""
+        x0, y0, x1, y1 = self.window
+        cx, cy, hx, hy = (x0 + x1) / 2, (y0 + y1) / 2, (x1 - x0) / 2, (y1 - y0) / 2
+        b0, b1, b2 = self.beta
+        u = f"(x - {cx:.10g}) / {hx:.10g}"
+        v = f"(y - {cy:.10g}) / {hy:.10g}"
+        return f"exp({b0:.10g} + {b1:.10g} * {u} + {b2:.10g} * {v})"
+
+
+def _scaled(window: Bounds, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    x0, y0, x1, y1 = window
+    return (2 * (np.asarray(x) - x0) / (x1 - x0) - 1, 2 * (np.asarray(y) - y0) / (y1 - y0) - 1)
+
+
+def _log_integral(b: float) -> tuple[float, float, float]:
+    """log of the integral of exp(b u) over u in [-1, 1], and its first two derivatives."""
+    if abs(b) < 1e-6:
+        return math.log(2.0), b / 3, 1 / 3
+    s = math.sinh(b) / b
+    coth = math.cosh(b) / math.sinh(b)
+    d1 = coth - 1 / b
+    return math.log(2 * s), d1, 1 / b**2 - 1 / math.sinh(b) ** 2
+
+
+def fit_intensity(xy: np.ndarray, window: Bounds, trend: bool = True) -> tuple:
+    """``(beta, se, loglik)`` of the log-linear Poisson intensity (constant without
+    ``trend``) by Newton's method on the exact likelihood."""
+    x0, y0, x1, y1 = window
+    area = (x1 - x0) * (y1 - y0)
+    n = len(xy)
+    u, v = _scaled(window, xy[:, 0], xy[:, 1])
+    su, sv = float(u.sum()), float(v.sum())
+    b = np.array([math.log(n / area), 0.0, 0.0])
+    k = 3 if trend else 1
+    for _ in range(100):
+        iu, iv = _log_integral(b[1]), _log_integral(b[2])
+        big = math.exp(b[0] + iu[0] + iv[0]) * area / 4  # the integral of lambda
+        grad = np.array([n - big, su - big * iu[1], sv - big * iv[1]])[:k]
+        hess = (
+            -big
+            * np.array(
+                [
+                    [1, iu[1], iv[1]],
+                    [iu[1], iu[1] ** 2 + iu[2], iu[1] * iv[1]],
+                    [iv[1], iu[1] * iv[1], iv[1] ** 2 + iv[2]],
+                ]
+            )[:k, :k]
+        )
+        step = np.linalg.solve(hess, grad)
+        b[:k] -= step
+        if np.abs(step).max() < 1e-10:
+            break
+    iu, iv = _log_integral(b[1]), _log_integral(b[2])
+    big = math.exp(b[0] + iu[0] + iv[0]) * area / 4
+    loglik = float(n * b[0] + b[1] * su + b[2] * sv - big)
+    se = np.zeros(3)
+    se[:k] = np.sqrt(np.diag(np.linalg.inv(-hess)))
+    return tuple(float(v) for v in b), tuple(float(v) for v in se), loglik
+
+
+def inhomogeneous_k(xy: np.ndarray, window: Bounds, r: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """K with each pair weighted by ``1 / (lambda_i lambda_j)`` and the translation
+    correction (Baddeley, Møller and Waagepetersen 2000); Ripley's K when ``lam`` is
+    constant ``n / |W|``."""
+    pts, w, h, _ = _checked(xy, window)
+    ij, d, e = _pairs(pts, w, h, float(np.max(r)))
+    weight = e / (lam[ij[:, 0]] * lam[ij[:, 1]])
+    order = np.argsort(d)
+    cum = np.concatenate([[0.0], np.cumsum(weight[order])])
+    return 2.0 * cum[np.searchsorted(d[order], r, side="right")]
+
+
+def _thomas_contrast(k_hat: np.ndarray, r: np.ndarray) -> tuple[float, float]:
+    """``(kappa, sigma)`` of the Thomas K closest to ``k_hat`` in ``sum (K^q - K_T^q)^2``,
+    q = 1/4, searched on log scales from a grid of starts."""
+    from scipy.optimize import minimize
+
+    q = 0.25
+    target = np.maximum(k_hat, 0) ** q
+
+    def cost(p: np.ndarray) -> float:
+        kappa, sigma = math.exp(p[0]), math.exp(p[1])
+        model = math.pi * r**2 + (1 - np.exp(-(r**2) / (4 * sigma**2))) / kappa
+        return float(((target - model**q) ** 2).sum())
+
+    starts = [(math.log(k), math.log(s)) for k in (1e-4, 1e-3, 1e-2, 1e-1) for s in (0.5, 2, 8)]
+    best = min((minimize(cost, s, method="Nelder-Mead", options={"xatol": 1e-6,
+               "fatol": 1e-12, "maxiter": 4000}) for s in starts), key=lambda m: m.fun)  # fmt: skip
+    return math.exp(best.x[0]), math.exp(best.x[1])
+
+
+def fit_stand(
+    xy: np.ndarray,
+    window: Bounds,
+    species: list[str] | None = None,
+    dbh: np.ndarray | None = None,
+    seed: int = 0,
+) -> FittedStand:
+    """Fit intensity, interaction and marks to the stem map ``xy`` in ``window``."""
+    pts, w, h, area = _checked(xy, window)
+    n = len(pts)
+    if n < 20:
+        raise UsdForestError(f"a fit needs at least 20 trees, got {n}")
+    b1, se1, ll1 = fit_intensity(pts, window, trend=True)
+    b0, se0, ll0 = fit_intensity(pts, window, trend=False)
+    trend = 2 * (ll1 - ll0) > CHI2_2DF_95
+    beta, se = (b1, se1) if trend else (b0, se0)
+    fitted = FittedStand(window, n, beta, se, trend, None, None, 0.0, 0.0, "poisson")
+    lam = fitted.intensity(pts[:, 0], pts[:, 1])
+    rmax = min(w, h) / 4
+    r = np.linspace(rmax / 40, rmax, 40)
+    short = r <= rmax / 2
+    k_hat = inhomogeneous_k(pts, window, r, lam)
+    # the envelope of the fitted Poisson process, from its own thinned simulations
+    rng = np.random.default_rng(seed)
+    sims = []
+    bound = fitted.bound
+    x0, y0, x1, y1 = window
+    for _ in range(NSIM):
+        m = rng.poisson(bound * area)
+        c = np.column_stack([rng.uniform(x0, x1, m), rng.uniform(y0, y1, m)])
+        c = c[rng.uniform(size=m) * bound < fitted.intensity(c[:, 0], c[:, 1])]
+        if len(c) >= 2:
+            sims.append(inhomogeneous_k(c, window, r, fitted.intensity(c[:, 0], c[:, 1])))
+    lo, hi = np.min(sims, axis=0), np.max(sims, axis=0)
+    ce = clark_evans(pts, window)
+    clusters, kappa, hard_core, kind = None, None, 0.0, "poisson"
+    if np.any(k_hat[short] > hi[short]):
+        kappa, sigma = _thomas_contrast(k_hat, r)
+        sigma = min(sigma, 100.0 / 4)
+        clusters = Clusters("thomas", sigma, max(bound / kappa, 1e-3))
+        kind = "thomas"
+    elif np.any(k_hat[short] < lo[short]):
+        from scipy.spatial import cKDTree
+
+        hard_core = float(cKDTree(pts).query(pts, k=2)[0][:, 1].min())
+        kind = "hard core"
+    shares: dict[str, float] = {}
+    sizes: dict[str, tuple[float, float]] = {}
+    if species is not None:
+        names, counts = np.unique(np.asarray(species), return_counts=True)
+        shares = {str(k): float(c) / n for k, c in zip(names, counts, strict=True)}
+        if dbh is not None:
+            d = np.asarray(dbh, dtype=float)
+            for name in shares:
+                sel = d[(np.asarray(species) == name) & np.isfinite(d) & (d > 0)]
+                if len(sel) >= 2:
+                    sizes[name] = (float(sel.mean()), float(sel.std(ddof=1) / sel.mean()))
+    return FittedStand(
+        window, n, beta, se, trend, clusters, kappa, hard_core, ce, kind, shares, sizes
+    )
+
+
+def recipe_toml(f: FittedStand, source: str) -> dict:
+    """The fitted stand as recipe data (what ``tomli_w`` writes and ``usdforest build``
+    reads): region, intensity, clusters or hard core, the species mix and sizes."""
+    data: dict = {"seed": 1, "region": {"kind": "rectangle", "bounds": list(f.window)}}
+    if f.trend:
+        data["intensity"] = {
+            "kind": "expression", "expr": f.expression(), "bound": f.bound * (1 + 1e-6)
+        }  # fmt: skip
+    else:
+        data["intensity"] = {"kind": "constant", "value": math.exp(f.beta[0])}
+    if f.clusters is not None:
+        data["clusters"] = f.clusters.describe()
+    if f.hard_core > 0:
+        data["forest"] = {"hard_core": round(f.hard_core, 3)}
+    if f.species:
+        from usdforest.grow.species import get_species
+
+        data["mix"] = dict(f.species)
+        data["species"] = {}
+        for name in f.species:
+            table: dict = {}
+            if name in f.dbh and get_species(name).allometry is not None:
+                mean, cv = f.dbh[name]
+                # the recipe's ranges: a CV of 0.02-1.5, the smallest tree below the mean
+                table["stand"] = {
+                    "dbh_mean": round(mean, 4),
+                    "dbh_cv": round(min(max(cv, 0.02), 1.5), 4),
+                    "dbh_min": round(min(0.04, mean / 2), 4),
+                }
+            data["species"][name] = table
+    return data
