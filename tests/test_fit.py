@@ -11,7 +11,7 @@ import pytest
 
 from usdforest.cli import app
 from usdforest.recipe import read_recipe
-from usdforest.sites.cluster import Clusters, simulate
+from usdforest.sites.clusters import Clusters, simulate
 from usdforest.sites.fit import fit_stand
 from usdforest.sites.pattern import l_function
 from usdforest.sites.pointprocess import matern_ii

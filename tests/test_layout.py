@@ -65,8 +65,9 @@ def test_the_pipeline_stages_are_subpackages():
     top = sorted(
         m for m in mods if "." not in m and m and m != "__main__" and not (PKG / m).is_dir()
     )  # __main__ is Python's name for python -m, not a module of ours
-    # what stays at the top: shared plumbing, the recipe that ties the stages, the API and CLI
-    assert len(top) <= 16, top
+    # what stays at the top: shared plumbing (progress among it since the API and the CLI
+    # both report through it), the recipe that ties the stages, the API and CLI
+    assert len(top) <= 17, top
 
 
 def test_no_import_cycles():

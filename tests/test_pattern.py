@@ -12,7 +12,7 @@ import pytest
 
 from usdforest.errors import RecipeError, UsdForestError
 from usdforest.recipe import parse_recipe
-from usdforest.sites.cluster import Clusters, simulate
+from usdforest.sites.clusters import Clusters, simulate
 from usdforest.sites.pattern import (
     clark_evans,
     csr_envelope,

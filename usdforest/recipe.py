@@ -298,7 +298,7 @@ class Recipe:
     lod: str = "full"  # the tree assets' lod variant the forest selects: full, medium, proxy
     crs: str | None = None  # the projected CRS of the recipe's coordinates, when one is named
     tiles: float | None = None  # tile side in metres: the forest as payload tiles
-    clusters: Any = None  # sites.cluster.Clusters: trees in clusters around unseen parents
+    clusters: Any = None  # sites.clusters.Clusters: trees in clusters around unseen parents
 
     @property
     def species_names(self) -> tuple[str, ...]:
@@ -329,7 +329,7 @@ def _parse_clusters(t: Any, explicit_sites: bool) -> Any:
     """``[clusters]``: a Thomas or Matérn cluster process over the recipe's intensity."""
     if t is None:
         return None
-    from usdforest.sites.cluster import Clusters
+    from usdforest.sites.clusters import Clusters
 
     if not isinstance(t, Mapping):
         raise RecipeError("clusters: expected a table")

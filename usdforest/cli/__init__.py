@@ -1,11 +1,11 @@
 """The ``usdforest`` command line: parse, call the library (:mod:`usdforest.api` and the
 stages' modules), print, map errors to exit codes (0 success, 1 a check failed, 2 bad input,
 3 an internal error, 130 interrupted, 143 terminated). Each module registers its commands on
-``app``, in the order ``--help`` lists them: one tree, forests and stages, sensors,
-templates."""
+``app``, in the order ``--help`` lists them: one tree, forests and stages, stand patterns,
+sensors, templates."""
 
 # isort: off
-from usdforest.cli import grow, stages, sensors, templates  # noqa: F401  (registers them)
+from usdforest.cli import grow, stages, stands, sensors, templates  # noqa: F401  (registers them)
 
 # isort: on
 from usdforest.cli.app import app, main

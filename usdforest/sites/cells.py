@@ -96,8 +96,8 @@ def _cluster_cell_sites(
     """The trees of a cluster process that land in cell ``(i, j)``: the families of the
     parents of every cell within the clusters' reach (their own streams, so a cell's trees
     never depend on who samples it), kept where the region is and with probability
-    ``lambda(x) / lambda*`` (:mod:`usdforest.sites.cluster`)."""
-    from usdforest.sites.cluster import family
+    ``lambda(x) / lambda*`` (:mod:`usdforest.sites.clusters`)."""
+    from usdforest.sites.clusters import family
     from usdforest.sites.pointprocess import _refuse
 
     c = recipe.clusters

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from usdforest.errors import UsdForestError
-from usdforest.sites.cluster import Clusters
+from usdforest.sites.clusters import Clusters
 from usdforest.sites.pattern import Bounds, _checked, _pairs, clark_evans
 
 CHI2_2DF_95 = 5.991  # the 95 % quantile of chi-squared with 2 degrees of freedom

@@ -1,0 +1,255 @@
+"""Commands about a stand's pattern: ``pattern`` measures it, ``fit`` writes a recipe that
+makes more stands like a mapped one (:mod:`usdforest.sites.pattern`, :mod:`usdforest.sites.fit`)."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from usdforest.atomic import refuse_overwrite
+from usdforest.cli.app import Command, ForceOption, app, handles_errors, out
+from usdforest.cli.stages import _print_pairs, _progress
+from usdforest.errors import UsdForestError
+from usdforest.paths import require_output
+
+
+@app.command("pattern", cls=Command)
+@handles_errors
+def pattern_cmd(
+    source: Annotated[
+        Path,
+        typer.Argument(
+            help="A forest built by usdforest build (its trees.csv), or a CSV with x and y "
+            "columns (a stem map, usdforest sample's output)."
+        ),
+    ],
+    region: Annotated[
+        str | None,
+        typer.Option(
+            metavar="x0,y0,x1,y1",
+            help="The window the trees were mapped in (default: a forest's region; a CSV's "
+            "trees' bounding box).",
+        ),
+    ] = None,
+    rmax: Annotated[
+        float | None, typer.Option(min=0.01, help="Largest distance r in metres.")
+    ] = None,
+    nsim: Annotated[int, typer.Option(min=1, max=999, help="CSR simulations.")] = 39,
+    replicate: Annotated[int, typer.Option(min=0, help="Replicate of a sample CSV.")] = 0,
+    output: Annotated[
+        Path | None, typer.Option("--output", "-o", help="Plot L(r) - r and g(r) here.")
+    ] = None,
+    force: ForceOption = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print as JSON.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+) -> None:
+    """Stand pattern: stems/ha, nearest neighbours, Clark-Evans R, and L(r) - r and g(r)
+    against envelopes of complete spatial randomness (clustered above, regular below)."""
+    from usdforest.sites.pattern import describe
+
+    if output is not None:
+        from usdforest.paths import image_format
+
+        require_output(output)
+        image_format(output)
+        refuse_overwrite(output, force=force)
+    xy, window = _pattern_points(source, replicate)
+    if region is not None:
+        window = _parse_bounds(region, "--region")
+    elif window is None:
+        window = (*xy.min(axis=0), *xy.max(axis=0)) if len(xy) else (0.0, 0.0, 0.0, 0.0)
+    with _progress(quiet) as tick:
+        summary = describe(xy, tuple(float(v) for v in window), rmax=rmax, nsim=nsim,
+                           progress=tick)  # fmt: skip
+    if output is not None:
+        from usdforest.view.plots import plot_pattern
+
+        plot_pattern(output, summary, title=source.name)
+    if as_json:
+        sys.stdout.write(json.dumps(summary) + "\n")
+        return
+    r = summary["r"]
+    picks = sorted({min(len(r) - 1, round(k * (len(r) - 1) / 5)) for k in range(6)})
+    rows = {
+        "trees": f"{summary['trees']:,}",
+        "window": ", ".join(f"{v:g}" for v in summary["window"]),
+        "stems_per_ha": f"{summary['stems_per_ha']:.1f}",
+        "nearest_neighbour": f"mean {summary['nearest_neighbour_mean']:.2f} m, "
+        f"min {summary['nearest_neighbour_min']:.2f} m",
+        "clark_evans": f"{summary['clark_evans']:.3f} (1: random, < 1 clustered, > 1 regular)",
+    }
+    for k in picks:
+        env = (summary["l_minus_r_lo"][k], summary["l_minus_r_hi"][k])
+        where = "above" if summary["l_minus_r"][k] > env[1] else (
+            "below" if summary["l_minus_r"][k] < env[0] else "inside")  # fmt: skip
+        rows[f"r = {r[k]:.2f} m"] = (
+            f"L-r {summary['l_minus_r'][k]:+.2f} (CSR {env[0]:+.2f} to {env[1]:+.2f}, {where}), "
+            f"g {summary['g'][k]:.2f}"
+        )
+    _print_pairs(rows, lambda _k, v: v)
+    if output is not None:
+        out.print(f"{output}: L(r) - r and g(r) with their envelopes", highlight=False)
+
+
+@app.command("fit", cls=Command)
+@handles_errors
+def fit_cmd(
+    stem_map: Annotated[
+        Path, typer.Argument(help="A stem map CSV: x, y (metres) and optional species, dbh.")
+    ],
+    output: Annotated[Path, typer.Option("--output", "-o", help="The recipe to write (.toml).")],
+    region: Annotated[
+        str | None,
+        typer.Option(
+            metavar="x0,y0,x1,y1", help="The mapped plot (default: the trees' bounding box)."
+        ),
+    ] = None,
+    force: ForceOption = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the fit as JSON.")] = False,
+) -> None:
+    """Fit a recipe to a stem map (intensity, clustering or inhibition, species and sizes):
+    build and sample then make more stands like it."""
+    import tomli_w
+
+    from usdforest.atomic import atomic_path
+    from usdforest.sites.fit import fit_stand, recipe_toml
+
+    require_output(output)
+    if output.suffix.lower() != ".toml":
+        raise UsdForestError(f"{output}: the fitted recipe is written as .toml")
+    refuse_overwrite(output, force=force)
+    xy, species, dbh = _stem_map(stem_map)
+    if region is not None:
+        window = _parse_bounds(region, "--region")
+    else:
+        window = (*xy.min(axis=0), *xy.max(axis=0)) if len(xy) else (0.0, 0.0, 0.0, 0.0)
+    fitted = fit_stand(xy, tuple(float(v) for v in window), species, dbh)
+    data = recipe_toml(fitted, stem_map.name)
+    head = (
+        f"# Fitted by usdforest fit to {stem_map.name}: {fitted.trees:,} trees, intensity "
+        f"{'log-linear in x, y' if fitted.trend else 'constant'} (maximum Poisson likelihood), "
+        f"{fitted.interaction} ({_fit_method(fitted)}).\n"
+    )
+    with atomic_path(output) as tmp:
+        tmp.write_text(head + tomli_w.dumps(data))
+    summary = {
+        "trees": fitted.trees,
+        "window": list(fitted.window),
+        "intensity": "log-linear" if fitted.trend else "constant",
+        "beta": list(fitted.beta),
+        "beta_se": list(fitted.beta_se),
+        "interaction": fitted.interaction,
+        "method": _fit_method(fitted),
+        "clark_evans": fitted.clark_evans,
+        "clusters": fitted.clusters.describe() if fitted.clusters else None,
+        "kappa": fitted.kappa,
+        "hard_core": fitted.hard_core,
+        "species": fitted.species,
+        "dbh": {k: {"mean": m, "cv": cv} for k, (m, cv) in fitted.dbh.items()},
+        "recipe": str(output),
+    }
+    if as_json:
+        sys.stdout.write(json.dumps(summary) + "\n")
+        return
+    b, se = fitted.beta, fitted.beta_se
+    rows = {
+        "trees": f"{fitted.trees:,} in {', '.join(f'{v:g}' for v in fitted.window)}",
+        "intensity": (
+            f"exp(b0 + b1 u + b2 v), u, v in [-1, 1]: b0 {b[0]:.3f} ± {se[0]:.3f}, "
+            f"b1 {b[1]:.3f} ± {se[1]:.3f}, b2 {b[2]:.3f} ± {se[2]:.3f}"
+            if fitted.trend
+            else f"constant {math.exp(b[0]):.5g} trees/m² (no trend at 5 %)"
+        ),
+        "interaction": f"{fitted.interaction}: {_fit_method(fitted)}",
+        "clark_evans": f"{fitted.clark_evans:.3f}",
+    }
+    if fitted.clusters is not None:
+        c = fitted.clusters
+        rows["clusters"] = (
+            f"kappa {fitted.kappa:.4g} parents/m², scale {c.scale:.3g} m, "
+            f"{c.offspring:.3g} trees each before thinning"
+        )
+    if fitted.hard_core:
+        rows["hard_core"] = f"{fitted.hard_core:.3g} m"
+    if fitted.species:
+        rows["species"] = ", ".join(f"{k} {v:.0%}" for k, v in fitted.species.items())
+    rows["recipe"] = str(output)
+    _print_pairs(rows, lambda _k, v: v)
+
+
+def _fit_method(f) -> str:
+    if f.interaction == "thomas":
+        return "Thomas process, minimum contrast on K (q = 1/4)"
+    if f.interaction == "hard core":
+        return "below the Poisson envelope: Matérn II at the shortest neighbour distance"
+    return "inside the fitted Poisson process's envelope (39 simulations)"
+
+
+def _stem_map(path: Path):
+    """Positions, species (or None) and DBH (or None) of a stem map CSV."""
+    import csv
+    import io
+
+    import numpy as np
+
+    from usdforest.grow.species import PRESETS
+    from usdforest.sites.pattern import read_points
+
+    xy = read_points(path)
+    reader = csv.DictReader(io.StringIO(path.read_text(encoding="utf-8-sig"), newline=""))
+    rows = list(reader)
+    fields = set(reader.fieldnames or ())
+    species = [r["species"].strip() for r in rows] if "species" in fields else None
+    if species is not None:
+        unknown = sorted({s for s in species if s not in PRESETS})
+        if unknown:
+            raise UsdForestError(
+                f"{path}: species {', '.join(map(repr, unknown))} not among the presets "
+                "('usdforest species' lists them); rename them in the map"
+            )
+    dbh = None
+    if "dbh" in fields:
+        try:
+            dbh = np.array([float(r["dbh"]) if r["dbh"].strip() else math.nan for r in rows])
+        except ValueError:
+            raise UsdForestError(f"{path}: dbh must be numbers (metres)") from None
+    return xy, species, dbh
+
+
+def _pattern_points(source: Path, replicate: int):
+    """A forest's tree positions and region, or a CSV's positions (no window)."""
+    from usdforest.sites.pattern import read_points
+
+    if source.suffix.lower() in (".usda", ".usdc", ".usd"):
+        from usdforest.usd.layers import open_stage
+
+        stage = open_stage(source)
+        root = stage.GetDefaultPrim()
+        data = (root.GetCustomDataByKey("usdforest") if root else None) or {}
+        trees = source.parent / f"{source.stem}_assets" / "trees.csv"
+        if "regionBounds" not in data or not trees.is_file():
+            raise UsdForestError(
+                f"{source}: not a forest built by usdforest build with its "
+                f"{source.stem}_assets/trees.csv (give a CSV of x,y instead)"
+            )
+        return read_points(trees), tuple(float(v) for v in data["regionBounds"])
+    return read_points(source, replicate), None
+
+
+def _parse_bounds(text: str, name: str) -> tuple[float, float, float, float]:
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        vals = ()
+    if (
+        len(vals) != 4
+        or not all(math.isfinite(v) for v in vals)
+        or not (vals[2] > vals[0] and vals[3] > vals[1])
+    ):
+        raise UsdForestError(f"{name}: expected x0,y0,x1,y1 with x1 > x0 and y1 > y0, got {text!r}")
+    return vals  # type: ignore[return-value]
