@@ -236,6 +236,10 @@ def build_cmd(
 
     from usdforest.usd.forest import write_forest
 
+    if scheduler is not None:  # named as the option (the API names its argument)
+        from usdforest.cluster import scheduler_address
+
+        scheduler_address(scheduler, "--scheduler")
     t0 = time.perf_counter()
     recipe = _load_recipe(pipeline, seed, hard_core)
     with progress_bars(not (quiet or as_json), t0) as tick:
