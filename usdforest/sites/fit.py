@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from usdforest.errors import UsdForestError
-from usdforest.sites.clusters import Clusters
+from usdforest.sites.clusters import MAX_SCALE, Clusters
 from usdforest.sites.pattern import Bounds, _checked, _pairs, clark_evans
 
 CHI2_2DF_95 = 5.991  # the 95 % quantile of chi-squared with 2 degrees of freedom
@@ -190,8 +190,9 @@ def fit_stand(
     clusters, kappa, hard_core, kind = None, None, 0.0, "poisson"
     if np.any(k_hat[short] > hi[short]):
         kappa, sigma = _thomas_contrast(k_hat, r)
-        sigma = min(sigma, 100.0 / 4)
-        clusters = Clusters("thomas", sigma, max(bound / kappa, 1e-3))
+        # within what a recipe takes: a scale of at most MAX_SCALE m, at most 10,000 trees a
+        # cluster (a minimum contrast that runs off to either is a pattern barely clustered)
+        clusters = Clusters("thomas", min(sigma, MAX_SCALE), min(max(bound / kappa, 1e-3), 1e4))
         kind = "thomas"
     elif np.any(k_hat[short] < lo[short]):
         from scipy.spatial import cKDTree
