@@ -96,6 +96,7 @@ RecipeOption = Annotated[
     ),
 ]
 ForceOption = Annotated[bool, typer.Option("--force", help="Overwrite OUTPUT.")]
+QuietOption = Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")]
 SummaryJsonOption = Annotated[bool, typer.Option("--json", help="Print a summary as JSON.")]
 DeviceOption = Annotated[
     str,

@@ -15,6 +15,7 @@ from usdforest.cli.app import (
     Command,
     DeviceOption,
     ForceOption,
+    QuietOption,
     SummaryJsonOption,
     app,
     err,
@@ -65,7 +66,7 @@ def scan_cmd(
     ] = 0,
     device: DeviceOption = "cpu",
     force: ForceOption = False,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+    quiet: QuietOption = False,
     as_json: SummaryJsonOption = False,
 ) -> None:
     """Scan a stage with a lidar (ray casting), a bat-like sonar (echoes of leaves, wood and
@@ -236,7 +237,7 @@ def fly_cmd(
             "frames).",
         ),
     ] = False,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+    quiet: QuietOption = False,
     as_json: SummaryJsonOption = False,
 ) -> None:
     """Fly a lidar, a sonar and a camera through a stage: LAS 1.4 returns with GPS time,

@@ -16,6 +16,7 @@ from usdforest.cli.app import (
     Command,
     ForceOption,
     HardCoreOverride,
+    QuietOption,
     RecipeOption,
     SeedOverride,
     SummaryJsonOption,
@@ -68,7 +69,7 @@ def recipes_cmd(
 def validate_cmd(
     stage: Annotated[Path, typer.Argument(help="Any USD stage.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print findings as JSON.")] = False,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+    quiet: QuietOption = False,
 ) -> None:
     """Run every pxr.UsdValidation validator plus usdforest's rules; exit 0 only if clean."""
     from usdforest.usd.validate import validate
@@ -152,7 +153,7 @@ def info_cmd(
             "level the forest selects (what a client opens).",
         ),
     ] = False,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+    quiet: QuietOption = False,
 ) -> None:
     """Composed statistics: prims, meshes, branches by order, leaves, triangles, extent, and
     the trees' levels of detail."""
@@ -171,7 +172,7 @@ def info_cmd(
 def stats_cmd(
     stage: Annotated[Path, typer.Argument(help="A forest built by usdforest build.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print as JSON.")] = False,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+    quiet: QuietOption = False,
 ) -> None:
     """Stand figures measured on the composed forest: stems/ha, basal area, DBH and height
     distributions, slenderness, leaf and wood area indices, nadir canopy cover."""
@@ -200,7 +201,7 @@ def build_cmd(
     seed: SeedOverride = None,
     hard_core: HardCoreOverride = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing output.")] = False,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+    quiet: QuietOption = False,
     as_json: SummaryJsonOption = False,
     no_thumbnail: Annotated[
         bool, typer.Option("--no-thumbnail", help="Do not render OUT_assets/thumbnail.png.")
@@ -383,7 +384,7 @@ def preview_cmd(
     size: Annotated[str, typer.Option(metavar="WxH", help="Image size WIDTHxHEIGHT.")] = "800x800",
     plain: Annotated[bool, typer.Option("--plain", help="No caption or scale bar.")] = False,
     force: ForceOption = False,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+    quiet: QuietOption = False,
 ) -> None:
     """Render a stage headlessly to an image (what composes is what is drawn)."""
     require_output(output)

@@ -12,7 +12,7 @@ from typing import Annotated
 import typer
 
 from usdforest.atomic import refuse_overwrite
-from usdforest.cli.app import Command, ForceOption, app, handles_errors, out
+from usdforest.cli.app import Command, ForceOption, QuietOption, app, handles_errors, out
 from usdforest.cli.stages import _print_pairs, _progress
 from usdforest.errors import UsdForestError
 from usdforest.paths import require_output
@@ -46,7 +46,7 @@ def pattern_cmd(
     ] = None,
     force: ForceOption = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print as JSON.")] = False,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+    quiet: QuietOption = False,
 ) -> None:
     """Stand pattern: stems/ha, nearest neighbours, Clark-Evans R, and L(r) - r and g(r)
     against envelopes of complete spatial randomness (clustered above, regular below)."""
@@ -58,13 +58,9 @@ def pattern_cmd(
         require_output(output)
         image_format(output)
         refuse_overwrite(output, force=force)
-    xy, window = _pattern_points(source, replicate)
-    if region is not None:
-        window = _parse_bounds(region, "--region")
-    elif window is None:
-        window = (*xy.min(axis=0), *xy.max(axis=0)) if len(xy) else (0.0, 0.0, 0.0, 0.0)
+    xy, own = _pattern_points(source, replicate)
     with _progress(quiet) as tick:
-        summary = describe(xy, tuple(float(v) for v in window), rmax=rmax, nsim=nsim,
+        summary = describe(xy, _window(xy, region, own), rmax=rmax, nsim=nsim,
                            progress=tick)  # fmt: skip
     if output is not None:
         from usdforest.view.plots import plot_pattern
@@ -124,12 +120,8 @@ def fit_cmd(
         raise UsdForestError(f"{output}: the fitted recipe is written as .toml")
     refuse_overwrite(output, force=force)
     xy, species, dbh = _stem_map(stem_map)
-    if region is not None:
-        window = _parse_bounds(region, "--region")
-    else:
-        window = (*xy.min(axis=0), *xy.max(axis=0)) if len(xy) else (0.0, 0.0, 0.0, 0.0)
-    fitted = fit_stand(xy, tuple(float(v) for v in window), species, dbh)
-    data = recipe_toml(fitted, stem_map.name)
+    fitted = fit_stand(xy, _window(xy, region), species, dbh)
+    data = recipe_toml(fitted)
     head = (
         f"# Fitted by usdforest fit to {stem_map.name}: {fitted.trees:,} trees, intensity "
         f"{'log-linear in x, y' if fitted.trend else 'constant'} (maximum Poisson likelihood), "
@@ -191,19 +183,14 @@ def _fit_method(f) -> str:
 
 
 def _stem_map(path: Path):
-    """Positions, species (or None) and DBH (or None) of a stem map CSV."""
-    import csv
-    import io
-
+    """Positions, species (or None) and DBH (or None) of a stem map CSV, read once."""
     import numpy as np
 
     from usdforest.grow.species import PRESETS
-    from usdforest.sites.pattern import read_points
+    from usdforest.sites.pattern import points_of, read_rows
 
-    xy = read_points(path)
-    reader = csv.DictReader(io.StringIO(path.read_text(encoding="utf-8-sig"), newline=""))
-    rows = list(reader)
-    fields = set(reader.fieldnames or ())
+    fields, rows = read_rows(path)
+    xy = points_of(rows, path)
     species = [r["species"].strip() for r in rows] if "species" in fields else None
     if species is not None:
         unknown = sorted({s for s in species if s not in PRESETS})
@@ -239,6 +226,16 @@ def _pattern_points(source: Path, replicate: int):
             )
         return read_points(trees), tuple(float(v) for v in data["regionBounds"])
     return read_points(source, replicate), None
+
+
+def _window(xy, region: str | None, own=None) -> tuple[float, float, float, float]:
+    """The window of a pattern: ``--region``, else the forest's own region, else the trees'
+    bounding box."""
+    if region is not None:
+        return _parse_bounds(region, "--region")
+    if own is None:
+        own = (*xy.min(axis=0), *xy.max(axis=0)) if len(xy) else (0.0, 0.0, 0.0, 0.0)
+    return tuple(float(v) for v in own)  # type: ignore[return-value]
 
 
 def _parse_bounds(text: str, name: str) -> tuple[float, float, float, float]:

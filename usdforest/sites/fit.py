@@ -26,7 +26,7 @@ import numpy as np
 
 from usdforest.errors import UsdForestError
 from usdforest.sites.clusters import MAX_SCALE, Clusters
-from usdforest.sites.pattern import Bounds, _checked, _pairs, clark_evans
+from usdforest.sites.pattern import Bounds, _checked, clark_evans, inhomogeneous_k
 
 CHI2_2DF_95 = 5.991  # the 95 % quantile of chi-squared with 2 degrees of freedom
 NSIM = 39
@@ -121,18 +121,6 @@ def fit_intensity(xy: np.ndarray, window: Bounds, trend: bool = True) -> tuple:
     return tuple(float(v) for v in b), tuple(float(v) for v in se), loglik
 
 
-def inhomogeneous_k(xy: np.ndarray, window: Bounds, r: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """K with each pair weighted by ``1 / (lambda_i lambda_j)`` and the translation
-    correction (Baddeley, Møller and Waagepetersen 2000); Ripley's K when ``lam`` is
-    constant ``n / |W|``."""
-    pts, w, h, _ = _checked(xy, window)
-    ij, d, e = _pairs(pts, w, h, float(np.max(r)))
-    weight = e / (lam[ij[:, 0]] * lam[ij[:, 1]])
-    order = np.argsort(d)
-    cum = np.concatenate([[0.0], np.cumsum(weight[order])])
-    return 2.0 * cum[np.searchsorted(d[order], r, side="right")]
-
-
 def _thomas_contrast(k_hat: np.ndarray, r: np.ndarray) -> tuple[float, float]:
     """``(kappa, sigma)`` of the Thomas K closest to ``k_hat`` in ``sum (K^q - K_T^q)^2``,
     q = 1/4, searched on log scales from a grid of starts."""
@@ -215,7 +203,7 @@ def fit_stand(
     )
 
 
-def recipe_toml(f: FittedStand, source: str) -> dict:
+def recipe_toml(f: FittedStand) -> dict:
     """The fitted stand as recipe data (what ``tomli_w`` writes and ``usdforest build``
     reads): region, intensity, clusters or hard core, the species mix and sizes."""
     data: dict = {"seed": 1, "region": {"kind": "rectangle", "bounds": list(f.window)}}

@@ -62,15 +62,23 @@ def _pairs(
 def k_function(xy: np.ndarray, bounds: Bounds, r: np.ndarray) -> np.ndarray:
     """Ripley's K at distances ``r`` (translation correction); ``r`` at most half the
     window's shorter side, as the correction needs."""
-    pts, w, h, area = _checked(xy, bounds)
+    pts, _, _, area = _checked(xy, bounds)
+    n = len(pts)
+    # the homogeneous estimator: every lambda_i lambda_j is n (n - 1) / |W|^2
+    return inhomogeneous_k(pts, bounds, r, np.full(n, math.sqrt(n * (n - 1)) / area))
+
+
+def inhomogeneous_k(xy: np.ndarray, bounds: Bounds, r: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """K with each pair weighted by ``1 / (lambda_i lambda_j)`` at the trees' intensities
+    ``lam`` and the translation correction (Baddeley, Møller and Waagepetersen 2000)."""
+    pts, w, h, _ = _checked(xy, bounds)
     r = np.asarray(r, dtype=float)
     _check_r(r, w, h)
-    _, d, e = _pairs(pts, w, h, float(r.max()) if r.size else 0.0)
+    ij, d, e = _pairs(pts, w, h, float(r.max()) if r.size else 0.0)
+    weight = e / (lam[ij[:, 0]] * lam[ij[:, 1]])
     order = np.argsort(d)
-    cum = np.concatenate([[0.0], np.cumsum(e[order])])
-    within = np.searchsorted(d[order], r, side="right")
-    n = len(pts)
-    return area**2 / (n * (n - 1)) * 2.0 * cum[within]  # each unordered pair twice
+    cum = np.concatenate([[0.0], np.cumsum(weight[order])])
+    return 2.0 * cum[np.searchsorted(d[order], r, side="right")]  # each unordered pair twice
 
 
 def l_function(xy: np.ndarray, bounds: Bounds, r: np.ndarray) -> np.ndarray:
@@ -169,9 +177,9 @@ def csr_envelope(
     )
 
 
-def read_points(path: str | Path, replicate: int = 0) -> np.ndarray:
-    """``(n, 2)`` tree positions from a CSV with ``x`` and ``y`` columns (a stem map, a
-    forest's ``trees.csv``, or ``usdforest sample``'s output, of which ``replicate``)."""
+def read_rows(path: str | Path, replicate: int = 0) -> tuple[set[str], list[dict]]:
+    """The columns and rows of a CSV of trees with ``x`` and ``y`` (a stem map, a forest's
+    ``trees.csv``, or ``usdforest sample``'s output, of which only ``replicate``)."""
     import csv
     import io
 
@@ -184,20 +192,37 @@ def read_points(path: str | Path, replicate: int = 0) -> np.ndarray:
     except UnicodeDecodeError:
         raise UsdForestError(f"{path}: not a text file (expected a CSV with x,y)") from None
     reader = csv.DictReader(io.StringIO(text, newline=""))
-    if not reader.fieldnames or not {"x", "y"} <= set(reader.fieldnames):
+    fields = set(reader.fieldnames or ())
+    if not {"x", "y"} <= fields:
         raise UsdForestError(f"{path}: expected a header with x and y columns")
-    pts = []
+    rows = []
     for line, row in enumerate(reader, 2):
         try:
             if row.get("replicate") and int(row["replicate"]) != replicate:
                 continue
+        except ValueError:
+            raise UsdForestError(f"{path}: line {line}: replicate must be a whole number") from None
+        rows.append({**row, "line": line})
+    return fields, rows
+
+
+def points_of(rows: list[dict], path: str | Path) -> np.ndarray:
+    """``(n, 2)`` positions of :func:`read_rows`' rows, each checked finite."""
+    pts = []
+    for row in rows:
+        try:
             x, y = float(row["x"]), float(row["y"])
         except (TypeError, ValueError):
-            raise UsdForestError(f"{path}: line {line}: x and y must be numbers") from None
+            raise UsdForestError(f"{path}: line {row['line']}: x and y must be numbers") from None
         if not (math.isfinite(x) and math.isfinite(y)):
-            raise UsdForestError(f"{path}: line {line}: x and y must be finite")
+            raise UsdForestError(f"{path}: line {row['line']}: x and y must be finite")
         pts.append((x, y))
     return np.array(pts, dtype=float).reshape(-1, 2)
+
+
+def read_points(path: str | Path, replicate: int = 0) -> np.ndarray:
+    """``(n, 2)`` tree positions from a CSV with ``x`` and ``y`` columns (:func:`read_rows`)."""
+    return points_of(read_rows(path, replicate)[1], path)
 
 
 def describe(
