@@ -83,6 +83,38 @@ def lidar_forest_scan() -> tuple[int, str, str]:
     )
 
 
+def full_detail_open() -> tuple[int, str, str]:
+    """What selecting full detail costs the sensors: the default forest (which selects lod =
+    medium for clients) opened as scan, fly, stats and preview open it (switched to full in
+    its session layer), against the same forest built at full, in one run."""
+    import timeit
+
+    from usdforest.recipe import default_recipe_path, parse_recipe, read_recipe
+    from usdforest.usd.forest import write_forest
+    from usdforest.usd.layers import open_stage
+
+    if "lods" not in _CACHE:
+        base = read_recipe(default_recipe_path())
+        full = dict(base.data, forest=dict(base.data["forest"], lod="full"))
+        write_forest(base, WORK / "lod-medium.usda", thumbnail=False)
+        write_forest(parse_recipe(full, base.base, base.source), WORK / "lod-full.usda",
+                     thumbnail=False)  # fmt: skip
+        _CACHE["lods"] = (WORK / "lod-medium.usda", WORK / "lod-full.usda")
+    medium, built_full = _CACHE["lods"]
+
+    def opened(path) -> None:
+        open_stage(path, sound=True, full=True)
+
+    ours = min(timeit.repeat(lambda: opened(medium), number=1, repeat=3))
+    before = min(timeit.repeat(lambda: opened(built_full), number=1, repeat=3))
+    return (
+        1,
+        "stage",
+        f"{ours * 1e3:.0f} ms the medium forest switched to full vs {before * 1e3:.0f} ms the "
+        f"forest built at full: {ours / before:.2f}x",
+    )
+
+
 def _forest_floor(kind: str) -> tuple[int, str, str]:
     """Rays cast into the quick mixed stand's instances (15 m around a pose) against Embree
     on the same trees' triangles copied into one scene: the floor, and the ratio to it (the
@@ -136,6 +168,7 @@ BENCHMARKS = {
     "lidar: 1M rays, pine tree": lidar_1m_rays,
     "sonar: echo of ~100k leaves": sonar_100k_leaves,
     "lidar: default forest, VLP-16 at 30 m, end to end": lidar_forest_scan,
+    "sensors: default forest opened at full detail": full_detail_open,
     "lidar: quick-mixed 15 m, VLP-16 vs Embree on copied triangles": lidar_forest_floor,
     "camera: quick-mixed 15 m, 640 x 480 vs Embree on copied triangles": camera_forest_floor,
 }
