@@ -1,10 +1,10 @@
 """A 100 m flight through the default forest: a VLP-16 at 10 Hz, the paper's sonar at 20
 pulses/s (leaves, wood and ground) and a 640 x 480 camera at 1 frame/s, at 5 m/s and 2 m up.
 
-Usage: ``python benchmarks/bench_flight.py [--only lidar,sonar,camera]`` (``make bench`` runs
-it all after the main table). The lidar is flown twice: as the preset is (a 3 mrad beam of 7
-sub-rays, dual returns) and as thin rays with one return each (what it was before multiple
-returns), and the ratio of the two printed.
+Usage: ``python benchmarks/bench_flight.py [--only lidar,sonar,camera] [--device cuda]``
+(``make bench`` runs it all on the CPU after the main table). The lidar is flown twice: as
+the preset is (a 3 mrad beam of 7 sub-rays, dual returns) and as thin rays with one return
+each (what it was before multiple returns), and the ratio of the two printed.
 Prints a Markdown table: wall time of each part and its real-time factor (seconds of flight
 simulated per second of wall time: at least 1 keeps up with the sensor), rays/s, echoes
 (pulses)/s and reflectors/s, frames/s, and the whole flight's wall time and peak memory. One
@@ -31,7 +31,9 @@ SPEED = 5.0
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", default="lidar,sonar,camera", help="parts to fly")
-    only = set(parser.parse_args().only.split(","))
+    parser.add_argument("--device", default="cpu", help="the caster's device: cpu or cuda[:N]")
+    args = parser.parse_args()
+    only = set(args.only.split(","))
     from usdforest.recipe import default_recipe_path, read_recipe
     from usdforest.sensors import camera
     from usdforest.sensors.flight import Trajectory, fly_lidar
@@ -54,7 +56,7 @@ def main() -> None:
     scene = extract_scene(
         stage, centre=(lo + hi) / 2, radius=float(np.linalg.norm(hi - lo) / 2 + reach)
     )
-    caster = SceneCaster(scene)
+    caster = SceneCaster(scene, args.device)
     rows.append(
         ("scene: extract and build the caster", time.perf_counter() - t,
          f"{len(scene.instances)} trees, {len(scene):,} triangles, {len(scene.leaves):,} leaves")

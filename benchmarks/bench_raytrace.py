@@ -11,7 +11,8 @@
    on the same rays: the fraction of rays whose hit-or-miss is the same and, of the rays
    both hit, whose distance agrees within 1e-4 m.
 2. The default closed canopy (6.8 G triangles at ``full``: no flat copy fits), 100 m of it
-   around (50, 50, 2): the CPU caster against Warp's kernels, each in its own subprocess:
+   around (50, 50, 2): the CPU caster against Warp's kernels on the CPU, and on CUDA where a
+   GPU is present (``--device cuda``), each in its own subprocess:
    build time, memory the build adds, rays/s of a VLP-16 (4 sweeps) and a 640 x 480 frame,
    and agreement of the two (hit or miss, distance within 1e-4 m, same tree).
 
@@ -259,8 +260,10 @@ def part2() -> None:
     work = Path(tempfile.mkdtemp(prefix="usdforest-raytrace-default-"))
     forest = work / "forest.usda"
     write_forest(read_recipe(default_recipe_path()), forest, thumbnail=False)
+    from usdforest.sensors.warpcast import cuda_devices
+
     rows = {}
-    for device in ("cpu", "warp-cpu"):
+    for device in ("cpu", "warp-cpu", *cuda_devices()[:1]):
         r = subprocess.run(
             [sys.executable, __file__, "--default", device, str(forest), str(work / device)],
             capture_output=True, text=True,
@@ -285,7 +288,9 @@ def part2() -> None:
                 f"{close.sum() / max(both.sum(), 1):.5f}, tree "
                 f"{np.mean(a[f'{kind}_tree'][close] == b[f'{kind}_tree'][close]):.5f}"
             )
-        name = {"cpu": "Embree 4, two levels (used)", "warp-cpu": "Warp kernels, CPU"}[device]
+        name = {"cpu": "Embree 4, two levels (used)", "warp-cpu": "Warp kernels, CPU"}.get(
+            device, f"Warp kernels, {device} (--device cuda)"
+        )
         print(
             f"| {name} | {r['build_s']:.1f} s | {r['memory_bytes'] / 2**30:.2f} GiB | "
             f"{r['lidar_rays'] / r['lidar_s'] / 1e6:.2f} M rays/s | "
