@@ -11,7 +11,7 @@ from pxr import Usd, UsdGeom
 
 from usdforest.sensors.lidar import PRESETS, SpinningLidar, scan
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.returns import beam_pattern, merge_echoes
+from usdforest.sensors.returns import beam_pattern, merge_echoes, subray_directions
 from usdforest.sensors.scene import extract_scene
 
 GAIN, RHO = 65535.0, 0.5  # sensor gain; reflectance of unlabelled prims
@@ -148,6 +148,40 @@ def test_a_thin_beam_is_one_ray():
     assert len(b) == 19 and b.weights.sum() == pytest.approx(1.0, abs=1e-12)
     # the axis carries the energy within a quarter of the 1/e^2 radius: 1 - exp(-2/16)
     assert b.weights[0] == pytest.approx(1 - math.exp(-2 / 16))
+
+
+@pytest.mark.parametrize("rings", [1, 2, 3])
+def test_sub_rays_leave_the_axis_at_the_beams_offsets(rings):
+    """Each pulse's sub-rays (the compiled kernel) against the beam's geometry written here:
+    unit vectors displaced from the pulse's axis by the tangents of the offset's two angles
+    (so at arctan of their hypotenuse from it, and at their own angle around it, measured
+    from the first ring ray so that any frame about the axis will do), on random axes and on
+    the coordinate axes, where the frame's helper axis is picked by a tie."""
+    beam = beam_pattern(3.0, rings)
+    rng = np.random.default_rng(rings)
+    axes = rng.normal(size=(2000, 3))
+    axes = np.concatenate([axes, np.eye(3), -np.eye(3), [[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]]])
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    sub = subray_directions(axes, beam).reshape(len(axes), len(beam), 3)
+    np.testing.assert_allclose(np.linalg.norm(sub, axis=2), 1.0, atol=1e-15)
+    tan = np.tan(beam.offsets)
+    off = np.hypot(tan[:, 0], tan[:, 1])
+    cos = np.einsum("nsk,nk->ns", sub, axes)
+    sin = np.linalg.norm(np.cross(sub, axes[:, None, :]), axis=2)
+    np.testing.assert_allclose(np.arctan2(sin, cos), np.broadcast_to(np.arctan(off), cos.shape),
+                               atol=1e-12)  # fmt: skip
+    # around the axis: the angle between each sub-ray's sideways part and the first ring's
+    side = sub - cos[..., None] * axes[:, None, :]
+    first = side[:, 1] / np.linalg.norm(side[:, 1], axis=1, keepdims=True)
+    ring = off > 0
+    side = side[:, ring] / np.linalg.norm(side[:, ring], axis=2, keepdims=True)
+    turn = np.arctan2(
+        np.einsum("nsk,nk->ns", np.cross(first[:, None, :], side), axes),
+        np.einsum("nsk,nk->ns", side, first),
+    )
+    phi = np.arctan2(tan[ring, 1], tan[ring, 0])
+    wrapped = (turn - (phi - phi[0]) + np.pi) % (2 * np.pi) - np.pi
+    assert np.abs(wrapped).max() < 1e-6
 
 
 def reference_merge(t, energy, labels, spread, separation, mode, max_returns):

@@ -328,27 +328,10 @@ class EmbreeCaster:
                 self._kern.cast_packets(self._lib.intersect8, self._top, o, d, t, group, *out)
             else:
                 self._kern.cast(self._lib.intersect1, self._top, o, d, t, *out)
-        leaf = np.full(n, -1, np.int64)
-        face = np.full(n, -1, np.int64)
-        instance = np.full(n, -1, np.int64)
-        hit = geom >= 0
-        owner = self._entry_owner[entry[hit]]
-        wood = geom[hit] == 0
-        f = np.where(wood, rs.wood_first[owner] + prim[hit], 0)
-        lf = np.where(wood, -1, rs.leaf_first[owner] + prim[hit])
-        if (~wood).any():
-            f[~wood] = rs.shape_first[rs.leaf_shape[lf[~wood]]] + sub[hit][~wood]
-        face[hit], leaf[hit] = f, lf
-        k = self._entry_inst[entry[hit]]
-        instance[hit] = k
-        nrm = normal[hit].astype(np.float64)
-        placed = k >= 0
-        if placed.any():  # owner space to world: the inverse's transpose
-            a = rs.inst_inv[k[placed]].astype(np.float64)
-            nrm[placed] = np.einsum("nij,ni->nj", a, nrm[placed])
-        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
-        out = np.zeros((n, 3), np.float32)
-        out[hit] = nrm
+        leaf, face, instance, out = self._kern.resolve(
+            geom, prim, entry, sub, normal, self._entry_owner, self._entry_inst,
+            rs.wood_first, rs.leaf_first, rs.shape_first, rs.leaf_shape, rs.inst_inv,
+        )  # fmt: skip
         return RawHits(t, instance, leaf, face, out)
 
 

@@ -19,6 +19,7 @@ own space, and the address of ``rtcIntersect8``.
 from __future__ import annotations
 
 import numba
+import numpy as np
 from llvmlite import ir
 from numba import carray, cfunc, njit, prange, types
 from numba.core import cgutils
@@ -300,3 +301,42 @@ def cast_packets(fn, scene, o, d, limit, width, t, geom, prim, inst, face, norma
 def threads() -> int:
     """Threads the casting loop runs on."""
     return numba.get_num_threads()
+
+
+@njit(parallel=True, cache=True)
+def resolve(
+    geom, prim, entry, sub, normal, entry_owner, entry_inst, wood_first, leaf_first,
+    shape_first, leaf_shape, inst_inv,
+):  # fmt: skip
+    """What :func:`cast` found, in the scene's global numbering: (leaf, face, instance, unit
+    world normal) of each ray; -1 (and a zero normal) where it hit nothing. Geometry 0 of an
+    owner is its wood, geometry 1 its leaves (``sub``: the face within the leaf's shape); a
+    normal in a tree's space goes to the world through its inverse's transpose."""
+    n = geom.shape[0]
+    leaf = np.full(n, -1, np.int64)
+    face = np.full(n, -1, np.int64)
+    instance = np.full(n, -1, np.int64)
+    out = np.zeros((n, 3), np.float32)
+    for i in prange(n):
+        if geom[i] < 0:
+            continue
+        owner = entry_owner[entry[i]]
+        if geom[i] == 0:
+            face[i] = wood_first[owner] + prim[i]
+        else:
+            lf = leaf_first[owner] + prim[i]
+            leaf[i] = lf
+            face[i] = shape_first[leaf_shape[lf]] + sub[i]
+        k = entry_inst[entry[i]]
+        instance[i] = k
+        x, y, z = np.float64(normal[i, 0]), np.float64(normal[i, 1]), np.float64(normal[i, 2])
+        if k >= 0:
+            a = inst_inv[k]
+            x, y, z = (
+                np.float64(a[0, 0]) * x + np.float64(a[1, 0]) * y + np.float64(a[2, 0]) * z,
+                np.float64(a[0, 1]) * x + np.float64(a[1, 1]) * y + np.float64(a[2, 1]) * z,
+                np.float64(a[0, 2]) * x + np.float64(a[1, 2]) * y + np.float64(a[2, 2]) * z,
+            )
+        r = max(np.sqrt(x * x + y * y + z * z), 1e-30)
+        out[i, 0], out[i, 1], out[i, 2] = x / r, y / r, z / r
+    return leaf, face, instance, out

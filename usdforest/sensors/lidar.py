@@ -144,6 +144,7 @@ PRESETS: dict[str, SpinningLidar | DepthCamera] = {
 # (birch bark is brighter, 0.44-0.46); the forest floor between PROSAIL's wet (0.08) and dry
 # (0.43) soil, 0.25 (no measured figure: a guess); anything unlabelled 0.5.
 REFLECTANCE = {"unknown": 0.5, "trunk": 0.35, "branch": 0.35, "leaf": 0.47, "ground": 0.25}
+_RHO = np.array([REFLECTANCE[c] for c in CLASSES])  # by class index
 # the intensity of a Lambertian target of reflectance 1 facing the sensor 1 m away
 INTENSITY_GAIN = 65535.0
 
@@ -151,7 +152,7 @@ INTENSITY_GAIN = 65535.0
 def reflected(cls: np.ndarray, cos_incidence: np.ndarray, rng: np.ndarray) -> np.ndarray:
     """Reflectance (of each hit's class) x |cos incidence| / range^2 (metres): the power an
     extended Lambertian target returns, relative to a white one facing the sensor at 1 m."""
-    rho = np.array([REFLECTANCE[c] for c in CLASSES])[np.asarray(cls, dtype=np.int64)]
+    rho = _RHO[np.asarray(cls, dtype=np.int64)]
     r = np.maximum(np.asarray(rng, dtype=float), 1e-6)
     return rho * np.abs(cos_incidence) / (r * r)
 
@@ -171,6 +172,8 @@ def cast_pulses(
     """The returns of pulses fired from ``origins`` along unit ``dirs`` (n, 3): every sub-ray
     of a spinning lidar's beam cast in one batch, then merged (:func:`.returns.merge_echoes`);
     a depth camera's rays are thin and give their first hit."""
+    from usdforest.sensors import returns_kernels
+
     if isinstance(sensor, SpinningLidar):
         beam = beam_pattern(sensor.divergence, sensor.beam_rings)
         mode, most, apart = sensor.returns, sensor.max_returns, sensor.return_separation
@@ -179,12 +182,8 @@ def cast_pulses(
     n, s = len(dirs), len(beam)
     sub = subray_directions(dirs, beam)
     h = caster.first_hit(np.repeat(origins, s, axis=0), sub, sensor.max_range, group=s)
-    hit = h.hit
-    cos = np.abs(np.einsum("nk,nk->n", sub[hit], h.normal[hit]))
-    energy, spread = np.zeros(n * s), np.zeros(n * s)
-    energy[hit] = reflected(h.cls[hit], cos, h.t[hit]) * np.tile(beam.weights, n)[hit]
-    spread[hit] = (
-        h.t[hit] * beam.cell * np.sqrt(np.maximum(1 - cos * cos, 0)) / np.maximum(cos, 1e-3)
+    energy, spread = returns_kernels.subray_energy(
+        sub, h.normal, h.t, h.cls, _RHO, np.asarray(beam.weights, float), float(beam.cell)
     )
     return merge_echoes(
         h.t.reshape(n, s),

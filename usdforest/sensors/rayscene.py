@@ -173,17 +173,14 @@ class RayScene:
     def hits(self, raw: RawHits, max_range: float) -> Hits:
         """Raw caster output as :class:`Hits`: classes, paths and tree ids looked up; hits
         beyond ``max_range`` dropped."""
-        t, inst, leaf, face = raw.t, raw.instance, raw.leaf, raw.face
-        h = Hits(len(t))
-        hit = (face >= 0) & (t <= max_range)
-        wood = hit & (leaf < 0)
-        green = hit & (leaf >= 0)
-        h.t[hit] = t[hit]
-        h.normal[hit] = raw.normal[hit]
-        h.cls[wood], h.path[wood] = self.wood_cls[face[wood]], self.wood_path[face[wood]]
-        h.cls[green], h.path[green] = self.shape_cls[face[green]], self.shape_path[face[green]]
-        h.tree[wood] = self.wood_tree[face[wood]]
-        h.tree[green] = self.leaf_tree[leaf[green]]
-        placed = hit & (inst >= 0)
-        h.tree[placed] = self.inst_tree[inst[placed]]
+        from usdforest.sensors import rayscene_kernels
+
+        # compared in float32, as the distances are
+        reach = np.float32(max_range) if max_range < 3.4e38 else np.float32(np.inf)
+        h = Hits(0)
+        h.t, h.cls, h.tree, h.path, h.normal = rayscene_kernels.label(
+            raw.t, raw.instance, raw.leaf, raw.face, raw.normal, reach,
+            self.wood_cls, self.wood_path, self.wood_tree, self.shape_cls, self.shape_path,
+            self.leaf_tree, self.inst_tree,
+        )  # fmt: skip
         return h

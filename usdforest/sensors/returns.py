@@ -71,19 +71,14 @@ def beam_pattern(divergence: float, rings: int) -> Beam:
 def subray_directions(dirs: np.ndarray, beam: Beam) -> np.ndarray:
     """Unit directions of every sub-ray of pulses along unit ``dirs`` (n, 3): (n * s, 3),
     pulse-major (pulse ``i``'s sub-rays are rows ``i s`` to ``i s + s - 1``)."""
-    dirs = np.asarray(dirs, dtype=float)
+    dirs = np.ascontiguousarray(dirs, dtype=float)
     if len(beam) == 1:
         return dirs.copy()
-    # any normal to each axis: cross with the coordinate axis it is least aligned with
-    helper = np.zeros_like(dirs)
-    helper[np.arange(len(dirs)), np.argmin(np.abs(dirs), axis=1)] = 1.0
-    u = np.cross(dirs, helper)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    v = np.cross(dirs, u)
-    tan = np.tan(beam.offsets)
-    sub = dirs[:, None, :] + tan[None, :, :1] * u[:, None, :] + tan[None, :, 1:] * v[:, None, :]
-    sub /= np.linalg.norm(sub, axis=2, keepdims=True)
-    return sub.reshape(-1, 3)
+    from usdforest.sensors import returns_kernels
+
+    # about each axis, a normal to it (its cross product with the coordinate axis it is least
+    # aligned with) and the axis crossed with that: the beam's offsets along the two
+    return returns_kernels.subrays(dirs.reshape(-1, 3), np.ascontiguousarray(np.tan(beam.offsets)))
 
 
 @dataclass(frozen=True, eq=False)

@@ -123,3 +123,54 @@ def merge(t, energy, spread, cls, tree, path, separation, mode, most):
             returns[k] = per[p]
             k += 1
     return pulse, rng, esum, out_cls, out_tree, out_path, number, returns
+
+
+@njit(cache=True, parallel=True)
+def subrays(dirs, tan):
+    """:func:`usdforest.sensors.returns.subray_directions` for a beam of ``len(tan)`` sub-rays
+    at offsets whose tangents are ``tan`` (s, 2), with numpy's arithmetic in numpy's order
+    (the same bits): each pulse's axis, a normal ``u`` to it (its cross product with the
+    coordinate axis it is least aligned with) and ``v = axis x u``."""
+    n, s = dirs.shape[0], tan.shape[0]
+    out = np.empty((n * s, 3))
+    for i in prange(n):
+        a0, a1, a2 = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        m = 0  # the first of the smallest |component|s, as argmin picks
+        if abs(a1) < abs(a0):
+            m = 1
+        if abs(a2) < abs(dirs[i, m]):
+            m = 2
+        b0, b1, b2 = 1.0 if m == 0 else 0.0, 1.0 if m == 1 else 0.0, 1.0 if m == 2 else 0.0
+        u0, u1, u2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+        r = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+        u0, u1, u2 = u0 / r, u1 / r, u2 / r
+        v0, v1, v2 = a1 * u2 - a2 * u1, a2 * u0 - a0 * u2, a0 * u1 - a1 * u0
+        for k in range(s):
+            tu, tv = tan[k, 0], tan[k, 1]
+            x = a0 + tu * u0 + tv * v0
+            y = a1 + tu * u1 + tv * v1
+            z = a2 + tu * u2 + tv * v2
+            r = math.sqrt(x * x + y * y + z * z)
+            j = i * s + k
+            out[j, 0], out[j, 1], out[j, 2] = x / r, y / r, z / r
+    return out
+
+
+@njit(cache=True, parallel=True)
+def subray_energy(sub, normal, t, cls, rho, weights, cell):
+    """Each sub-ray's share of its pulse's returned power and its footprint's spread in
+    range (see :func:`usdforest.sensors.lidar.cast_pulses`), 0 where it hit nothing: the
+    weight x reflectance x |cos incidence| / range^2 (:func:`usdforest.sensors.lidar.
+    reflected`), and range x ``cell`` x tan(incidence) (cos held at 1e-3 or more)."""
+    n, s = t.shape[0], weights.shape[0]
+    energy = np.zeros(n)
+    spread = np.zeros(n)
+    for i in prange(n):
+        if not math.isfinite(t[i]):
+            continue
+        # summed in the order numpy's einsum sums three products (the same bits)
+        c = abs((sub[i, 0] * normal[i, 0] + sub[i, 2] * normal[i, 2]) + sub[i, 1] * normal[i, 1])
+        r = max(t[i], 1e-6)
+        energy[i] = rho[cls[i]] * abs(c) / (r * r) * weights[i % s]
+        spread[i] = t[i] * cell * math.sqrt(max(1 - c * c, 0.0)) / max(c, 1e-3)
+    return energy, spread
