@@ -43,18 +43,33 @@ def _joined(parts):
     return type("S", (), cols)
 
 
+def _thomas(scale):  # clusters wide enough to cross the 250 m cells' edges (Thomas: 4 scale)
+    return {"clusters": {"kind": "thomas", "scale": scale, "offspring": 12}}
+
+
 @pytest.mark.parametrize(
-    ("hard_core", "clusters"),
-    [(0.0, None), (6.0, None), (260.0, None), (0.0, ("thomas", 30.0)), (2.0, ("matern", 80.0))],
-    ids=["poisson", "hard-core-6m", "hard-core-260m", "thomas-30m", "matern-80m-hard-core"],
+    ("hard_core", "extra"),
+    [
+        (0.0, {}),
+        (6.0, {}),
+        (260.0, {}),
+        (0.0, _thomas(30.0)),
+        (2.0, {"clusters": {"kind": "matern", "scale": 80.0, "offspring": 12}}),
+        (0.0, {"inhibition": {"kind": "strauss", "radius": 20.0, "gamma": 0.2}}),
+    ],
+    ids=[
+        "poisson",
+        "hard-core-6m",
+        "hard-core-260m",
+        "thomas-30m",
+        "matern-80m-hard-core",
+        "strauss-20m",
+    ],
 )
-def test_sites_do_not_depend_on_tiles_or_blocks(tmp_path, hard_core, clusters):
+def test_sites_do_not_depend_on_tiles_or_blocks(tmp_path, hard_core, extra):
     """Every recipe is sampled cell by cell: without tiles, with tiles of 37 or 500 m (each
     square's own sites computed alone), and in blocks of one cell (a hard core wider than a
     cell reaches two rings of cells), the same sites in the same order."""
-    extra = {}
-    if clusters:  # clusters wide enough to cross the 250 m cells' edges (Thomas: 120 m)
-        extra = {"clusters": {"kind": clusters[0], "scale": clusters[1], "offspring": 12}}
     untiled = _recipe(tmp_path, tiles=None, hard_core=hard_core, **extra)
     base = sample_sites(untiled)
     assert len(base) > (3 if hard_core > 100 else 100)

@@ -238,8 +238,10 @@ TOP_KEYS = {
     "ground",
     "tiles",
     "clusters",
+    "inhibition",
 }
 CLUSTER_KEYS = {"kind", "scale", "offspring"}
+INHIBITION_KEYS = {"kind", "radius", "gamma"}
 GROUND_KEYS = {"kind", "margin", "color", "file", "max", "bounds"}
 FOREST_KEYS = {
     "variants",
@@ -299,6 +301,7 @@ class Recipe:
     crs: str | None = None  # the projected CRS of the recipe's coordinates, when one is named
     tiles: float | None = None  # tile side in metres: the forest as payload tiles
     clusters: Any = None  # sites.clusters.Clusters: trees in clusters around unseen parents
+    inhibition: Any = None  # sites.inhibition.Inhibition: a Strauss process over the intensity
 
     @property
     def species_names(self) -> tuple[str, ...]:
@@ -345,6 +348,37 @@ def _parse_clusters(t: Any, explicit_sites: bool) -> Any:
         coerce(t["kind"], str, "clusters.kind"),
         _num(t["scale"], "clusters.scale", positive=True),
         _num(t["offspring"], "clusters.offspring", positive=True),
+    )
+
+
+def _parse_inhibition(t: Any, explicit_sites: bool, clusters: Any, hard_core: float) -> Any:
+    """``[inhibition]``: a Strauss process whose first-order term is the recipe's intensity."""
+    if t is None:
+        return None
+    from usdforest.sites.inhibition import Inhibition
+
+    if not isinstance(t, Mapping):
+        raise RecipeError("inhibition: expected a table")
+    if explicit_sites:
+        raise RecipeError("inhibition: explicit sites are not sampled; remove [inhibition]")
+    if clusters is not None:
+        raise RecipeError("inhibition: a stand is clustered or inhibited; remove [clusters] or "
+                          "[inhibition]")  # fmt: skip
+    if hard_core > 0:
+        raise RecipeError(
+            "inhibition: not with forest.hard_core (gamma = 0 is a hard core at the radius); "
+            "remove one"
+        )
+    check_keys(t, INHIBITION_KEYS, "inhibition")
+    for key in ("radius", "gamma"):
+        if key not in t:
+            raise RecipeError(
+                f'inhibition.{key}: missing (e.g. kind = "strauss", radius = 2.0, gamma = 0.3)'
+            )
+    return Inhibition(
+        coerce(t.get("kind", "strauss"), str, "inhibition.kind"),
+        _num(t["radius"], "inhibition.radius", positive=True),
+        _num(t["gamma"], "inhibition.gamma", lo=0),
     )
 
 
@@ -692,6 +726,9 @@ def parse_recipe(
         )
         tiles = _parse_tiles(data.get("tiles"))
         clusters = _parse_clusters(data.get("clusters"), sites is not None)
+        inhibition = _parse_inhibition(
+            data.get("inhibition"), sites is not None, clusters, hard_core
+        )
     except RecipeError as exc:
         raise fail(exc) from None
     recipe = Recipe(
@@ -716,6 +753,7 @@ def parse_recipe(
         crs,
         tiles,
         clusters,
+        inhibition,
     )
     try:
         expected = recipe.expected_trees()

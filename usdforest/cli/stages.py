@@ -187,6 +187,16 @@ def stats_cmd(
     _print_pairs(f, _stats_value)
 
 
+def _before_interaction(recipe, sep: str) -> str:
+    """What the expected count leaves out: a hard core's or a Strauss process's thinning."""
+    if recipe.hard_core:
+        return f"{sep}before the {recipe.hard_core:g} m hard core"
+    if recipe.inhibition is not None:
+        about = recipe.inhibition.expected(recipe.region, recipe.intensity)
+        return f"{sep}before the Strauss inhibition, about {about:,.0f} after it"
+    return ""
+
+
 def _load_recipe(pipeline: Path | None, seed: int | None, hard_core: float | None = None):
     from usdforest.recipe import read_recipe, recipe_path
 
@@ -270,7 +280,7 @@ def build_cmd(
     if as_json:
         sys.stdout.write(json.dumps(summary) + "\n")
     elif not quiet:
-        note = f" before the {recipe.hard_core:g} m hard core" if recipe.hard_core else ""
+        note = _before_interaction(recipe, " ")
         out.print(
             f"{output}: {b.n_trees:,} trees (expected {summary['expected_trees']:,.0f}{note}) of "
             + ", ".join(f"{n} {c:,}" for n, c in summary["trees_by_species"].items())
@@ -351,7 +361,7 @@ def sample_cmd(
         "hard_core": recipe.hard_core,
         "counts": counts,
     }
-    note = f", before the {recipe.hard_core:g} m hard core" if recipe.hard_core else ""
+    note = _before_interaction(recipe, ", ")
     if as_json:
         sys.stdout.write(json.dumps(summary) + "\n")
     else:

@@ -81,6 +81,8 @@ def cells_meeting(recipe, box: tuple[float, float, float, float]) -> tuple[int, 
 def _cell_sites(
     recipe, replicate: int, i: int, j: int, lam_star: float, families: dict | None = None
 ) -> np.ndarray:
+    if recipe.inhibition is not None:
+        return _inhibited_cell_sites(recipe, replicate, i, j)
     if recipe.clusters is not None:
         return _cluster_cell_sites(recipe, replicate, i, j, lam_star, {} if families is None
                                    else families)  # fmt: skip
@@ -88,6 +90,17 @@ def _cell_sites(
     box = (x0 + i * CELL, y0 + j * CELL, min(x0 + (i + 1) * CELL, x1), min(y0 + (j + 1) * CELL, y1))
     rng = stream(recipe.seed, "sites", replicate, "cell", i, j)
     return thin(_CellRegion(recipe.region, box), recipe.intensity, rng, bound=lam_star)
+
+
+def _inhibited_cell_sites(recipe, replicate: int, i: int, j: int) -> np.ndarray:
+    """The trees of a Strauss pattern (simulated over the whole region once per process:
+    :mod:`usdforest.sites.inhibition`) that stand in cell ``(i, j)``, in the pattern's order."""
+    from usdforest.sites.inhibition import recipe_sites
+
+    pts, cell = recipe_sites(recipe, replicate)
+    c = j * grid(recipe)[0] + i
+    lo, hi = np.searchsorted(cell, [c, c + 1])
+    return np.array(pts[lo:hi])
 
 
 def _cluster_cell_sites(

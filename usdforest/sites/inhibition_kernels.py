@@ -1,0 +1,132 @@
+"""numba kernels of :func:`usdforest.sites.inhibition.simulate`: the Strauss chain's state
+(trees packed in slots ``0..n-1``, each in a doubly linked list of its grid cell) and its
+birth-death Metropolis-Hastings steps. Imported on first use; cached on disk."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+X, Y, BETA = range(3)  # rows of the float state
+CELL, NEXT, PREV = range(3)  # rows of the integer state
+
+
+@dataclass(frozen=True, eq=False)
+class State:
+    """``f``: x, y and beta x |box| of each slot; ``i``: its cell and list neighbours;
+    ``head``: each cell's first slot (-1: empty); ``n``: trees alive (``n[0]``)."""
+
+    f: np.ndarray
+    i: np.ndarray
+    head: np.ndarray
+    n: np.ndarray
+
+    @staticmethod
+    def empty(capacity: int, cells: int) -> State:
+        return State(
+            np.zeros((3, capacity)),
+            np.full((3, capacity), -1, np.int64),
+            np.full(cells, -1, np.int64),
+            np.zeros(1, np.int64),
+        )
+
+    def arrays(self) -> tuple:
+        return self.f, self.i, self.head, self.n
+
+    def sites(self) -> np.ndarray:
+        k = int(self.n[0])
+        return np.column_stack([self.f[X, :k], self.f[Y, :k]])
+
+
+@njit(cache=True, inline="always")
+def _cell(x, y, x0, y0, side, nx, ny):
+    ix = min(max(int((x - x0) / side), 0), nx - 1)
+    iy = min(max(int((y - y0) / side), 0), ny - 1)
+    return iy * nx + ix
+
+
+@njit(cache=True, inline="always")
+def _link(i, head, s, c):
+    i[CELL, s] = c
+    i[PREV, s] = -1
+    i[NEXT, s] = head[c]
+    if head[c] >= 0:
+        i[PREV, head[c]] = s
+    head[c] = s
+
+
+@njit(cache=True, inline="always")
+def _unlink(i, head, s):
+    p, q = i[PREV, s], i[NEXT, s]
+    if p >= 0:
+        i[NEXT, p] = q
+    else:
+        head[i[CELL, s]] = q
+    if q >= 0:
+        i[PREV, q] = p
+
+
+@njit(cache=True)
+def _near(f, i, head, x, y, skip, x0, y0, side, nx, ny, r2):
+    """Trees within sqrt(r2) of (x, y), slot ``skip`` aside."""
+    c = _cell(x, y, x0, y0, side, nx, ny)
+    cx, cy = c % nx, c // nx
+    t = 0
+    for jy in range(max(cy - 1, 0), min(cy + 2, ny)):
+        for jx in range(max(cx - 1, 0), min(cx + 2, nx)):
+            s = head[jy * nx + jx]
+            while s >= 0:
+                if s != skip:
+                    dx, dy = f[X, s] - x, f[Y, s] - y
+                    if dx * dx + dy * dy <= r2:
+                        t += 1
+                s = i[NEXT, s]
+    return t
+
+
+@njit(cache=True)
+def insert_all(state, xs, ys, betas, x0, y0, side, nx, ny):
+    """Put trees (x, y, beta x |box|) into an empty state."""
+    f, i, head, n = state
+    for k in range(xs.shape[0]):
+        s = n[0]
+        f[X, s], f[Y, s], f[BETA, s] = xs[k], ys[k], betas[k]
+        _link(i, head, s, _cell(xs[k], ys[k], x0, y0, side, nx, ny))
+        n[0] += 1
+
+
+@njit(cache=True)
+def run(state, birth, cx, cy, cb, accept, pick, x0, y0, side, nx, ny, r2, gamma):
+    """Steps of the chain (see :mod:`usdforest.sites.inhibition`): step ``k`` proposes a
+    birth at (``cx[k]``, ``cy[k]``) with beta x |box| ``cb[k]`` when ``birth[k]``, else the
+    death of tree ``floor(pick[k] n)``; accepted when ``accept[k]`` is below the
+    Metropolis-Hastings ratio. Returns True when the slots ran out (nothing done since)."""
+    f, i, head, n = state
+    cap = f.shape[1]
+    for k in range(birth.shape[0]):
+        m = n[0]
+        if birth[k]:
+            if cb[k] <= 0.0:
+                continue
+            t = _near(f, i, head, cx[k], cy[k], -1, x0, y0, side, nx, ny, r2)
+            if accept[k] * (m + 1) < cb[k] * gamma**t:
+                if m == cap:
+                    return True
+                f[X, m], f[Y, m], f[BETA, m] = cx[k], cy[k], cb[k]
+                _link(i, head, m, _cell(cx[k], cy[k], x0, y0, side, nx, ny))
+                n[0] = m + 1
+        elif m > 0:
+            s = min(int(pick[k] * m), m - 1)
+            t = _near(f, i, head, f[X, s], f[Y, s], s, x0, y0, side, nx, ny, r2)
+            if accept[k] * f[BETA, s] * gamma**t < m:
+                _unlink(i, head, s)
+                last = m - 1
+                if s != last:  # the last slot moves into the freed one
+                    c = i[CELL, last]
+                    _unlink(i, head, last)
+                    f[X, s], f[Y, s], f[BETA, s] = f[X, last], f[Y, last], f[BETA, last]
+                    _link(i, head, s, c)
+                n[0] = last
+    return False
