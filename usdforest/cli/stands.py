@@ -141,6 +141,8 @@ def fit_cmd(
         "clusters": fitted.clusters.describe() if fitted.clusters else None,
         "kappa": fitted.kappa,
         "hard_core": fitted.hard_core,
+        "inhibition": fitted.inhibition.describe() if fitted.inhibition else None,
+        "first_order": list(fitted.first_order) if fitted.first_order else None,
         "species": fitted.species,
         "dbh": {k: {"mean": m, "cv": cv} for k, (m, cv) in fitted.dbh.items()},
         "recipe": str(output),
@@ -168,6 +170,13 @@ def fit_cmd(
         )
     if fitted.hard_core:
         rows["hard_core"] = f"{fitted.hard_core:.3g} m"
+    if fitted.inhibition is not None:
+        i, t = fitted.inhibition, fitted.first_order
+        rows["inhibition"] = (
+            f"Strauss radius {i.radius:.3g} m, gamma {i.gamma:.3g}; first-order term "
+            + (f"exp({t[0]:.3f} + {t[1]:.3f} u + {t[2]:.3f} v)" if fitted.trend
+               else f"{math.exp(t[0]):.5g} trees/m²")
+        )  # fmt: skip
     if fitted.species:
         rows["species"] = ", ".join(f"{k} {v:.0%}" for k, v in fitted.species.items())
     rows["recipe"] = str(output)
@@ -177,8 +186,16 @@ def fit_cmd(
 def _fit_method(f) -> str:
     if f.interaction == "thomas":
         return "Thomas process, minimum contrast on K (q = 1/4)"
+    if f.interaction == "strauss":
+        return (
+            "below the Poisson envelope: Strauss process by maximum pseudo-likelihood "
+            "(Berman-Turner quadrature, border correction), radius by profile pseudo-likelihood"
+        )
     if f.interaction == "hard core":
-        return "below the Poisson envelope: Matérn II at the shortest neighbour distance"
+        return (
+            "below the Poisson envelope, a Strauss fit all but a hard core: Matérn II at the "
+            "shortest neighbour distance"
+        )
     return "inside the fitted Poisson process's envelope (39 simulations)"
 
 

@@ -11,8 +11,12 @@ Three steps, each a published method (Baddeley, Rubak and Turner 2015, chapters 
    (its L(r) - r, with the inhomogeneous K when the intensity has a trend). Above the
    envelope at short range: a Thomas cluster process fitted by minimum contrast on K
    (Diggle 1983; ``sum (K^q - K_theory^q)^2`` with q = 1/4 over ``r`` up to a quarter of the
-   shorter side). Below it: a Matérn II hard core at the shortest nearest-neighbour distance.
-   Inside: Poisson.
+   shorter side). Below it: a Strauss process fitted by maximum pseudo-likelihood (Besag
+   1975; Baddeley and Turner 2000, the Berman-Turner quadrature of a regular grid of dummy
+   points, the border correction), its radius by profile pseudo-likelihood over a grid of
+   radii (spatstat's ``profilepl``); its first-order term is log-linear like the intensity.
+   Where the fitted interaction is all but a hard core (gamma below ``HARD_GAMMA``): a Matérn
+   II hard core at the shortest nearest-neighbour distance. Inside: Poisson.
 3. **Marks**: species shares from a ``species`` column, and per species the mean and
    coefficient of variation of ``dbh`` (metres) when the map has them.
 """
@@ -26,10 +30,13 @@ import numpy as np
 
 from usdforest.errors import UsdForestError
 from usdforest.sites.clusters import MAX_SCALE, Clusters
+from usdforest.sites.inhibition import MAX_RADIUS, Inhibition
 from usdforest.sites.pattern import Bounds, _checked, clark_evans, inhomogeneous_k
 
 CHI2_2DF_95 = 5.991  # the 95 % quantile of chi-squared with 2 degrees of freedom
 NSIM = 39
+MAX_DUMMIES = 250_000  # quadrature points of a Strauss fit
+HARD_GAMMA = 0.05  # a fitted Strauss gamma below this is written as a hard core
 
 
 @dataclass(frozen=True)
@@ -45,9 +52,11 @@ class FittedStand:
     kappa: float | None
     hard_core: float
     clark_evans: float
-    interaction: str  # "poisson", "thomas" or "hard core"
+    interaction: str  # "poisson", "thomas", "strauss" or "hard core"
     species: dict[str, float] = field(default_factory=dict)
     dbh: dict[str, tuple[float, float]] = field(default_factory=dict)  # mean, cv
+    inhibition: Inhibition | None = None
+    first_order: tuple[float, float, float] | None = None  # a Strauss process's log beta
 
     def intensity(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         u, v = _scaled(self.window, x, y)
@@ -60,11 +69,12 @@ class FittedStand:
         x0, y0, x1, y1 = self.window
         return float(self.intensity(np.array([x0, x0, x1, x1]), np.array([y0, y1, y0, y1])).max())
 
-    def expression(self) -> str:
-        """The intensity as a recipe expression in x and y."""
+    def expression(self, coefficients: tuple[float, float, float] | None = None) -> str:
+        """The intensity (or log-linear ``coefficients`` in the same scaled coordinates) as
+        a recipe expression in x and y."""
         x0, y0, x1, y1 = self.window
         cx, cy, hx, hy = (x0 + x1) / 2, (y0 + y1) / 2, (x1 - x0) / 2, (y1 - y0) / 2
-        b0, b1, b2 = self.beta
+        b0, b1, b2 = self.beta if coefficients is None else coefficients
         u = f"(x - {cx:.10g}) / {hx:.10g}"
         v = f"(y - {cy:.10g}) / {hy:.10g}"
         return f"exp({b0:.10g} + {b1:.10g} * {u} + {b2:.10g} * {v})"
@@ -140,6 +150,63 @@ def _thomas_contrast(k_hat: np.ndarray, r: np.ndarray) -> tuple[float, float]:
     return math.exp(best.x[0]), math.exp(best.x[1])
 
 
+def fit_strauss(
+    pts: np.ndarray, window: Bounds, trend: bool, radii: np.ndarray, border: float
+) -> tuple[float, float, tuple[float, float, float]]:
+    """``(radius, gamma, log-beta coefficients)`` of the Strauss process with the largest
+    pseudo-likelihood over ``radii`` (see the module): for each radius the log
+    pseudo-likelihood ``sum_i (theta z(x_i) + t_i log gamma) - sum_j w_j exp(theta z(u_j) +
+    t_j log gamma)`` over the quadrature points ``u_j`` (data and a grid of dummies, each
+    weighing its grid cell's area shared among the points in it)
+    ``border`` or more inside the window (one border for every radius, so their
+    pseudo-likelihoods compare), ``t`` the data points within the radius (a data point's own
+    aside), maximised with gamma in [exp(-30), 1]."""
+    from scipy.optimize import minimize
+    from scipy.spatial import cKDTree
+
+    x0, y0, x1, y1 = window
+    n = len(pts)
+    area = (x1 - x0) * (y1 - y0)
+    # dummies finer than the smallest radius: the interaction term varies on its scale
+    side = max(min(math.sqrt(area / max(4 * n, 4096)), float(np.min(radii)) / 4),
+               math.sqrt(area / MAX_DUMMIES))  # fmt: skip
+    gx = np.arange(x0 + side / 2, x1, side)
+    gy = np.arange(y0 + side / 2, y1, side)
+    dummy = np.stack(np.meshgrid(gx, gy), -1).reshape(-1, 2)
+    quad = np.concatenate([pts, dummy])
+    ncol = len(gx)
+    ij = np.clip(((quad - [x0, y0]) // side).astype(np.int64), 0, [ncol - 1, len(gy) - 1])
+    cell = ij[:, 1] * ncol + ij[:, 0]
+    w = side * side / np.bincount(cell, minlength=ncol * len(gy))[cell]
+    data = np.arange(len(quad)) < n
+    rb = float(border)
+    keep = (quad[:, 0] - x0 >= rb) & (x1 - quad[:, 0] >= rb)
+    keep &= (quad[:, 1] - y0 >= rb) & (y1 - quad[:, 1] >= rb)
+    u, v = _scaled(window, quad[:, 0], quad[:, 1])
+    z = np.column_stack([np.ones(len(quad)), u, v] if trend else [np.ones(len(quad))])[keep]
+    tree = cKDTree(pts)
+    w, data = w[keep], data[keep]
+    best = None
+    for r in radii:
+        t = tree.query_ball_point(quad[keep], r, return_length=True) - data
+        zz = np.column_stack([z, t])
+
+        def neg(p, zz=zz):
+            eta = zz @ p
+            mu = w * np.exp(eta)
+            return float(mu.sum() - eta[data].sum()), zz.T @ mu - zz[data].sum(axis=0)
+
+        start = np.zeros(zz.shape[1])
+        start[0] = math.log(n / float(w.sum()))
+        bounds = [(None, None)] * (zz.shape[1] - 1) + [(-30.0, 0.0)]
+        m = minimize(neg, start, jac=True, method="L-BFGS-B", bounds=bounds)
+        if best is None or m.fun < best[0]:
+            best = (m.fun, float(r), m.x)
+    _, r, p = best
+    theta = (float(p[0]), float(p[1]), float(p[2])) if trend else (float(p[0]), 0.0, 0.0)
+    return r, math.exp(float(p[-1])), theta
+
+
 def fit_stand(
     xy: np.ndarray,
     window: Bounds,
@@ -182,11 +249,21 @@ def fit_stand(
         # cluster (a minimum contrast that runs off to either is a pattern barely clustered)
         clusters = Clusters("thomas", min(sigma, MAX_SCALE), min(max(bound / kappa, 1e-3), 1e4))
         kind = "thomas"
-    elif np.any(k_hat[short] < lo[short]):
+    inhibition, first_order = None, None
+    if kind == "poisson" and np.any(k_hat[short] < lo[short]):
         from scipy.spatial import cKDTree
 
-        hard_core = float(cKDTree(pts).query(pts, k=2)[0][:, 1].min())
-        kind = "hard core"
+        nn = cKDTree(pts).query(pts, k=2)[0][:, 1]
+        top = max(min(3 * nn.mean(), rmax / 2, MAX_RADIUS), nn.min())
+        coarse = np.linspace(nn.min(), top, 24)
+        radius, gamma, theta = fit_strauss(pts, window, trend, coarse, top)
+        step = coarse[1] - coarse[0]  # then a tenth of a step around the best
+        fine = np.linspace(max(radius - step, nn.min()), min(radius + step, top), 21)
+        radius, gamma, theta = fit_strauss(pts, window, trend, fine, top)
+        if gamma < HARD_GAMMA:
+            hard_core, kind = float(nn.min()), "hard core"
+        else:
+            inhibition, first_order, kind = Inhibition("strauss", radius, gamma), theta, "strauss"
     shares: dict[str, float] = {}
     sizes: dict[str, tuple[float, float]] = {}
     if species is not None:
@@ -199,20 +276,26 @@ def fit_stand(
                 if len(sel) >= 2:
                     sizes[name] = (float(sel.mean()), float(sel.std(ddof=1) / sel.mean()))
     return FittedStand(
-        window, n, beta, se, trend, clusters, kappa, hard_core, ce, kind, shares, sizes
-    )
+        window, n, beta, se, trend, clusters, kappa, hard_core, ce, kind, shares, sizes,
+        inhibition, first_order,
+    )  # fmt: skip
 
 
 def recipe_toml(f: FittedStand) -> dict:
     """The fitted stand as recipe data (what ``tomli_w`` writes and ``usdforest build``
     reads): region, intensity, clusters or hard core, the species mix and sizes."""
     data: dict = {"seed": 1, "region": {"kind": "rectangle", "bounds": list(f.window)}}
+    coefficients = f.first_order or f.beta  # a Strauss process's intensity is its beta
     if f.trend:
+        b0, b1, b2 = coefficients
+        top = math.exp(b0 + abs(b1) + abs(b2))  # at a corner of the window
         data["intensity"] = {
-            "kind": "expression", "expr": f.expression(), "bound": f.bound * (1 + 1e-6)
+            "kind": "expression", "expr": f.expression(coefficients), "bound": top * (1 + 1e-6)
         }  # fmt: skip
     else:
-        data["intensity"] = {"kind": "constant", "value": math.exp(f.beta[0])}
+        data["intensity"] = {"kind": "constant", "value": math.exp(coefficients[0])}
+    if f.inhibition is not None:
+        data["inhibition"] = f.inhibition.describe()
     if f.clusters is not None:
         data["clusters"] = f.clusters.describe()
     if f.hard_core > 0:
