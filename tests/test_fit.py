@@ -52,9 +52,9 @@ def test_a_thomas_stand_is_found_clustered_and_its_clusters_measured(seed):
 
 @pytest.mark.parametrize(("gamma", "key"), [(0.2, 2), (0.5, 5)])
 def test_a_strauss_stand_is_found_softly_inhibited_and_its_interaction_measured(gamma, key):
-    """beta 0.1, radius 2 m on 150 m x 150 m (1,200-1,500 trees): maximum pseudo-likelihood
-    with the radius profiled finds the radius within 0.1 m, gamma within 0.1 and beta within
-    10 % (measured: 2.00-2.01 m, gamma 0.19 and 0.50, beta 0.095 and 0.108)."""
+    """beta 0.1, radius 2 m on 150 m x 150 m (1,200-1,500 trees): the logistic composite
+    likelihood with the radius profiled finds the radius within 0.1 m, gamma within 0.1 and
+    beta within 10 % (measured: 1.99-2.00 m, gamma 0.18 and 0.49, beta 0.096 and 0.109)."""
     box = (0.0, 0.0, 150.0, 150.0)
     s = inhibition.Inhibition("strauss", 2.0, gamma)
     xy = inhibition.simulate(s, Rectangle(*box), Constant(0.1), stream(1, "f", key))

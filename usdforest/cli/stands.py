@@ -188,8 +188,8 @@ def _fit_method(f) -> str:
         return "Thomas process, minimum contrast on K (q = 1/4)"
     if f.interaction == "strauss":
         return (
-            "below the Poisson envelope: Strauss process by maximum pseudo-likelihood "
-            "(Berman-Turner quadrature, border correction), radius by profile pseudo-likelihood"
+            "below the Poisson envelope: Strauss process by logistic composite likelihood "
+            "(Baddeley et al. 2014; border correction), its radius profiled"
         )
     if f.interaction == "hard core":
         return (
