@@ -97,7 +97,7 @@ def _inhibited_cell_sites(recipe, replicate: int, i: int, j: int) -> np.ndarray:
     :mod:`usdforest.sites.inhibition`) that stand in cell ``(i, j)``, in the pattern's order."""
     from usdforest.sites.inhibition import recipe_sites
 
-    pts, cell = recipe_sites(recipe, replicate)
+    pts, cell = recipe_sites(recipe, replicate, cell_of)
     c = j * grid(recipe)[0] + i
     lo, hi = np.searchsorted(cell, [c, c + 1])
     return np.array(pts[lo:hi])

@@ -141,13 +141,13 @@ def simulate(inhibition: Inhibition, region, intensity, rng: np.random.Generator
 _SIMULATED: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}  # the last few
 
 
-def recipe_sites(recipe, replicate: int) -> tuple[np.ndarray, np.ndarray]:
+def recipe_sites(recipe, replicate: int, cell_of) -> tuple[np.ndarray, np.ndarray]:
     """The Strauss pattern of a recipe's replicate, simulated once per process and recipe
     content (the tile tasks of one build share it): sites ordered by their sampling cell
-    (:func:`usdforest.sites.cells.cell_of`, stably: within a cell in the chain's order), and
-    those cells."""
+    (``cell_of(recipe, xy)``, :func:`usdforest.sites.cells.cell_of`, passed in so that the
+    modules do not import each other; stably: within a cell in the chain's order), and those
+    cells."""
     from usdforest.seeds import stream
-    from usdforest.sites.cells import cell_of
 
     key = (json.dumps([recipe.data, str(recipe.base), recipe.seed], sort_keys=True, default=str),
            replicate)  # fmt: skip
