@@ -63,11 +63,11 @@ class FittedStand:
         b0, b1, b2 = self.beta
         return np.exp(b0 + b1 * u + b2 * v)
 
-    @property
-    def bound(self) -> float:
-        """The intensity's maximum over the window (at a corner)."""
-        x0, y0, x1, y1 = self.window
-        return float(self.intensity(np.array([x0, x0, x1, x1]), np.array([y0, y1, y0, y1])).max())
+    def bound(self, coefficients: tuple[float, float, float] | None = None) -> float:
+        """The maximum over the window (at a corner) of the intensity, or of the log-linear
+        ``coefficients`` in the same scaled coordinates."""
+        b0, b1, b2 = self.beta if coefficients is None else coefficients
+        return math.exp(b0 + abs(b1) + abs(b2))
 
     def expression(self, coefficients: tuple[float, float, float] | None = None) -> str:
         """The intensity (or log-linear ``coefficients`` in the same scaled coordinates) as
@@ -238,7 +238,7 @@ def fit_stand(
     # the envelope of the fitted Poisson process, from its own thinned simulations
     rng = np.random.default_rng(seed)
     sims = []
-    bound = fitted.bound
+    bound = fitted.bound()
     x0, y0, x1, y1 = window
     for _ in range(NSIM):
         m = rng.poisson(bound * area)
@@ -293,11 +293,11 @@ def recipe_toml(f: FittedStand) -> dict:
     data: dict = {"seed": 1, "region": {"kind": "rectangle", "bounds": list(f.window)}}
     coefficients = f.first_order or f.beta  # a Strauss process's intensity is its beta
     if f.trend:
-        b0, b1, b2 = coefficients
-        top = math.exp(b0 + abs(b1) + abs(b2))  # at a corner of the window
         data["intensity"] = {
-            "kind": "expression", "expr": f.expression(coefficients), "bound": top * (1 + 1e-6)
-        }  # fmt: skip
+            "kind": "expression",
+            "expr": f.expression(coefficients),
+            "bound": f.bound(coefficients) * (1 + 1e-6),
+        }
     else:
         data["intensity"] = {"kind": "constant", "value": math.exp(coefficients[0])}
     if f.inhibition is not None:
