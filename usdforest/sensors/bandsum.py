@@ -36,8 +36,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-BLOCK = 32_768  # reflectors per block: fixed, so sums are added in the same order anywhere
-WAVE = 8  # blocks held at once (their histograms: WAVE x 2 x bands x n_base float64)
+# reflectors per block: fixed, so sums are added in the same order anywhere. Small enough that
+# a pulse's Doppler group of 60,000 leaves is 8 tasks: blocks of leaves behind the sonar (whose
+# bands are skipped) cost a fraction of those ahead, and numba hands each thread a contiguous
+# run of blocks, so large blocks left one of two cores idle a third of the time (32,768: 1.5x
+# slower on 2 cores, and 2 of 16 cores busy)
+BLOCK = 8_192
+WAVE = 16  # blocks held at once (their histograms: WAVE x 2 x bands x n_base float64)
 # A band whose beam and absorption take a reflector's amplitude below e^-40 (4e-18) of the
 # same reflector on the axis at that range is skipped: far below the float64 rounding of any
 # echo it joins (the leaves behind a sonar, a third of those in range, in the upper bands).
