@@ -31,6 +31,7 @@ import numpy as np
 
 from usdforest.config import check_keys, coerce, load_toml, override, table_array
 from usdforest.errors import RecipeError, UsdForestError
+from usdforest.grow.architecture import BREAST_HEIGHT  # a tree shorter than this has DBH 0
 from usdforest.grow.species import Geometry, Species, get_species, species_from_profile
 from usdforest.grow.turtle import TurtleConfig
 
@@ -262,6 +263,7 @@ MAX_MARGIN = 10_000.0  # metres of ground around the region
 # a recipe without [species.NAME] tables grows these presets (the default forest's), equally mixed
 DEFAULT_SPECIES = ("scots-pine", "norway-spruce", "european-beech", "silver-birch")
 DEFAULT_SIZE_CLASSES = 24
+MAX_VARIANTS = 64
 
 
 @dataclass(frozen=True)
@@ -470,6 +472,7 @@ def parse_intensity(t: Any, region: Any, base: Path, where: str) -> Any:
 
 SITE_KEYS = {"x", "y", "species", "yaw", "scale", "dbh", "height", "crown_radius"}
 MIN_SLENDERNESS, MAX_SLENDERNESS = 20.0, 250.0  # height / DBH of any real tree
+MIN_HEIGHT = 0.1  # m: the smallest seedling an inventory row may give
 
 
 def _parse_sites(
@@ -532,8 +535,10 @@ def _site_sizes(
 ) -> None:
     """An inventory row's dbh, height and crown radius (metres), checked."""
     for key in ("dbh", "height", "crown_radius"):
-        if key in s:
-            site[key] = _num(s[key], f"{w}.{key}", positive=True)
+        if key in s:  # a sapling under breast height has DBH 0
+            site[key] = _num(
+                s[key], f"{w}.{key}", **({"lo": 0} if key == "dbh" else {"positive": True})
+            )
     if not {"dbh", "height", "crown_radius"} & set(site):
         return
     name = site.get("species", names[0] if len(names) == 1 else None)
@@ -551,9 +556,22 @@ def _site_sizes(
     d, h = site.get("dbh"), site.get("height")
     if d is not None:
         _dbh_in_metres(d, f"{w}.dbh")
-    if h is not None and not 1.5 <= h <= 120.0:
-        raise RecipeError(f"{w}.height: {h:g} m is not a tree height (1.5 to 120 m)")
-    if d is not None and h is not None:
+    if h is not None and not MIN_HEIGHT <= h <= 120.0:
+        raise RecipeError(
+            f"{w}.height: {h:g} m is not a tree height ({MIN_HEIGHT:g} to 120 m; seedlings and "
+            "saplings included)"
+        )
+    if d == 0 and (h is None or h >= BREAST_HEIGHT):
+        raise RecipeError(
+            f"{w}.dbh: 0 is a sapling's, shorter than breast height ({BREAST_HEIGHT:g} m); "
+            f"give its height{'' if h is None else f' (not {h:g} m)'}"
+        )
+    if h is not None and h < BREAST_HEIGHT and d:
+        raise RecipeError(
+            f"{w}.dbh: a tree {h:g} m tall has no stem at breast height ({BREAST_HEIGHT:g} m); "
+            "give DBH 0 or leave it out"
+        )
+    if d and h is not None:
         slender = h / d
         if not MIN_SLENDERNESS <= slender <= MAX_SLENDERNESS:
             raise RecipeError(
@@ -667,7 +685,9 @@ def parse_recipe(
             raise RecipeError("forest: expected a table")
         check_keys(forest, FOREST_KEYS, "forest")
         # an allometric species' variants are its size classes (at most this many)
-        default = {n: DEFAULT_SIZE_CLASSES if species[n].species.allometry else 3 for n, _ in mix}
+        # an inventory's rows need the most classes for their DBH (see sites.stand.SizeClasses)
+        classes = MAX_VARIANTS if "sites" in data else DEFAULT_SIZE_CLASSES
+        default = {n: classes if species[n].species.allometry else 3 for n, _ in mix}
         v = forest.get("variants", default)
         if isinstance(v, Mapping):
             check_keys(v, set(species), "forest.variants")
@@ -677,8 +697,8 @@ def parse_recipe(
         else:
             variants = {n: coerce(v, int, "forest.variants") for n, _ in mix}
         for n, k in variants.items():
-            if not 1 <= k <= 64:
-                raise RecipeError(f"forest.variants: {n} has {k}; use 1 to 64 variants")
+            if not 1 <= k <= MAX_VARIANTS:
+                raise RecipeError(f"forest.variants: {n} has {k}; use 1 to {MAX_VARIANTS} variants")
         hard_core = _num(forest.get("hard_core", 0.0), "forest.hard_core", lo=0)
         st = forest.get("scale", {"kind": "uniform", "low": 0.85, "high": 1.15})
         scale = _parse_scale(st)

@@ -103,12 +103,20 @@ def trunk_base_radius(size: TreeSize) -> float:
     return 0.5 * size.dbh / (float(_taper(BREAST_HEIGHT, size.height, 0.95)) * _GIRTH)
 
 
+def dbh_of_base(base: np.ndarray, height: np.ndarray) -> np.ndarray:
+    """The DBH a tree of ``height`` is grown with for its trunk's base to measure ``base``
+    across (:func:`trunk_base_radius`'s inverse)."""
+    return np.asarray(base, dtype=float) * _taper(BREAST_HEIGHT, height, 0.95) * _GIRTH
+
+
 def scaled_dbh(dbh: np.ndarray, height: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """DBH of a tree grown to ``dbh`` and ``height`` and then scaled by ``scale``: its breast
-    height falls at 1.3 / scale on the grown tree's conical trunk."""
+    height falls at 1.3 / scale on the grown tree's conical trunk (0 for a tree shorter than
+    that: a sapling)."""
     h = np.asarray(height, dtype=float)
     s = np.asarray(scale, dtype=float)
-    return s * np.asarray(dbh) * _taper(BREAST_HEIGHT / s, h, 0.95) / _taper(BREAST_HEIGHT, h, 0.95)
+    d = s * np.asarray(dbh) * _taper(BREAST_HEIGHT / s, h, 0.95) / _taper(BREAST_HEIGHT, h, 0.95)
+    return np.where(h * s < BREAST_HEIGHT, 0.0, d)
 
 
 def _reach(size: TreeSize, arch: Architecture, z: np.ndarray) -> np.ndarray:

@@ -29,6 +29,7 @@ from usdforest.sites.cells import (
 )
 from usdforest.sites.sampling import inventory_sites
 from usdforest.sites.stand import (
+    INVENTORY_SPLIT,
     SizeClasses,
     StandSums,
     crowding,
@@ -124,6 +125,7 @@ class Local:
     given_crown: np.ndarray
     pressure: np.ndarray
     away: np.ndarray
+    exact: np.ndarray  # rows that give both DBH (> 0) and height: their class fits both
 
 
 def _given(recipe, key: str) -> np.ndarray:
@@ -161,8 +163,9 @@ def local_sites(recipe, square: Square, replicate: int = 0) -> Local:
     own = in_block if by_cell else square.owns(sites.xy) & in_block
     n = len(sites)
     nan = np.full(n, np.nan)
+    exact = (given["dbh"] > 0) & np.isfinite(given["height"])
     if not allometric or n == 0:
-        return Local(sites, own, cell, rank, block, nan, nan, nan, nan, np.zeros(n), nan)
+        return Local(sites, own, cell, rank, block, nan, nan, nan, nan, np.zeros(n), nan, exact)
     dbh, height, crown = tree_sizes(
         {name: recipe.species[name].species for name in sites.names},
         {name: e.stand for name, e in recipe.species.items() if e.stand is not None},
@@ -183,8 +186,9 @@ def local_sites(recipe, square: Square, replicate: int = 0) -> Local:
     if yaw_given is not None:  # a tree whose yaw the inventory gives keeps it
         away = np.where(yaw_given, np.nan, away)
     return Local(
-        sites, own, cell, rank, block, dbh, height, crown, given["crown_radius"], pressure, away
-    )
+        sites, own, cell, rank, block, dbh, height, crown, given["crown_radius"], pressure, away,
+        exact,
+    )  # fmt: skip
 
 
 @dataclass(frozen=True, eq=False)
@@ -219,6 +223,7 @@ def survey(recipe, square: Square, replicate: int = 0) -> Survey:
         loc.crown[own],
         loc.given_crown[own],
         loc.pressure[own],
+        INVENTORY_SPLIT if recipe.sites is not None else 1,
     )
     by_species = np.bincount(s.species[own], minlength=len(s.names))
     return Survey(cells, counts.astype(np.int64), by_species.astype(np.int64), sums)
@@ -229,12 +234,15 @@ class Plan:
     """What every square's placing shares: each allometric species' size ``classes``; the
     prototype of each (species, variant) (``lookup``, -1: none); each prototype's crown
     ``lean`` (degrees, NaN: symmetric); the id of each cell's first tree (``first_id``;
-    None for an inventory, whose ids are its rows)."""
+    None for an inventory, whose ids are its rows); for an inventory, each prototype's
+    height as grown (``grown``: its top, leaves and shoots included, which in a seedling's
+    class stand a third above the stem), by which its rows are scaled to their heights."""
 
     classes: dict[str, SizeClasses]
     lookup: np.ndarray
     lean: np.ndarray
     first_id: np.ndarray | None
+    grown: np.ndarray | None = None
 
 
 def classes_for(recipe, sums: StandSums) -> dict[str, SizeClasses]:
@@ -246,6 +254,8 @@ def classes_for(recipe, sums: StandSums) -> dict[str, SizeClasses]:
         {name: recipe.variants[name] for name in recipe.species_names},
         float(recipe.region.area),
         recipe.seed,
+        height_first=recipe.sites is not None,
+        split=INVENTORY_SPLIT if recipe.sites is not None else 1,
     )
 
 
@@ -284,7 +294,12 @@ def place(recipe, square: Square, plan: Plan, replicate: int = 0) -> Placed:
             continue
         at = np.flatnonzero(sites.species == k)
         if len(at):
-            variant[at], scale[at] = plan.classes[name].of(loc.height[own][at], loc.dbh[own][at])
+            classes = plan.classes[name]
+            # an inventory's trees as tall as their rows, tops included
+            grown = None if plan.grown is None else plan.grown[plan.lookup[k, : len(classes.sizes)]]
+            variant[at], scale[at] = classes.of(
+                loc.height[own][at], loc.dbh[own][at], loc.exact[own][at], grown
+            )
     proto_index = plan.lookup[sites.species, variant].astype(np.int32)
     away = loc.away[own]
     turn = np.round(away - plan.lean[proto_index], 3) % 360.0

@@ -17,6 +17,12 @@ grows a one-sided crown (up to 35 % longer branches on one side and shorter on t
 one-sided as its trees are pressed on average) and the tree is turned so that the long side
 faces away.
 
+An inventory's rows are classed on a grid twice as fine, heights merged before slenderness,
+at most 64 classes a species; each row takes the class whose trunk, scaled to the row's
+height, measures its DBH best (:meth:`SizeClasses.of`), so every row's sizes are kept
+whatever the row count. Seedlings and saplings under breast height have DBH 0 and are grown
+with a trunk base of ``height / SAPLING_SLENDERNESS`` (:func:`sapling_dbh`).
+
 What the classes need of the whole stand (per fine class: trees, sums of log height, log
 slenderness and pressure; the crown area; basal area by DBH) is kept as
 :class:`StandSums` in int64 fixed point, so sums from any number of tiles, added in any
@@ -32,7 +38,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from usdforest.grow.allometry import ALLOMETRY, weibull_for
-from usdforest.grow.architecture import TreeSize
+from usdforest.grow.architecture import BREAST_HEIGHT, TreeSize, dbh_of_base, scaled_dbh
 from usdforest.grow.species import Species, tree_size
 from usdforest.seeds import stream
 
@@ -41,6 +47,14 @@ SLENDERNESS_STEP = math.log(1.08)
 FIXED = 1e9  # fixed point of the stand's sums (1e-9 of a unit; 9e9 units fit in int64)
 DBH_BIN = 0.001  # m: the bins of the stand's basal area by DBH
 MAX_ASYMMETRY = 0.35
+# height over the stem's diameter at the ground of a sapling under breast height: an assumption
+# of ours (no per-species equation was at hand), within the 2-4-year Scots pine regeneration
+# of Geudens et al. 2004 (Annals of Forest Science 61:653; collar diameters 0.3-2.7 cm)
+SAPLING_SLENDERNESS = 50.0
+# an inventory's fine grid: steps of 12 % in height and 4 % in slenderness, so that a row
+# that shares its class with others is within 2 % of the class's slenderness
+INVENTORY_SPLIT = 2
+EXACT_DBH = 0.025  # the log-DBH error an inventory row's class may leave (2.5 %)
 SUM_COLUMNS = ("trees", "log_height", "log_slenderness", "pressure", "crowns_given", "crown")
 
 
@@ -101,14 +115,26 @@ def tree_sizes(
             rng = stream(seed, "stand", name, "cell", int(c))
             drawn[at] = draw_dbh(spec, len(at), rng)
             noise[at] = rng.standard_normal(len(at))
-        d = np.where(np.isnan(dbh[idx]), drawn, dbh[idx])
+        unknown = np.isnan(dbh[idx]) | (dbh[idx] == 0)  # DBH 0: a sapling's
+        d = np.where(unknown, drawn, dbh[idx])
         h_curve = a.height(d * 100.0) * np.exp(a.height_sd * noise)
-        d = np.where(np.isnan(dbh[idx]) & ~np.isnan(height[idx]), a.dbh(height[idx]) / 100, d)
+        d = np.where(unknown & ~np.isnan(height[idx]), a.dbh(height[idx]) / 100, d)
+        young = unknown & (height[idx] < BREAST_HEIGHT)
+        d = np.where(young, sapling_dbh(np.where(young, height[idx], 1.0)), d)
         dbh[idx] = d
         height[idx] = np.where(np.isnan(height[idx]), h_curve, height[idx])
         own = a.crown_radius(d * 100.0)
         crown[idx] = np.where(np.isnan(given_crown[idx]), own, given_crown[idx])
     return dbh, height, crown
+
+
+def sapling_dbh(height: np.ndarray) -> np.ndarray:
+    """The DBH (m) a tree shorter than breast height is grown with: its trunk template's base
+    then measures ``height / SAPLING_SLENDERNESS`` across (the conical template's breast
+    height lies above such a tree, so the DBH only sets the base). Its row and ``trees.csv``
+    say DBH 0."""
+    h = np.asarray(height, dtype=float)
+    return dbh_of_base(h / SAPLING_SLENDERNESS, h)
 
 
 def crowding(xy: np.ndarray, crown: np.ndarray, height: np.ndarray) -> np.ndarray:
@@ -147,13 +173,14 @@ def pressed(push: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return pressure, away
 
 
-def fine_keys(height: np.ndarray, dbh: np.ndarray) -> np.ndarray:
-    """(n, 2) int64: each tree's cell on the grid of log height and log slenderness."""
+def fine_keys(height: np.ndarray, dbh: np.ndarray, split: int = 1) -> np.ndarray:
+    """(n, 2) int64: each tree's cell on the grid of log height and log slenderness (its
+    steps divided by ``split``: an inventory's finer grid)."""
     lh = np.log(height)
     ls = np.log(height / dbh)
-    return np.stack([np.floor(lh / HEIGHT_STEP), np.floor(ls / SLENDERNESS_STEP)], axis=1).astype(
-        np.int64
-    )
+    return np.stack(
+        [np.floor(lh * split / HEIGHT_STEP), np.floor(ls * split / SLENDERNESS_STEP)], axis=1
+    ).astype(np.int64)
 
 
 @dataclass(frozen=True, eq=False)
@@ -178,14 +205,18 @@ def stand_sums(
     crown: np.ndarray,
     given_crown: np.ndarray,
     pressure: np.ndarray,
+    split: int = 1,
 ) -> StandSums:
-    """The :class:`StandSums` of some trees (a tile's own)."""
+    """The :class:`StandSums` of some trees (a tile's own), on the fine grid divided by
+    ``split``."""
     keys, sums = {}, {}
     for k, name in enumerate(names):
         if name not in allometric:
             continue
         idx = np.flatnonzero(site_species == k)
-        uniq, inverse = np.unique(fine_keys(height[idx], dbh[idx]), axis=0, return_inverse=True)
+        uniq, inverse = np.unique(
+            fine_keys(height[idx], dbh[idx], split), axis=0, return_inverse=True
+        )
         inverse = inverse.reshape(-1)
         given = np.isfinite(given_crown[idx])
         cols = [
@@ -240,16 +271,39 @@ class SizeClasses:
     shift: tuple[int, int]
     keys: np.ndarray
     sizes: tuple[TreeSize, ...]
+    split: int = 1  # the fine grid's steps divided by this (an inventory's: INVENTORY_SPLIT)
 
-    def of(self, height: np.ndarray, dbh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Each tree's class and its scale (its height over its class's)."""
-        coarse = np.floor_divide(fine_keys(height, dbh), np.left_shift(1, self.shift))
+    def of(
+        self,
+        height: np.ndarray,
+        dbh: np.ndarray,
+        exact: np.ndarray | None = None,
+        grown: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Each tree's class and its scale: its height over its class's (over the class's
+        tree as ``grown``, when given per class). A tree marked ``exact`` (an inventory row
+        that gives both sizes) takes instead the class whose scaled trunk measures its DBH
+        best (within ``EXACT_DBH`` if any does, the nearest in height among those), so its
+        DBH does not depend on where the class grid fell."""
+        coarse = np.floor_divide(fine_keys(height, dbh, self.split), np.left_shift(1, self.shift))
         variant = np.full(len(height), -1, dtype=np.int32)
         for c, key in enumerate(self.keys):
             variant[np.all(coarse == key, axis=1)] = c
         if np.any(variant < 0):
             raise ValueError("a tree outside every size class (sizes differ from the survey)")
-        return variant, height / np.array([s.height for s in self.sizes])[variant]
+        h_class = np.array([s.height for s in self.sizes])
+        tall = h_class if grown is None else np.asarray(grown, dtype=float)
+        rows = np.flatnonzero(exact) if exact is not None else np.zeros(0, dtype=np.int64)
+        if len(rows):
+            d_class = np.array([s.dbh for s in self.sizes])
+            ratio = height[rows, None] / tall[None, :]
+            with np.errstate(divide="ignore"):  # a class that would leave it no DBH: inf
+                err = np.abs(np.log(scaled_dbh(d_class, h_class, ratio) / dbh[rows, None]))
+            far = np.abs(np.log(ratio))
+            close = err <= EXACT_DBH
+            score = np.where(close, far, 1e3 + err)  # any close class before every other
+            variant[rows] = np.argmin(score, axis=1)
+        return variant, height / tall[variant]
 
 
 def size_classes(
@@ -259,10 +313,14 @@ def size_classes(
     max_classes: dict[str, int],
     area_m2: float,
     seed: int,
+    height_first: bool = False,
+    split: int = 1,
 ) -> dict[str, SizeClasses]:
     """Each allometric species' size classes from its stand's sums (see the module
     docstring): at most ``max_classes`` per species, grown at the stand's crown competition
-    factor and each class's basal area of larger trees."""
+    factor and each class's basal area of larger trees. ``height_first`` (an inventory)
+    merges heights before any slenderness: a tree's height is exact whatever its class, its
+    DBH only as near as its class's slenderness. ``split``: the sums' fine grid's."""
     area_m2 = max(area_m2, 1e-9)
     ccf = 100.0 * sums.crown_area / FIXED / area_m2 if sums.keys else 100.0
     larger = np.concatenate([np.cumsum(sums.basal[::-1])[::-1], [0]]) / FIXED  # m², bin and up
@@ -272,11 +330,16 @@ def size_classes(
             continue
         fine = sums.keys.get(name, np.zeros((0, 2), dtype=np.int64))
         if len(fine) == 0:
-            out[name] = SizeClasses((0, 0), np.zeros((0, 2), dtype=np.int64), ())
+            out[name] = SizeClasses((0, 0), np.zeros((0, 2), dtype=np.int64), (), split)
             continue
+        # heights merged until one class spans them all (an inventory's), then slenderness
+        span = int(fine[:, 0].max() - fine[:, 0].min()).bit_length() + 1 if height_first else 0
         step = 0
         while True:  # merge slenderness classes two by two, then height, and so on
-            shift = (step // 2, (step + 1) // 2)
+            if step < span:
+                shift = (step, 0)
+            else:
+                shift = (span + (step - span) // 2, (step - span + 1) // 2)
             coarse, inverse = np.unique(
                 np.floor_divide(fine, np.left_shift(1, shift)), axis=0, return_inverse=True
             )
@@ -304,5 +367,5 @@ def size_classes(
                 total = acc[c, 5] / FIXED + (count[c] - n_given) * size.crown_radius
                 size = replace(size, crown_radius=round(float(total / count[c]), 4))
             sizes.append(size)
-        out[name] = SizeClasses(shift, coarse.reshape(-1, 2), tuple(sizes))
+        out[name] = SizeClasses(shift, coarse.reshape(-1, 2), tuple(sizes), split)
     return out

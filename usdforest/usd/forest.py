@@ -246,9 +246,10 @@ def _write_forest(
         )
     tick("growing trees", len(prototypes), len(prototypes))
     ordered = [trees[p] for p in prototypes]
-    plan = Plan(classes, lookup, _leans(ordered), first_ids(recipe, surveys))
-
     proto_extent = np.stack([t.extent for t in ordered])
+    grown = proto_extent[:, 1, 2] - proto_extent[:, 0, 2] if recipe.sites is not None else None
+    plan = Plan(classes, lookup, _leans(ordered), first_ids(recipe, surveys), grown)
+
     # per prototype: its height and (allometric trees) its DBH; a tree's are its scale times
     proto_sizes = np.stack(
         [

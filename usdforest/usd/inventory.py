@@ -156,7 +156,7 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
         area = (b[2] - b[0]) * (b[3] - b[1])
     if not area:
         raise UsdForestError(f"{path}: not a usdforest forest (no regionArea in /Forest)")
-    heights, dbhs, leaf, wood, species = [], [], [], [], []
+    heights, dbhs, leaf, wood, species, where = [], [], [], [], [], []
     grid = None
     if bounds is not None:
         b = np.asarray(list(bounds), dtype=float)
@@ -189,13 +189,18 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
             zs = np.unique(np.round(BREAST / s, 3))
             probe = np.linspace(zs.min(), zs.max(), 5) if len(zs) > 5 else zs
             f = _tree_figures(proto, probe)
-            d = np.interp(BREAST / s, probe, f["dbh"]) * s
+            # a sapling's breast height is above its trunk (no DBH); the others' from the
+            # probes that meet the trunk
+            ok = np.isfinite(f["dbh"])
+            d = (np.interp(BREAST / s, probe[ok], f["dbh"][ok]) if ok.any() else np.nan) * s
+            d = np.where(f["height"] * s < BREAST, np.nan, d)
             heights.append(f["height"] * s)
             dbhs.append(d)
             leaf.append(f["leaf_area"] * s**2)
             wood.append(f["wood_area"] * s**2)
             label = proto.GetCustomDataByKey("usdforest") or {}
             species.append(np.full(len(sel), str(label.get("species", target.name))))
+            where.append((mats[sel] @ world)[:, 3, :2])
             if grid is not None and len(f["xy"]):
                 _cover(
                     grid,
@@ -240,5 +245,12 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
         "species": {
             str(n): int(c) for n, c in zip(*np.unique(sp, return_counts=True), strict=True)
         },
-        "per_tree": {"species": sp, "height": h, "dbh": d, "leaf_area": la, "wood_area": wa},
+        "per_tree": {
+            "species": sp,
+            "height": h,
+            "dbh": d,
+            "leaf_area": la,
+            "wood_area": wa,
+            "xy": np.concatenate(where) if where else np.zeros((0, 2)),
+        },
     }
