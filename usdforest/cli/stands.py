@@ -105,34 +105,64 @@ def fit_cmd(
             metavar="x0,y0,x1,y1", help="The mapped plot (default: the trees' bounding box)."
         ),
     ] = None,
+    covariates: Annotated[
+        list[Path] | None,
+        typer.Option(
+            "--covariates",
+            metavar="RASTER",
+            help="A raster the intensity may depend on (GeoTIFF, .npy over the window, or a "
+            "grey image over it); repeat for more. Kept where the likelihood-ratio test says "
+            "so; the fitted intensity is then written as OUTPUT's .intensity.npy raster.",
+        ),
+    ] = None,
     force: ForceOption = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the fit as JSON.")] = False,
 ) -> None:
     """Fit a recipe to a stem map (intensity, clustering or inhibition, species and sizes):
     build and sample then make more stands like it."""
+    import numpy as np
     import tomli_w
 
     from usdforest.atomic import atomic_path
-    from usdforest.sites.fit import fit_stand, recipe_toml
+    from usdforest.sites.covariates import read_covariate
+    from usdforest.sites.fit import fit_stand, intensity_grid, recipe_toml
 
     require_output(output)
     if output.suffix.lower() != ".toml":
         raise UsdForestError(f"{output}: the fitted recipe is written as .toml")
     refuse_overwrite(output, force=force)
+    raster = output.with_suffix(".intensity.npy")
+    inputs = [stem_map, *(covariates or [])]
+    for path in (output, raster):
+        if any(path.resolve() == q.resolve() for q in inputs):
+            raise UsdForestError(f"{path}: is an input of this fit; write the recipe elsewhere")
+    if covariates:
+        refuse_overwrite(raster, force=force)
     xy, species, dbh = _stem_map(stem_map)
-    fitted = fit_stand(xy, _window(xy, region), species, dbh)
-    data = recipe_toml(fitted)
+    window = _window(xy, region)
+    rasters = tuple(read_covariate(path, window) for path in covariates or [])
+    names = [c.name for c in rasters]
+    if len(set(names)) < len(names):
+        raise UsdForestError(f"--covariates: two rasters share a name ({', '.join(names)})")
+    fitted = fit_stand(xy, window, species, dbh, covariates=rasters)
+    data = recipe_toml(fitted, raster.name if fitted.covariates else None)
+    terms = (["x, y"] if fitted.trend else []) + [c.name for c in fitted.covariates]
+    form = f"log-linear in {', '.join(terms)}" if terms else "constant"
     head = (
         f"# Fitted by usdforest fit to {stem_map.name}: {fitted.trees:,} trees, intensity "
-        f"{'log-linear in x, y' if fitted.trend else 'constant'} (maximum Poisson likelihood), "
-        f"{fitted.interaction} ({_fit_method(fitted)}).\n"
+        f"{form} (maximum Poisson likelihood), {fitted.interaction} ({_fit_method(fitted)}).\n"
     )
+    if fitted.covariates:
+        with atomic_path(raster) as tmp:
+            with tmp.open("wb") as f:
+                np.save(f, intensity_grid(fitted))
     with atomic_path(output) as tmp:
         tmp.write_text(head + tomli_w.dumps(data))
     summary = {
         "trees": fitted.trees,
         "window": list(fitted.window),
-        "intensity": "log-linear" if fitted.trend else "constant",
+        "intensity": "log-linear" if terms else "constant",
+        "intensity_terms": terms,
         "beta": list(fitted.beta),
         "beta_se": list(fitted.beta_se),
         "interaction": fitted.interaction,
@@ -143,6 +173,11 @@ def fit_cmd(
         "hard_core": fitted.hard_core,
         "inhibition": fitted.inhibition.describe() if fitted.inhibition else None,
         "first_order": list(fitted.first_order) if fitted.first_order else None,
+        "covariates": {
+            c.name: {"coefficient": b, "se": e, "mean": c.mean, "sd": c.sd}
+            for c, b, e in zip(fitted.covariates, fitted.slopes, fitted.slopes_se, strict=True)
+        },
+        "covariates_dropped": sorted(set(names) - {c.name for c in fitted.covariates}),
         "species": fitted.species,
         "dbh": {k: {"mean": m, "cv": cv} for k, (m, cv) in fitted.dbh.items()},
         "recipe": str(output),
@@ -151,15 +186,28 @@ def fit_cmd(
         sys.stdout.write(json.dumps(summary) + "\n")
         return
     b, se = fitted.beta, fitted.beta_se
+    extra = " + sum c z" if fitted.covariates else ""
     rows = {
         "trees": f"{fitted.trees:,} in {', '.join(f'{v:g}' for v in fitted.window)}",
         "intensity": (
-            f"exp(b0 + b1 u + b2 v), u, v in [-1, 1]: b0 {b[0]:.3f} ± {se[0]:.3f}, "
+            f"exp(b0 + b1 u + b2 v{extra}), u, v in [-1, 1]: b0 {b[0]:.3f} ± {se[0]:.3f}, "
             f"b1 {b[1]:.3f} ± {se[1]:.3f}, b2 {b[2]:.3f} ± {se[2]:.3f}"
             if fitted.trend
+            else f"exp(b0{extra}): b0 {b[0]:.3f} ± {se[0]:.3f} (no trend at 5 %)"
+            if fitted.covariates
             else f"constant {math.exp(b[0]):.5g} trees/m² (no trend at 5 %)"
         ),
         "interaction": f"{fitted.interaction}: {_fit_method(fitted)}",
+    }
+    for c, v, e in zip(fitted.covariates, fitted.slopes, fitted.slopes_se, strict=True):
+        rows[f"covariate {c.name}"] = (
+            f"{v:+.3f} ± {e:.3f} a standard deviation ({c.sd:.4g} about {c.mean:.4g}); the "
+            f"intensity is {raster.name}"
+        )
+    dropped = sorted(set(names) - {c.name for c in fitted.covariates})
+    if dropped:
+        rows["covariates dropped"] = f"{', '.join(dropped)} (no effect at 5 %)"
+    rows |= {
         "clark_evans": f"{fitted.clark_evans:.3f}",
     }
     if fitted.clusters is not None:

@@ -6,7 +6,12 @@ Three steps, each a published method (Baddeley, Rubak and Turner 2015, chapters 
    with ``u, v`` the coordinates scaled to [-1, 1] over the window, by maximum Poisson
    likelihood (the integral over the rectangle is exact). The trend is kept only when the
    likelihood-ratio test against a constant intensity rejects it at 5 % (chi-squared, 2
-   degrees of freedom).
+   degrees of freedom). With raster covariates (:mod:`usdforest.sites.covariates`), the
+   log-intensity is linear in them too (``+ sum c_j z_j(x, y)``, each standardised over
+   the window), the likelihood's integral a midpoint rule at half the finest covariate cell
+   (spatstat's ``ppm(X ~ x + y + Z)`` on a quadrature); covariates are dropped one at a time
+   while the likelihood-ratio test (1 degree of freedom) keeps none of them at 5 % (backward
+   elimination), and the trend is tested as before given those kept.
 2. **Interaction.** The pattern is compared with 39 patterns of the fitted Poisson process
    (its L(r) - r, with the inhomogeneous K when the intensity has a trend). Above the
    envelope at short range: a Thomas cluster process fitted by minimum contrast on K
@@ -30,10 +35,12 @@ import numpy as np
 
 from usdforest.errors import UsdForestError
 from usdforest.sites.clusters import MAX_SCALE, Clusters
+from usdforest.sites.covariates import Covariate, quadrature
 from usdforest.sites.inhibition import MAX_RADIUS, Inhibition
 from usdforest.sites.pattern import Bounds, _checked, clark_evans, inhomogeneous_k
 
 CHI2_2DF_95 = 5.991  # the 95 % quantile of chi-squared with 2 degrees of freedom
+CHI2_1DF_95 = 3.841  # and with 1
 NSIM = 39
 DUMMIES_PER_TREE = 4  # of a Strauss fit's logistic regression
 HARD_GAMMA = 0.05  # a fitted Strauss gamma below this is written as a hard core
@@ -56,18 +63,36 @@ class FittedStand:
     species: dict[str, float] = field(default_factory=dict)
     dbh: dict[str, tuple[float, float]] = field(default_factory=dict)  # mean, cv
     inhibition: Inhibition | None = None
-    first_order: tuple[float, float, float] | None = None  # a Strauss process's log beta
+    # a Strauss process's log beta: b0, b1, b2 and one coefficient a covariate
+    first_order: tuple[float, ...] | None = None
+    covariates: tuple[Covariate, ...] = ()
+    slopes: tuple[float, ...] = ()  # the intensity's coefficient of each covariate
+    slopes_se: tuple[float, ...] = ()
 
-    def intensity(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    def intensity(
+        self, x: np.ndarray, y: np.ndarray, coefficients: tuple[float, ...] | None = None
+    ) -> np.ndarray:
+        """The intensity at ``x, y``, or the log-linear ``coefficients`` (b0, b1, b2, then one
+        a covariate) there."""
+        b = (*self.beta, *self.slopes) if coefficients is None else coefficients
         u, v = _scaled(self.window, x, y)
-        b0, b1, b2 = self.beta
-        return np.exp(b0 + b1 * u + b2 * v)
+        eta = b[0] + b[1] * u + b[2] * v
+        for c, z in zip(b[3:], self.covariates, strict=True):
+            eta = eta + c * z(x, y)
+        return np.exp(eta)
 
-    def bound(self, coefficients: tuple[float, float, float] | None = None) -> float:
-        """The maximum over the window (at a corner) of the intensity, or of the log-linear
-        ``coefficients`` in the same scaled coordinates."""
-        b0, b1, b2 = self.beta if coefficients is None else coefficients
-        return math.exp(b0 + abs(b1) + abs(b2))
+    def bound(self, coefficients: tuple[float, ...] | None = None) -> float:
+        """The intensity's maximum over the window (or that of the log-linear
+        ``coefficients``): at a corner, or with covariates its greatest on the quadrature
+        (which meets every covariate cell) times what the trend adds within half a cell."""
+        b = (*self.beta, *self.slopes) if coefficients is None else coefficients
+        if not self.covariates:
+            return math.exp(b[0] + abs(b[1]) + abs(b[2]))
+        quad, _ = quadrature(self.window, self.covariates)
+        x0, y0, x1, y1 = self.window
+        cell = min(c.cell for c in self.covariates)
+        margin = abs(b[1]) * cell / (x1 - x0) + abs(b[2]) * cell / (y1 - y0)
+        return float(self.intensity(quad[:, 0], quad[:, 1], b).max()) * math.exp(margin)
 
     def expression(self, coefficients: tuple[float, float, float] | None = None) -> str:
         """The intensity (or log-linear ``coefficients`` in the same scaled coordinates) as
@@ -93,6 +118,60 @@ def _log_integral(b: float) -> tuple[float, float, float]:
     coth = math.cosh(b) / math.sinh(b)
     d1 = coth - 1 / b
     return math.log(2 * s), d1, 1 / b**2 - 1 / math.sinh(b) ** 2
+
+
+def fit_loglinear(
+    xy: np.ndarray,
+    window: Bounds,
+    trend: bool,
+    covariates: tuple[Covariate, ...],
+    quad: tuple[np.ndarray, float],
+) -> tuple:
+    """``(coefficients, se, loglik)`` of the Poisson intensity log-linear in the scaled
+    coordinates (with ``trend``) and the standardised ``covariates``, by Newton's method on
+    the likelihood with its integral the midpoint rule ``quad`` (points and weight,
+    :func:`covariates.quadrature`; one for every model compared): coefficients b0, b1, b2
+    (0 without trend), then one a covariate."""
+    quad, weight = quad
+
+    def design(p: np.ndarray) -> np.ndarray:
+        u, v = _scaled(window, p[:, 0], p[:, 1])
+        cols = [np.ones(len(p)), u, v] if trend else [np.ones(len(p))]
+        return np.column_stack([*cols, *(z(p[:, 0], p[:, 1]) for z in covariates)])
+
+    zd, zq = design(xy), design(quad)
+    n, k = len(xy), zd.shape[1]
+    total = zd.sum(axis=0)
+    area = weight * len(quad)
+    b = np.zeros(k)
+    b[0] = math.log(n / area)
+
+    def loglik(b: np.ndarray) -> float:
+        return float(total @ b - weight * np.exp(zq @ b).sum())
+
+    ll = loglik(b)
+    for _ in range(100):
+        e = weight * np.exp(zq @ b)
+        grad = total - zq.T @ e
+        hess = (zq * e[:, None]).T @ zq
+        step = np.linalg.solve(hess, grad)
+        t = 1.0
+        while loglik(b + t * step) < ll - 1e-12 and t > 1e-6:  # the likelihood is concave
+            t /= 2
+        b = b + t * step
+        new = loglik(b)
+        done = abs(new - ll) < 1e-12 * max(abs(ll), 1.0) or np.abs(t * step).max() < 1e-10
+        ll = new
+        if done:
+            break
+    e = weight * np.exp(zq @ b)
+    se = np.sqrt(np.diag(np.linalg.inv((zq * e[:, None]).T @ zq)))
+    full = np.zeros(3 + len(covariates))
+    full_se = np.zeros(3 + len(covariates))
+    at = [0, 1, 2] if trend else [0]
+    at += list(range(3, 3 + len(covariates)))
+    full[at], full_se[at] = b, se
+    return tuple(float(v) for v in full), tuple(float(v) for v in full_se), ll
 
 
 def fit_intensity(xy: np.ndarray, window: Bounds, trend: bool = True) -> tuple:
@@ -151,8 +230,13 @@ def _thomas_contrast(k_hat: np.ndarray, r: np.ndarray) -> tuple[float, float]:
 
 
 def fit_strauss(
-    pts: np.ndarray, window: Bounds, trend: bool, radii: np.ndarray, border: float
-) -> tuple[float, float, tuple[float, float, float]]:
+    pts: np.ndarray,
+    window: Bounds,
+    trend: bool,
+    radii: np.ndarray,
+    border: float,
+    covariates: tuple[Covariate, ...] = (),
+) -> tuple[float, float, tuple[float, ...]]:
     """``(radius, gamma, log-beta coefficients)`` of the Strauss process that best fits
     ``pts`` over ``radii``, by the logistic-regression estimator of Baddeley, Coeurjolly,
     Rubak and Waagepetersen (2014, Biometrika 101:377; spatstat's ``ppm(..., method =
@@ -164,7 +248,8 @@ def fit_strauss(
     Berman-Turner quadrature of the pseudo-likelihood with the usual 4 grid dummies a tree
     biased gamma up by 0.05-0.1 and beta down by 20 %: the interaction varies on the
     radius's scale, finer than the grid). Only points ``border`` or more inside the window
-    count (one border for every radius, so their fits compare); gamma in [exp(-30), 1]."""
+    count (one border for every radius, so their fits compare); gamma in [exp(-30), 1].
+    The log-beta coefficients are b0, b1, b2 (0 without ``trend``), then one a covariate."""
     from scipy.optimize import minimize
     from scipy.spatial import cKDTree
 
@@ -186,7 +271,10 @@ def fit_strauss(
     keep &= (quad[:, 1] - y0 >= rb) & (y1 - quad[:, 1] >= rb)
     quad, data = quad[keep], data[keep]
     u, v = _scaled(window, quad[:, 0], quad[:, 1])
-    z = np.column_stack([np.ones(len(quad)), u, v] if trend else [np.ones(len(quad))])
+    z = np.column_stack(
+        [*([np.ones(len(quad)), u, v] if trend else [np.ones(len(quad))]),
+         *(c(quad[:, 0], quad[:, 1]) for c in covariates)]
+    )  # fmt: skip
     tree = cKDTree(pts)
     log_rho = math.log(rho)
     best = None
@@ -209,8 +297,9 @@ def fit_strauss(
         if best is None or m.fun < best[0]:
             best = (m.fun, float(r), m.x)
     _, r, p = best
-    theta = (float(p[0]), float(p[1]), float(p[2])) if trend else (float(p[0]), 0.0, 0.0)
-    return r, math.exp(float(p[-1])), theta
+    head = [float(p[0]), float(p[1]), float(p[2])] if trend else [float(p[0]), 0.0, 0.0]
+    slopes = [float(c) for c in p[(3 if trend else 1) : -1]]
+    return r, math.exp(float(p[-1])), (*head, *slopes)
 
 
 def fit_stand(
@@ -219,17 +308,19 @@ def fit_stand(
     species: list[str] | None = None,
     dbh: np.ndarray | None = None,
     seed: int = 0,
+    covariates: tuple[Covariate, ...] = (),
 ) -> FittedStand:
-    """Fit intensity, interaction and marks to the stem map ``xy`` in ``window``."""
+    """Fit intensity, interaction and marks to the stem map ``xy`` in ``window``, the
+    intensity log-linear in the coordinates and in ``covariates`` where the data say so."""
     pts, w, h, area = _checked(xy, window)
     n = len(pts)
     if n < 20:
         raise UsdForestError(f"a fit needs at least 20 trees, got {n}")
-    b1, se1, ll1 = fit_intensity(pts, window, trend=True)
-    b0, se0, ll0 = fit_intensity(pts, window, trend=False)
-    trend = 2 * (ll1 - ll0) > CHI2_2DF_95
-    beta, se = (b1, se1) if trend else (b0, se0)
-    fitted = FittedStand(window, n, beta, se, trend, None, None, 0.0, 0.0, "poisson")
+    beta, se, trend, covariates, slopes, slopes_se = _first_order(pts, window, covariates)
+    fitted = FittedStand(
+        window, n, beta, se, trend, None, None, 0.0, 0.0, "poisson",
+        covariates=covariates, slopes=slopes, slopes_se=slopes_se,
+    )  # fmt: skip
     lam = fitted.intensity(pts[:, 0], pts[:, 1])
     rmax = min(w, h) / 4
     r = np.linspace(rmax / 40, rmax, 40)
@@ -262,10 +353,10 @@ def fit_stand(
         nn = cKDTree(pts).query(pts, k=2)[0][:, 1]
         top = max(min(3 * nn.mean(), rmax / 2, MAX_RADIUS), nn.min())
         coarse = np.linspace(nn.min(), top, 24)
-        radius, gamma, theta = fit_strauss(pts, window, trend, coarse, top)
+        radius, gamma, theta = fit_strauss(pts, window, trend, coarse, top, covariates)
         step = coarse[1] - coarse[0]  # then a tenth of a step around the best
         fine = np.linspace(max(radius - step, nn.min()), min(radius + step, top), 21)
-        radius, gamma, theta = fit_strauss(pts, window, trend, fine, top)
+        radius, gamma, theta = fit_strauss(pts, window, trend, fine, top, covariates)
         if gamma < HARD_GAMMA:
             hard_core, kind = float(nn.min()), "hard core"
         else:
@@ -283,20 +374,70 @@ def fit_stand(
                     sizes[name] = (float(sel.mean()), float(sel.std(ddof=1) / sel.mean()))
     return FittedStand(
         window, n, beta, se, trend, clusters, kappa, hard_core, ce, kind, shares, sizes,
-        inhibition, first_order,
+        inhibition, first_order, covariates, slopes, slopes_se,
     )  # fmt: skip
 
 
-def recipe_toml(f: FittedStand) -> dict:
+def _first_order(pts: np.ndarray, window: Bounds, covariates: tuple[Covariate, ...]) -> tuple:
+    """``(beta, se, trend, covariates kept, their slopes, their se)``: the covariates by
+    backward elimination (each dropped in turn while the likelihood-ratio test of the model
+    without it does not reject that at 5 %, chi-squared 1 degree of freedom), then the trend
+    by its own test given them; without covariates, the exact likelihood."""
+    if not covariates:
+        b1, se1, ll1 = fit_intensity(pts, window, trend=True)
+        b0, se0, ll0 = fit_intensity(pts, window, trend=False)
+        trend = 2 * (ll1 - ll0) > CHI2_2DF_95
+        beta, se = (b1, se1) if trend else (b0, se0)
+        return beta, se, trend, (), (), ()
+    quad = quadrature(window, covariates)
+    kept = tuple(covariates)
+    full = fit_loglinear(pts, window, True, kept, quad)
+    while kept:  # backward elimination: drop the covariate the data need least, if any
+        drops = [
+            fit_loglinear(pts, window, True, kept[:j] + kept[j + 1 :], quad)
+            for j in range(len(kept))
+        ]
+        j = int(np.argmax([d[2] for d in drops]))
+        if 2 * (full[2] - drops[j][2]) > CHI2_1DF_95:
+            break
+        kept, full = kept[:j] + kept[j + 1 :], drops[j]
+    flat = fit_loglinear(pts, window, False, kept, quad)
+    trend = 2 * (full[2] - flat[2]) > CHI2_2DF_95
+    b, se, _ = full if trend else flat
+    return b[:3], se[:3], trend, kept, b[3 : 3 + len(kept)], se[3 : 3 + len(kept)]
+
+
+def intensity_grid(f: FittedStand) -> np.ndarray:
+    """The fitted intensity (a Strauss process's beta) over the window as a raster recipe
+    reads it: one value a cell at the covariates' finest cell (at most 2,000 a side), row 0
+    north, each the intensity at the cell's centre."""
+    x0, y0, x1, y1 = f.window
+    cell = min(c.cell for c in f.covariates)
+    nx = int(min(max(math.ceil((x1 - x0) / cell), 1), 2000))
+    ny = int(min(max(math.ceil((y1 - y0) / cell), 1), 2000))
+    gx = x0 + (np.arange(nx) + 0.5) * (x1 - x0) / nx
+    gy = y1 - (np.arange(ny) + 0.5) * (y1 - y0) / ny
+    xx, yy = np.meshgrid(gx, gy)
+    coefficients = f.first_order or (*f.beta, *f.slopes)
+    return f.intensity(xx, yy, coefficients)
+
+
+def recipe_toml(f: FittedStand, raster: str | None = None) -> dict:
     """The fitted stand as recipe data (what ``tomli_w`` writes and ``usdforest build``
-    reads): region, intensity, clusters or hard core, the species mix and sizes."""
+    reads): region, intensity, clusters or hard core, the species mix and sizes. An
+    intensity with covariates is the raster file ``raster`` (:func:`intensity_grid`, saved
+    beside the recipe)."""
     data: dict = {"seed": 1, "region": {"kind": "rectangle", "bounds": list(f.window)}}
     coefficients = f.first_order or f.beta  # a Strauss process's intensity is its beta
-    if f.trend:
+    if f.covariates:
+        if raster is None:
+            raise UsdForestError("an intensity fitted with covariates is written as a raster")
+        data["intensity"] = {"kind": "raster", "file": raster}
+    elif f.trend:
         data["intensity"] = {
             "kind": "expression",
-            "expr": f.expression(coefficients),
-            "bound": f.bound(coefficients) * (1 + 1e-6),
+            "expr": f.expression(coefficients[:3]),
+            "bound": f.bound(coefficients[:3]) * (1 + 1e-6),
         }
     else:
         data["intensity"] = {"kind": "constant", "value": math.exp(coefficients[0])}
