@@ -16,7 +16,8 @@ Three steps, each a published method (Baddeley, Rubak and Turner 2015, chapters 
    (its L(r) - r, with the inhomogeneous K when the intensity has a trend). Above the
    envelope at short range: a Thomas cluster process fitted by minimum contrast on K
    (Diggle 1983; ``sum (K^q - K_theory^q)^2`` with q = 1/4 over ``r`` up to a quarter of the
-   shorter side). Below it: a Strauss process fitted by logistic composite likelihood
+   shorter side); the trend is then tested again with the variance the clusters give the
+   coefficients (:func:`thomas_covariance`) and dropped where it fails. Below it: a Strauss process fitted by logistic composite likelihood
    (Baddeley et al. 2014; :func:`fit_strauss`, the border correction), its radius profiled
    over a grid of radii (spatstat's ``profilepl``); its first-order term is log-linear like
    the intensity.
@@ -29,7 +30,7 @@ Three steps, each a published method (Baddeley, Rubak and Turner 2015, chapters 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -342,6 +343,22 @@ def fit_stand(
     clusters, kappa, hard_core, kind = None, None, 0.0, "poisson"
     if np.any(k_hat[short] > hi[short]):
         kappa, sigma = _thomas_contrast(k_hat, r)
+        # the likelihood-ratio tests and standard errors assumed Poisson; under the fitted
+        # Thomas process the coefficients vary more (Waagepetersen 2007): the trend is
+        # tested again with that variance, and dropped (K refitted) where it fails
+        cov = thomas_covariance(fitted, kappa, sigma)
+        if trend and _wald(fitted, cov) <= CHI2_2DF_95:
+            beta, se, trend, covariates, slopes, slopes_se = _first_order(
+                pts, window, covariates, allow_trend=False
+            )
+            fitted = replace(fitted, beta=beta, trend=trend, covariates=covariates, slopes=slopes)
+            lam = fitted.intensity(pts[:, 0], pts[:, 1])
+            k_hat = inhomogeneous_k(pts, window, r, lam)
+            kappa, sigma = _thomas_contrast(k_hat, r)
+            bound = fitted.bound()
+            cov = thomas_covariance(fitted, kappa, sigma)
+        sd = np.sqrt(np.diag(cov))
+        se, slopes_se = _spread(sd, fitted)
         # within what a recipe takes: a scale of at most MAX_SCALE m, at most 10,000 trees a
         # cluster (a minimum contrast that runs off to either is a pattern barely clustered)
         clusters = Clusters("thomas", min(sigma, MAX_SCALE), min(max(bound / kappa, 1e-3), 1e4))
@@ -378,23 +395,79 @@ def fit_stand(
     )  # fmt: skip
 
 
-def _first_order(pts: np.ndarray, window: Bounds, covariates: tuple[Covariate, ...]) -> tuple:
+def _spread(values: np.ndarray, f: FittedStand) -> tuple[tuple, tuple]:
+    """Per-coefficient ``values`` of :func:`thomas_covariance`'s order as ``(b0, b1, b2)``
+    (0 for a trend not fitted) and one a covariate."""
+    head = [float(values[0]), 0.0, 0.0]
+    if f.trend:
+        head[1:] = [float(values[1]), float(values[2])]
+    return tuple(head), tuple(float(v) for v in values[(3 if f.trend else 1) :])
+
+
+def _wald(f: FittedStand, cov: np.ndarray) -> float:
+    """The Wald statistic of the trend (b1, b2) under the covariance ``cov``."""
+    b = np.array(f.beta[1:3])
+    return float(b @ np.linalg.solve(cov[1:3, 1:3], b))
+
+
+def thomas_covariance(f: FittedStand, kappa: float, sigma: float) -> np.ndarray:
+    """The covariance of the first-order coefficients (b0, b1 and b2 with a trend, then one a
+    covariate) when the pattern is a Thomas process of ``kappa`` parents/m² and scale
+    ``sigma`` m, by Waagepetersen's (2007, Biometrics 63:252) sandwich ``I^-1 (I + J) I^-1``:
+    ``I = int z z' lambda``, the Poisson information, and ``J = int int z(u) z(v)' lambda(u)
+    lambda(v) (g(u - v) - 1)``, with the Thomas ``g - 1 = exp(-r^2 / (4 sigma^2)) / (4 pi
+    kappa sigma^2)``; both on a grid over the window at a quarter of sigma (at most 512 a
+    side), the double integral a convolution (FFT)."""
+    from scipy.signal import fftconvolve
+
+    x0, y0, x1, y1 = f.window
+    step = max(sigma / 4, (x1 - x0) / 512, (y1 - y0) / 512)
+    nx, ny = max(math.ceil((x1 - x0) / step), 8), max(math.ceil((y1 - y0) / step), 8)
+    dx, dy = (x1 - x0) / nx, (y1 - y0) / ny
+    gx = x0 + (np.arange(nx) + 0.5) * dx
+    gy = y0 + (np.arange(ny) + 0.5) * dy
+    xx, yy = np.meshgrid(gx, gy)
+    lam = f.intensity(xx, yy)
+    u, v = _scaled(f.window, xx, yy)
+    cols = [np.ones_like(xx), u, v] if f.trend else [np.ones_like(xx)]
+    cols += [c(xx, yy) for c in f.covariates]
+    w = dx * dy
+    fields = [c * lam for c in cols]
+    info = np.array([[w * float((a * b / lam).sum()) for b in fields] for a in fields])
+    reach = 8 * sigma  # the kernel below exp(-16)
+    kx = np.arange(-int(reach / dx), int(reach / dx) + 1) * dx
+    ky = np.arange(-int(reach / dy), int(reach / dy) + 1) * dy
+    kxx, kyy = np.meshgrid(kx, ky)
+    kernel = np.exp(-(kxx**2 + kyy**2) / (4 * sigma**2)) / (4 * math.pi * kappa * sigma**2)
+    spread = [fftconvolve(fld, kernel, mode="same") for fld in fields]
+    extra = np.array([[w * w * float((a * s).sum()) for s in spread] for a in fields])
+    inv = np.linalg.inv(info)
+    return inv @ (info + extra) @ inv
+
+
+def _first_order(
+    pts: np.ndarray,
+    window: Bounds,
+    covariates: tuple[Covariate, ...],
+    allow_trend: bool = True,
+) -> tuple:
     """``(beta, se, trend, covariates kept, their slopes, their se)``: the covariates by
     backward elimination (each dropped in turn while the likelihood-ratio test of the model
     without it does not reject that at 5 %, chi-squared 1 degree of freedom), then the trend
-    by its own test given them; without covariates, the exact likelihood."""
+    by its own test given them (no trend without ``allow_trend``); without covariates, the
+    exact likelihood."""
     if not covariates:
         b1, se1, ll1 = fit_intensity(pts, window, trend=True)
         b0, se0, ll0 = fit_intensity(pts, window, trend=False)
-        trend = 2 * (ll1 - ll0) > CHI2_2DF_95
+        trend = allow_trend and 2 * (ll1 - ll0) > CHI2_2DF_95
         beta, se = (b1, se1) if trend else (b0, se0)
         return beta, se, trend, (), (), ()
     quad = quadrature(window, covariates)
     kept = tuple(covariates)
-    full = fit_loglinear(pts, window, True, kept, quad)
+    full = fit_loglinear(pts, window, allow_trend, kept, quad)
     while kept:  # backward elimination: drop the covariate the data need least, if any
         drops = [
-            fit_loglinear(pts, window, True, kept[:j] + kept[j + 1 :], quad)
+            fit_loglinear(pts, window, allow_trend, kept[:j] + kept[j + 1 :], quad)
             for j in range(len(kept))
         ]
         j = int(np.argmax([d[2] for d in drops]))
@@ -402,7 +475,7 @@ def _first_order(pts: np.ndarray, window: Bounds, covariates: tuple[Covariate, .
             break
         kept, full = kept[:j] + kept[j + 1 :], drops[j]
     flat = fit_loglinear(pts, window, False, kept, quad)
-    trend = 2 * (full[2] - flat[2]) > CHI2_2DF_95
+    trend = allow_trend and 2 * (full[2] - flat[2]) > CHI2_2DF_95
     b, se, _ = full if trend else flat
     return b[:3], se[:3], trend, kept, b[3 : 3 + len(kept)], se[3 : 3 + len(kept)]
 
