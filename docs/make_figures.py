@@ -234,7 +234,8 @@ def allometric(out: Path, work: Path) -> None:
         write_forest(read_recipe(recipe), path, thumbnail=False)
         f = stand_figures(path)
         caption = (
-            f"{label}: LAI {f['leaf_area_index']:.2f}, cover {f['canopy_cover']:.0%}, "
+            f"{label}: LAI {f['leaf_area_index']:.2f}, "
+            f"crown footprint {f['crown_footprint_cover']:.0%}, "
             f"DBH CV {f['dbh_m']['cv']:.2f}, height CV {f['height_m']['cv']:.2f}"
         )
         for row, view in enumerate(("top", "side")):

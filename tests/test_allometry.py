@@ -320,7 +320,7 @@ def test_the_shipped_1ha_stand_has_published_stand_figures(tmp_path):
     assert 3.0 <= f["leaf_area_index"] <= 9.0
     assert f["wood_to_leaf_area"] <= 0.4
     assert f["dbh_m"]["cv"] >= 0.25 and f["height_m"]["cv"] >= 0.15
-    assert f["canopy_cover"] >= 0.6
+    assert f["crown_footprint_cover"] >= 0.6
     assert 300 <= f["stems_per_ha"] <= 900
     # the pines follow Näslund's curve and Repola's foliage tree by tree (median ratio)
     t = f["per_tree"]

@@ -155,7 +155,7 @@ def test_the_default_forest_is_a_closed_canopy(default_forest):
     out, build = default_forest
     f = stand_figures(out)
     assert f["trees"] == build.n_trees
-    assert f["canopy_cover"] >= 0.6
+    assert f["crown_footprint_cover"] >= 0.6
     assert 3.0 <= f["leaf_area_index"] <= 9.0 and f["wood_to_leaf_area"] <= 0.4
     assert f["dbh_m"]["cv"] >= 0.25 and f["height_m"]["cv"] >= 0.15
     assert 50 <= np.median(f["per_tree"]["height"] / f["per_tree"]["dbh"]) <= 150

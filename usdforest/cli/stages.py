@@ -172,14 +172,28 @@ def info_cmd(
 def stats_cmd(
     stage: Annotated[Path, typer.Argument(help="A forest built by usdforest build.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print as JSON.")] = False,
+    no_rays: Annotated[
+        bool,
+        typer.Option(
+            "--no-rays",
+            help="Skip the canopy cover, gap fractions and clumping measured by rays (the "
+            "inventory alone, without building a ray-casting scene).",
+        ),
+    ] = False,
     quiet: QuietOption = False,
 ) -> None:
     """Stand figures measured on the composed forest: stems/ha, basal area, DBH and height
-    distributions, slenderness, leaf and wood area indices, nadir canopy cover."""
+    distributions, slenderness, leaf and wood area indices, crown footprint cover; and by
+    rays: canopy cover, gap fraction at 0, 30, 45 and 60 degrees, G and clumping index."""
     from usdforest.usd.inventory import stand_figures
 
     with _progress(quiet) as tick:
         f = stand_figures(stage, progress=tick)
+        if not no_rays and f["region_bounds"] is not None:
+            from usdforest.sensors.gaps import canopy_figures
+
+            f |= canopy_figures(stage, tuple(f["region_bounds"]), f["leaf_area_index"],
+                                progress=tick)  # fmt: skip
     f.pop("per_tree")
     if as_json:
         sys.stdout.write(json.dumps(f) + "\n")

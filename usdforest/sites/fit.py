@@ -17,10 +17,10 @@ Three steps, each a published method (Baddeley, Rubak and Turner 2015, chapters 
    envelope at short range: a Thomas cluster process fitted by minimum contrast on K
    (Diggle 1983; ``sum (K^q - K_theory^q)^2`` with q = 1/4 over ``r`` up to a quarter of the
    shorter side); the trend is then tested again with the variance the clusters give the
-   coefficients (:func:`thomas_covariance`) and dropped where it fails. Below it: a Strauss process fitted by logistic composite likelihood
-   (Baddeley et al. 2014; :func:`fit_strauss`, the border correction), its radius profiled
-   over a grid of radii (spatstat's ``profilepl``); its first-order term is log-linear like
-   the intensity.
+   coefficients (:func:`thomas_covariance`) and dropped where it fails. Below it: a
+   Strauss process fitted by logistic composite likelihood (Baddeley et al. 2014;
+   :func:`fit_strauss`, the border correction), its radius profiled over a grid of radii
+   (spatstat's ``profilepl``); its first-order term is log-linear like the intensity.
    Where the fitted interaction is all but a hard core (gamma below ``HARD_GAMMA``): a Matérn
    II hard core at the shortest nearest-neighbour distance. Inside: Poisson.
 3. **Marks**: species shares from a ``species`` column, and per species the mean and

@@ -8,7 +8,9 @@ over pi) and one-sided leaf area (every leaf instance's template area - half the
 closed needle mesh - times its scale squared) and wood area (half the surface of its trunk and
 branch meshes, the same one-sided convention). Per stand: stems/ha, basal area, quadratic mean
 DBH, DBH and height distributions, leaf and wood area indices (over the region's area) and
-nadir canopy cover (the share of 0.25 m cells of the region under any leaf or wood point).
+the crown footprint cover (the share of 0.25 m cells of the region under any leaf or wood
+point: crowns' outlines, not what a sensor sees through them; canopy cover and gap fractions
+by rays are :mod:`usdforest.sensors.gaps`').
 """
 
 from __future__ import annotations
@@ -241,7 +243,8 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
         "leaf_area_index": float(la.sum() / area),
         "wood_area_index": float(wa.sum() / area),
         "wood_to_leaf_area": float(wa.sum() / la.sum()) if la.sum() else None,
-        "canopy_cover": float(grid[1].mean()) if grid is not None else None,
+        "crown_footprint_cover": float(grid[1].mean()) if grid is not None else None,
+        "region_bounds": [float(v) for v in bounds] if bounds is not None else None,
         "species": {
             str(n): int(c) for n, c in zip(*np.unique(sp, return_counts=True), strict=True)
         },
