@@ -5,6 +5,7 @@ Run with ``make figures``. Every figure is built from the shipped species and pi
 
 from __future__ import annotations
 
+import math
 import sys
 import tempfile
 from pathlib import Path
@@ -165,6 +166,55 @@ def stand_pattern(out: Path, work: Path) -> None:
     )
     if r.exit_code:
         raise SystemExit(r.output)
+
+
+def canopy_gaps(out: Path, stage: Path) -> None:
+    """The default forest's canopy by rays: a camera 1 km up looking straight down (leaf and
+    wood dark, ground light), and its gap fraction against zenith angle beside Beer-Lambert
+    for leaves at random places (clumping 1) and for real stands' clumping (0.5 and 0.9)."""
+    import json
+
+    import numpy as np
+    from typer.testing import CliRunner
+
+    from usdforest.cli import app
+    from usdforest.sensors import camera
+    from usdforest.sensors.lidar import DepthCamera
+    from usdforest.sensors.pose import Pose
+    from usdforest.sensors.scene import extract_scene
+
+    r = CliRunner().invoke(app, ["stats", str(stage), "--json", "-q"])
+    if r.exit_code:
+        raise SystemExit(r.output)
+    f = json.loads(r.stdout)
+    x0, y0, x1, y1 = f["region_bounds"]
+    half = (x1 - x0) / 2
+    scene = extract_scene(stage, reflectors=False)
+    cam = DepthCamera(800, 800, math.degrees(2 * math.atan(half / 1000)), 2000.0, kind="camera")
+    frame = camera.render(scene, cam, Pose((x0 + x1) / 2, (y0 + y1) / 2, 1000, 0, -90),
+                          np.zeros((0, 3)))  # fmt: skip
+    seen = np.isin(frame.semantic, [1, 2, 3])
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 5))
+    a.imshow(~seen, cmap="Greens_r", vmin=-0.3, vmax=1)
+    a.set_title(f"straight down from 1 km: leaf or wood on {seen.mean():.1%} of the plot")
+    a.set_axis_off()
+    zen = np.array([float(k) for k in f["gap_fraction"]])
+    gap = np.array(list(f["gap_fraction"].values()))
+    g = np.array(list(f["leaf_projection_g"].values()))
+    lai = f["leaf_area_index"]
+    fine = np.linspace(0, 60, 61)
+    g_fine = np.interp(fine, zen, g)
+    for omega, style in ((1.0, ":"), (0.9, "--"), (0.5, "-.")):
+        b.plot(fine, np.exp(-g_fine * omega * lai / np.cos(np.radians(fine))), "k" + style,
+               label=f"Beer-Lambert, clumping {omega:g}")  # fmt: skip
+    b.plot(zen, gap, "o-", color="tab:green", label="the forest, by rays")
+    b.set_xlabel("zenith angle (degrees)")
+    b.set_ylabel("gap fraction")
+    b.set_title(f"LAI {lai:.2f}, G measured on the leaves")
+    b.legend(loc="lower left")
+    fig.tight_layout()
+    fig.savefig(out / "canopy-gaps-default.png", dpi=110)
+    plt.close(fig)
 
 
 def stands(out: Path, work: Path) -> None:
@@ -413,6 +463,7 @@ def main(out: Path) -> None:
         ipp_levels(out)
         stands(out, work)
         stand_pattern(out, work)
+        canopy_gaps(out, work / "forest.usda")
         gallery(out, work)
         allometric(out, work)
         sensors(out, work)
