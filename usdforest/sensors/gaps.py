@@ -177,9 +177,9 @@ def leaf_projection(scene: Scene, zeniths: tuple[float, ...] = ZENITHS) -> np.nd
     instance is turned about z and scaled, which leaves its G as it is)."""
     dirs = _directions(zeniths)
     rng = np.random.default_rng(0)
-    tri = scene.triangles[scene.cls == CLASS_ID["leaf"]].astype(float)
-    num = _projected(_area_vectors(tri), dirs) if len(tri) else np.zeros(len(zeniths))
-    den = float(np.linalg.norm(_area_vectors(tri), axis=1).sum()) if len(tri) else 0.0
+    a = _area_vectors(scene.triangles[scene.cls == CLASS_ID["leaf"]].astype(float))
+    num = _projected(a, dirs) if len(a) else np.zeros(len(zeniths))
+    den = float(np.linalg.norm(a, axis=1).sum())
     li = scene.leaf_instances
     if len(li):
         n, d = _leaf_sums(scene.shapes, li, np.arange(len(li)), dirs)

@@ -34,11 +34,9 @@ class Covariate:
 
     def raw(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """The raster's value in the cell holding each point (the nearest edge cell outside)."""
-        x0, y0, x1, y1 = self.bounds
-        rows, cols = self.values.shape
-        c = np.clip(((np.asarray(x) - x0) / (x1 - x0) * cols).astype(np.int64), 0, cols - 1)
-        r = np.clip(((y1 - np.asarray(y)) / (y1 - y0) * rows).astype(np.int64), 0, rows - 1)
-        return self.values[r, c]
+        from usdforest.sites.rasters import cell_values
+
+        return cell_values(self.values, self.bounds, x, y)
 
     def __call__(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """The standardised value at each point."""

@@ -526,11 +526,9 @@ class Raster:
         object.__setattr__(self, "values", v)
 
     def evaluate(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        x0, y0, x1, y1 = self.bounds
-        rows, cols = self.values.shape
-        c = np.clip(((np.asarray(x) - x0) / (x1 - x0) * cols).astype(np.int64), 0, cols - 1)
-        r = np.clip(((y1 - np.asarray(y)) / (y1 - y0) * rows).astype(np.int64), 0, rows - 1)
-        return self.values[r, c]
+        from usdforest.sites.rasters import cell_values
+
+        return cell_values(self.values, self.bounds, x, y)
 
     def bound(self, region: Region) -> float:
         return float(self.values.max())

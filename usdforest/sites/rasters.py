@@ -67,6 +67,18 @@ def read_grey(path: Path, where: str) -> np.ndarray:
 GEOTIFF = (".tif", ".tiff")
 
 
+def cell_values(
+    values: np.ndarray, bounds: tuple[float, float, float, float], x: np.ndarray, y: np.ndarray
+) -> np.ndarray:
+    """The value of the grid ``values`` (row 0 north, over the cells' outer ``bounds``) in the
+    cell holding each point (the nearest edge cell for points outside)."""
+    x0, y0, x1, y1 = bounds
+    rows, cols = values.shape
+    c = np.clip(((np.asarray(x) - x0) / (x1 - x0) * cols).astype(np.int64), 0, cols - 1)
+    r = np.clip(((y1 - np.asarray(y)) / (y1 - y0) * rows).astype(np.int64), 0, rows - 1)
+    return values[r, c]
+
+
 @dataclass(frozen=True, eq=False)
 class GeoGrid:
     """A georeferenced raster: ``values (rows, cols)`` (NaN where the file has no data, row 0
