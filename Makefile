@@ -73,6 +73,7 @@ bench: $(STAMP) $(BLENDER_STAMP)
 	$(BIN)/python benchmarks/bench_tiles.py 1 10
 	$(BIN)/python benchmarks/bench_spatstat.py
 	$(BIN)/python benchmarks/bench_stats.py
+	$(BIN)/python benchmarks/bench_inventory.py
 
 clean:
 	rm -rf $(VENV) $(PHYS) $(CHECK) $(BLENDER) build *.egg-info .pytest_cache forest.usda forest_assets
