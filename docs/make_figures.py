@@ -217,6 +217,41 @@ def canopy_gaps(out: Path, stage: Path) -> None:
     plt.close(fig)
 
 
+def crowns(out: Path, work: Path) -> None:
+    """The five allometric presets' crowns straight down (1 cm rays), with the share of rays
+    inside each crown's outline that reach the ground (what tests/test_crowns.py measures)."""
+    import numpy as np
+    from matplotlib.path import Path as PolygonPath
+    from scipy.spatial import ConvexHull
+
+    from usdforest.sensors.raycast import SceneCaster
+    from usdforest.sensors.scene import CLASS_ID, extract_scene
+
+    names = ("european-beech", "sessile-oak", "silver-birch", "scots-pine", "norway-spruce")
+    fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.6))
+    for ax, name in zip(axes, names, strict=True):
+        path = work / f"crown-{name}.usdc"
+        write_tree(get_species(name), path, seed=1)
+        scene = extract_scene(path, reflectors=True, cache=False)
+        xy = scene.leaves.centre[:, :2]
+        (x0, y0), (x1, y1) = xy.min(axis=0) - 0.2, xy.max(axis=0) + 0.2
+        s = 0.01
+        gx, gy = np.meshgrid(np.arange(x0, x1, s), np.arange(y0, y1, s))
+        grid = np.column_stack([gx.ravel(), gy.ravel()])
+        origin = np.column_stack([grid, np.full(len(grid), scene.bounds[1, 2] + 1.0)])
+        hit = SceneCaster(scene).first_hit(origin, np.broadcast_to([0.0, 0.0, -1.0], origin.shape))
+        dark = hit.hit & (hit.cls != CLASS_ID["ground"])
+        inside = PolygonPath(xy[ConvexHull(xy).vertices]).contains_points(grid)
+        ax.imshow(~dark.reshape(gx.shape), cmap="Greens_r", vmin=-0.3, vmax=1, origin="lower",
+                  extent=(x0, x1, y0, y1))  # fmt: skip
+        ax.plot(*np.vstack([xy[ConvexHull(xy).vertices]] * 1).T, "k-", lw=0.4)
+        ax.set_title(f"{name}\n{np.mean(~dark[inside]):.0%} of the sky inside its outline",
+                     fontsize=9)  # fmt: skip
+        ax.set_axis_off()
+    fig.tight_layout()
+    save_figure(fig, out / "crowns-from-above.png")
+
+
 def stands(out: Path, work: Path) -> None:
     for name, view, size in (
         ("paper-two-tree-stand", "iso", (700, 600)),
@@ -464,6 +499,7 @@ def main(out: Path) -> None:
         stands(out, work)
         stand_pattern(out, work)
         canopy_gaps(out, work / "forest.usda")
+        crowns(out, work)
         gallery(out, work)
         allometric(out, work)
         sensors(out, work)

@@ -45,12 +45,19 @@ def test_structure_of_every_tree_preset(name):
     # radii never grow from parent to child
     assert np.all(sk.radius[child] <= sk.radius[p] + 1e-12)
     assert np.all(sk.radius > 0)
-    # leaves sit on the youngest wood: on a terminal segment or at the base of one
     terminal = sk.is_terminal()
-    on_terminal = terminal[sk.leaf_segment]
-    child_of = np.zeros(sk.n_segments, dtype=bool)
-    child_of[sk.parent[child & terminal]] = True
-    assert np.all(on_terminal | child_of[sk.leaf_segment])
+    if get_species(name).architecture is None:
+        # leaves sit on the youngest wood: on a terminal segment or at the base of one
+        on_terminal = terminal[sk.leaf_segment]
+        child_of = np.zeros(sk.n_segments, dtype=bool)
+        child_of[sk.parent[child & terminal]] = True
+        assert np.all(on_terminal | child_of[sk.leaf_segment])
+    else:
+        # leaves along the branches (every node of a branch, lateral and shoot) and at the
+        # leader's tip, never down the trunk
+        on_branch = sk.order[sk.leaf_segment] >= 1
+        assert np.all(on_branch | terminal[sk.leaf_segment])
+        assert np.count_nonzero(~on_branch) == 1
     assert sk.height() > 3.0
 
 

@@ -164,6 +164,8 @@ def _check_geometry(g: Geometry, where: str) -> None:
         raise RecipeError(f"{where}.leaves_per_site: must be between 0 and 1000")
     if not 0 <= g.leaf_spread <= 1:
         raise RecipeError(f"{where}.leaf_spread: must be between 0 and 1")
+    if not 0 <= g.shade_cell <= 10:
+        raise RecipeError(f"{where}.shade_cell: must be between 0 and 10 metres (0: off)")
     for key in ("bark_color", "leaf_color"):
         c = getattr(g, key)
         if not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in c):

@@ -9,8 +9,9 @@ whorls of branches (pine, spruce) or single branches on a spiral (beech, oak, bi
 branch's length is set by the crown envelope at its height (a crown of radius
 ``crown_radius`` between ``crown_base`` and the top, shaped by ``Architecture.shape``); branch
 counts, angles, spacings and lengths are drawn per tree. The rules grow each branch into a
-non-binary system: a main axis with alternating laterals, laterals with short shoots, foliage
-sites at every shoot tip and node of the outer crown.
+non-binary system: a main axis with alternating laterals, laterals with short shoots, all
+turning sideways in the branch's plane (a flat spray, as beech and spruce branches grow), and
+foliage sites at every node and shoot tip of the branches.
 """
 
 from __future__ import annotations
@@ -193,21 +194,25 @@ def grammar(
     def radius(x: str) -> str:
         return f"{_f(tip)}+{_f(slope)}*({x})"
 
+    shoot = f"D(min(l*0.8,{_f(s)}),min({radius('l')},c))"
     rules = (
-        # a branch (length l, no thicker than c): a node every s metres with a lateral on
-        # alternating sides, rolled on by about 90 degrees; each axis is as thick as the
-        # length it still carries (and no thicker than its parent), so all thin to shoots
-        f"B(l,c) : l > {_f(s)} -> !(min({radius('l')},c)) F({_f(s)})"
-        f" [&(uniform({_f(a0)},{_f(a1)})) C((l-{_f(s)})*{_f(q)}*uniform(0.7,1.1),"
+        # a branch (length l, no thicker than c): a node every s metres with leaves and a
+        # lateral, the laterals turning to alternating sides (a roll of about 180 degrees
+        # between nodes) so a branch and its laterals spread as a flat spray; each axis is as
+        # thick as the length it still carries (and no thicker than its parent), so all thin
+        # to shoots
+        f"B(l,c) : l > {_f(s)} -> !(min({radius('l')},c)) F({_f(s)}) L(1)"
+        f" [+(uniform({_f(a0)},{_f(a1)})) C((l-{_f(s)})*{_f(q)}*uniform(0.7,1.1),"
         f"min({radius('l')},c))]"
         f" /(uniform(150,210)) B(l-{_f(s)},c)",
         f"B(l,c) : l <= {_f(s)} -> !(min({radius('l')},c)) F(l) L(1)",
-        # a lateral: short shoots from its nodes, leaves at every shoot tip and node
+        # a lateral: a short shoot from each node, in the spray's plane
         f"C(l,c) : l > {_f(0.6 * s)} -> !(min({radius('l')},c)) F({_f(0.6 * s)}) L(1)"
-        f" [&(uniform({_f(a0)},{_f(a1)})) D(min(l*0.5,{_f(0.5 * s)}),min({radius('l')},c))]"
+        f" [+(uniform({_f(a0)},{_f(a1)})) {shoot}]"
         f" /(uniform(150,210)) C(l-{_f(0.6 * s)},c)",
         f"C(l,c) : l <= {_f(0.6 * s)} -> !(min({radius('l')},c)) F(l) L(1)",
-        f"D(l,c) -> !(min({radius('l')},c)) F(l) L(1)",
+        # a short shoot: two internodes, leaves along both
+        f"D(l,c) -> !(min({radius('l')},c)) F(l/2) L(1) F(l/2) L(1)",
     )
     steps = math.ceil(longest / s) + math.ceil(longest * q / (0.6 * s)) + 3
     return " ".join(parts), rules, min(steps, 100)

@@ -16,9 +16,11 @@ Pure numpy (no pxr): the USD writer (:mod:`usdforest.usd.tree`) only copies thes
   hook), and every child - branch or leaf - is moved onto its parent's *bent* centreline at
   the height where it grows, its whole subtree with it. The trunk keeps its shape (a measured
   trunk keeps its lean) and its children follow it.
-* Leaves: each leaf site of the skeleton carries ``1 + Poisson(leaves_per_site - 1)`` leaves.
-  On a terminal segment they spread back from the tip over ``leaf_spread`` of its length; their
-  azimuths around the twig follow the phyllotaxis angle; the blade leaves the twig at
+* Leaves: each leaf site of the skeleton carries ``1 + Poisson(w leaves_per_site - 1)`` leaves,
+  ``w`` its share of the light (1, or with ``shade_cell`` :func:`shade_weights`: sites crowded
+  into one column of the crown share it). They spread back from the site along the segment
+  that carries it over ``leaf_spread`` of its length; their azimuths around the twig follow
+  the phyllotaxis angle (180: two ranks, a flat spray); the blade leaves the twig at
   ``leaf_angle`` and its normal leans towards the sky.
 """
 
@@ -39,6 +41,7 @@ from usdforest.rotations import matrix_from_quat, quat_from_matrix
 CENTRELINE_SAMPLES = 33
 LEAF_CHUNK = 50_000  # leaves placed per task
 MAX_BEND_EXAGGERATION = 1.5
+SHADE_CAP = 4.0  # no leaf site carries more than this many times the mean (shade_weights)
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,8 +154,10 @@ def shear_matrices(shear: np.ndarray) -> np.ndarray:
 
 
 def frames_from_directions(d: np.ndarray, roll: np.ndarray) -> np.ndarray:
-    """Rotation matrices (column vectors) taking +Z to each unit direction ``d``, rolled."""
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    """Rotation matrices (column vectors) taking +Z to each unit direction ``d``, rolled (a
+    zero-length direction, a run of no length, keeps +Z)."""
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    d = np.where(norm > 0, d / np.where(norm > 0, norm, 1.0), [[0.0, 0.0, 1.0]])
     ref = np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
     x0 = ref - d * np.sum(ref * d, axis=1, keepdims=True)
     x0 /= np.linalg.norm(x0, axis=1, keepdims=True)
@@ -403,6 +408,30 @@ def _clump_instances(c: Clumps, rng: np.random.Generator) -> dict:
     }
 
 
+def shade_weights(sites: np.ndarray, cell: float, cap: float = SHADE_CAP) -> np.ndarray:
+    """Relative leaf counts of leaf sites at ``sites (n, 3)``, mean 1: a site's share falls
+    with the number of sites in its ``cell``-wide vertical column of the crown (the shoots
+    that shade one another there share one column's light), and none carries more than
+    ``cap`` (at least 1) times the mean. Without it the crown's inner column, where every
+    branch starts, holds most of the leaves and its rim lets the sky through."""
+    n = len(sites)
+    if n == 0:
+        return np.ones(0)
+    ij = np.floor(np.asarray(sites)[:, :2] / cell).astype(np.int64)
+    _, inverse, count = np.unique(ij, axis=0, return_inverse=True, return_counts=True)
+    raw = 1.0 / count[inverse.ravel()]
+    # shares proportional to raw, mean 1, none above cap (cap >= 1): fix the capped ones and
+    # scale the rest, until no more reach the cap
+    capped = np.zeros(n, dtype=bool)
+    while True:
+        free = ~capped
+        w = np.where(capped, cap, raw * (n - cap * capped.sum()) / max(raw[free].sum(), 1e-300))
+        over = free & (w > cap)
+        if not over.any():
+            return w
+        capped |= over
+
+
 def _leaves(
     sk: Skeleton, g: Geometry, rng: np.random.Generator, finish: Callable | None = None
 ) -> dict[str, np.ndarray]:
@@ -419,7 +448,9 @@ def _leaves(
             "leaf_segment": np.zeros(0, dtype=np.int32),
             "leaf_out": empty,
         }
-    extra = rng.poisson(max(g.leaves_per_site - 1.0, 0.0), size=sites)
+    share = shade_weights(sk.leaf_position, g.shade_cell) if g.shade_cell > 0 else 1.0
+    lam = g.leaves_per_site * share
+    extra = rng.poisson(np.maximum(lam - 1.0, 0.0), size=sites)
     count = 1 + extra
     site = np.repeat(np.arange(sites), count)
     k = np.arange(site.size) - np.repeat(np.cumsum(count) - count, count)  # index within site
@@ -431,11 +462,10 @@ def _leaves(
     lean = rng.uniform(-g.leaf_angle_jitter, g.leaf_angle_jitter, n)
     tilt = rng.uniform(-35.0, 35.0, n)
     grow = rng.standard_normal(n)
-    terminal_seg = sk.is_terminal()
 
     def chunk(sl: slice) -> dict[str, np.ndarray]:
         leaves = _leaf_frames(
-            sk, g, terminal_seg, site[sl], k[sl], spread[sl], turn[sl], lean[sl], tilt[sl], grow[sl]
+            sk, g, site[sl], k[sl], spread[sl], turn[sl], lean[sl], tilt[sl], grow[sl]
         )
         if finish is not None and len(leaves["leaf_segment"]):
             leaves["leaf_position"] = finish(
@@ -457,7 +487,6 @@ def _leaves(
 def _leaf_frames(
     sk: Skeleton,
     g: Geometry,
-    terminal_seg: np.ndarray,
     site: np.ndarray,
     k: np.ndarray,
     spread: np.ndarray,
@@ -476,9 +505,8 @@ def _leaf_frames(
     seg_dir = np.where(
         has_seg[:, None], seg_dir / np.maximum(seg_len, 1e-300)[:, None], sk.leaf_frame[site, 0]
     )
-    terminal = terminal_seg[segc] & has_seg
-    # spread back from the tip of terminal segments; leaves of inner nodes stay at the node
-    along = np.where(terminal, spread * seg_len, 0.0)
+    # spread back from the site along the segment that carries it
+    along = np.where(has_seg, spread * seg_len, 0.0)
     along = np.where(k == 0, 0.0, along)
     pos = sk.leaf_position[site] - seg_dir * along[:, None]
 

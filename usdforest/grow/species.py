@@ -55,7 +55,12 @@ class Geometry:
     leaf_angle, leaf_angle_jitter
         Angle between the leaf blade and its twig, and its uniform jitter.
     phyllotaxis
-        Divergence angle between successive leaves of a site around the twig (137.5: golden).
+        Divergence angle between successive leaves of a site around the twig (137.5: golden;
+        180: two ranks, a flat spray).
+    shade_cell
+        Width in metres of the crown's vertical columns whose leaf sites share the light: a
+        site's leaves fall with the number of sites in its column (see
+        :func:`usdforest.grow.placement.shade_weights`); 0 gives every site the same number.
     bend_split
         An axis that turns by more than this is split into straight runs (one prim each).
     trunk_roll
@@ -76,6 +81,7 @@ class Geometry:
     leaf_angle: float = 50.0
     leaf_angle_jitter: float = 15.0
     phyllotaxis: float = 137.5
+    shade_cell: float = 0.0
     bend_split: float = 12.0
     trunk_roll: float | None = None
     bark_color: tuple[float, float, float] = (0.33, 0.24, 0.17)
@@ -313,6 +319,10 @@ def _broadleaf() -> Species:
     )
 
 
+# m: an allometric crown's leaf sites share the light of half-metre columns (Geometry.shade_cell)
+SHADE_CELL = 0.5
+
+
 def _allometric(
     name: str,
     description: str,
@@ -329,7 +339,7 @@ def _allometric(
         rules=(),
         iterations=0,
         turtle=TurtleConfig(angle=45.0, step=0.5, radius=0.1, draw="F", elasticity=arch.droop),
-        geometry=geometry,
+        geometry=replace(geometry, shade_cell=SHADE_CELL),
         allometry=name,
         architecture=arch,
         reference_dbh=reference_dbh,
@@ -394,7 +404,7 @@ def _allometric_presets() -> tuple[Species, ...]:
                 True,
                 0.35,
                 (35.0, 55.0),
-                0.6,
+                0.8,  # long laterals: beech's branches end in broad flat fans
                 0.05,
                 (0.0025, 0.007),
             ),
@@ -403,6 +413,7 @@ def _allometric_presets() -> tuple[Species, ...]:
                 leaf="leaf_broadleaf",
                 leaf_size=0.1,
                 leaf_spread=0.9,
+                phyllotaxis=180.0,
                 bark_color=(0.45, 0.43, 0.4),
                 leaf_color=(0.25, 0.5, 0.17),
             ),
@@ -457,6 +468,7 @@ def _allometric_presets() -> tuple[Species, ...]:
                 leaf="leaf_broadleaf",
                 leaf_size=0.06,
                 leaf_spread=0.9,
+                phyllotaxis=180.0,
                 bark_color=(0.85, 0.83, 0.8),
                 leaf_color=(0.3, 0.55, 0.2),
             ),
