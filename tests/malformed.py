@@ -419,6 +419,7 @@ BAD_RECIPES: dict[str, tuple[str, str]] = {
     "colour short": (BASE + "[species.pine.geometry]\nleaf_color = [0, 1]\n", "leaf_color"),
     "geometry key": (BASE + "[species.pine.geometry]\nleaf_sise = 1\n", "leaf_sise"),
     "leaf size": (BASE + "[species.pine.geometry]\nleaf_size = 0\n", "leaf_size"),
+    "shade cell": (BASE + "[species.pine.geometry]\nshade_cell = -0.5\n", "shade_cell"),
     "weights": (BASE + "[species.pine.geometry]\nbranch_weights = [1]\n", "branch"),
     "template missing": (BASE + '[species.pine.geometry]\ntrunk = "none.usdc"\n', "none.usdc"),
     "mix unknown": (BASE + "[mix]\noak = 1\n", "mix.oak"),

@@ -75,8 +75,9 @@ def test_forest_render_has_ground_and_trees(default_forest):
     colour = np.array(shader.GetAttribute("inputs:diffuseColor").Get())
     ground = np.abs(img - colour * 1.04).sum(axis=2) < 0.05
     c = classify(img)
-    # (the default stand's 380 trees leave 19 % of the ground in view from above)
-    assert ground.mean() > 0.15 and c["green"].mean() > 0.05
+    # (the ground margin round the plot and the canopy's gaps: 14 % of the default stand's
+    # picture, 19 % before issue 43 closed its canopy)
+    assert ground.mean() > 0.08 and c["green"].mean() > 0.05
 
 
 def test_build_writes_a_thumbnail_and_records_it(tmp_path, runner):

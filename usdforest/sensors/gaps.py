@@ -33,7 +33,7 @@ from usdforest.sensors.scenetypes import Scene
 ZENITHS = (0.0, 30.0, 45.0, 60.0)  # degrees: nadir, and the rings instruments read
 AZIMUTHS = (0.0, 90.0, 180.0, 270.0)
 NADIR_SPACING = 0.05  # m
-OBLIQUE_SPACING = 0.20  # m: each ring is still 100,000s of rays over a hectare
+OBLIQUE_SPACING = 0.30  # m: each ring is still 100,000s of rays over a hectare
 SAMPLE_LEAVES = 400  # a prototype's leaves G is measured on (G to about 0.005 over a stand)
 Bounds = tuple[float, float, float, float]
 
