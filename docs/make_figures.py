@@ -241,10 +241,11 @@ def crowns(out: Path, work: Path) -> None:
         origin = np.column_stack([grid, np.full(len(grid), scene.bounds[1, 2] + 1.0)])
         hit = SceneCaster(scene).first_hit(origin, np.broadcast_to([0.0, 0.0, -1.0], origin.shape))
         dark = hit.hit & (hit.cls != CLASS_ID["ground"])
-        inside = PolygonPath(xy[ConvexHull(xy).vertices]).contains_points(grid)
+        outline = xy[ConvexHull(xy).vertices]
+        inside = PolygonPath(outline).contains_points(grid)
         ax.imshow(~dark.reshape(gx.shape), cmap="Greens_r", vmin=-0.3, vmax=1, origin="lower",
                   extent=(x0, x1, y0, y1))  # fmt: skip
-        ax.plot(*np.vstack([xy[ConvexHull(xy).vertices]] * 1).T, "k-", lw=0.4)
+        ax.plot(*np.vstack([outline, outline[:1]]).T, "k-", lw=0.4)
         ax.set_title(f"{name}\n{np.mean(~dark[inside]):.0%} of the sky inside its outline",
                      fontsize=9)  # fmt: skip
         ax.set_axis_off()

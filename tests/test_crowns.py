@@ -31,10 +31,9 @@ ALLOMETRIC = ("european-beech", "sessile-oak", "silver-birch", "scots-pine", "no
 SPACING = 0.02  # m between nadir rays
 
 
-def _hull_paths(points: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Length of the vertical line through each ``xy`` inside the convex hull of ``points``,
-    from the hull's facet planes (n . p + d <= 0 inside)."""
-    hull = ConvexHull(points)
+def _hull_paths(hull: ConvexHull, xy: np.ndarray) -> np.ndarray:
+    """Length of the vertical line through each ``xy`` inside ``hull``, from its facet planes
+    (n . p + d <= 0 inside)."""
     lo = np.full(len(xy), -np.inf)
     hi = np.full(len(xy), np.inf)
     inside = np.ones(len(xy), dtype=bool)
@@ -72,8 +71,9 @@ def crowns(tmp_path_factory):
         gap = float(np.mean(~hit.hit | (hit.cls == CLASS_ID["ground"])))
         g = float(leaf_projection(scene, (0.0,))[0])
         area = float(scene.leaves.area.sum())
-        density = area / ConvexHull(centres).volume
-        random_gap = float(np.mean(np.exp(-g * density * _hull_paths(centres, xy))))
+        envelope = ConvexHull(centres)
+        density = area / envelope.volume
+        random_gap = float(np.mean(np.exp(-g * density * _hull_paths(envelope, xy))))
         out[name] = {"gap": gap, "random_gap": random_gap, "G": g, "leaf_area": area}
     return out
 
