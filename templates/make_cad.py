@@ -224,6 +224,78 @@ def shoot(kind: str) -> trimesh.Trimesh:
     return trimesh.util.concatenate(parts)
 
 
+def _bark(seed: int, amount: float = 0.025):
+    """Bark ridges: a cross-section factor from three random-phase 7-fold ripples."""
+    phases = np.random.default_rng(seed).uniform(0.0, 2 * math.pi, 3)
+    return lambda ang: 1.0 + amount * sum(np.sin(7 * ang + p) for p in phases) / 3
+
+
+def log(decay: int) -> trimesh.Trimesh:
+    """A 4 m lying log cut at both ends, in the decay class's shape (German NFI classes 1-4):
+    1-2 round with bark ridges; 3 round, barkless and cracked (deep radial clefts); 4 soft
+    and slumped, its cross-section flattened to 0.6 of its width. Z up while it stands in
+    the file, like a trunk; the forest lays it down."""
+    z = np.linspace(0.0, 4.0, 24)
+    r = 0.16 - 0.02 * z / 4.0
+    rng = np.random.default_rng(RNG_SEED + 10 + decay)
+    bark = _bark(RNG_SEED + 20 + decay)
+    clefts = rng.uniform(0.0, 2 * math.pi, 4)
+    centre = np.stack([0.03 * np.sin(z * 0.7), 0.02 * np.sin(z * 0.4 + 0.5), z], axis=1)
+
+    def profile(i, ang):
+        if decay <= 2:
+            return bark(ang)
+        crack = 1.0 - 0.18 * sum(np.cos((ang - c) / 2) ** 40 for c in clefts)
+        if decay == 3:
+            return crack
+        # an ellipse 1 : 0.6 (wide along x), still cracked
+        return crack * 0.6 / np.sqrt((0.6 * np.cos(ang)) ** 2 + np.sin(ang) ** 2) * 1.25
+
+    return tube(centre, r, sections=20, profile=profile)
+
+
+def snag() -> trimesh.Trimesh:
+    """An 8 m standing dead stem broken off at the top: a jagged, splintered break 0-0.6 m
+    deep over a slightly flared, tapering stem with bark ridges."""
+    z = np.concatenate([np.linspace(0.0, 0.5, 6), np.linspace(0.8, 7.4, 20)])
+    r = 0.17 - 0.06 * z / 8.0
+    flare = 1.0 + 0.35 * np.exp(-z / 0.2)
+    bark = _bark(RNG_SEED + 30)
+    centre = np.stack([0.03 * np.sin(z * 0.5), 0.02 * np.sin(z * 0.8 + 1.0), z], axis=1)
+    mesh = tube(centre, r, sections=20, profile=lambda i, ang: flare[i] * bark(ang))
+    # the break: the top ring's vertices pulled up into splinters
+    top = np.arange(len(z) * 20 - 20, len(z) * 20)
+    rng = np.random.default_rng(RNG_SEED + 31)
+    v = mesh.vertices.copy()
+    v[top, 2] += rng.uniform(0.0, 0.6, 20) * (rng.uniform(size=20) < 0.6)
+    v[-1, 2] += 0.15  # the cap's centre, inside the splinters
+    return trimesh.Trimesh(v, mesh.faces, process=False)
+
+
+def stump() -> trimesh.Trimesh:
+    """A 0.5 m stump with a flat saw cut on top and a five-lobed root flare."""
+    z = np.concatenate([np.linspace(0.0, 0.25, 8), np.linspace(0.3, 0.5, 4)])
+    flare = 1.0 + 0.6 * np.exp(-z / 0.1)
+    bark = _bark(RNG_SEED + 40)
+
+    def profile(i, ang):
+        return (1.0 + (flare[i] - 1.0) * (0.55 + 0.45 * np.cos(5 * ang))) * bark(ang)
+
+    return tube(np.stack([0 * z, 0 * z, z], axis=1), np.full_like(z, 0.2), 24, profile)
+
+
+def fallen_branch() -> trimesh.Trimesh:
+    """A 3 m crooked branch (two kinks), radius 7 to 4 cm, as fallen from a crown."""
+    s = np.linspace(0.0, 1.0, 20)
+    theta = 0.35 * np.sin(2.2 * math.pi * s)
+    step = 3.0 / 19
+    dirs = np.stack([np.sin(theta), 0.3 * np.sin(theta * 2), np.cos(theta)], axis=1)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    centre = np.concatenate([[np.zeros(3)], np.cumsum(dirs[:-1] * step, axis=0)])
+    bark = _bark(RNG_SEED + 50, 0.04)
+    return tube(centre, 0.07 - 0.03 * s, sections=12, profile=lambda i, ang: bark(ang))
+
+
 FILES = {
     "trunk.obj": trunk,
     "branch_straight.stl": lambda: branch(2.0, 0.06, 0.018, 0.0),
@@ -235,6 +307,12 @@ FILES = {
     "trunk_cone.obj": trunk_cone,
     "shoot_pine.stl": lambda: shoot("pine"),
     "shoot_spruce.stl": lambda: shoot("spruce"),
+    "log_sound.obj": lambda: log(1),
+    "log_cracked.stl": lambda: log(3),
+    "log_slumped.stl": lambda: log(4),
+    "snag.obj": snag,
+    "stump.stl": stump,
+    "branch_fallen.stl": fallen_branch,
 }
 
 

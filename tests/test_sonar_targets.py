@@ -157,7 +157,8 @@ def test_a_trunks_echo_matches_the_kirchhoff_integral_at_its_range(tmp_path):
     scene = extract_scene(_stage(tmp_path / "t.usda", trunk=(a, height, (r0, 0.0, 0.0))))
     cfg = SonarConfig(f_min=30e3, f_max=40e3, bands=16, ground=False)
     e = sonar_scan(scene, Pose(0, 0, 0), cfg)
-    assert set(e.parts) == {"leaf", "trunk", "branch"} and e.reflectors["trunk"] in (6, 7)
+    assert set(e.parts) == {"leaf", "trunk", "branch", "dead_wood"}
+    assert e.reflectors["trunk"] in (6, 7)
     assert not np.any(e.parts["leaf"]) and not np.any(e.parts["branch"])  # silent: none
     c = cfg.speed_of_sound
     nphi, nz = 3000, 1500
@@ -225,7 +226,7 @@ def test_wood_and_ground_are_switchable_and_the_parts_add_up(tmp_path):
     stage = _stage(tmp_path / "s.usda", trunk=(0.2, 3.0, (4.0, 0.0, 0.0)), ground_z=-1.5)
     scene = extract_scene(stage)
     both = sonar_scan(scene, Pose(0, 0, 0), SonarConfig())
-    assert set(both.parts) == {"leaf", "trunk", "branch", "ground"}
+    assert set(both.parts) == {"leaf", "trunk", "branch", "dead_wood", "ground"}
     np.testing.assert_allclose(
         sum(both.parts.values()), both.echo, atol=1e-12 * np.abs(both.echo).max()
     )

@@ -242,7 +242,24 @@ TOP_KEYS = {
     "tiles",
     "clusters",
     "inhibition",
+    "deadwood",
 }
+DEADWOOD_KEYS = {
+    "volume",
+    "lying",
+    "standing",
+    "stumps",
+    "decay",
+    "diameter_mean",
+    "diameter_cv",
+    "min_diameter",
+    "branch_diameter",
+    "log_length",
+    "snag_height",
+    "stump_height",
+    "clearance",
+}
+MAX_DEADWOOD = 2000.0  # m³/ha: beyond the richest old-growth stands measured
 CLUSTER_KEYS = {"kind", "scale", "offspring"}
 INHIBITION_KEYS = {"kind", "radius", "gamma"}
 GROUND_KEYS = {"kind", "margin", "color", "file", "max", "bounds"}
@@ -306,6 +323,7 @@ class Recipe:
     tiles: float | None = None  # tile side in metres: the forest as payload tiles
     clusters: Any = None  # sites.clusters.Clusters: trees in clusters around unseen parents
     inhibition: Any = None  # sites.inhibition.Inhibition: a Strauss process over the intensity
+    deadwood: Any = None  # grow.deadwood.DeadWoodSpec: snags, stumps, logs and branches
 
     @property
     def species_names(self) -> tuple[str, ...]:
@@ -751,6 +769,7 @@ def parse_recipe(
         inhibition = _parse_inhibition(
             data.get("inhibition"), sites is not None, clusters, hard_core
         )
+        deadwood = _parse_deadwood(data.get("deadwood"))
     except RecipeError as exc:
         raise fail(exc) from None
     recipe = Recipe(
@@ -776,6 +795,7 @@ def parse_recipe(
         tiles,
         clusters,
         inhibition,
+        deadwood,
     )
     try:
         expected = recipe.expected_trees()
@@ -832,6 +852,65 @@ def _parse_tiles(t: Any) -> float | None:
             f"{MAX_TILE / 1e3:,.0f} km)"
         )
     return size
+
+
+def _parse_deadwood(t: Any) -> Any:
+    """``[deadwood]``: dead wood by volume per hectare (see :mod:`usdforest.grow.deadwood`
+    for the keys and their published defaults); absent: none."""
+    from usdforest.grow.deadwood import DeadWoodSpec
+
+    if t is None:
+        return None
+    if not isinstance(t, Mapping):
+        raise RecipeError("deadwood: expected a table, e.g. [deadwood] volume = 20.6")
+    check_keys(t, DEADWOOD_KEYS, "deadwood")
+    d = DeadWoodSpec()
+    volume = _num(t.get("volume", d.volume), "deadwood.volume", lo=0)
+    if volume > MAX_DEADWOOD:
+        raise RecipeError(
+            f"deadwood.volume: {volume:.4g} m³/ha is more than {MAX_DEADWOOD:g} m³/ha "
+            "(old-growth reserves hold up to a few hundred)"
+        )
+    shares = [
+        _num(t.get(k, getattr(d, k)), f"deadwood.{k}", lo=0)
+        for k in ("lying", "standing", "stumps")
+    ]
+    if abs(sum(shares) - 1.0) > 1e-6:
+        raise RecipeError(
+            f"deadwood: lying + standing + stumps = {sum(shares):.4g}; the shares must add up to 1"
+        )
+    decay = coerce(
+        t.get("decay", list(d.decay)), tuple[float, float, float, float], "deadwood.decay"
+    )
+    if min(decay) < 0 or abs(sum(decay) - 1.0) > 1e-6:
+        raise RecipeError(
+            f"deadwood.decay: {list(decay)} are not four shares (classes 1-4) adding up to 1"
+        )
+    sizes = {}
+    for k, lo, hi, unit in (
+        ("diameter_mean", 0.01, 3.0, " m"),
+        ("diameter_cv", 0.05, 2.0, ""),
+        ("min_diameter", 0.0, 1.0, " m"),
+        ("branch_diameter", 0.0, 3.0, " m"),
+        ("clearance", 0.0, 10.0, " m"),
+    ):
+        v = _num(t.get(k, getattr(d, k)), f"deadwood.{k}", lo=0)
+        if not lo <= v <= hi:
+            raise RecipeError(f"deadwood.{k}: {v:.4g} is outside {lo:g} to {hi:g}{unit}")
+        sizes[k] = v
+    spans = {}
+    for k, lo, hi in (
+        ("log_length", 0.3, 40.0),
+        ("snag_height", 1.3, 40.0),
+        ("stump_height", 0.05, 1.3),
+    ):
+        span = coerce(t.get(k, list(getattr(d, k))), tuple[float, float], f"deadwood.{k}")
+        if not lo <= span[0] <= span[1] <= hi:
+            raise RecipeError(
+                f"deadwood.{k}: {list(span)} is not [low, high] metres within {lo:g} to {hi:g}"
+            )
+        spans[k] = (float(span[0]), float(span[1]))
+    return DeadWoodSpec(volume, *shares, tuple(float(x) for x in decay), **sizes, **spans)
 
 
 def _common_crs(named: list[tuple[str, str | None]]) -> str | None:

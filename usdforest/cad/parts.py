@@ -3,10 +3,11 @@ normalise a part's frame and measure it.
 
 Frames after :func:`normalise_part` (all in metres, Z up, then scaled to unit length):
 
-* **trunk, branch, twig**: the base centre at the origin, the growth axis (base to tip) along
-  +Z, length 1; the second principal axis (the plane a curved branch bends in) along +X.
-  A trunk's growth axis is the file's up axis (a trunk stands upright; forks fused to it would
-  tilt its principal axis); a branch's is its principal axis, the base being the thicker end.
+* **trunk, branch, twig, deadwood**: the base centre at the origin, the growth axis (base to
+  tip) along +Z, length 1; the second principal axis (the plane a curved branch bends in)
+  along +X. A trunk's (and a dead-wood piece's) growth axis is the file's up axis (a trunk
+  stands upright; forks fused to it would tilt its principal axis); a branch's is its
+  principal axis, the base being the thicker end.
 * **leaf**: the attachment point (petiole or fascicle base) at the origin, the blade axis
   (attachment to tip) along +X, the blade normal along +Z, the width along +Y, length 1.
 
@@ -31,8 +32,10 @@ from usdforest.errors import CADError
 from usdforest.normals import vertex_normals
 from usdforest.paths import require_file
 
-PARTS = ("trunk", "branch", "twig", "leaf")
-WOOD_PARTS = ("trunk", "branch", "twig")
+PARTS = ("trunk", "branch", "twig", "leaf", "deadwood")
+WOOD_PARTS = ("trunk", "branch", "twig", "deadwood")
+# parts that stand upright in their files: their growth axis is the file's up axis
+UPRIGHT_PARTS = ("trunk", "deadwood")
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
 UP_AXES = ("Y", "Z")
 MAX_TRIANGLES = 20_000_000
@@ -40,7 +43,14 @@ MAX_FILE_BYTES = 2 * 2**30
 
 # typical real size (m) of each part, for --units auto
 MAX_COORDINATE = 1e9  # beyond this no unit makes a tree (1e9 mm is 1,000 km)
-TYPICAL_SIZE = {"trunk": 5.0, "branch": 1.5, "twig": 0.3, "leaf": 0.08, "tree": 8.0}
+TYPICAL_SIZE = {
+    "trunk": 5.0,
+    "branch": 1.5,
+    "twig": 0.3,
+    "leaf": 0.08,
+    "tree": 8.0,
+    "deadwood": 4.0,
+}
 # default up axis by format when --up auto: glTF is Y-up by its spec; OBJ exporters
 # (Blender, Maya) write Y-up by default; STL and PLY come from CAD tools that use Z-up
 DEFAULT_UP = {"obj": "Y", "glb": "Y", "gltf": "Y", "stl": "Z", "ply": "Z"}
@@ -462,6 +472,7 @@ DEFAULT_COLORS = {
     "branch": (0.38, 0.28, 0.2),
     "twig": (0.42, 0.32, 0.22),
     "leaf": (0.23, 0.48, 0.17),
+    "deadwood": (0.36, 0.32, 0.27),
 }
 
 
@@ -486,7 +497,8 @@ def normalise_part(
     mesh
         The part's triangles in metres with Z up (see :func:`to_metres_z_up`).
     part
-        ``trunk``, ``branch``, ``twig`` or ``leaf``.
+        ``trunk``, ``branch``, ``twig``, ``leaf`` or ``deadwood`` (a log, snag, stump or
+        fallen branch standing upright in its file, framed as a trunk).
 
     Returns
     -------
@@ -497,9 +509,10 @@ def normalise_part(
         raise CADError(f"unknown part {part!r}; use one of {', '.join(PARTS)}")
     v, f = mesh.vertices, mesh.faces
     centre, axes = principal_axes(v, f)
-    if part == "trunk":
-        # a trunk stands upright in its (Z-up) file: grow along +Z, whatever its forks do
-        # to the principal axes; the second axis is the widest horizontal direction
+    if part in UPRIGHT_PARTS:
+        # a trunk (or a piece of dead wood) stands upright in its (Z-up) file: grow along +Z,
+        # whatever its forks do to the principal axes; the second axis is the widest
+        # horizontal direction
         _, flat = principal_axes(v * [1.0, 1.0, 0.0], f)
         second = flat[0] - flat[0, 2] * np.array([0.0, 0.0, 1.0])
         if np.linalg.norm(second) < 1e-9:
@@ -516,7 +529,7 @@ def normalise_part(
     if part in WOOD_PARTS:
         r_lo = _slab_radius(local, lo_slab)
         r_hi = _slab_radius(local, hi_slab)
-        if part == "trunk" or abs(r_lo - r_hi) <= 0.05 * max(r_lo, r_hi):
+        if part in UPRIGHT_PARTS or abs(r_lo - r_hi) <= 0.05 * max(r_lo, r_hi):
             # no clear taper: the base is the lower end (Z up)
             base_at_max = float(np.mean(v[hi_slab, 2])) < float(np.mean(v[lo_slab, 2]))
         else:
@@ -617,7 +630,7 @@ def import_part(
     path
         STL, OBJ, PLY, GLB or glTF file holding one part.
     part
-        ``trunk``, ``branch``, ``twig`` or ``leaf``.
+        ``trunk``, ``branch``, ``twig``, ``leaf`` or ``deadwood``.
     units
         ``mm``, ``cm``, ``m``, ``in`` or ``auto`` (see :func:`resolve_units`).
     up

@@ -169,6 +169,7 @@ def scan_cmd(
         heard = {
             "trunk": "trunk cylinders",
             "branch": "branch cylinders",
+            "dead_wood": "dead-wood cylinders",
             "ground": "ground facets",
         }
         text = (

@@ -37,9 +37,10 @@ PRESETS: dict[str, DepthCamera] = {
     "d435": DepthCamera(848, 480, 87.0, 10.0, kind="camera"),  # RealSense D435's depth stream
     "fpv-1280": DepthCamera(1280, 720, 120.0, 200.0, kind="camera"),
 }
-# semantic palette for pictures: unknown/sky, trunk, branch, leaf, ground
+# semantic palette for pictures: unknown/sky, trunk, branch, leaf, ground, dead wood
 PALETTE = np.array(
-    [[0, 0, 0], [120, 72, 36], [205, 133, 63], [60, 170, 60], [128, 128, 128]], dtype=np.uint8
+    [[0, 0, 0], [120, 72, 36], [205, 133, 63], [60, 170, 60], [128, 128, 128], [170, 90, 170]],
+    dtype=np.uint8,
 )
 AMBIENT = 0.35
 BYTES_PER_PIXEL = 12  # depth float32, semantic uint8, instance int32, rgb 3 x uint8

@@ -38,7 +38,8 @@ MAX_ANGLE = 3600.0  # degrees of pitch or roll in a path (ten turns)
 
 # ASPRS LAS classes for our semantic classes: unclassified, high vegetation (trunk, branch,
 # leaf) and ground; our own class is kept in the extra dimension "usdforest_class"
-ASPRS = {"unknown": 1, "trunk": 5, "branch": 5, "leaf": 5, "ground": 2}
+# dead wood is not vegetation: unclassified (1), its own class in the usdforest_class dimension
+ASPRS = {"unknown": 1, "trunk": 5, "branch": 5, "leaf": 5, "ground": 2, "dead_wood": 1}
 
 
 @dataclass(frozen=True, eq=False)
@@ -282,8 +283,9 @@ def write_las(
     :func:`usdforest.sensors.lidar.counts`), scan angle (the laser's azimuth from the
     platform's forward axis), point source = ``flight_line``, ASPRS classification, and the
     extra dimensions ``ring`` (uint16, the laser: 0 the lowest), ``tree_id`` (int32, -1 off
-    any tree) and ``usdforest_class`` (0 unknown, 1 trunk, 2 branch, 3 leaf, 4 ground). With a
-    ``crs`` the global encoding's WKT bit is set and a WKT CRS record written (pyproj)."""
+    any tree) and ``usdforest_class`` (0 unknown, 1 trunk, 2 branch, 3 leaf, 4 ground, 5 dead
+    wood). With a ``crs`` the global encoding's WKT bit is set and a WKT CRS record written
+    (pyproj)."""
     import laspy
 
     shift = np.zeros(3)

@@ -36,6 +36,7 @@ NADIR_SPACING = 0.05  # m
 OBLIQUE_SPACING = 0.30  # m: each ring is still 100,000s of rays over a hectare
 SAMPLE_LEAVES = 400  # a prototype's leaves G is measured on (G to about 0.005 over a stand)
 Bounds = tuple[float, float, float, float]
+BELOW_CANOPY = (CLASS_ID["ground"], CLASS_ID["dead_wood"])  # hits that are not canopy
 
 
 @dataclass(frozen=True)
@@ -49,7 +50,7 @@ class Gaps:
 
     @property
     def cover(self) -> float | None:
-        """Canopy cover by rays: the share of nadir rays that meet leaf or wood."""
+        """Canopy cover by rays: the share of nadir rays that meet living leaf or wood."""
         at = self.zenith.index(0.0) if 0.0 in self.zenith else None
         g = None if at is None else self.gap[at]
         return None if g is None else 1.0 - g
@@ -105,7 +106,9 @@ def gap_fractions(
         for start in range(0, len(xy), 1 << 20):
             o = origin[start : start + (1 << 20)]
             h = caster.first_hit(o, np.broadcast_to(d, o.shape))
-            gaps += int(np.count_nonzero(~h.hit | (h.cls == CLASS_ID["ground"])))
+            # a gap is a ray through the living canopy: to the ground, or to dead wood (logs,
+            # stumps and snags are not canopy; a snag's side intercepts a few rays at most)
+            gaps += int(np.count_nonzero(~h.hit | np.isin(h.cls, BELOW_CANOPY)))
         passed[zenith] += gaps
         cast[zenith] += len(xy)
     if progress is not None:

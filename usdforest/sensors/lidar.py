@@ -143,7 +143,14 @@ PRESETS: dict[str, SpinningLidar | DepthCamera] = {
 # for leaves and shoots; spruce and hardwood bark 0.34-0.36 (RAMI-V), so 0.35 for wood
 # (birch bark is brighter, 0.44-0.46); the forest floor between PROSAIL's wet (0.08) and dry
 # (0.43) soil, 0.25 (no measured figure: a guess); anything unlabelled 0.5.
-REFLECTANCE = {"unknown": 0.5, "trunk": 0.35, "branch": 0.35, "leaf": 0.47, "ground": 0.25}
+REFLECTANCE = {
+    "unknown": 0.5,
+    "trunk": 0.35,
+    "branch": 0.35,
+    "leaf": 0.47,
+    "ground": 0.25,
+    "dead_wood": 0.35,  # bare wood 0.34-0.36 at 905 nm (docs/notes/lidar-radiometry.md), as bark
+}
 _RHO = np.array([REFLECTANCE[c] for c in CLASSES])  # by class index
 # the intensity of a Lambertian target of reflectance 1 facing the sensor 1 m away
 INTENSITY_GAIN = 65535.0

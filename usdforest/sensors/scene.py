@@ -35,7 +35,7 @@ from usdforest.sensors.scenetypes import (
 )
 from usdforest.usd.layers import class_labels, mesh_triangles, open_stage, rendered
 
-CLASSES = ("unknown", "trunk", "branch", "leaf", "ground")
+CLASSES = ("unknown", "trunk", "branch", "leaf", "ground", "dead_wood")
 CLASS_ID = {name: i for i, name in enumerate(CLASSES)}
 
 

@@ -346,10 +346,10 @@ class Targets:
 class Echo:
     """The result: transfer function on the band, impulse response and echo at the output rate.
 
-    ``parts`` holds the echo of each class heard (``leaf``, ``trunk``, ``branch``, ``ground``;
-    they add up to ``echo``); ``labels`` one row per (tree id, class) heard: its share of the
-    echo's energy (the band's mean of sum |H|^2) and the ranges of its first and last
-    reflectors."""
+    ``parts`` holds the echo of each class heard (``leaf``, ``trunk``, ``branch``,
+    ``dead_wood``, ``ground``; they add up to ``echo``); ``labels`` one row per (tree id,
+    class) heard: its share of the echo's energy (the band's mean of sum |H|^2) and the
+    ranges of its first and last reflectors."""
 
     freqs: np.ndarray
     transfer: np.ndarray
@@ -606,7 +606,7 @@ def echo_from_targets(
     ]
     if cfg.wood and len(wood):
         w = wood.take(near(wood.centre))
-        for k in (CLASS_ID["trunk"], CLASS_ID["branch"]):
+        for k in (CLASS_ID["trunk"], CLASS_ID["branch"], CLASS_ID["dead_wood"]):
             wk = w.take(np.flatnonzero(w.cls == k))
             if len(wk):
                 sources.append(
@@ -649,7 +649,9 @@ def echo_from_targets(
             labels.append(_labels(tree, np.full(len(position), k), energy, r))
     # every class the sonar listens to has its echo, silent when nothing of it is in range
     heard = (
-        ["leaf"] + (["trunk", "branch"] if cfg.wood else []) + (["ground"] if cfg.ground else [])
+        ["leaf"]
+        + (["trunk", "branch", "dead_wood"] if cfg.wood else [])
+        + (["ground"] if cfg.ground else [])
     )
     for name in heard:
         parts.setdefault(name, np.zeros(grid.n_out))
@@ -887,7 +889,13 @@ def _plot(e: Echo, png: Path) -> None:
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 6), dpi=100, sharex=True)
     rng = e.t * c / 2
     top = max(float(envelope(e.echo).max()), 1e-30)
-    colours = {"leaf": "tab:green", "trunk": "saddlebrown", "branch": "peru", "ground": "0.4"}
+    colours = {
+        "leaf": "tab:green",
+        "trunk": "saddlebrown",
+        "branch": "peru",
+        "ground": "0.4",
+        "dead_wood": "purple",
+    }
     for name, part in e.parts.items():
         if np.any(part):
             env = envelope(part)

@@ -23,7 +23,7 @@ import numpy as np
 from usdforest.runs import run_starts
 from usdforest.sensors.scene import CLASS_ID, Scene
 
-WOOD = (CLASS_ID["trunk"], CLASS_ID["branch"])
+WOOD = (CLASS_ID["trunk"], CLASS_ID["branch"], CLASS_ID["dead_wood"])
 MAX_MISFIT = 0.15  # a slice's rms distance from its circle, as a share of the radius
 
 
@@ -247,7 +247,12 @@ def _gradient(centre: np.ndarray, mid: np.ndarray, sp: np.ndarray, axis: np.ndar
 def scene_cylinders(scene: Scene, segment: float) -> Cylinders:
     """Every wood cylinder of ``scene``: its own triangles' and each tree instance's (the
     prototype fitted once, then placed)."""
-    parts = [fit_cylinders(scene.triangles, scene.cls, scene.path, scene.tree, segment)]
+    path = scene.path
+    dead = np.flatnonzero(scene.cls == CLASS_ID["dead_wood"])
+    if dead.size:  # instances copied into one prim path each: one fit per piece
+        path = path.astype(np.int64).copy()
+        path[dead] = int(path.max()) + 1 + _connected(scene.triangles[dead])
+    parts = [fit_cylinders(scene.triangles, scene.cls, path, scene.tree, segment)]
     inst = scene.instances
     for k, proto in enumerate(scene.protos):
         which = np.flatnonzero(inst.proto == k)
@@ -258,3 +263,19 @@ def scene_cylinders(scene: Scene, segment: float) -> Cylinders:
         )
         parts.append(local.placed(inst.matrix[which], inst.tree[which]))
     return Cylinders.concat(parts)
+
+
+def _connected(tri: np.ndarray) -> np.ndarray:
+    """A label per triangle of ``tri (m, 3, 3)``: its piece, triangles sharing vertices
+    (copies of one mesh placed apart share none)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    _, vertex = np.unique(tri.reshape(-1, 3), axis=0, return_inverse=True)
+    vertex = vertex.reshape(-1, 3)
+    m = len(tri)
+    rows = np.repeat(np.arange(m), 3)
+    graph = coo_matrix((np.ones(3 * m), (rows, vertex.ravel())), shape=(m, int(vertex.max()) + 1))
+    # triangles joined through their shared vertices: components of the bipartite graph
+    _, labels = connected_components((graph @ graph.T).tocsr(), directed=False)
+    return labels

@@ -12,6 +12,10 @@
       trees/<species>_<k>.usdc  tree assets (/Tree, kind component)
       templates/<name>.usdc     the CAD templates the trees reference
       colliders.usdc            /Forest/Colliders: one capsule per trunk where the tree stands
+                                (T_<id>) and per piece of dead wood (D_<id>)
+      deadwood.usdc             /Forest/DeadWood: snags, stumps, logs, fallen branches (a
+                                PointInstancer of CAD templates), when the recipe has [deadwood]
+      deadwood.csv              its ground truth, one row per piece
       ground.usdc               /Forest/Ground: the plane or height field (collider, label)
       physics.usda              colliders and ground alone (no visual meshes), for physics
                                 engines; /Forest/PhysicsScene when the forest has one
@@ -42,6 +46,14 @@ from usdforest.recipe import Recipe, recipe_inputs, resolved_toml
 from usdforest.sites.local import Plan, classes_for, first_ids, place, squares, whole
 from usdforest.sites.stand import merge_sums
 from usdforest.sites.terrain import HeightField
+from usdforest.usd.deadwood import (
+    capsules as deadwood_capsules,
+)
+from usdforest.usd.deadwood import (
+    copy_deadwood_templates,
+    deadwood_layer,
+    write_deadwood_csv,
+)
 from usdforest.usd.ground import ground_layer
 from usdforest.usd.instances import (
     ForestBuild,
@@ -59,7 +71,12 @@ from usdforest.usd.landscape import (
     write_tiles_index,
 )
 from usdforest.usd.layers import T, attr, extents, new_layer, prim, save_layer
-from usdforest.usd.physics import add_physics_scene, collision_layer, instance_capsules
+from usdforest.usd.physics import (
+    add_physics_scene,
+    collision_layer,
+    instance_capsules,
+    join_capsules,
+)
 from usdforest.usd.tiles import author_tiles
 from usdforest.usd.tree import TreeBuild, build_tree, copy_templates, tree_layer
 
@@ -194,6 +211,11 @@ def write_forest(
     arguments.flag(force, "force")
     arguments.flag(thumbnail, "thumbnail")
     arguments.workers(workers, scheduler, recipe.tiles is not None, untiled)
+    if recipe.deadwood is not None and recipe.tiles is not None and not untiled:
+        raise UsdForestError(
+            f"{recipe.source}: deadwood is written for untiled forests only; remove [tiles] "
+            "or build with --untiled"
+        )
     assets = out.parent / f"{out.stem}_assets"
     with output_lock(out):
         refuse_inputs([out], recipe_inputs(recipe), folders=(assets,))
@@ -333,6 +355,16 @@ def _write_forest(
                 staged / "instances.usdc",
             )
             sublayers.append(f"./{assets.name}/instances.usdc")
+            pieces = None
+            if recipe.deadwood is not None:
+                tick("dead wood", 0, 1)
+                pieces, shapes = _dead_wood(recipe, build, ordered)
+                ids = np.arange(len(pieces), dtype=np.int64)
+                copy_deadwood_templates(staged / "templates")
+                save_layer(deadwood_layer(pieces, shapes, anchor, ids), staged / "deadwood.usdc")
+                sublayers.append(f"./{assets.name}/deadwood.usdc")
+                write_deadwood_csv(staged / "deadwood.csv", pieces, ids)
+                tick("dead wood", 1, 1)
             if recipe.colliders != "none":
                 caps, cap_names = instance_capsules(
                     [t.colliders for t in ordered],
@@ -341,6 +373,9 @@ def _write_forest(
                     build.sites.yaw,
                     build.sites.scale,
                 )
+                if pieces is not None and len(pieces):
+                    caps = join_capsules(caps, deadwood_capsules(pieces, anchor, ids))
+                    cap_names = list(caps.names)
                 save_layer(collision_layer(caps, cap_names), staged / "colliders.usdc")
                 sublayers.append(f"./{assets.name}/colliders.usdc")
             if ground is not None:
@@ -386,6 +421,37 @@ def _write_forest(
                 csv.result()
         publish(tmp, out, tmp / out.name, [(staged, assets)], force=force)
     return build
+
+
+def _dead_wood(recipe: Recipe, build: ForestBuild, trees: list[TreeBuild]):
+    """The recipe's dead wood, clear of the stems (recipe coordinates), and the templates'
+    shapes."""
+    from usdforest.grow.deadwood import place_dead_wood
+    from usdforest.usd.deadwood import piece_shapes
+
+    # a stem's footprint: its DBH (root flare 1.3x) where known, else its trunk collider
+    radius = np.array(
+        [
+            0.65 * t.size.dbh
+            if t.size is not None
+            else (float(t.colliders.radius[0]) if len(t.colliders) else 0.15)
+            for t in trees
+        ]
+    ).reshape(-1)
+    sites = build.sites
+    stems_r = radius[build.proto_index] * sites.scale if len(sites) else np.zeros(0)
+    shapes = piece_shapes()
+    ground = recipe.ground["field"] if recipe.ground is not None else None
+    pieces = place_dead_wood(
+        recipe.deadwood,
+        recipe.region,
+        recipe.seed,
+        sites.xy + build.anchor,
+        stems_r,
+        shapes,
+        ground,
+    )
+    return pieces, shapes
 
 
 def _leans(trees: list[TreeBuild]) -> np.ndarray:

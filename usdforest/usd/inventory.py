@@ -24,6 +24,7 @@ from pxr import Usd, UsdGeom
 from usdforest.cad.parts import face_areas, one_sided_area
 from usdforest.errors import UsdForestError
 from usdforest.progress import Progress
+from usdforest.usd.deadwood import dead_wood_figures, is_dead_wood
 from usdforest.usd.layers import open_stage, rendered
 
 CELL = 0.25  # m, the cover raster
@@ -159,6 +160,7 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
     if not area:
         raise UsdForestError(f"{path}: not a usdforest forest (no regionArea in /Forest)")
     heights, dbhs, leaf, wood, species, where = [], [], [], [], [], []
+    dead = dead_wood_figures(None, area)
     grid = None
     if bounds is not None:
         b = np.asarray(list(bounds), dtype=float)
@@ -167,6 +169,9 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
         grid = (b, np.zeros((ny, nx), dtype=bool))
     for p in Usd.PrimRange(root):
         if not p.IsA(UsdGeom.PointInstancer) or p.GetName() == "Leaves":
+            continue
+        if is_dead_wood(p):
+            dead = dead_wood_figures(p, area)
             continue
         pi = UsdGeom.PointInstancer(p)
         idx = np.asarray(pi.GetProtoIndicesAttr().Get() or [], dtype=np.int64)
@@ -244,6 +249,7 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
         "wood_area_index": float(wa.sum() / area),
         "wood_to_leaf_area": float(wa.sum() / la.sum()) if la.sum() else None,
         "crown_footprint_cover": float(grid[1].mean()) if grid is not None else None,
+        **dead,
         "region_bounds": [float(v) for v in bounds] if bounds is not None else None,
         "species": {
             str(n): int(c) for n, c in zip(*np.unique(sp, return_counts=True), strict=True)

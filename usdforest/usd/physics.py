@@ -137,6 +137,16 @@ def instance_capsules(
     return out, list(out.names)
 
 
+def join_capsules(a: Capsules, b: Capsules) -> Capsules:
+    """The capsules of ``a`` then those of ``b``."""
+    return Capsules(
+        tuple(a.names) + tuple(b.names),
+        np.concatenate([a.base.reshape(-1, 3), b.base.reshape(-1, 3)]),
+        np.concatenate([a.tip.reshape(-1, 3), b.tip.reshape(-1, 3)]),
+        np.concatenate([a.radius.reshape(-1), b.radius.reshape(-1)]),
+    )
+
+
 def add_physics_scene(root: Sdf.PrimSpec, gravity: float = 9.81) -> None:
     """``<root>/PhysicsScene`` (UsdPhysics.Scene, gravity down -Z in m/s²)."""
     scene = prim(root, "PhysicsScene", "PhysicsScene")

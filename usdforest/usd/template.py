@@ -30,7 +30,13 @@ from usdforest.usd.layers import (
 if TYPE_CHECKING:  # trimesh loads with the CAD importer, not with every template reader
     from usdforest.cad.parts import TemplatePart
 
-SEMANTIC_CLASS = {"trunk": "trunk", "branch": "branch", "twig": "branch", "leaf": "leaf"}
+SEMANTIC_CLASS = {
+    "trunk": "trunk",
+    "branch": "branch",
+    "twig": "branch",
+    "leaf": "leaf",
+    "deadwood": "dead_wood",
+}
 
 # Stored precision. Eigen-decompositions and sums differ in their last bits between BLAS
 # kernels and library versions; rounding before storing keeps the bytes identical everywhere.

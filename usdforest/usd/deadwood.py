@@ -1,0 +1,275 @@
+"""The dead wood layer: a PointInstancer of CAD-templated pieces, their colliders and
+their ground truth.
+
+::
+
+    forest_assets/
+      deadwood.usdc     /Forest/DeadWood  PointInstancer (kind group), one prototype per
+                        kind and decay class: /Forest/DeadWood/Prototypes/<Kind>_<decay>
+                        -> templates/deadwood_<kind>_<decay>.usdc (labels dead_wood, kind)
+      deadwood.csv      id,kind,decay,x,y,z,azimuth,pitch,length,diameter,volume
+
+Pieces are scaled anisotropically (across by their diameter, along by their length): a
+piece's volume is its prototype mesh's volume times the product of its scales.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+from pxr import Sdf, Usd, UsdGeom, Vt
+
+from usdforest.grow.colliders import Capsules
+from usdforest.grow.deadwood import DECAY_CLASSES, KINDS, Pieces, PieceShape
+from usdforest.rotations import quat_from_matrix
+from usdforest.usd.layers import (
+    T,
+    attr,
+    class_labels,
+    extents,
+    new_layer,
+    prim,
+    semantic_label,
+    vec3f,
+)
+
+CSV_HEADER = (
+    "id",
+    "kind",
+    "decay",
+    "x",
+    "y",
+    "z",
+    "azimuth",
+    "pitch",
+    "length",
+    "diameter",
+    "volume",
+)
+
+
+def template_name(kind: str, decay: int) -> str:
+    """The shipped template of a kind and decay class."""
+    return f"deadwood_{kind}_{decay}"
+
+
+def prototype_name(kind: str, decay: int) -> str:
+    return f"{kind.capitalize()}_{decay}"
+
+
+def prototypes() -> list[tuple[str, int]]:
+    """Every (kind, decay class), in prototype order."""
+    return [(k, d) for k in KINDS for d in range(1, DECAY_CLASSES + 1)]
+
+
+def mesh_volume(points: np.ndarray, triangles: np.ndarray) -> float:
+    """Volume enclosed by a closed, outward-wound triangle mesh (divergence theorem)."""
+    t = np.asarray(points, dtype=float)[np.asarray(triangles).reshape(-1, 3)]
+    return float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0)
+
+
+def template_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Points and triangles of the Mesh in a template layer."""
+    stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
+    for p in stage.Traverse():
+        if p.IsA(UsdGeom.Mesh):
+            mesh = UsdGeom.Mesh(p)
+            pts = np.asarray(mesh.GetPointsAttr().Get(), dtype=float)
+            idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int64)
+            return pts, idx.reshape(-1, 3)
+    raise FileNotFoundError(f"{path}: no Mesh")
+
+
+def piece_shapes() -> dict[tuple[str, int], PieceShape]:
+    """Each shipped dead-wood template as a :class:`PieceShape`."""
+    from scipy.spatial import ConvexHull
+
+    from usdforest.cad.library import template_path
+
+    out = {}
+    for kind, decay in prototypes():
+        pts, tri = template_mesh(template_path(template_name(kind, decay)))
+        hull = pts[ConvexHull(pts).vertices]
+        out[(kind, decay)] = PieceShape(mesh_volume(pts, tri), hull)
+    return out
+
+
+def copy_deadwood_templates(folder: Path) -> None:
+    """Copy the dead-wood templates into the forest's ``templates/`` folder."""
+    from usdforest.cad.library import template_path
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for kind, decay in prototypes():
+        src = template_path(template_name(kind, decay))
+        if not (folder / src.name).exists():
+            shutil.copyfile(src, folder / src.name)
+
+
+def instance_transforms(
+    pieces: Pieces, shapes: dict[tuple[str, int], PieceShape]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """PointInstancer ``(positions, orientations (x, y, z, w), scales, protoIndices)``."""
+    order = prototypes()
+    pairs = zip(pieces.kind, pieces.decay, strict=True)
+    index = np.array([order.index((KINDS[k], int(d))) for k, d in pairs], dtype=np.int32)
+    radius = np.array([shapes[order[i]].radius for i in index]) if len(index) else np.zeros(0)
+    across = pieces.diameter / (2 * radius) if len(index) else np.zeros(0)
+    third = np.cross(pieces.axis, pieces.side)
+    rot = np.stack([pieces.side, third, pieces.axis], axis=2)  # columns: the template's X, Y, Z
+    quat = quat_from_matrix(rot) if len(index) else np.zeros((0, 4))
+    scales = np.stack([across, across, pieces.length], axis=1) if len(index) else np.zeros((0, 3))
+    return pieces.base, quat, scales, index.astype(np.int32)
+
+
+def deadwood_layer(
+    pieces: Pieces,
+    shapes: dict[tuple[str, int], PieceShape],
+    anchor: np.ndarray,
+    ids: np.ndarray,
+) -> Sdf.Layer:
+    """``/Forest/DeadWood`` for ``pieces`` in recipe coordinates, written about ``anchor``
+    (their colliders go in the forest's collision layer: :func:`capsules`)."""
+    layer = new_layer("Forest", comment="usdforest dead wood")
+    pos, quat, scales, index = instance_transforms(pieces, shapes)
+    pos = pos - np.array([anchor[0], anchor[1], 0.0])
+    with Sdf.ChangeBlock():
+        forest = prim(layer, "Forest", "Xform")
+        forest.kind = "assembly"
+        inst = prim(forest, "DeadWood", "PointInstancer")
+        inst.kind = "group"
+        protos = prim(inst, "Prototypes", "Scope")
+        protos.kind = "group"
+        targets = []
+        for kind, decay in prototypes():
+            p = prim(protos, prototype_name(kind, decay), "Xform")
+            p.referenceList.prependedItems = [
+                Sdf.Reference(f"./templates/{template_name(kind, decay)}.usdc")
+            ]
+            semantic_label(p, ["dead_wood", kind])
+            p.customData = {"usdforest": {"kind": kind, "decayClass": decay}}
+            targets.append(p.path)
+        r = Sdf.RelationshipSpec(inst, "prototypes", custom=False)
+        r.targetPathList.explicitItems = targets
+        attr(inst, "positions", T.Point3fArray, vec3f(pos))
+        attr(
+            inst,
+            "orientations",
+            T.QuathArray,
+            Vt.QuathArray.FromNumpy(np.asarray(quat, dtype=np.float16).reshape(-1, 4)),
+        )
+        attr(inst, "scales", T.Float3Array, vec3f(scales))
+        attr(inst, "protoIndices", T.IntArray, Vt.IntArray.FromNumpy(index))
+        attr(inst, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(np.array(ids, dtype=np.int64)))
+        attr(inst, "extent", T.Float3Array, extents(_extent(pieces, shapes, pos)))
+    return layer
+
+
+def _extent(pieces: Pieces, shapes: dict, pos: np.ndarray) -> np.ndarray:
+    """A box around every piece: its axis widened by its largest reach from the axis."""
+    if not len(pieces):
+        return np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    reach = np.array(
+        [shapes[(KINDS[k], int(d))].reach for k, d in zip(pieces.kind, pieces.decay, strict=True)]
+    )
+    r = (pieces.diameter / 2 * reach)[:, None]
+    tip = pos + pieces.axis * pieces.length[:, None]
+    lo = np.minimum(pos, tip) - r
+    hi = np.maximum(pos, tip) + r
+    return np.stack([lo.min(axis=0), hi.max(axis=0)])
+
+
+def capsules(pieces: Pieces, anchor: np.ndarray, ids: np.ndarray) -> Capsules:
+    """A collider capsule along each piece's axis with the piece's radius, ending at its
+    ends (a stump shorter than it is wide gets a sphere of its height's half, on the
+    ground)."""
+    base = pieces.base - np.array([anchor[0], anchor[1], 0.0])
+    tip = base + pieces.axis * pieces.length[:, None]
+    r = np.minimum(pieces.diameter / 2, pieces.length / 2)
+    names = tuple(f"D_{int(i):07d}" for i in ids)
+    return Capsules(names, base, tip, r)
+
+
+def write_deadwood_csv(path: Path, pieces: Pieces, ids: np.ndarray) -> None:
+    """``deadwood.csv``: one row per piece (recipe coordinates of the middle of its axis;
+    azimuth and pitch of the axis in degrees; metres and m³)."""
+    from usdforest import csvtext
+
+    c = pieces.centre
+    az = np.degrees(np.arctan2(pieces.axis[:, 1], pieces.axis[:, 0]))
+    pitch = np.degrees(np.arcsin(np.clip(pieces.axis[:, 2], -1, 1)))
+    with path.open("wb") as f:
+        f.write((",".join(CSV_HEADER) + "\n").encode())
+        csvtext.write_rows(
+            f,
+            len(pieces),
+            lambda i: (
+                csvtext.integers(np.asarray(ids)[i]),
+                csvtext.labels(pieces.kind[i], KINDS),
+                csvtext.integers(pieces.decay[i]),
+                csvtext.fixed(c[i, 0], 3),
+                csvtext.fixed(c[i, 1], 3),
+                csvtext.fixed(c[i, 2], 3),
+                csvtext.fixed(az[i], 2),
+                csvtext.fixed(pitch[i], 2),
+                csvtext.fixed(pieces.length[i], 3),
+                csvtext.fixed(pieces.diameter[i], 4),
+                csvtext.fixed(pieces.volume[i], 5),
+            ),
+        )
+
+
+def is_dead_wood(instancer: Usd.Prim) -> bool:
+    """Whether a PointInstancer's prototypes are dead wood (labelled ``dead_wood``)."""
+    pi = UsdGeom.PointInstancer(instancer)
+    targets = pi.GetPrototypesRel().GetTargets()
+    stage = instancer.GetStage()
+    return bool(targets) and all(
+        "dead_wood" in class_labels(stage.GetPrimAtPath(t)) for t in targets
+    )
+
+
+def dead_wood_figures(instancer: Usd.Prim | None, area: float) -> dict:
+    """Dead wood measured on the composed stage: each prototype's mesh volume times the
+    determinant of each instance's transform, per kind (the prototype's ``usdforest:kind``),
+    in m³ and pieces per hectare of ``area`` m². ``None``: a forest without dead wood."""
+    out = {
+        "dead_wood_m3_per_ha": 0.0,
+        "dead_wood_by_kind_m3_per_ha": {k: 0.0 for k in KINDS},
+        "dead_wood_pieces_per_ha": {k: 0.0 for k in KINDS},
+    }
+    if instancer is None:
+        return out
+    ha = area / 1e4
+    pi = UsdGeom.PointInstancer(instancer)
+    stage = instancer.GetStage()
+    idx = np.asarray(pi.GetProtoIndicesAttr().Get() or [], dtype=np.int64)
+    if not len(idx):
+        return out
+    mats = np.asarray(
+        pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
+    )
+    det = np.abs(np.linalg.det(mats[:, :3, :3]))
+    cache = UsdGeom.XformCache()
+    for k, target in enumerate(pi.GetPrototypesRel().GetTargets()):
+        sel = idx == k
+        if not sel.any():
+            continue
+        proto = stage.GetPrimAtPath(target)
+        kind = str((proto.GetCustomDataByKey("usdforest") or {}).get("kind", "log"))
+        inv = np.asarray(cache.GetLocalToWorldTransform(proto).GetInverse(), dtype=float)
+        unit = 0.0
+        for m in Usd.PrimRange(proto):
+            if m.IsA(UsdGeom.Mesh):
+                mesh = UsdGeom.Mesh(m)
+                to_proto = np.asarray(cache.GetLocalToWorldTransform(m), dtype=float) @ inv
+                pts = np.asarray(mesh.GetPointsAttr().Get(), dtype=float)
+                pts = pts @ to_proto[:3, :3] + to_proto[3, :3]
+                tri = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int64)
+                unit += mesh_volume(pts, tri)
+        volume = unit * float(det[sel].sum())
+        out["dead_wood_by_kind_m3_per_ha"][kind] += volume / ha
+        out["dead_wood_pieces_per_ha"][kind] += int(sel.sum()) / ha
+    out["dead_wood_m3_per_ha"] = float(sum(out["dead_wood_by_kind_m3_per_ha"].values()))
+    return out
