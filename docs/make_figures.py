@@ -424,7 +424,7 @@ def forest_sensors(out: Path, work: Path) -> None:
     fig, axes = plt.subplots(2, 2, figsize=(10, 7.8), dpi=100)
     panels = (
         (frame.rgb, {}, "RGB (material colour, Lambert-shaded)"),
-        (camera.PALETTE[frame.semantic], {}, "semantic: trunk, branch, leaf, ground"),
+        (camera.PALETTE[frame.semantic], {}, "semantic: trunk, branch, leaf, ground, dead wood"),
         (depth, {"cmap": "viridis_r"}, "depth (z, m)"),
         (camera.instance_colours(frame.instance), {}, "instance: one colour per tree id"),
     )
@@ -442,6 +442,72 @@ def forest_sensors(out: Path, work: Path) -> None:
     fig, ax = plt.subplots(figsize=(14, 7), dpi=100)
     image_panel(ax, work / "flight_camera.png", "")
     save_figure(fig, out / "flight-camera.png")
+
+
+def dead_wood(out: Path, work: Path) -> None:
+    """The default forest's dead wood from a walker's eye: a camera 6 m beside its thickest
+    log, in colour and by class, with what deadwood.csv says of the pieces in view."""
+    import csv
+    import math
+
+    import numpy as np
+
+    from usdforest.recipe import default_recipe_path
+    from usdforest.sensors import camera
+    from usdforest.sensors.pose import Pose
+    from usdforest.sensors.raycast import SceneCaster
+    from usdforest.sensors.scene import CLASS_ID, extract_scene
+
+    stage = work / "default.usda"
+    if not stage.exists():
+        write_forest(read_recipe(default_recipe_path()), stage, thumbnail=False)
+    with (work / "default_assets" / "deadwood.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    log = max((r for r in rows if r["kind"] == "log"), key=lambda r: float(r["diameter"]))
+    x, y = float(log["x"]), float(log["y"])
+    az = math.radians(float(log["azimuth"]))
+    # 6 m from the log's middle, across it, looking at it and a little down
+    across = np.array([-math.sin(az), math.cos(az)])
+    eye = np.array([x, y]) - 6.0 * across
+    yaw = math.degrees(math.atan2(across[1], across[0]))
+    pose = Pose(float(eye[0]), float(eye[1]), 1.6, yaw=yaw, pitch=-12.0)
+    scene = extract_scene(stage, centre=pose.position, radius=40.0)
+    cam = camera.DepthCamera(800, 500, 90.0, 40.0, kind="camera")
+    frame = camera.render(
+        scene, cam, pose, camera.path_colours(stage, scene.paths), SceneCaster(scene)
+    )
+    share = float(np.mean(frame.semantic == CLASS_ID["dead_wood"]))
+    fig, axes = plt.subplots(1, 2, figsize=(14, 4.8), dpi=100)
+    panels = (
+        (frame.rgb, "RGB (material colour: the four decay classes differ)"),
+        (
+            camera.PALETTE[frame.semantic],
+            f"semantic: dead wood (purple) on {share:.1%} of the pixels",
+        ),
+    )
+    for ax, (image, title) in zip(axes, panels, strict=True):
+        ax.imshow(image)
+        ax.set_title(title, fontsize=10)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    kinds = {
+        plural: sum(r["kind"] == k for r in rows)
+        for k, plural in (
+            ("log", "logs"),
+            ("snag", "snags"),
+            ("stump", "stumps"),
+            ("branch", "branches"),
+        )
+    }
+    volume = sum(float(r["volume"]) for r in rows)
+    fig.suptitle(
+        f"default forest: {volume:.1f} m³ of dead wood on 1 ha ("
+        + ", ".join(f"{n} {k}" for k, n in kinds.items())
+        + f"); its thickest log, {float(log['diameter']) * 100:.0f} cm x "
+        f"{float(log['length']):.1f} m, 6 m ahead",
+        fontsize=11,
+    )
+    save_figure(fig, out / "dead-wood.png")
 
 
 def terrain(out: Path, work: Path) -> None:
@@ -505,6 +571,7 @@ def main(out: Path) -> None:
         allometric(out, work)
         sensors(out, work)
         forest_sensors(out, work)
+        dead_wood(out, work)
         terrain(out, work)
         landscape(out, work)
     for p in sorted(out.glob("*.png")):

@@ -458,11 +458,12 @@ def extract_scene(
                 )
                 continue
             is_tree = "tree" in class_labels(proto)
-            if is_tree and centre is not None and radius is not None:
+            if centre is not None and radius is not None:  # trees, dead wood: those in reach
                 ext = bbox.ComputeUntransformedBound(proto).ComputeAlignedRange()
                 r_proto = float(np.linalg.norm(np.array(ext.GetMax()) - np.array(ext.GetMin())))
                 world_pos = xf[sel, 3, :3] @ to_world[:3, :3] + to_world[3, :3]
-                scale = np.cbrt(np.abs(np.linalg.det(xf[sel, :3, :3] @ to_world[:3, :3])))
+                # the largest stretch of each instance (dead wood is scaled more along)
+                scale = np.linalg.svd(xf[sel, :3, :3] @ to_world[:3, :3], compute_uv=False)[:, 0]
                 sel = sel[np.linalg.norm(world_pos - centre, axis=1) <= radius + r_proto * scale]
                 if sel.size == 0:
                     continue
