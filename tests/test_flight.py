@@ -235,7 +235,13 @@ def test_a_short_flight_through_the_default_forest_writes_every_output(tmp_path,
     sonar = np.load(tmp_path / "run_sonar.npz")
     assert sonar["echoes"].shape[0] == summary["sonar"]["pulses"] == 5
     parts = [k for k in sonar.files if k.startswith("echoes_")]
-    assert {"echoes_leaf", "echoes_trunk", "echoes_branch", "echoes_ground"} == set(parts)
+    assert {
+        "echoes_leaf",
+        "echoes_trunk",
+        "echoes_branch",
+        "echoes_dead_wood",
+        "echoes_ground",
+    } == set(parts)
     np.testing.assert_allclose(
         sum(sonar[k].astype(float) for k in parts),
         sonar["echoes"],

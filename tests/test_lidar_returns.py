@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from pxr import Usd, UsdGeom
+from pxr import Sdf, Usd, UsdGeom
 
 from usdforest.sensors.lidar import PRESETS, SpinningLidar, scan
 from usdforest.sensors.pose import Pose
@@ -262,3 +262,52 @@ def test_the_merge_equals_the_numpy_merge(mode, subrays):
         else:
             np.testing.assert_array_equal(g, w, err_msg=name)
         assert g.dtype == w.dtype or name in ("return_number", "number_of_returns"), name
+
+
+def test_a_pulse_through_a_leaf_returns_the_transmitted_light_from_the_wall_behind(tmp_path):
+    """A leaf filling the beam at 5 m, a wall at 10 m: the leaf's echo by the lidar equation
+    (its reflectance 0.47), and the wall's (reflectance 0.5) carrying T² of it, the light
+    that passed the leaf out and back (T = 0.42 at 905 nm, docs/notes/lidar-radiometry.md).
+    With opaque leaves the wall is not seen."""
+    from usdforest.sensors.lidar import LEAF_TRANSMITTANCE, REFLECTANCE
+
+    def stage(leaves):
+        scene_path = tmp_path / f"leaf{len(leaves)}.usda"
+        stage = Usd.Stage.CreateNew(str(scene_path))
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+        root = UsdGeom.Xform.Define(stage, "/Plates")
+        for k, x in enumerate([*leaves, 10.0]):
+            mesh = UsdGeom.Mesh.Define(stage, f"/Plates/P{k}")
+            mesh.CreatePointsAttr([(x, -1, -1), (x, 1, -1), (x, 1, 1), (x, -1, 1)])
+            mesh.CreateFaceVertexCountsAttr([4])
+            mesh.CreateFaceVertexIndicesAttr([0, 3, 2, 1])
+            if x != 10.0:
+                labels = mesh.GetPrim().CreateAttribute(
+                    "semantics:labels:class", Sdf.ValueTypeNames.TokenArray
+                )
+                labels.Set(["leaf"])
+        stage.SetDefaultPrim(root.GetPrim())
+        stage.Save()
+        return extract_scene(scene_path)
+
+    t = LEAF_TRANSMITTANCE
+    rho_leaf = REFLECTANCE["leaf"]
+    r = scan(stage([5.0]), _beam(beam_rings=2, returns="all"), Pose(0, 0, 0))
+    rng, inten, number, _ = _pulse(r)
+    np.testing.assert_allclose(rng, [5.0, 10.0], atol=1e-3)
+    np.testing.assert_allclose(
+        inten, [GAIN * rho_leaf / 25.0, GAIN * t**2 * RHO / 100.0], rtol=2e-3, atol=0.5
+    )
+    assert list(number) == [1, 2]
+    # behind a leaf, a second leaf (at 7 m) returns T² of its light and hides the wall: light
+    # is followed through one leaf (T⁴ = 3 % would be left beyond two)
+    r = scan(stage([5.0, 7.0]), _beam(beam_rings=2, returns="all"), Pose(0, 0, 0))
+    rng, inten, _, _ = _pulse(r)
+    np.testing.assert_allclose(rng, [5.0, 7.0], atol=1e-3)
+    expected = [rho_leaf / 25.0, t**2 * rho_leaf / 49.0]
+    np.testing.assert_allclose(inten, GAIN * np.array(expected), rtol=2e-3, atol=0.5)
+    # opaque leaves: the leaf alone
+    r = scan(
+        stage([5.0]), _beam(beam_rings=2, returns="all", leaf_transmittance=0.0), Pose(0, 0, 0)
+    )
+    np.testing.assert_allclose(_pulse(r)[0], [5.0], atol=1e-3)

@@ -24,6 +24,13 @@ from usdforest.sensors.raycast import SceneCaster
 from usdforest.sensors.returns import MODES, Echoes, beam_pattern, merge_echoes, subray_directions
 from usdforest.sensors.scene import CLASSES, Scene
 
+# Leaves and needles transmit near 905 nm: broadleaves 0.40-0.49 (PROSPECT-D), Norway spruce
+# needles 0.364 (RAMI-V Järvselja); one value for both, as REFLECTANCE has (0.47), 0.42
+# (docs/notes/lidar-radiometry.md). Light is followed through one leaf: beyond a second, a
+# return keeps T^4 = 3 % of its power, and each pass costs a cast of the rays that hit leaves.
+LEAF_TRANSMITTANCE = 0.42
+LEAF_PASSES = 1
+
 
 @dataclass(frozen=True)
 class SpinningLidar:
@@ -33,7 +40,9 @@ class SpinningLidar:
     ``beam_rings`` rings of sub-rays (1: 7 sub-rays, 2: 19); hits closer in range than
     ``return_separation`` metres are one echo; ``returns`` picks the echoes reported:
     ``first``, ``last``, ``strongest``, ``dual`` (strongest and last) or ``all`` (up to
-    ``max_returns``).
+    ``max_returns``). ``leaf_transmittance``: the share of the light a leaf lets through
+    (0: opaque leaves); a sub-ray that hits a leaf goes on through :data:`LEAF_PASSES`
+    leaves, what it then hits returning through them (``T²`` per leaf, there and back).
     """
 
     channels: int = 16
@@ -48,8 +57,11 @@ class SpinningLidar:
     returns: str = "strongest"
     max_returns: int = 4
     return_separation: float = 1.0
+    leaf_transmittance: float = LEAF_TRANSMITTANCE
 
     def check(self) -> None:
+        if not (np.isfinite(self.leaf_transmittance) and 0 <= self.leaf_transmittance < 1):
+            raise UsdForestError("lidar.leaf_transmittance: must be in [0, 1)")
         if not 1 <= self.channels <= 1024:
             raise UsdForestError("lidar.channels: must be 1 to 1024")
         if not (np.isfinite(self.divergence) and 0 <= self.divergence <= 100):
@@ -152,6 +164,8 @@ REFLECTANCE = {
     "dead_wood": 0.35,  # bare wood 0.34-0.36 at 905 nm (docs/notes/lidar-radiometry.md), as bark
 }
 _RHO = np.array([REFLECTANCE[c] for c in CLASSES])  # by class index
+_LEAF = CLASSES.index("leaf")
+LEAF_STEP = 1e-4  # m: a ray through a leaf starts again this far past it
 # the intensity of a Lambertian target of reflectance 1 facing the sensor 1 m away
 INTENSITY_GAIN = 65535.0
 
@@ -188,18 +202,38 @@ def cast_pulses(
         beam, mode, most, apart = beam_pattern(0.0, 0), "first", 1, 1.0
     n, s = len(dirs), len(beam)
     sub = subray_directions(dirs, beam)
-    h = caster.first_hit(np.repeat(origins, s, axis=0), sub, sensor.max_range, group=s)
+    start = np.repeat(origins, s, axis=0)
+    weights = np.asarray(beam.weights, float)
+    h = caster.first_hit(start, sub, sensor.max_range, group=s)
     energy, spread = returns_kernels.subray_energy(
-        sub, h.normal, h.t, h.cls, _RHO, np.asarray(beam.weights, float), float(beam.cell)
+        sub, h.normal, h.t, h.cls, _RHO, weights, float(beam.cell)
+    )
+    columns = [(h.t, energy, spread, h.cls, h.tree, h.path)]
+    trans = getattr(sensor, "leaf_transmittance", 0.0)
+    travelled, carry, met = h.t, np.ones(n * s), h.cls
+    for _ in range(LEAF_PASSES if trans > 0 else 0):
+        # the light a leaf lets through goes on; what it meets returns through the leaf again
+        through = np.flatnonzero((met == _LEAF) & np.isfinite(travelled))
+        if not through.size:
+            break
+        past = travelled[through] + LEAF_STEP
+        nxt = caster.first_hit(start[through] + sub[through] * past[:, None], sub[through],
+                               sensor.max_range)  # fmt: skip
+        t = np.full(n * s, np.inf)
+        t[through] = np.where(past + nxt.t <= sensor.max_range, past + nxt.t, np.inf)
+        normal, cls = np.zeros((n * s, 3)), np.zeros(n * s, np.uint8)
+        tree, path = np.full(n * s, -1, np.int64), np.full(n * s, -1, np.int64)
+        normal[through], cls[through] = nxt.normal, nxt.cls
+        tree[through], path[through] = nxt.tree, nxt.path
+        carry = carry * trans * trans
+        e, sp = returns_kernels.subray_energy(sub, normal, t, cls, _RHO, weights, float(beam.cell))
+        columns.append((t, e * carry, sp, cls, tree, path))
+        travelled, met = t, cls
+    t, e, sp, cls, tree, path = (
+        np.stack([c[k].reshape(n, s) for c in columns], axis=2).reshape(n, -1) for k in range(6)
     )
     return merge_echoes(
-        h.t.reshape(n, s),
-        energy.reshape(n, s),
-        (h.cls.reshape(n, s), h.tree.reshape(n, s), h.path.reshape(n, s)),
-        spread=spread.reshape(n, s),
-        separation=apart,
-        mode=mode,
-        max_returns=most,
+        t, e, (cls, tree, path), spread=sp, separation=apart, mode=mode, max_returns=most
     )
 
 

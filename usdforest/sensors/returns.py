@@ -16,8 +16,9 @@ obliquely. Hits of one pulse whose patches are closer in range than ``separation
 the pulse length: 1 m for Velodyne's dual mode) merge into one echo (a wall seen at grazing
 incidence stays one long echo)
 at their energy-weighted mean range, labelled by its strongest sub-ray (class, tree, prim),
-its intensity the sum. Leaves are opaque here: light a leaf transmits is not followed, so
-a pulse's later echoes come from the gaps in its footprint.
+its intensity the sum. Light a leaf transmits is followed by
+:func:`usdforest.sensors.lidar.cast_pulses` (a later echo from behind the leaf, ``T²`` as
+strong), so a pulse's later echoes come from the gaps in its footprint and through leaves.
 """
 
 from __future__ import annotations
