@@ -83,6 +83,37 @@ def lidar_forest_scan() -> tuple[int, str, str]:
     )
 
 
+def lidar_leaf_transmittance() -> tuple[int, str, str]:
+    """What following light through leaves costs: a VLP-16 at head height in the default
+    forest, leaves at 0.42 transmittance against opaque leaves, on one warm caster, best of
+    three each in this run (target: within 2x)."""
+    from usdforest.recipe import default_recipe_path, read_recipe
+    from usdforest.sensors.lidar import PRESETS
+    from usdforest.usd.forest import write_forest
+
+    if "forest" not in _CACHE:
+        write_forest(read_recipe(default_recipe_path()), WORK / "forest.usda", thumbnail=False)
+        _CACHE["forest"] = WORK / "forest.usda"
+    pose = Pose(50.0, 50.0, 2.0)
+    scene = extract_scene(_CACHE["forest"], centre=pose.position, radius=100.0)
+    caster = SceneCaster(scene)
+    best, returns = {}, {}
+    for _ in range(3):
+        for name, t in (("through", PRESETS["vlp-16"].leaf_transmittance), ("opaque", 0.0)):
+            sensor = replace(PRESETS["vlp-16"], leaf_transmittance=t)
+            t0 = time.perf_counter()
+            r = scan(scene, sensor, pose, caster=caster)
+            best[name] = min(best.get(name, np.inf), time.perf_counter() - t0)
+            returns[name] = len(r)
+    return (
+        r.n_rays,
+        "pulses",
+        f"{best['through']:.2f} s vs {best['opaque']:.2f} s opaque: "
+        f"{best['through'] / best['opaque']:.2f}x (target 2x); {returns['through']:,} returns "
+        f"vs {returns['opaque']:,}",
+    )
+
+
 def full_detail_open() -> tuple[int, str, str]:
     """What selecting full detail costs the sensors: the default forest (which selects lod =
     medium for clients) opened as scan, fly, stats and preview open it (switched to full in
@@ -168,6 +199,9 @@ BENCHMARKS = {
     "lidar: 1M rays, pine tree": lidar_1m_rays,
     "sonar: echo of ~100k leaves": sonar_100k_leaves,
     "lidar: default forest, VLP-16 at 30 m, end to end": lidar_forest_scan,
+    "lidar: light through leaves vs opaque leaves, VLP-16 in the default forest": (
+        lidar_leaf_transmittance
+    ),
     "sensors: default forest opened at full detail": full_detail_open,
     "lidar: quick-mixed 15 m, VLP-16 vs Embree on copied triangles": lidar_forest_floor,
     "camera: quick-mixed 15 m, 640 x 480 vs Embree on copied triangles": camera_forest_floor,
