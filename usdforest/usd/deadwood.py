@@ -130,7 +130,7 @@ def deadwood_layer(
     ids: np.ndarray,
 ) -> Sdf.Layer:
     """``/Forest/DeadWood`` for ``pieces`` in recipe coordinates, written about ``anchor``
-    (their colliders go in the forest's collision layer: :func:`capsules`)."""
+    (their colliders go in the forest's collision layer: :func:`deadwood_capsules`)."""
     layer = new_layer("Forest", comment="usdforest dead wood")
     pos, quat, scales, index = instance_transforms(pieces, shapes)
     pos = pos - np.array([anchor[0], anchor[1], 0.0])
@@ -180,7 +180,7 @@ def _extent(pieces: Pieces, shapes: dict, pos: np.ndarray) -> np.ndarray:
     return np.stack([lo.min(axis=0), hi.max(axis=0)])
 
 
-def capsules(pieces: Pieces, anchor: np.ndarray, ids: np.ndarray) -> Capsules:
+def deadwood_capsules(pieces: Pieces, anchor: np.ndarray, ids: np.ndarray) -> Capsules:
     """A collider capsule along each piece's axis with the piece's radius, ending at its
     ends (a stump shorter than it is wide gets a sphere of its height's half, on the
     ground)."""

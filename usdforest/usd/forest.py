@@ -47,10 +47,8 @@ from usdforest.sites.local import Plan, classes_for, first_ids, place, squares, 
 from usdforest.sites.stand import merge_sums
 from usdforest.sites.terrain import HeightField
 from usdforest.usd.deadwood import (
-    capsules as deadwood_capsules,
-)
-from usdforest.usd.deadwood import (
     copy_deadwood_templates,
+    deadwood_capsules,
     deadwood_layer,
     write_deadwood_csv,
 )
