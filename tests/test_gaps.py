@@ -11,7 +11,7 @@ import pytest
 import shapely
 from pxr import Sdf, Usd, UsdGeom
 
-from usdforest.sensors.gaps import clumping, gap_fractions, leaf_projection
+from usdforest.sensors.gaps import clumping, gap_fractions, leaf_angles, leaf_projection
 from usdforest.sensors.raycast import SceneCaster
 from usdforest.sensors.scene import extract_scene
 
@@ -103,6 +103,37 @@ def test_random_leaves_follow_beer_lambert(slab):
         want = math.exp(-0.5 * lai / math.cos(math.radians(z)))
         assert p == pytest.approx(want, rel=0.05), z
         assert clumping(p, lai, 0.5, z) == pytest.approx(1.0, abs=0.05)
+
+
+def test_leaf_inclination_of_spherical_and_of_tilted_leaves(slab, tmp_path):
+    """The leaf inclination distribution and mean leaf angle `stats` reports: spherical
+    normals put cos(a) - cos(b) of the area between inclinations a and b and have a mean of
+    1 radian (57.3 degrees); leaves all tilted 35 degrees sit in one class, with
+    G(theta) = cos(theta) cos(35 deg) while theta + 35 <= 90 (Ross 1981)."""
+    (scene, _), _ = slab
+    g, lid, mean = leaf_angles(scene, (0.0, 30.0))
+    edges = np.radians(np.arange(0, 100, 10.0))
+    np.testing.assert_allclose(lid, np.cos(edges[:-1]) - np.cos(edges[1:]), atol=0.006)
+    assert mean == pytest.approx(math.degrees(1.0), abs=0.3)
+    rng = np.random.default_rng(7)
+    n, side = 2000, 0.1
+    az = rng.uniform(0, 2 * np.pi, n)
+    tilt = math.radians(35.0)
+    normal = np.column_stack(
+        [np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.full(n, np.cos(tilt))]
+    )
+    e1 = np.column_stack([-np.sin(az), np.cos(az), np.zeros(n)])  # horizontal, in the leaf
+    e2 = np.cross(normal, e1)
+    centres = rng.uniform(0, 10, (n, 3))
+    h = side / 2
+    quads = np.stack(
+        [centres + a * e1 + b * e2 for a, b in [(-h, -h), (h, -h), (h, h), (-h, h)]], 1
+    )
+    tilted, _ = _stage(tmp_path / "tilted.usda", quads=quads)
+    g, lid, mean = leaf_angles(tilted, (0.0, 30.0, 50.0))
+    assert mean == pytest.approx(35.0, abs=0.01)
+    assert lid[3] == pytest.approx(1.0, abs=1e-6)  # the 30-40 degree class
+    np.testing.assert_allclose(g, np.cos(np.radians([0, 30, 50])) * math.cos(tilt), rtol=0.002)
 
 
 def test_clumped_leaves_let_more_through(tmp_path):

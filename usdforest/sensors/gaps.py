@@ -37,6 +37,8 @@ OBLIQUE_SPACING = 0.30  # m: each ring is still 100,000s of rays over a hectare
 SAMPLE_LEAVES = 400  # a prototype's leaves G is measured on (G to about 0.005 over a stand)
 Bounds = tuple[float, float, float, float]
 BELOW_CANOPY = (CLASS_ID["ground"], CLASS_ID["dead_wood"])  # hits that are not canopy
+ANGLE_BIN = 10.0  # degrees: the leaf inclination distribution's classes, 0-10 ... 80-90
+ANGLE_BINS = 9
 
 
 @dataclass(frozen=True)
@@ -148,15 +150,26 @@ def _directions(zeniths: tuple[float, ...]) -> np.ndarray:
 
 
 def _projected(a: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """Per zenith angle, the azimuth-mean of ``sum |a . d|`` over area vectors ``a``."""
-    return np.abs(a @ dirs.reshape(-1, 3).T).sum(axis=0).reshape(dirs.shape[:2]).mean(axis=1)
+    """Per zenith angle, the azimuth-mean of ``sum |a . d|`` over area vectors ``a``; then
+    the areas by leaf inclination (the normal's angle from the vertical) in ``ANGLE_BINS``,
+    and the area-weighted sum of the inclinations (degrees)."""
+    g = np.abs(a @ dirs.reshape(-1, 3).T).sum(axis=0).reshape(dirs.shape[:2]).mean(axis=1)
+    area = np.linalg.norm(a, axis=1)
+    angle = np.degrees(np.arccos(np.clip(np.abs(a[:, 2]) / np.maximum(area, 1e-300), 0, 1)))
+    bins = np.bincount(
+        np.minimum((angle // ANGLE_BIN).astype(np.int64), ANGLE_BINS - 1),
+        weights=area,
+        minlength=ANGLE_BINS,
+    )
+    return np.concatenate([g, bins, [float(angle @ area)]])
 
 
 def _leaf_sums(shapes, li, rows, dirs) -> tuple[np.ndarray, float]:
     """Projected (per zenith) and one-sided areas of leaf instances ``rows`` of ``li``: each
     shape's area vectors moved by its instances' cofactor matrices (an area vector ``a`` of a
-    shape under ``p -> p M`` becomes ``det(M) a M^-T``), a closed shape's halved."""
-    num, den = np.zeros(dirs.shape[0]), 0.0
+    shape under ``p -> p M`` becomes ``det(M) a M^-T``), a closed shape's halved (the sums
+    of :func:`_projected`)."""
+    num, den = np.zeros(dirs.shape[0] + ANGLE_BINS + 1), 0.0
     for s in np.unique(li.shape[rows]):
         at = rows[li.shape[rows] == s]
         tri = np.asarray(shapes[s].triangles, dtype=float)
@@ -178,10 +191,19 @@ def leaf_projection(scene: Scene, zeniths: tuple[float, ...] = ZENITHS) -> np.nd
     area (a closed shoot's surface counted half). Measured on up to ``SAMPLE_LEAVES`` leaves
     a tree prototype, each prototype weighted by its instances' scale squared (a tree
     instance is turned about z and scaled, which leaves its G as it is)."""
+    return leaf_angles(scene, zeniths)[0]
+
+
+def leaf_angles(
+    scene: Scene, zeniths: tuple[float, ...] = ZENITHS
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """``G(theta)`` (see :func:`leaf_projection`), the leaf inclination distribution (the
+    share of the one-sided leaf area whose normal leans 0-10, ..., 80-90 degrees from the
+    vertical) and the area-weighted mean leaf inclination (degrees), from the same sample."""
     dirs = _directions(zeniths)
     rng = np.random.default_rng(0)
     a = _area_vectors(scene.triangles[scene.cls == CLASS_ID["leaf"]].astype(float))
-    num = _projected(a, dirs) if len(a) else np.zeros(len(zeniths))
+    num = _projected(a, dirs) if len(a) else np.zeros(len(zeniths) + ANGLE_BINS + 1)
     den = float(np.linalg.norm(a, axis=1).sum())
     li = scene.leaf_instances
     if len(li):
@@ -200,7 +222,10 @@ def leaf_projection(scene: Scene, zeniths: tuple[float, ...] = ZENITHS) -> np.nd
         share = len(li) / len(rows)  # the sample stands for all the prototype's leaves
         n, d = _leaf_sums(scene.shapes, li, rows, dirs)
         num, den = num + weight * share * n, den + weight * share * d
-    return num / den if den > 0 else np.full(len(zeniths), np.nan)
+    if not den > 0:
+        return np.full(len(zeniths), np.nan), np.full(ANGLE_BINS, np.nan), math.nan
+    z = len(zeniths)
+    return num[:z] / den, num[z : z + ANGLE_BINS] / den, float(num[-1] / den)
 
 
 def clumping(gap: float | None, lai: float, g: float, zenith: float) -> float | None:
@@ -219,7 +244,8 @@ def canopy_figures(
     progress: Callable[[str, int, int], None] | None = None,
 ) -> dict:
     """What ``usdforest stats`` reports of a forest's canopy, measured by rays over the plot
-    ``bounds`` with the stand's one-sided ``lai``: ``canopy_cover`` (1 - P(0)), and per zenith
+    ``bounds`` with the stand's one-sided ``lai``: ``canopy_cover`` (1 - P(0)), the leaves'
+    mean inclination and inclination distribution (:func:`leaf_angles`), and per zenith
     angle the gap fraction, ``G`` and the effective clumping index (keys: degrees)."""
     from usdforest.sensors.raycast import SceneCaster
     from usdforest.sensors.scene import extract_scene
@@ -227,10 +253,14 @@ def canopy_figures(
     scene = extract_scene(stage_path, reflectors=False, progress=progress)
     caster = SceneCaster(scene, progress=progress)
     gaps = gap_fractions(scene, caster, bounds, zeniths, progress=progress)
-    g = leaf_projection(scene, zeniths)
+    g, lid, mean_angle = leaf_angles(scene, zeniths)
     key = [f"{z:g}" for z in zeniths]
     return {
         "canopy_cover": gaps.cover,
+        "mean_leaf_angle_deg": mean_angle,
+        "leaf_angle_distribution": {
+            f"{k * ANGLE_BIN:g}-{(k + 1) * ANGLE_BIN:g}": float(v) for k, v in enumerate(lid)
+        },
         "gap_fraction": dict(zip(key, gaps.gap, strict=True)),
         "leaf_projection_g": {k: float(v) for k, v in zip(key, g, strict=True)},
         "clumping_index": {
