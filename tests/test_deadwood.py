@@ -137,6 +137,16 @@ def test_dead_wood_is_labelled_instanced_and_validates(forest):
         meshes = [m for m in Usd.PrimRange(proto) if m.IsA(UsdGeom.Mesh)]
         assert meshes and all(class_labels(m) == ["dead_wood"] for m in meshes)
         assert proto.GetPrimStack()[-1].layer.identifier.endswith(".usdc")  # a template
+    # the instancer's extent and /Forest's extentsHint hold every placed piece
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for mesh, _ in _composed_pieces(stage):
+        lo, hi = np.minimum(lo, mesh.bounds[0]), np.maximum(hi, mesh.bounds[1])
+    for box in (
+        UsdGeom.PointInstancer(inst).GetExtentAttr().Get(),
+        stage.GetPrimAtPath("/Forest").GetAttribute("extentsHint").Get(),
+    ):
+        box = np.array(box, dtype=float)
+        assert (box[0] <= lo + 1e-3).all() and (box[1] >= hi - 1e-3).all()
     # every piece stands or lies on the plane: standing feet 1 cm down, lying pieces resting
     # (orientations are half floats, as Blender reads them: a 10 m log's end moves <= 1 cm)
     for mesh, kind in _composed_pieces(stage):

@@ -100,6 +100,8 @@ def test_layout_and_ground_truth(default_forest):
     assets = out.parent / "forest_assets"
     assert sorted(p.name for p in assets.iterdir()) == [
         "colliders.usdc",
+        "deadwood.csv",
+        "deadwood.usdc",
         "ground.usdc",
         "instances.usdc",
         "physics.usda",
@@ -114,6 +116,7 @@ def test_layout_and_ground_truth(default_forest):
     forest_layer = Sdf.Layer.FindOrOpen(str(out))
     assert list(forest_layer.subLayerPaths) == [
         "./forest_assets/instances.usdc",
+        "./forest_assets/deadwood.usdc",
         "./forest_assets/colliders.usdc",
         "./forest_assets/ground.usdc",
     ]
@@ -186,14 +189,16 @@ def test_layered_into_a_simulation_stage_under_a_translated_prim(default_forest,
     np.testing.assert_allclose(world_xf[:, 0, 0], np.cos(yaw) * s, atol=2e-3)
     np.testing.assert_allclose(world_xf[:, 0, 1], np.sin(yaw) * s, atol=2e-3)
     np.testing.assert_allclose(world_xf[:, 2, 2], s, atol=2e-3)
-    # the trees' world bounds sit inside the translated plot
-    box = (
-        UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"])
-        .ComputeWorldBound(sim.GetPrimAtPath("/World/Plot"))
-        .ComputeAlignedRange()
-    )
+    # the trees' world bounds sit inside the translated plot, on its ground
+    cache = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"])
+    box = cache.ComputeWorldBound(sim.GetPrimAtPath("/World/Plot")).ComputeAlignedRange()
     assert box.GetMin()[0] > 1000 - 10 and box.GetMax()[0] < 1100 + 10
-    assert box.GetMin()[2] == pytest.approx(3.0, abs=0.01)
+    trees_box = cache.ComputeWorldBound(pi.GetPrim()).ComputeAlignedRange()
+    assert trees_box.GetMin()[2] == pytest.approx(3.0, abs=0.01)
+    # dead wood too, though decayed logs sink into the litter and a crooked branch's box
+    # (its prototype's box turned with it) reaches lower than the branch
+    dead = cache.ComputeWorldBound(sim.GetPrimAtPath("/World/Plot/DeadWood")).ComputeAlignedRange()
+    assert 3.0 - 0.5 < dead.GetMin()[2] < 3.0
     assert validate(tmp_path / "sim.usda") == []
 
 

@@ -162,18 +162,21 @@ def deadwood_layer(
         attr(inst, "scales", T.Float3Array, vec3f(scales))
         attr(inst, "protoIndices", T.IntArray, Vt.IntArray.FromNumpy(index))
         attr(inst, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(np.array(ids, dtype=np.int64)))
-        attr(inst, "extent", T.Float3Array, extents(_extent(pieces, shapes, pos)))
+        attr(inst, "extent", T.Float3Array, extents(deadwood_extent(pieces, shapes, anchor)))
     return layer
 
 
-def _extent(pieces: Pieces, shapes: dict, pos: np.ndarray) -> np.ndarray:
-    """A box around every piece: its axis widened by its largest reach from the axis."""
+def deadwood_extent(pieces: Pieces, shapes: dict, anchor: np.ndarray) -> np.ndarray:
+    """A box around every piece (in the layers' frame, about ``anchor``): its axis widened
+    by its largest reach from the axis."""
     if not len(pieces):
         return np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    pos = pieces.base - np.array([anchor[0], anchor[1], 0.0])
     reach = np.array(
         [shapes[(KINDS[k], int(d))].reach for k, d in zip(pieces.kind, pieces.decay, strict=True)]
     )
-    r = (pieces.diameter / 2 * reach)[:, None]
+    # orientations are stored as half floats (quath): a 10 m log's ends may move by 1 cm
+    r = (pieces.diameter / 2 * reach + 0.005 * pieces.length)[:, None]
     tip = pos + pieces.axis * pieces.length[:, None]
     lo = np.minimum(pos, tip) - r
     hi = np.maximum(pos, tip) + r

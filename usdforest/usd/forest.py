@@ -49,6 +49,7 @@ from usdforest.sites.terrain import HeightField
 from usdforest.usd.deadwood import (
     copy_deadwood_templates,
     deadwood_capsules,
+    deadwood_extent,
     deadwood_layer,
     write_deadwood_csv,
 )
@@ -114,10 +115,12 @@ def interface_layer(
     sublayers: list[str],
     thumbnail: str | None = None,
     tiles: list | None = None,
+    boxes: tuple[np.ndarray, ...] = (),
 ) -> Sdf.Layer:
     """``forest.usda``: ``/Forest`` (assembly) over the instancer and collision sublayers
     (or the ``tiles``' payloads, see :func:`usdforest.usd.tiles.author_tiles`), with a
-    physics scene only when the recipe asks for one."""
+    physics scene only when the recipe asks for one; its extentsHint also holds ``boxes``
+    (the dead wood's)."""
     layer = new_layer("Forest", comment="usdforest forest")
     for sub in sublayers:
         layer.subLayerPaths.append(sub)
@@ -148,7 +151,7 @@ def interface_layer(
                 "pipeline": "./" + f"{build.assets.name}/pipeline.toml",
             }
         }
-        attr(forest, "extentsHint", T.Float3Array, extents(_extents_hint(build, recipe)))
+        attr(forest, "extentsHint", T.Float3Array, extents(_extents_hint(build, recipe, boxes)))
         if tiles:
             author_tiles(forest, tiles)
         if recipe.physics_scene:
@@ -165,7 +168,9 @@ def _stage_origin(build: ForestBuild, recipe: Recipe) -> np.ndarray:
     return np.asarray(build.anchor, dtype=float)
 
 
-def _extents_hint(build: ForestBuild, recipe: Recipe) -> np.ndarray:
+def _extents_hint(
+    build: ForestBuild, recipe: Recipe, extra: tuple[np.ndarray, ...] = ()
+) -> np.ndarray:
     """``/Forest``'s extentsHint: one box, for the default purpose, holding the ground and
     the trees (``/Forest/Trees`` is a default-purpose prim: its whole extent, proxies
     included, counts there, as ``UsdGeomModelAPI.ComputeExtentsHint`` finds)."""
@@ -176,6 +181,7 @@ def _extents_hint(build: ForestBuild, recipe: Recipe) -> np.ndarray:
         boxes.append(np.array([[x0, y0, ground.z.min()], [x1, y1, ground.z.max()]]))
     if build.n_trees:
         boxes.append(build.extent)
+    boxes.extend(extra)
     if not boxes:
         return EMPTY_EXTENT
     return np.stack([np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)])
@@ -299,7 +305,7 @@ def _write_forest(
             save_layer(layer, staged / "trees" / f"{stem}.usdc")
             tree_assets.append(f"./trees/{stem}.usdc")
         tick("writing trees", len(prototypes), len(prototypes))
-        sublayers, tiles, write_csv = [], None, None
+        sublayers, tiles, write_csv, boxes = [], None, None, ()
         if tiled:
             kit = TileKit(
                 recipe,
@@ -362,6 +368,8 @@ def _write_forest(
                 save_layer(deadwood_layer(pieces, shapes, anchor, ids), staged / "deadwood.usdc")
                 sublayers.append(f"./{assets.name}/deadwood.usdc")
                 write_deadwood_csv(staged / "deadwood.csv", pieces, ids)
+                if len(pieces):
+                    boxes = (deadwood_extent(pieces, shapes, anchor),)
                 tick("dead wood", 1, 1)
             if recipe.colliders != "none":
                 caps, cap_names = instance_capsules(
@@ -401,6 +409,7 @@ def _write_forest(
                     sublayers,
                     f"./{assets.name}/{THUMBNAIL}" if thumbnail else None,
                     tiles,
+                    boxes,
                 ),
                 tmp / out.name,
             )
