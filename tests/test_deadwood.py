@@ -23,7 +23,7 @@ from usdforest.grow.deadwood import KINDS, DeadWoodSpec, place_dead_wood, weibul
 from usdforest.recipe import parse_recipe
 from usdforest.sites.pointprocess import Rectangle
 from usdforest.sites.terrain import HeightField
-from usdforest.usd.deadwood import piece_shapes
+from usdforest.usd.debris import piece_shapes
 from usdforest.usd.forest import write_forest
 from usdforest.usd.inventory import stand_figures
 from usdforest.usd.layers import class_labels
@@ -267,12 +267,26 @@ def test_a_crowded_plot_is_a_clear_error_and_the_recipe_checks_its_table(tmp_pat
             _recipe(tmp_path, extra)
     with pytest.raises(RecipeError, match=r"deadwood\.volume"):
         _recipe(tmp_path, volume=5000.0)
-    tiled = _recipe(tmp_path)
+
+
+def test_a_tiled_forest_has_the_same_dead_wood_with_its_colliders(forest, tmp_path):
+    """Tiles do not change the pieces (placed among every stem, as untiled); a tiled forest
+    keeps their colliders in deadwood.usdc, its tiles holding only their trees'."""
     from dataclasses import replace
 
-    with pytest.raises(UsdForestError, match="untiled"):
-        write_forest(replace(tiled, tiles=20.0), tmp_path / "t.usda", thumbnail=False)
-    assert not list(tmp_path.glob("t*"))
+    tiled = replace(_recipe(tmp_path), tiles=20.0)
+    out = tmp_path / "t.usda"
+    write_forest(tiled, out, thumbnail=False)
+    assert (out.parent / "t_assets" / "deadwood.csv").read_bytes() == (
+        forest.parent / f"{forest.stem}_assets" / "deadwood.csv"
+    ).read_bytes()
+    assert validate(out) == []
+    stage = Usd.Stage.Open(str(out))
+    colliders = stage.GetPrimAtPath("/Forest/Colliders").GetChildren()
+    assert len(colliders) == len(_rows(forest, "deadwood.csv"))
+    assert all(c.GetName().startswith("D_") for c in colliders)
+    volume = sum(mesh.volume for mesh, _ in _composed_pieces(stage))
+    assert volume == pytest.approx(VOLUME * 0.16, rel=0.01)
 
 
 def test_sensors_see_dead_wood_as_its_own_class(forest):

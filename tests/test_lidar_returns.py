@@ -272,7 +272,7 @@ def test_a_pulse_through_a_leaf_returns_the_transmitted_light_from_the_wall_behi
     from usdforest.sensors.lidar import LEAF_TRANSMITTANCE, REFLECTANCE
 
     def stage(leaves):
-        scene_path = tmp_path / f"leaf{len(leaves)}.usda"
+        scene_path = tmp_path / f"leaf{len(list(tmp_path.glob('leaf*.usda')))}.usda"
         stage = Usd.Stage.CreateNew(str(scene_path))
         UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
         root = UsdGeom.Xform.Define(stage, "/Plates")

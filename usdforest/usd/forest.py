@@ -46,7 +46,7 @@ from usdforest.recipe import Recipe, recipe_inputs, resolved_toml
 from usdforest.sites.local import Plan, classes_for, first_ids, place, squares, whole
 from usdforest.sites.stand import merge_sums
 from usdforest.sites.terrain import HeightField
-from usdforest.usd.deadwood import (
+from usdforest.usd.debris import (
     copy_deadwood_templates,
     deadwood_capsules,
     deadwood_extent,
@@ -215,11 +215,6 @@ def write_forest(
     arguments.flag(force, "force")
     arguments.flag(thumbnail, "thumbnail")
     arguments.workers(workers, scheduler, recipe.tiles is not None, untiled)
-    if recipe.deadwood is not None and recipe.tiles is not None and not untiled:
-        raise UsdForestError(
-            f"{recipe.source}: deadwood is written for untiled forests only; remove [tiles] "
-            "or build with --untiled"
-        )
     assets = out.parent / f"{out.stem}_assets"
     with output_lock(out):
         refuse_inputs([out], recipe_inputs(recipe), folders=(assets,))
@@ -305,7 +300,7 @@ def _write_forest(
             save_layer(layer, staged / "trees" / f"{stem}.usdc")
             tree_assets.append(f"./trees/{stem}.usdc")
         tick("writing trees", len(prototypes), len(prototypes))
-        sublayers, tiles, write_csv, boxes = [], None, None, ()
+        sublayers, tiles, write_csv, hint_boxes = [], None, None, ()
         if tiled:
             kit = TileKit(
                 recipe,
@@ -341,6 +336,13 @@ def _write_forest(
                 len(written),
             )
             write_tiles_index(staged / "tiles.csv", written, anchor)
+            if recipe.deadwood is not None:
+                # placed among every tree's stem, as untiled: the same pieces with or without
+                # tiles (the client holds the stand's sites for it)
+                placed = place(recipe, whole(recipe), plan)
+                stems = (placed.sites.xy, placed.proto_index, placed.sites.scale)
+                _, _, hint_boxes = _dead_wood(recipe, ordered, stems, staged, tick, True)
+                sublayers.append(f"./{assets.name}/deadwood.usdc")
         else:
             build, write_csv = _untiled(
                 recipe, plan, prototypes, trees, ground, anchor, out, trees_by_species
@@ -361,16 +363,9 @@ def _write_forest(
             sublayers.append(f"./{assets.name}/instances.usdc")
             pieces = None
             if recipe.deadwood is not None:
-                tick("dead wood", 0, 1)
-                pieces, shapes = _dead_wood(recipe, build, ordered)
-                ids = np.arange(len(pieces), dtype=np.int64)
-                copy_deadwood_templates(staged / "templates")
-                save_layer(deadwood_layer(pieces, shapes, anchor, ids), staged / "deadwood.usdc")
+                stems = (build.sites.xy + anchor, build.proto_index, build.sites.scale)
+                pieces, ids, hint_boxes = _dead_wood(recipe, ordered, stems, staged, tick, False)
                 sublayers.append(f"./{assets.name}/deadwood.usdc")
-                write_deadwood_csv(staged / "deadwood.csv", pieces, ids)
-                if len(pieces):
-                    boxes = (deadwood_extent(pieces, shapes, anchor),)
-                tick("dead wood", 1, 1)
             if recipe.colliders != "none":
                 caps, cap_names = instance_capsules(
                     [t.colliders for t in ordered],
@@ -409,7 +404,7 @@ def _write_forest(
                     sublayers,
                     f"./{assets.name}/{THUMBNAIL}" if thumbnail else None,
                     tiles,
-                    boxes,
+                    hint_boxes,
                 ),
                 tmp / out.name,
             )
@@ -430,12 +425,24 @@ def _write_forest(
     return build
 
 
-def _dead_wood(recipe: Recipe, build: ForestBuild, trees: list[TreeBuild]):
-    """The recipe's dead wood, clear of the stems (recipe coordinates), and the templates'
-    shapes."""
+def _dead_wood(
+    recipe: Recipe,
+    trees: list[TreeBuild],
+    stems: tuple[np.ndarray, np.ndarray, np.ndarray],
+    staged: Path,
+    tick: Progress,
+    own_colliders: bool,
+):
+    """The recipe's dead wood among the ``stems`` (their recipe x, y, prototype index and
+    scale), written to ``deadwood.usdc`` and ``deadwood.csv`` in ``staged`` with the
+    templates it references; its colliders in the layer itself with ``own_colliders`` (a
+    tiled forest), else returned for the forest's collision layer. Returns the pieces, their
+    ids and the extentsHint boxes they add."""
     from usdforest.grow.deadwood import place_dead_wood
-    from usdforest.usd.deadwood import piece_shapes
+    from usdforest.usd.debris import piece_shapes
 
+    tick("dead wood", 0, 1)
+    xy, proto_index, scale = stems
     # a stem's footprint: its DBH (root flare 1.3x) where known, else its trunk collider
     radius = np.array(
         [
@@ -445,20 +452,21 @@ def _dead_wood(recipe: Recipe, build: ForestBuild, trees: list[TreeBuild]):
             for t in trees
         ]
     ).reshape(-1)
-    sites = build.sites
-    stems_r = radius[build.proto_index] * sites.scale if len(sites) else np.zeros(0)
+    stems_r = radius[proto_index] * scale if len(xy) else np.zeros(0)
     shapes = piece_shapes()
     ground = recipe.ground["field"] if recipe.ground is not None else None
-    pieces = place_dead_wood(
-        recipe.deadwood,
-        recipe.region,
-        recipe.seed,
-        sites.xy + build.anchor,
-        stems_r,
-        shapes,
-        ground,
-    )
-    return pieces, shapes
+    spec, region = recipe.deadwood, recipe.region
+    pieces = place_dead_wood(spec, region, recipe.seed, xy, stems_r, shapes, ground)
+    anchor = anchor_of(recipe)
+    ids = np.arange(len(pieces), dtype=np.int64)
+    copy_deadwood_templates(staged / "templates")
+    own = own_colliders and recipe.colliders != "none"
+    caps = deadwood_capsules(pieces, anchor, ids) if own else None
+    save_layer(deadwood_layer(pieces, shapes, anchor, ids, caps), staged / "deadwood.usdc")
+    write_deadwood_csv(staged / "deadwood.csv", pieces, ids)
+    tick("dead wood", 1, 1)
+    boxes = (deadwood_extent(pieces, shapes, anchor),) if len(pieces) else ()
+    return pieces, ids, boxes
 
 
 def _leans(trees: list[TreeBuild]) -> np.ndarray:

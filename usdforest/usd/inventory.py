@@ -24,7 +24,7 @@ from pxr import Usd, UsdGeom
 from usdforest.cad.parts import face_areas, one_sided_area
 from usdforest.errors import UsdForestError
 from usdforest.progress import Progress
-from usdforest.usd.deadwood import dead_wood_figures, is_dead_wood
+from usdforest.usd.debris import dead_wood_figures, is_dead_wood
 from usdforest.usd.layers import open_stage, rendered
 
 CELL = 0.25  # m, the cover raster

@@ -1,5 +1,5 @@
-"""The dead wood layer: a PointInstancer of CAD-templated pieces, their colliders and
-their ground truth.
+"""The dead wood layer (coarse woody debris, as foresters call it): a PointInstancer of
+CAD-templated pieces, their colliders and their ground truth.
 
 ::
 
@@ -34,6 +34,7 @@ from usdforest.usd.layers import (
     semantic_label,
     vec3f,
 )
+from usdforest.usd.physics import author_capsules
 
 CSV_HEADER = (
     "id",
@@ -128,9 +129,11 @@ def deadwood_layer(
     shapes: dict[tuple[str, int], PieceShape],
     anchor: np.ndarray,
     ids: np.ndarray,
+    colliders: Capsules | None = None,
 ) -> Sdf.Layer:
-    """``/Forest/DeadWood`` for ``pieces`` in recipe coordinates, written about ``anchor``
-    (their colliders go in the forest's collision layer: :func:`deadwood_capsules`)."""
+    """``/Forest/DeadWood`` for ``pieces`` in recipe coordinates, written about ``anchor``;
+    with ``colliders`` (:func:`deadwood_capsules`) also ``/Forest/Colliders/D_<id>`` (a
+    tiled forest's; an untiled one puts them in its collision layer)."""
     layer = new_layer("Forest", comment="usdforest dead wood")
     pos, quat, scales, index = instance_transforms(pieces, shapes)
     pos = pos - np.array([anchor[0], anchor[1], 0.0])
@@ -163,6 +166,8 @@ def deadwood_layer(
         attr(inst, "protoIndices", T.IntArray, Vt.IntArray.FromNumpy(index))
         attr(inst, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(np.array(ids, dtype=np.int64)))
         attr(inst, "extent", T.Float3Array, extents(deadwood_extent(pieces, shapes, anchor)))
+        if colliders is not None and len(colliders):
+            author_capsules(prim(forest, "Colliders", "Scope"), colliders)
     return layer
 
 
