@@ -22,3 +22,12 @@ def optional_tool(env: str, what: str, venv: str, module: str | None = None) -> 
         if probe.returncode:
             pytest.skip(f"{module} does not import in {exe}")
     return exe
+
+
+def default_sigint() -> None:
+    """``preexec_fn`` for a child a test stops with SIGINT: a test run started as a background
+    job of a non-interactive shell inherits SIGINT ignored, and Python then installs no
+    Ctrl-C handler in the child; restored here, the test means what it says anywhere."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

@@ -11,6 +11,7 @@ import sys
 import time
 
 import pytest
+from optional import default_sigint
 
 RUN = [sys.executable, "-m", "usdforest.pipelines.random_forests"]
 
@@ -59,6 +60,7 @@ def test_an_interrupted_run_keeps_the_index_of_what_it_finished(tmp_path, sig):
     p = subprocess.Popen(
         [*RUN, "out", "--count", "200", "--recipe", "paper-two-tree-stand"],
         cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=default_sigint,
     )  # fmt: skip
     index = tmp_path / "out" / "forests.csv"
     deadline = time.monotonic() + 120

@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 from malformed import Case, check_case, snapshot
 from malformed_geo import corpus
+from optional import default_sigint
 
 from usdforest.usd.validate import validate
 
@@ -139,7 +140,7 @@ def _tiled_build(tmp_path: Path) -> subprocess.Popen:
     return subprocess.Popen(
         [*_command(), "build", "f.usda", "-p", "r.toml", "--workers", "2", "--no-thumbnail"],
         cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        start_new_session=True,
+        start_new_session=True, preexec_fn=default_sigint,
     )  # fmt: skip
 
 
