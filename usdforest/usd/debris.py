@@ -29,6 +29,7 @@ from usdforest.usd.layers import (
     attr,
     class_labels,
     extents,
+    mesh_triangles,
     new_layer,
     prim,
     semantic_label,
@@ -65,35 +66,25 @@ def prototypes() -> list[tuple[str, int]]:
     return [(k, d) for k in KINDS for d in range(1, DECAY_CLASSES + 1)]
 
 
-def mesh_volume(points: np.ndarray, triangles: np.ndarray) -> float:
-    """Volume enclosed by a closed, outward-wound triangle mesh (divergence theorem)."""
-    t = np.asarray(points, dtype=float)[np.asarray(triangles).reshape(-1, 3)]
+def mesh_volume(tri: np.ndarray) -> float:
+    """Volume enclosed by closed, outward-wound triangles ``(m, 3, 3)`` (divergence theorem)."""
+    t = np.asarray(tri, dtype=float)
     return float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0)
 
 
-def template_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Points and triangles of the Mesh in a template layer."""
-    stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
-    for p in stage.Traverse():
-        if p.IsA(UsdGeom.Mesh):
-            mesh = UsdGeom.Mesh(p)
-            pts = np.asarray(mesh.GetPointsAttr().Get(), dtype=float)
-            idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int64)
-            return pts, idx.reshape(-1, 3)
-    raise FileNotFoundError(f"{path}: no Mesh")
-
-
 def piece_shapes() -> dict[tuple[str, int], PieceShape]:
-    """Each shipped dead-wood template as a :class:`PieceShape`."""
-    from scipy.spatial import ConvexHull
-
+    """Each shipped dead-wood template as a :class:`PieceShape` (its hull as
+    :func:`~usdforest.usd.template.read_template` reads it)."""
     from usdforest.cad.library import template_path
+    from usdforest.usd.template import read_template
 
     out = {}
     for kind, decay in prototypes():
-        pts, tri = template_mesh(template_path(template_name(kind, decay)))
-        hull = pts[ConvexHull(pts).vertices]
-        out[(kind, decay)] = PieceShape(mesh_volume(pts, tri), hull)
+        path = template_path(template_name(kind, decay))
+        stage = Usd.Stage.Open(str(path), Usd.Stage.LoadNone)
+        meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+        volume = sum(mesh_volume(mesh_triangles(m, np.eye(4))) for m in meshes)
+        out[(kind, decay)] = PieceShape(volume, read_template(path).hull)
     return out
 
 
@@ -267,15 +258,13 @@ def dead_wood_figures(instancer: Usd.Prim | None, area: float) -> dict:
         proto = stage.GetPrimAtPath(target)
         kind = str((proto.GetCustomDataByKey("usdforest") or {}).get("kind", "log"))
         inv = np.asarray(cache.GetLocalToWorldTransform(proto).GetInverse(), dtype=float)
-        unit = 0.0
-        for m in Usd.PrimRange(proto):
-            if m.IsA(UsdGeom.Mesh):
-                mesh = UsdGeom.Mesh(m)
-                to_proto = np.asarray(cache.GetLocalToWorldTransform(m), dtype=float) @ inv
-                pts = np.asarray(mesh.GetPointsAttr().Get(), dtype=float)
-                pts = pts @ to_proto[:3, :3] + to_proto[3, :3]
-                tri = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int64)
-                unit += mesh_volume(pts, tri)
+        unit = sum(
+            mesh_volume(
+                mesh_triangles(m, np.asarray(cache.GetLocalToWorldTransform(m), float) @ inv)
+            )
+            for m in Usd.PrimRange(proto)
+            if m.IsA(UsdGeom.Mesh)
+        )
         volume = unit * float(det[sel].sum())
         out["dead_wood_by_kind_m3_per_ha"][kind] += volume / ha
         out["dead_wood_pieces_per_ha"][kind] += int(sel.sum()) / ha
