@@ -19,7 +19,8 @@ from scipy import integrate
 from scipy.special import gamma
 
 from usdforest.errors import UsdForestError
-from usdforest.grow.deadwood import KINDS, DeadWoodSpec, place_dead_wood, weibull_shape
+from usdforest.grow.allometry import weibull_for
+from usdforest.grow.deadwood import KINDS, DeadWoodSpec, place_dead_wood
 from usdforest.recipe import parse_recipe
 from usdforest.sites.pointprocess import Rectangle
 from usdforest.sites.terrain import HeightField
@@ -163,8 +164,9 @@ def test_diameters_follow_the_truncated_weibull_and_the_inventorys_thick_share()
     p = place_dead_wood(spec, region, 11, np.zeros((0, 2)), np.zeros(0), piece_shapes())
     # the theory: the Weibull of mean 0.20 m and CV 0.5 truncated at 0.10 m, pieces weighted
     # by d² (volume at lengths independent of d)
-    k = weibull_shape(0.5)
-    lam = 0.20 / gamma(1 + 1 / k)
+    k, lam = weibull_for(0.20, 0.5)
+    g1, g2 = gamma(1 + 1 / k), gamma(1 + 2 / k)  # its mean and CV, checked independently
+    assert lam * g1 == pytest.approx(0.20) and math.sqrt(g2 / g1**2 - 1) == pytest.approx(0.5)
 
     def pdf(d):
         return (k / lam) * (d / lam) ** (k - 1) * math.exp(-((d / lam) ** k))

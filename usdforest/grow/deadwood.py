@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from usdforest.errors import UsdForestError
+from usdforest.grow.allometry import weibull_for
 from usdforest.seeds import stream
 
 KINDS = ("log", "snag", "stump", "branch")
@@ -145,23 +146,9 @@ class Pieces:
         return self.base + self.axis * (self.length / 2)[:, None]
 
 
-def weibull_shape(cv: float) -> float:
-    """The Weibull shape parameter whose coefficient of variation is ``cv``."""
-    from scipy.optimize import brentq
-    from scipy.special import gamma
-
-    def excess(k: float) -> float:
-        return math.sqrt(gamma(1 + 2 / k) / gamma(1 + 1 / k) ** 2 - 1) - cv
-
-    return float(brentq(excess, 0.05, 100.0))
-
-
 def _diameters(spec: DeadWoodSpec, rng: np.random.Generator, n: int) -> np.ndarray:
     """``n`` diameters from the Weibull truncated below at ``min_diameter`` (inverse CDF)."""
-    from scipy.special import gamma
-
-    k = weibull_shape(spec.diameter_cv)
-    lam = spec.diameter_mean / gamma(1 + 1 / k)
+    k, lam = weibull_for(spec.diameter_mean, spec.diameter_cv)
     lo = 1.0 - math.exp(-((spec.min_diameter / lam) ** k))
     u = lo + (1.0 - lo) * rng.random(n)
     return lam * (-np.log1p(-np.minimum(u, 1 - 1e-12))) ** (1 / k)
