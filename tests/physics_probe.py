@@ -50,5 +50,22 @@ def main() -> None:
     )
 
 
+def roll(python: str, stage, start, velocity, seconds: float) -> dict:
+    """Run this probe under ``python`` (the physics venv's) from a test: the ball's final
+    position and velocity, and the colliders newton made."""
+    import subprocess
+
+    args = [str(float(v)) for v in (*start, *velocity, seconds)]
+    r = subprocess.run(
+        [python, __file__, str(stage), *args],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=600,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
 if __name__ == "__main__":
     main()

@@ -5,15 +5,14 @@ the stems, labelled, validated, seen by the sensors and stopping a ball in a phy
 from __future__ import annotations
 
 import csv
-import json
 import math
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
 from optional import optional_tool
+from physics_probe import roll as roll_ball
 from pxr import Usd, UsdGeom
 from scipy import integrate
 from scipy.special import gamma
@@ -30,7 +29,6 @@ from usdforest.usd.inventory import stand_figures
 from usdforest.usd.layers import class_labels
 from usdforest.usd.validate import validate
 
-PROBE = Path(__file__).with_name("physics_probe.py")
 VOLUME = 60.0  # m³/ha: three times the managed mean, so a 40 m plot holds a few dozen pieces
 SHARES = {"lying": 0.49, "standing": 0.23, "stumps": 0.28}  # BWI 2012
 
@@ -327,19 +325,7 @@ def test_newton_stops_a_ball_at_a_log(forest):
     start = np.array([x, y]) - 2.0 * across
     physics = forest.parent / f"{forest.stem}_assets" / "physics.usda"
 
-    def roll(stage: Path) -> dict:
-        args = [*map(str, (start[0], start[1], z, *(1.5 * across), 0.0, 2.0))]
-        r = subprocess.run(
-            [py, str(PROBE), str(stage), *args],
-            capture_output=True,
-            text=True,
-            check=False,
-            timeout=600,
-        )
-        assert r.returncode == 0, r.stderr[-2000:]
-        return json.loads(r.stdout.strip().splitlines()[-1])
-
-    end = np.array(roll(physics)["position"][:2])
+    end = np.array(roll_ball(py, physics, (*start, z), (*(1.5 * across), 0.0), 2.0)["position"][:2])
     # it travelled 3 m free; against the log it stops a ball radius and the log's short of it
     travelled = float((end - start) @ across)
     assert travelled < 2.0 - 0.2 - float(log["diameter"]) / 2 + 0.1

@@ -4,13 +4,12 @@ a ball at a trunk of a built forest and letting one pass between the trees."""
 from __future__ import annotations
 
 import csv
-import json
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 from optional import optional_tool
+from physics_probe import roll as roll_ball
 from pxr import Usd, UsdGeom, UsdPhysics
 
 from usdforest.grow.species import get_species
@@ -20,7 +19,6 @@ from usdforest.usd.tree import write_tree
 from usdforest.usd.validate import validate
 
 PIPELINES = default_recipe_path().parent
-PROBE = Path(__file__).with_name("physics_probe.py")
 
 
 def _two_trees(**forest):
@@ -102,15 +100,7 @@ def test_newton_stops_a_ball_at_a_trunk_of_a_built_forest(tmp_path):
     x0, y0 = float(first["x"]), float(first["y"])
 
     def roll(y: float, stage: Path = out) -> dict:
-        r = subprocess.run(
-            [py, str(PROBE), str(stage), str(x0 - 2.0), str(y), "1.0", "3", "0", "0", "2"],
-            capture_output=True,
-            text=True,
-            check=False,
-            timeout=600,
-        )
-        assert r.returncode == 0, r.stderr[-2000:]
-        return json.loads(r.stdout.strip().splitlines()[-1])
+        return roll_ball(py, stage, (x0 - 2.0, y, 1.0), (3, 0, 0), 2)
 
     hit = roll(y0)
     radius = 0.2 + 0.16  # ball + trunk capsule
