@@ -106,13 +106,12 @@ def instance_transforms(
     order = prototypes()
     pairs = zip(pieces.kind, pieces.decay, strict=True)
     index = np.array([order.index((KINDS[k], int(d))) for k, d in pairs], dtype=np.int32)
-    radius = np.array([shapes[order[i]].radius for i in index]) if len(index) else np.zeros(0)
-    across = pieces.diameter / (2 * radius) if len(index) else np.zeros(0)
+    radius = np.array([shapes[order[i]].radius for i in index], dtype=float)
+    across = pieces.diameter / (2 * radius)
     third = np.cross(pieces.axis, pieces.side)
     rot = np.stack([pieces.side, third, pieces.axis], axis=2)  # columns: the template's X, Y, Z
-    quat = quat_from_matrix(rot) if len(index) else np.zeros((0, 4))
-    scales = np.stack([across, across, pieces.length], axis=1) if len(index) else np.zeros((0, 3))
-    return pieces.base, quat, scales, index.astype(np.int32)
+    scales = np.stack([across, across, pieces.length], axis=1)
+    return pieces.base, quat_from_matrix(rot), scales, index
 
 
 def deadwood_layer(
