@@ -149,7 +149,7 @@ def _directions(zeniths: tuple[float, ...]) -> np.ndarray:
     )
 
 
-def _projected(a: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+def _area_sums(a: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """Per zenith angle, the azimuth-mean of ``sum |a . d|`` over area vectors ``a``; then
     the areas by leaf inclination (the normal's angle from the vertical) in ``ANGLE_BINS``,
     and the area-weighted sum of the inclinations (degrees)."""
@@ -168,7 +168,7 @@ def _leaf_sums(shapes, li, rows, dirs) -> tuple[np.ndarray, float]:
     """Projected (per zenith) and one-sided areas of leaf instances ``rows`` of ``li``: each
     shape's area vectors moved by its instances' cofactor matrices (an area vector ``a`` of a
     shape under ``p -> p M`` becomes ``det(M) a M^-T``), a closed shape's halved (the sums
-    of :func:`_projected`)."""
+    of :func:`_area_sums`)."""
     num, den = np.zeros(dirs.shape[0] + ANGLE_BINS + 1), 0.0
     for s in np.unique(li.shape[rows]):
         at = rows[li.shape[rows] == s]
@@ -180,7 +180,7 @@ def _leaf_sums(shapes, li, rows, dirs) -> tuple[np.ndarray, float]:
             m = li.matrix[at[start : start + step], :3, :3]
             cof = np.linalg.det(m)[:, None, None] * np.linalg.inv(m).transpose(0, 2, 1)
             moved = np.einsum("tj,njk->ntk", a, cof).reshape(-1, 3)
-            num += half * _projected(moved, dirs)
+            num += half * _area_sums(moved, dirs)
             den += half * float(np.linalg.norm(moved, axis=1).sum())
     return num, den
 
@@ -203,7 +203,7 @@ def leaf_angles(
     dirs = _directions(zeniths)
     rng = np.random.default_rng(0)
     a = _area_vectors(scene.triangles[scene.cls == CLASS_ID["leaf"]].astype(float))
-    num = _projected(a, dirs) if len(a) else np.zeros(len(zeniths) + ANGLE_BINS + 1)
+    num = _area_sums(a, dirs) if len(a) else np.zeros(len(zeniths) + ANGLE_BINS + 1)
     den = float(np.linalg.norm(a, axis=1).sum())
     li = scene.leaf_instances
     if len(li):
