@@ -296,6 +296,152 @@ def fallen_branch() -> trimesh.Trimesh:
     return tube(centre, 0.07 - 0.03 * s, sections=12, profile=lambda i, ang: bark(ang))
 
 
+# Ground vegetation (usdforest.grow.groundcover): patches of 1 m across (a disc of radius
+# 0.5 m round the origin, resting on z = 0), each a dense stand of one growth form. The
+# forest scales a patch to its cell's cover; how much of its disc a patch covers seen from
+# above is measured on the mesh when the forest is built.
+PATCH_RADIUS = 0.5
+
+
+def _in_disc(rng: np.random.Generator, n: int, radius: float) -> np.ndarray:
+    """``n`` points spread evenly over a disc (a sunflower spiral, jittered)."""
+    k = np.arange(n) + 0.5
+    r = radius * np.sqrt(k / n)
+    a = k * math.pi * (3.0 - math.sqrt(5.0)) + rng.uniform(-0.3, 0.3, n)
+    return np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+
+
+def _ribbon(centre: np.ndarray, half_width: np.ndarray, across: np.ndarray) -> trimesh.Trimesh:
+    """A flat ribbon along ``centre`` (k, 3), ``half_width`` (k,) either side along
+    ``across`` (3,); a zero last width ends it in a point."""
+    left = centre - half_width[:, None] * across
+    right = centre + half_width[:, None] * across
+    v = np.stack([left, right], axis=1).reshape(-1, 3)
+    faces = []
+    for i in range(len(centre) - 1):
+        a, b, c, d = 2 * i, 2 * i + 1, 2 * i + 2, 2 * i + 3
+        faces += [(a, b, d), (a, d, c)]
+    return trimesh.Trimesh(v, np.array(faces), process=False)
+
+
+def _arch(base, azimuth, lift, length, droop, steps):
+    """Points along an arching blade: leaving ``base`` at ``lift`` radians above the
+    horizontal towards ``azimuth``, bending down by ``droop`` radians by its tip."""
+    s = np.linspace(0.0, 1.0, steps)
+    angle = lift - droop * s**1.5
+    step = length / (steps - 1)
+    horizontal = np.array([math.cos(azimuth), math.sin(azimuth), 0.0])
+    dirs = np.cos(angle)[:, None] * horizontal + np.sin(angle)[:, None] * [0.0, 0.0, 1.0]
+    return base + np.concatenate([[np.zeros(3)], np.cumsum(dirs[:-1] * step, axis=0)])
+
+
+def grass_patch() -> trimesh.Trimesh:
+    """Tussocks of a wavy hair-grass-like sward: 140 tufts of 12 arching blades, 12-28 cm long
+    and 10-16 mm wide (a false-brome-like broad-leaved grass)."""
+    rng = np.random.default_rng(RNG_SEED + 10)
+    parts = []
+    for c in _in_disc(rng, 140, PATCH_RADIUS - 0.12):
+        for _ in range(12):
+            az = rng.uniform(0, 2 * math.pi)
+            base = np.array([c[0], c[1], 0.0]) + 0.015 * np.array([math.cos(az), math.sin(az), 0])
+            line = _arch(base, az, rng.uniform(0.9, 1.4), rng.uniform(0.12, 0.28), 1.2, 4)
+            hw = rng.uniform(0.005, 0.008) * np.array([1.0, 0.9, 0.6, 0.0])
+            across = np.array([-math.sin(az), math.cos(az), 0.0])
+            parts.append(_ribbon(line, hw, across))
+    return trimesh.util.concatenate(parts)
+
+
+def _ellipse_leaf(attach, azimuth, tilt, length, width, sectors=8) -> trimesh.Trimesh:
+    """An elliptic blade from ``attach`` towards ``azimuth``, tilted ``tilt`` radians up, as
+    a fan of triangles round its centre."""
+    u = np.array([math.cos(azimuth) * math.cos(tilt), math.sin(azimuth) * math.cos(tilt),
+                  math.sin(tilt)])
+    w = np.array([-math.sin(azimuth), math.cos(azimuth), 0.0])
+    centre = attach + u * length / 2
+    a = np.linspace(0, 2 * math.pi, sectors, endpoint=False)
+    rim = centre + np.outer(np.cos(a) * length / 2, u) + np.outer(np.sin(a) * width / 2, w)
+    v = np.concatenate([[centre], rim])
+    faces = [(0, 1 + i, 1 + (i + 1) % sectors) for i in range(sectors)]
+    return trimesh.Trimesh(v, np.array(faces), process=False)
+
+
+def herb_patch() -> trimesh.Trimesh:
+    """A carpet of forest herbs (wood-sorrel- and anemone-like): 120 plants of 4-5 broad
+    leaves of 5-9 cm on stalks 8-20 cm tall."""
+    rng = np.random.default_rng(RNG_SEED + 11)
+    parts = []
+    for c in _in_disc(rng, 120, PATCH_RADIUS - 0.05):
+        h = rng.uniform(0.08, 0.2)
+        top = np.array([c[0], c[1], h])
+        stalk = np.array([[c[0], c[1], 0.0], top])
+        parts.append(_ribbon(stalk, np.array([0.0015, 0.0015]), np.array([1.0, 0.0, 0.0])))
+        turn = rng.uniform(0, 2 * math.pi)
+        n = int(rng.integers(4, 6))
+        for k in range(n):
+            az = turn + 2 * math.pi * k / n
+            length = rng.uniform(0.05, 0.09)
+            parts.append(_ellipse_leaf(top, az, rng.uniform(-0.1, 0.35), length, 0.7 * length))
+    return trimesh.util.concatenate(parts)
+
+
+def fern_patch() -> trimesh.Trimesh:
+    """Four crowns of a male-fern-like fern, 13 arching fronds each, 45-60 cm long, with 18
+    pairs of pinnae (longest at mid-frond)."""
+    rng = np.random.default_rng(RNG_SEED + 12)
+    parts = []
+    for c in _in_disc(rng, 4, 0.15):
+        base = np.array([c[0], c[1], 0.0])
+        turn = rng.uniform(0, 2 * math.pi)
+        for k in range(13):
+            az = turn + 2 * math.pi * k / 13 + rng.uniform(-0.2, 0.2)
+            length = rng.uniform(0.45, 0.6)
+            line = _arch(base, az, rng.uniform(0.9, 1.25), length, 1.1, 20)
+            across = np.array([-math.sin(az), math.cos(az), 0.0])
+            parts.append(_ribbon(line, np.linspace(0.004, 0.0, 20), across))
+            for i in range(1, 19):
+                s = i / 19
+                reach = 0.26 * length * math.sin(math.pi * s**0.8)
+                fwd = line[i + 1] - line[i]
+                fwd /= np.linalg.norm(fwd)
+                for side in (-1.0, 1.0):
+                    tip = line[i] + side * reach * across + 0.3 * reach * fwd
+                    v = np.array([line[i], line[i + 1], tip, line[i] + 0.4 * (tip - line[i])])
+                    v[3] += 0.012 * fwd
+                    parts.append(trimesh.Trimesh(v, np.array([(0, 1, 3), (1, 2, 3)]),
+                                                 process=False))
+    return trimesh.util.concatenate(parts)
+
+
+def moss_patch() -> trimesh.Trimesh:
+    """A moss carpet 1-5 cm thick: a bumpy surface over the disc with a ragged rim and a few
+    bare holes."""
+    rng = np.random.default_rng(RNG_SEED + 13)
+    rings, sectors = 18, 48
+    r = PATCH_RADIUS * np.linspace(0.0, 1.0, rings + 1)[1:]
+    a = np.linspace(0, 2 * math.pi, sectors, endpoint=False)
+    rr, aa = np.meshgrid(r, a, indexing="ij")
+    rr = rr * (1.0 - 0.12 * rng.random(rr.shape) * (rr / PATCH_RADIUS) ** 4)
+    x, y = rr * np.cos(aa), rr * np.sin(aa)
+    bumps = sum(
+        rng.uniform(0.005, 0.012)
+        * np.cos(rng.uniform(8, 30) * (x * math.cos(t) + y * math.sin(t)) + rng.uniform(0, 6))
+        for t in rng.uniform(0, math.pi, 6)
+    )
+    z = (0.03 + bumps) * (1.0 - (rr / PATCH_RADIUS) ** 6) + 0.005
+    v = np.concatenate([[[0.0, 0.0, 0.035]], np.stack([x, y, z], axis=-1).reshape(-1, 3)])
+    faces = [(0, 1 + j, 1 + (j + 1) % sectors) for j in range(sectors)]
+    holes = _in_disc(rng, 7, 0.38)
+    for i in range(rings - 1):
+        for j in range(sectors):
+            a0 = 1 + i * sectors + j
+            b0 = 1 + i * sectors + (j + 1) % sectors
+            mid = (v[a0, :2] + v[b0 + sectors, :2]) / 2
+            if np.min(np.linalg.norm(holes - mid, axis=1)) < 0.045:
+                continue  # bare ground
+            faces += [(a0, a0 + sectors, b0 + sectors), (a0, b0 + sectors, b0)]
+    return trimesh.Trimesh(v, np.array(faces), process=False)
+
+
 FILES = {
     "trunk.obj": trunk,
     "branch_straight.stl": lambda: branch(2.0, 0.06, 0.018, 0.0),
@@ -313,6 +459,10 @@ FILES = {
     "snag.obj": snag,
     "stump.stl": stump,
     "branch_fallen.stl": fallen_branch,
+    "grass_patch.stl": grass_patch,
+    "herb_patch.obj": herb_patch,
+    "fern_patch.ply": fern_patch,
+    "moss_patch.stl": moss_patch,
 }
 
 

@@ -77,6 +77,12 @@ def _recipe_keys() -> set[str]:
             and isinstance(node.args[1], ast.Set)
         ):
             keys |= set(ast.literal_eval(node.args[1]))
+    # tables whose keys are their spec's fields
+    from dataclasses import fields
+
+    from usdforest.grow.groundcover import GroundCoverSpec
+
+    keys |= {f.name for f in fields(GroundCoverSpec)}
     return keys
 
 

@@ -86,7 +86,12 @@ def test_shipped_template_structure_and_validation(path):
     mat, _ = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()
     assert mat and mat.GetSurfaceOutput().HasConnectedSource()
     label = mesh.GetPrim().GetAttribute("semantics:labels:class").Get()
-    classes = {"leaf": "leaf", "trunk": "trunk", "deadwood": "dead_wood"}
+    classes = {
+        "leaf": "leaf",
+        "trunk": "trunk",
+        "deadwood": "dead_wood",
+        "groundcover": "ground_vegetation",
+    }
     expected = classes.get(data["part"], "branch")
     assert list(label) == [expected]
 
@@ -108,7 +113,7 @@ def test_texture_coordinates_and_sensor_material(path):
     part = read_template(path).part
     mat, _ = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()
     base = mat.GetPrim().GetAttribute("omni:simready:nonvisual:base").Get()
-    if part == "leaf":
+    if part in ("leaf", "groundcover"):  # a patch's u, v: its footprint's x, y
         assert st.GetInterpolation() == "vertex" and uv.shape == (len(pts), 2)
         assert uv.min() >= 0.0 and uv.max() <= 1.0
         assert np.corrcoef(uv[:, 0], pts[:, 0])[0, 1] > 0.999
@@ -148,7 +153,8 @@ def test_shipped_templates_are_built_from_the_committed_cad(path):
 
 def test_manifest_rebuild_is_byte_identical(tmp_path):
     manifest = read_manifest(MANIFEST)
-    assert len(manifest.templates) == 32  # 16 tree parts, 16 dead-wood pieces
+    # 16 tree parts, 16 dead-wood pieces, 4 ground-vegetation patches
+    assert len(manifest.templates) == 36
     from usdforest.cad.library import build_manifest
 
     a = build_manifest(manifest, tmp_path / "a")
@@ -191,7 +197,7 @@ def test_rebuild_is_byte_identical_with_other_blas_kernels(tmp_path, kernel):
     )
     assert r.returncode == 0, r.stderr
     built = sorted(out.glob("*.usdc"))
-    assert len(built) == 32
+    assert len(built) == 36
     for p in built:
         assert p.read_bytes() == (template_dir() / p.name).read_bytes(), f"{p.name} ({kernel})"
 
@@ -209,7 +215,7 @@ def test_stored_measurements_are_rounded():
 def test_template_build_cli(tmp_path, runner):
     r = runner.invoke(app, ["template", "build", str(MANIFEST), "-o", str(tmp_path)])
     assert r.exit_code == 0, r.output
-    assert len(list(tmp_path.glob("*.usdc"))) == 32
+    assert len(list(tmp_path.glob("*.usdc"))) == 36
     assert not list(tmp_path.glob(".*"))  # no temporary files left behind
 
 

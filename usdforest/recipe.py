@@ -243,6 +243,7 @@ TOP_KEYS = {
     "clusters",
     "inhibition",
     "deadwood",
+    "groundcover",
 }
 DEADWOOD_KEYS = {
     "volume",
@@ -324,6 +325,7 @@ class Recipe:
     clusters: Any = None  # sites.clusters.Clusters: trees in clusters around unseen parents
     inhibition: Any = None  # sites.inhibition.Inhibition: a Strauss process over the intensity
     deadwood: Any = None  # grow.deadwood.DeadWoodSpec: snags, stumps, logs and branches
+    groundcover: Any = None  # grow.groundcover.GroundCoverSpec: grass, herbs, ferns, moss
 
     @property
     def species_names(self) -> tuple[str, ...]:
@@ -770,6 +772,7 @@ def parse_recipe(
             data.get("inhibition"), sites is not None, clusters, hard_core
         )
         deadwood = _parse_deadwood(data.get("deadwood"))
+        groundcover = _parse_groundcover(data.get("groundcover"))
     except RecipeError as exc:
         raise fail(exc) from None
     recipe = Recipe(
@@ -796,6 +799,7 @@ def parse_recipe(
         clusters,
         inhibition,
         deadwood,
+        groundcover,
     )
     try:
         expected = recipe.expected_trees()
@@ -852,6 +856,42 @@ def _parse_tiles(t: Any) -> float | None:
             f"{MAX_TILE / 1e3:,.0f} km)"
         )
     return size
+
+
+def _parse_groundcover(t: Any) -> Any:
+    """``[groundcover]``: grass, herb, fern and moss patches by mean cover, distributed by
+    the light under the crowns (see :mod:`usdforest.grow.groundcover`); absent: none."""
+    from dataclasses import fields
+
+    from usdforest.grow.groundcover import FORMS, GroundCoverSpec
+
+    if t is None:
+        return None
+    if not isinstance(t, Mapping):
+        raise RecipeError("groundcover: expected a table, e.g. [groundcover] cover = 0.3")
+    d = GroundCoverSpec()
+    check_keys(t, {f.name for f in fields(d)}, "groundcover")
+    values: dict[str, Any] = {}
+    for k, lo, hi in (
+        ("cover", 0.0, 1.0),
+        *((f, 0.0, 1.0) for f in FORMS),
+        ("cell", 0.25, 20.0),
+        ("light_response", 0.0, 10.0),
+        ("height_jitter", 0.0, 0.9),
+    ):
+        v = _num(t.get(k, getattr(d, k)), f"groundcover.{k}", lo=0)
+        if not lo <= v <= hi:
+            raise RecipeError(f"groundcover.{k}: {v:.4g} is outside {lo:g} to {hi:g}")
+        values[k] = v
+    shares = sum(values[f] for f in FORMS)
+    if abs(shares - 1.0) > 1e-6:
+        raise RecipeError(
+            f"groundcover: grass + herb + fern + moss = {shares:.4g}; the shares must add up to 1"
+        )
+    litter = t.get("litter", d.litter)
+    if not isinstance(litter, bool):
+        raise RecipeError(f"groundcover.litter: expected true or false, got {litter!r}")
+    return GroundCoverSpec(**values, litter=litter)
 
 
 def _parse_deadwood(t: Any) -> Any:

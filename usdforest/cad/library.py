@@ -7,7 +7,7 @@ A manifest (``pipelines/templates.toml``) lists CAD sources and how to import ea
     [[template]]
     name = "trunk"                   # layer name: <output>/<name>.usdc
     source = "../templates/cad/trunk.obj"
-    part = "trunk"                   # trunk | branch | twig | leaf | deadwood
+    part = "trunk"                   # trunk | branch | twig | leaf | deadwood | groundcover
     units = "m"                      # m | cm | mm | in | auto (default auto)
     up = "Z"                         # Y | Z | auto (default auto)
     color = [0.33, 0.24, 0.17]       # optional display colour (linear RGB)

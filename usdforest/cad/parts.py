@@ -8,6 +8,9 @@ Frames after :func:`normalise_part` (all in metres, Z up, then scaled to unit le
   along +X. A trunk's (and a dead-wood piece's) growth axis is the file's up axis (a trunk
   stands upright; forks fused to it would tilt its principal axis); a branch's is its
   principal axis, the base being the thicker end.
+* **groundcover**: a patch of ground vegetation (grass, herbs, ferns, moss) as it stands in
+  its file: the centre of its footprint's bounding box at the origin, its lowest point at
+  z = 0, the file's axes kept, scaled to unit height.
 * **leaf**: the attachment point (petiole or fascicle base) at the origin, the blade axis
   (attachment to tip) along +X, the blade normal along +Z, the width along +Y, length 1.
 
@@ -32,7 +35,7 @@ from usdforest.errors import CADError
 from usdforest.normals import vertex_normals
 from usdforest.paths import require_file
 
-PARTS = ("trunk", "branch", "twig", "leaf", "deadwood")
+PARTS = ("trunk", "branch", "twig", "leaf", "deadwood", "groundcover")
 WOOD_PARTS = ("trunk", "branch", "twig", "deadwood")
 # parts that stand upright in their files: their growth axis is the file's up axis
 UPRIGHT_PARTS = ("trunk", "deadwood")
@@ -50,6 +53,7 @@ TYPICAL_SIZE = {
     "leaf": 0.08,
     "tree": 8.0,
     "deadwood": 4.0,
+    "groundcover": 0.3,
 }
 # default up axis by format when --up auto: glTF is Y-up by its spec; OBJ exporters
 # (Blender, Maya) write Y-up by default; STL and PLY come from CAD tools that use Z-up
@@ -473,6 +477,7 @@ DEFAULT_COLORS = {
     "twig": (0.42, 0.32, 0.22),
     "leaf": (0.23, 0.48, 0.17),
     "deadwood": (0.36, 0.32, 0.27),
+    "groundcover": (0.2, 0.42, 0.13),
 }
 
 
@@ -497,8 +502,9 @@ def normalise_part(
     mesh
         The part's triangles in metres with Z up (see :func:`to_metres_z_up`).
     part
-        ``trunk``, ``branch``, ``twig``, ``leaf`` or ``deadwood`` (a log, snag, stump or
-        fallen branch standing upright in its file, framed as a trunk).
+        ``trunk``, ``branch``, ``twig``, ``leaf``, ``deadwood`` (a log, snag, stump or
+        fallen branch standing upright in its file, framed as a trunk) or ``groundcover``
+        (a patch of ground vegetation, framed as it stands).
 
     Returns
     -------
@@ -508,6 +514,8 @@ def normalise_part(
     if part not in PARTS:
         raise CADError(f"unknown part {part!r}; use one of {', '.join(PARTS)}")
     v, f = mesh.vertices, mesh.faces
+    if part == "groundcover":
+        return _patch(mesh, name, provenance, color)
     centre, axes = principal_axes(v, f)
     if part in UPRIGHT_PARTS:
         # a trunk (or a piece of dead wood) stands upright in its (Z-up) file: grow along +Z,
@@ -593,6 +601,45 @@ def normalise_part(
         measurements=measurements,
         provenance=dict(provenance or {}),
         color=color or DEFAULT_COLORS[part],
+    )
+
+
+def _patch(
+    mesh: CADMesh,
+    name: str | None,
+    provenance: dict[str, object] | None,
+    color: tuple[float, float, float] | None,
+) -> TemplatePart:
+    """A ground-vegetation patch in its template frame: footprint centred, resting on z = 0,
+    unit height (see the module docstring)."""
+    v, f = mesh.vertices, mesh.faces
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    origin = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+    out = v - origin
+    height = float(hi[2] - lo[2])
+    if height <= 0:
+        raise CADError(f"{mesh.source}: the groundcover patch has no height")
+    leaf_area = one_sided_area(v, f)
+    measurements = Measurements(
+        length=height,
+        base_radius=0.0,
+        tip_radius=0.0,
+        width=2.0 * float(np.linalg.norm(out[:, :2], axis=1).max()),
+        surface_area=float(face_areas(v, f).sum()),
+        leaf_area=leaf_area,
+        equivalent_disk_radius=math.sqrt(leaf_area / math.pi),
+        triangles=len(f),
+    )
+    scaled = out / height
+    return TemplatePart(
+        name=name or "groundcover",
+        part="groundcover",
+        vertices=scaled,
+        faces=f.copy(),
+        normals=vertex_normals(scaled, f),
+        measurements=measurements,
+        provenance=dict(provenance or {}),
+        color=color or DEFAULT_COLORS["groundcover"],
     )
 
 

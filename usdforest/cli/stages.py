@@ -184,8 +184,9 @@ def stats_cmd(
 ) -> None:
     """Stand figures measured on the composed forest: stems/ha, basal area, DBH and height
     distributions, slenderness, leaf and wood area indices, crown footprint cover, dead wood
-    per hectare; and by rays: canopy cover, gap fraction at 0, 30, 45 and 60 degrees, G,
-    clumping index, mean leaf angle and leaf inclination distribution."""
+    per hectare, ground-vegetation cover; and by rays: canopy cover, gap fraction at 0, 30,
+    45 and 60 degrees, G, clumping index, mean leaf angle and leaf inclination
+    distribution."""
     from usdforest.usd.inventory import stand_figures
 
     with _progress(quiet) as tick:

@@ -37,9 +37,18 @@ PRESETS: dict[str, DepthCamera] = {
     "d435": DepthCamera(848, 480, 87.0, 10.0, kind="camera"),  # RealSense D435's depth stream
     "fpv-1280": DepthCamera(1280, 720, 120.0, 200.0, kind="camera"),
 }
-# semantic palette for pictures: unknown/sky, trunk, branch, leaf, ground, dead wood
+# semantic palette for pictures: unknown/sky, trunk, branch, leaf, ground, dead wood, ground
+# vegetation
 PALETTE = np.array(
-    [[0, 0, 0], [120, 72, 36], [205, 133, 63], [60, 170, 60], [128, 128, 128], [170, 90, 170]],
+    [
+        [0, 0, 0],
+        [120, 72, 36],
+        [205, 133, 63],
+        [60, 170, 60],
+        [128, 128, 128],
+        [170, 90, 170],
+        [190, 210, 60],
+    ],
     dtype=np.uint8,
 )
 AMBIENT = 0.35

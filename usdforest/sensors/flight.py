@@ -38,8 +38,17 @@ MAX_ANGLE = 3600.0  # degrees of pitch or roll in a path (ten turns)
 
 # ASPRS LAS classes for our semantic classes: unclassified, high vegetation (trunk, branch,
 # leaf) and ground; our own class is kept in the extra dimension "usdforest_class"
-# dead wood is not vegetation: unclassified (1), its own class in the usdforest_class dimension
-ASPRS = {"unknown": 1, "trunk": 5, "branch": 5, "leaf": 5, "ground": 2, "dead_wood": 1}
+# dead wood is not vegetation: unclassified (1), its own class in the usdforest_class dimension;
+# ground vegetation (grass, herbs, ferns, moss, under a metre) is low vegetation (3)
+ASPRS = {
+    "unknown": 1,
+    "trunk": 5,
+    "branch": 5,
+    "leaf": 5,
+    "ground": 2,
+    "dead_wood": 1,
+    "ground_vegetation": 3,
+}
 
 
 @dataclass(frozen=True, eq=False)

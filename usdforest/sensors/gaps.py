@@ -36,7 +36,8 @@ NADIR_SPACING = 0.05  # m
 OBLIQUE_SPACING = 0.30  # m: each ring is still 100,000s of rays over a hectare
 SAMPLE_LEAVES = 400  # a prototype's leaves G is measured on (G to about 0.005 over a stand)
 Bounds = tuple[float, float, float, float]
-BELOW_CANOPY = (CLASS_ID["ground"], CLASS_ID["dead_wood"])  # hits that are not canopy
+# hits that are not canopy: the ground and what lies or grows on it
+BELOW_CANOPY = (CLASS_ID["ground"], CLASS_ID["dead_wood"], CLASS_ID["ground_vegetation"])
 ANGLE_BIN = 10.0  # degrees: the leaf inclination distribution's classes, 0-10 ... 80-90
 ANGLE_BINS = 9
 

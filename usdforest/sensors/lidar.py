@@ -162,9 +162,11 @@ REFLECTANCE = {
     "leaf": 0.47,
     "ground": 0.25,
     "dead_wood": 0.35,  # bare wood 0.34-0.36 at 905 nm (docs/notes/lidar-radiometry.md), as bark
+    "ground_vegetation": 0.47,  # green leaves of herbs, grasses and ferns: as the trees' leaves
 }
 _RHO = np.array([REFLECTANCE[c] for c in CLASSES])  # by class index
-_LEAF = CLASSES.index("leaf")
+# what lets light through: the trees' leaves and the ground vegetation's blades
+_GREEN = np.array([CLASSES.index("leaf"), CLASSES.index("ground_vegetation")], np.uint8)
 LEAF_STEP = 1e-4  # m: a ray through a leaf starts again this far past it
 # the intensity of a Lambertian target of reflectance 1 facing the sensor 1 m away
 INTENSITY_GAIN = 65535.0
@@ -213,7 +215,7 @@ def cast_pulses(
     travelled, carry, met = h.t, np.ones(n * s), h.cls
     for _ in range(LEAF_PASSES if trans > 0 else 0):
         # the light a leaf lets through goes on; what it meets returns through the leaf again
-        through = np.flatnonzero((met == _LEAF) & np.isfinite(travelled))
+        through = np.flatnonzero(np.isin(met, _GREEN) & np.isfinite(travelled))
         if not through.size:
             break
         past = travelled[through] + LEAF_STEP

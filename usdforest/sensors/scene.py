@@ -35,8 +35,11 @@ from usdforest.sensors.scenetypes import (
 )
 from usdforest.usd.layers import class_labels, mesh_triangles, open_stage, rendered
 
-CLASSES = ("unknown", "trunk", "branch", "leaf", "ground", "dead_wood")
+CLASSES = ("unknown", "trunk", "branch", "leaf", "ground", "dead_wood", "ground_vegetation")
 CLASS_ID = {name: i for i, name in enumerate(CLASSES)}
+# prototypes kept as instances (two levels) rather than copied: trees, and ground-vegetation
+# patches (thousands of copies of four meshes of thousands of triangles each)
+INSTANCED = ("tree", "ground_vegetation")
 
 
 def class_counts(cls: np.ndarray) -> dict[str, int]:
@@ -108,6 +111,12 @@ def _class_of(prim, stop) -> int:
                 return CLASS_ID[label]
         p = p.GetParent()
     return 0
+
+
+def _instanced(stage, target) -> bool:
+    """Whether the prototype at ``target`` stays instanced (see :data:`INSTANCED`)."""
+    labels = class_labels(stage.GetPrimAtPath(target))
+    return any(label in labels for label in INSTANCED)
 
 
 def _triangles(mesh_prim, to_root: np.ndarray) -> np.ndarray:
@@ -422,7 +431,7 @@ def extract_scene(
         out = []
         targets = pi.GetPrototypesRel().GetTargets()
         if top and instancing and "leaf" not in class_labels(p):
-            met = sum(1 for t in targets if t not in proto_of)
+            met = sum(1 for t in targets if t not in proto_of and _instanced(stage, t))
             gathered[1] += met
             if met:
                 tick("tree prototypes", gathered[0], gathered[1])
@@ -467,10 +476,10 @@ def extract_scene(
                 sel = sel[np.linalg.norm(world_pos - centre, axis=1) <= radius + r_proto * scale]
                 if sel.size == 0:
                     continue
-            if is_tree and top and instancing:
+            if top and instancing and _instanced(stage, target):
                 k_proto = prototype(proto)
                 for i in sel:
-                    placed.append((k_proto, own @ xf[i] @ to_root, int(ids[i])))
+                    placed.append((k_proto, own @ xf[i] @ to_root, int(ids[i]) if is_tree else -1))
                 continue
             local = subtree(proto)
             for i in sel:

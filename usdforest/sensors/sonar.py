@@ -895,6 +895,7 @@ def _plot(e: Echo, png: Path) -> None:
         "branch": "peru",
         "ground": "0.4",
         "dead_wood": "purple",
+        "ground_vegetation": "yellowgreen",
     }
     for name, part in e.parts.items():
         if np.any(part):

@@ -15,27 +15,23 @@ piece's volume is its prototype mesh's volume times the product of its scales.
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
-from pxr import Sdf, Usd, UsdGeom, Vt
+from pxr import Sdf, Usd, UsdGeom
 
 from usdforest.grow.colliders import Capsules
 from usdforest.grow.deadwood import DECAY_CLASSES, KINDS, Pieces, PieceShape
 from usdforest.rotations import quat_from_matrix
-from usdforest.usd.layers import (
-    T,
-    attr,
-    class_labels,
-    extents,
-    mesh_triangles,
-    new_layer,
-    prim,
-    semantic_label,
-    vec3f,
-)
+from usdforest.usd.layers import mesh_triangles, new_layer, prim
 from usdforest.usd.physics import author_capsules
+from usdforest.usd.scatter import (
+    TemplateProto,
+    author_instancer,
+    copy_shipped_templates,
+    instance_matrices,
+    labelled,
+)
 
 CSV_HEADER = (
     "id",
@@ -90,13 +86,7 @@ def piece_shapes() -> dict[tuple[str, int], PieceShape]:
 
 def copy_deadwood_templates(folder: Path) -> None:
     """Copy the dead-wood templates into the forest's ``templates/`` folder."""
-    from usdforest.cad.library import template_path
-
-    folder.mkdir(parents=True, exist_ok=True)
-    for kind, decay in prototypes():
-        src = template_path(template_name(kind, decay))
-        if not (folder / src.name).exists():
-            shutil.copyfile(src, folder / src.name)
+    copy_shipped_templates([template_name(k, d) for k, d in prototypes()], folder)
 
 
 def instance_transforms(
@@ -127,35 +117,26 @@ def deadwood_layer(
     layer = new_layer("Forest", comment="usdforest dead wood")
     pos, quat, scales, index = instance_transforms(pieces, shapes)
     pos = pos - np.array([anchor[0], anchor[1], 0.0])
+    protos = [
+        TemplateProto(
+            prototype_name(kind, decay),
+            template_name(kind, decay),
+            ("dead_wood", kind),
+            {"kind": kind, "decayClass": decay},
+        )
+        for kind, decay in prototypes()
+    ]
     with Sdf.ChangeBlock():
         forest = prim(layer, "Forest", "Xform")
         forest.kind = "assembly"
-        inst = prim(forest, "DeadWood", "PointInstancer")
-        inst.kind = "group"
-        protos = prim(inst, "Prototypes", "Scope")
-        protos.kind = "group"
-        targets = []
-        for kind, decay in prototypes():
-            p = prim(protos, prototype_name(kind, decay), "Xform")
-            p.referenceList.prependedItems = [
-                Sdf.Reference(f"./templates/{template_name(kind, decay)}.usdc")
-            ]
-            semantic_label(p, ["dead_wood", kind])
-            p.customData = {"usdforest": {"kind": kind, "decayClass": decay}}
-            targets.append(p.path)
-        r = Sdf.RelationshipSpec(inst, "prototypes", custom=False)
-        r.targetPathList.explicitItems = targets
-        attr(inst, "positions", T.Point3fArray, vec3f(pos))
-        attr(
-            inst,
-            "orientations",
-            T.QuathArray,
-            Vt.QuathArray.FromNumpy(np.asarray(quat, dtype=np.float16).reshape(-1, 4)),
+        author_instancer(
+            forest,
+            "DeadWood",
+            protos,
+            (pos, quat, scales, index),
+            ids,
+            deadwood_extent(pieces, shapes, anchor),
         )
-        attr(inst, "scales", T.Float3Array, vec3f(scales))
-        attr(inst, "protoIndices", T.IntArray, Vt.IntArray.FromNumpy(index))
-        attr(inst, "ids", T.Int64Array, Vt.Int64Array.FromNumpy(np.array(ids, dtype=np.int64)))
-        attr(inst, "extent", T.Float3Array, extents(deadwood_extent(pieces, shapes, anchor)))
         if colliders is not None and len(colliders):
             author_capsules(prim(forest, "Colliders", "Scope"), colliders)
     return layer
@@ -220,12 +201,7 @@ def write_deadwood_csv(path: Path, pieces: Pieces, ids: np.ndarray) -> None:
 
 def is_dead_wood(instancer: Usd.Prim) -> bool:
     """Whether a PointInstancer's prototypes are dead wood (labelled ``dead_wood``)."""
-    pi = UsdGeom.PointInstancer(instancer)
-    targets = pi.GetPrototypesRel().GetTargets()
-    stage = instancer.GetStage()
-    return bool(targets) and all(
-        "dead_wood" in class_labels(stage.GetPrimAtPath(t)) for t in targets
-    )
+    return labelled(instancer, "dead_wood")
 
 
 def dead_wood_figures(instancer: Usd.Prim | None, area: float) -> dict:
@@ -242,12 +218,9 @@ def dead_wood_figures(instancer: Usd.Prim | None, area: float) -> dict:
     ha = area / 1e4
     pi = UsdGeom.PointInstancer(instancer)
     stage = instancer.GetStage()
-    idx = np.asarray(pi.GetProtoIndicesAttr().Get() or [], dtype=np.int64)
+    idx, mats = instance_matrices(instancer)
     if not len(idx):
         return out
-    mats = np.asarray(
-        pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
-    )
     det = np.abs(np.linalg.det(mats[:, :3, :3]))
     cache = UsdGeom.XformCache()
     for k, target in enumerate(pi.GetPrototypesRel().GetTargets()):

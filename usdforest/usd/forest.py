@@ -16,6 +16,10 @@
       deadwood.usdc             /Forest/DeadWood: snags, stumps, logs, fallen branches (a
                                 PointInstancer of CAD templates), when the recipe has [deadwood]
       deadwood.csv              its ground truth, one row per piece
+      groundcover.usdc          /Forest/GroundVegetation: grass, herb, fern and moss patches
+                                (a PointInstancer of CAD templates), when the recipe has
+                                [groundcover]
+      groundcover.csv           its ground truth, one row per patch
       ground.usdc               /Forest/Ground: the plane or height field (collider, label)
       physics.usda              colliders and ground alone (no visual meshes), for physics
                                 engines; /Forest/PhysicsScene when the forest has one
@@ -52,6 +56,12 @@ from usdforest.usd.debris import (
     deadwood_extent,
     deadwood_layer,
     write_deadwood_csv,
+)
+from usdforest.usd.floor import (
+    copy_groundcover_templates,
+    groundcover_extent,
+    groundcover_layer,
+    write_groundcover_csv,
 )
 from usdforest.usd.ground import ground_layer
 from usdforest.usd.instances import (
@@ -343,6 +353,11 @@ def _write_forest(
                 stems = (placed.sites.xy, placed.proto_index, placed.sites.scale)
                 _, _, hint_boxes = _dead_wood(recipe, ordered, stems, staged, tick, True)
                 sublayers.append(f"./{assets.name}/deadwood.usdc")
+            if recipe.groundcover is not None:
+                placed = place(recipe, whole(recipe), plan)
+                stems = (placed.sites.xy, placed.proto_index, placed.sites.scale)
+                hint_boxes = (*hint_boxes, *_ground_cover(recipe, ordered, stems, staged, tick))
+                sublayers.append(f"./{assets.name}/groundcover.usdc")
         else:
             build, write_csv = _untiled(
                 recipe, plan, prototypes, trees, ground, anchor, out, trees_by_species
@@ -366,6 +381,10 @@ def _write_forest(
                 stems = (build.sites.xy + anchor, build.proto_index, build.sites.scale)
                 pieces, ids, hint_boxes = _dead_wood(recipe, ordered, stems, staged, tick, False)
                 sublayers.append(f"./{assets.name}/deadwood.usdc")
+            if recipe.groundcover is not None:
+                stems = (build.sites.xy + anchor, build.proto_index, build.sites.scale)
+                hint_boxes = (*hint_boxes, *_ground_cover(recipe, ordered, stems, staged, tick))
+                sublayers.append(f"./{assets.name}/groundcover.usdc")
             if recipe.colliders != "none":
                 caps, cap_names = instance_capsules(
                     [t.colliders for t in ordered],
@@ -380,7 +399,10 @@ def _write_forest(
                 save_layer(collision_layer(caps, cap_names), staged / "colliders.usdc")
                 sublayers.append(f"./{assets.name}/colliders.usdc")
             if ground is not None:
-                save_layer(ground_layer(ground, recipe.ground["color"]), staged / "ground.usdc")
+                save_layer(
+                    ground_layer(ground, recipe.ground["color"], _litter(recipe)),
+                    staged / "ground.usdc",
+                )
                 sublayers.append(f"./{assets.name}/ground.usdc")
             bodies = [s.removeprefix(f"./{assets.name}/") for s in sublayers[1:]]
             if bodies:
@@ -467,6 +489,74 @@ def _dead_wood(
     tick("dead wood", 1, 1)
     boxes = (deadwood_extent(pieces, shapes, anchor),) if len(pieces) else ()
     return pieces, ids, boxes
+
+
+def _litter(recipe: Recipe) -> bool:
+    """Whether the forest's ground is leaf litter (``[groundcover] litter``)."""
+    return recipe.groundcover is not None and recipe.groundcover.litter
+
+
+def _crowns(trees: list[TreeBuild]) -> tuple[np.ndarray, np.ndarray]:
+    """Per prototype, the radius of the disc of its crown's footprint area (the hull of its
+    points on the ground) and its one-sided leaf area (m²)."""
+    from scipy.spatial import ConvexHull
+
+    radius, leaf = [], []
+    for t in trees:
+        fp = t.bounds["full"].footprint
+        area = float(ConvexHull(fp).volume) if len(fp) >= 3 else 0.0
+        radius.append(np.sqrt(area / np.pi))
+        p = t.placement
+        unit = np.array(
+            [
+                float(t.templates[n].measurements["leaf_area"])
+                / float(t.templates[n].measurements["length"]) ** 2
+                for n in p.leaf_templates
+            ]
+        ).reshape(-1)
+        leaf.append(
+            float(np.sum(unit[p.leaf_proto] * p.leaf_scale[:, 0] * p.leaf_scale[:, 1]))
+            if len(p.leaf_proto)
+            else 0.0
+        )
+    return np.array(radius).reshape(-1), np.array(leaf).reshape(-1)
+
+
+def _ground_cover(
+    recipe: Recipe,
+    trees: list[TreeBuild],
+    stems: tuple[np.ndarray, np.ndarray, np.ndarray],
+    staged: Path,
+    tick: Progress,
+) -> tuple[np.ndarray, ...]:
+    """The recipe's ground vegetation under the crowns of ``stems`` (their recipe x, y,
+    prototype index and scale), written to ``groundcover.usdc`` and ``groundcover.csv`` in
+    ``staged`` with the templates it references. Returns the extentsHint boxes it adds."""
+    from usdforest.grow.groundcover import place_ground_cover
+    from usdforest.usd.floor import patch_shapes
+
+    tick("ground vegetation", 0, 1)
+    xy, proto_index, scale = stems
+    r0, leaf0 = _crowns(trees)
+    r = r0[proto_index] * scale if len(xy) else np.zeros(0)
+    lai = np.divide(
+        leaf0[proto_index] * scale**2 if len(xy) else np.zeros(0),
+        np.pi * r**2,
+        out=np.zeros(len(r)),
+        where=r > 0,
+    )
+    shapes = patch_shapes()
+    ground = recipe.ground["field"] if recipe.ground is not None else None
+    patches = place_ground_cover(
+        recipe.groundcover, recipe.region, recipe.seed, (xy, r, lai), shapes, ground
+    )
+    anchor = anchor_of(recipe)
+    ids = np.arange(len(patches), dtype=np.int64)
+    copy_groundcover_templates(staged / "templates")
+    save_layer(groundcover_layer(patches, shapes, anchor, ids), staged / "groundcover.usdc")
+    write_groundcover_csv(staged / "groundcover.csv", patches, ids)
+    tick("ground vegetation", 1, 1)
+    return (groundcover_extent(patches, anchor),) if len(patches) else ()
 
 
 def _leans(trees: list[TreeBuild]) -> np.ndarray:

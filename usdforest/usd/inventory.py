@@ -25,6 +25,7 @@ from usdforest.cad.parts import face_areas, one_sided_area
 from usdforest.errors import UsdForestError
 from usdforest.progress import Progress
 from usdforest.usd.debris import dead_wood_figures, is_dead_wood
+from usdforest.usd.floor import ground_vegetation_figures, is_ground_vegetation
 from usdforest.usd.layers import open_stage, rendered
 
 CELL = 0.25  # m, the cover raster
@@ -161,6 +162,7 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
         raise UsdForestError(f"{path}: not a usdforest forest (no regionArea in /Forest)")
     heights, dbhs, leaf, wood, species, where = [], [], [], [], [], []
     dead = dead_wood_figures(None, area)
+    green = ground_vegetation_figures(None, area)
     grid = None
     if bounds is not None:
         b = np.asarray(list(bounds), dtype=float)
@@ -172,6 +174,9 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
             continue
         if is_dead_wood(p):
             dead = dead_wood_figures(p, area)
+            continue
+        if is_ground_vegetation(p):
+            green = ground_vegetation_figures(p, area)
             continue
         pi = UsdGeom.PointInstancer(p)
         idx = np.asarray(pi.GetProtoIndicesAttr().Get() or [], dtype=np.int64)
@@ -250,6 +255,7 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
         "wood_to_leaf_area": float(wa.sum() / la.sum()) if la.sum() else None,
         "crown_footprint_cover": float(grid[1].mean()) if grid is not None else None,
         **dead,
+        **green,
         "region_bounds": [float(v) for v in bounds] if bounds is not None else None,
         "species": {
             str(n): int(c) for n, c in zip(*np.unique(sp, return_counts=True), strict=True)

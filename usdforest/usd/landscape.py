@@ -140,7 +140,12 @@ def tile_task(folder: Path, square: Square, kit: TileKit) -> TileSummary | None:
             author_capsules(prim(layer.GetPrimAtPath("/Tile"), "Colliders", "Scope"), caps, names)
     if ground is not None:
         with Sdf.ChangeBlock():
-            add_ground(layer.GetPrimAtPath("/Tile"), ground, color=recipe.ground["color"])
+            add_ground(
+                layer.GetPrimAtPath("/Tile"),
+                ground,
+                color=recipe.ground["color"],
+                litter=recipe.groundcover is not None and recipe.groundcover.litter,
+            )
     save_layer(layer, folder / f"{square.name}.usdc")
     write_trees_csv(
         folder / f"{square.name}.csv", rows, kit.proto_sizes, placed.proto_index, z, placed.ids

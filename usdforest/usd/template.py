@@ -36,7 +36,9 @@ SEMANTIC_CLASS = {
     "twig": "branch",
     "leaf": "leaf",
     "deadwood": "dead_wood",
+    "groundcover": "ground_vegetation",
 }
+GREEN_PARTS = ("leaf", "groundcover")  # thin blades: double-sided, a leaf's material
 
 # Stored precision. Eigen-decompositions and sums differ in their last bits between BLAS
 # kernels and library versions; rounding before storing keeps the bytes identical everywhere.
@@ -87,13 +89,13 @@ def template_layer(part: TemplatePart) -> Sdf.Layer:
         looks = prim(root, "Looks", "Scope")
         material = preview_material(
             looks,
-            "Leaf" if part.part == "leaf" else "Bark",
+            "Leaf" if part.part in GREEN_PARTS else "Bark",
             part.color,
-            nonvisual="leaf_grass" if part.part == "leaf" else "bark",
-            roughness=0.6 if part.part == "leaf" else 0.9,
+            nonvisual="leaf_grass" if part.part in GREEN_PARTS else "bark",
+            roughness=0.6 if part.part in GREEN_PARTS else 0.9,
         )
         mesh = triangle_mesh(root, "Mesh", points, part.faces, stable_points(part.normals))
-        attr(mesh, "doubleSided", T.Bool, part.part == "leaf", uniform=True)
+        attr(mesh, "doubleSided", T.Bool, part.part in GREEN_PARTS, uniform=True)
         _texture_coordinates(mesh, part.part, points, part.faces)
         attr(
             mesh,
@@ -113,7 +115,7 @@ def _texture_coordinates(
     """Indexed ``primvars:st`` (see :mod:`usdforest.cad.uvs`) from the stored (rounded) points,
     rounded like them: each distinct coordinate stored once, ``primvars:st:indices`` per
     vertex (leaves) or per face corner (wood)."""
-    if part == "leaf":
+    if part in GREEN_PARTS:
         st, interpolation = leaf_uvs(points), "vertex"
     else:
         st, interpolation = wood_uvs(points, faces), "faceVarying"
@@ -131,6 +133,8 @@ def _texture_coordinates(
 def _frame_doc(part: str) -> str:
     if part == "leaf":
         return "attachment at origin, blade axis +X, normal +Z, unit length"
+    if part == "groundcover":
+        return "footprint centred at origin, resting on z = 0, Z up, unit height"
     return "base centre at origin, growth axis +Z, unit length"
 
 
