@@ -354,8 +354,9 @@ def grass_patch() -> trimesh.Trimesh:
 def _ellipse_leaf(attach, azimuth, tilt, length, width, sectors=8) -> trimesh.Trimesh:
     """An elliptic blade from ``attach`` towards ``azimuth``, tilted ``tilt`` radians up, as
     a fan of triangles round its centre."""
-    u = np.array([math.cos(azimuth) * math.cos(tilt), math.sin(azimuth) * math.cos(tilt),
-                  math.sin(tilt)])
+    u = np.array(
+        [math.cos(azimuth) * math.cos(tilt), math.sin(azimuth) * math.cos(tilt), math.sin(tilt)]
+    )
     w = np.array([-math.sin(azimuth), math.cos(azimuth), 0.0])
     centre = attach + u * length / 2
     a = np.linspace(0, 2 * math.pi, sectors, endpoint=False)
@@ -407,8 +408,9 @@ def fern_patch() -> trimesh.Trimesh:
                     tip = line[i] + side * reach * across + 0.3 * reach * fwd
                     v = np.array([line[i], line[i + 1], tip, line[i] + 0.4 * (tip - line[i])])
                     v[3] += 0.012 * fwd
-                    parts.append(trimesh.Trimesh(v, np.array([(0, 1, 3), (1, 2, 3)]),
-                                                 process=False))
+                    parts.append(
+                        trimesh.Trimesh(v, np.array([(0, 1, 3), (1, 2, 3)]), process=False)
+                    )
     return trimesh.util.concatenate(parts)
 
 
