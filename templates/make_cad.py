@@ -381,7 +381,9 @@ def herb_patch() -> trimesh.Trimesh:
         for k in range(n):
             az = turn + 2 * math.pi * k / n
             length = rng.uniform(0.05, 0.09)
-            parts.append(_ellipse_leaf(top, az, rng.uniform(-0.1, 0.35), length, 0.7 * length))
+            # 4 mm out from the stalk: every leaf its own piece (a reflector for the sonar)
+            attach = top + 0.004 * np.array([math.cos(az), math.sin(az), 0.0])
+            parts.append(_ellipse_leaf(attach, az, rng.uniform(-0.1, 0.35), length, 0.7 * length))
     return trimesh.util.concatenate(parts)
 
 
@@ -405,8 +407,11 @@ def fern_patch() -> trimesh.Trimesh:
                 fwd = line[i + 1] - line[i]
                 fwd /= np.linalg.norm(fwd)
                 for side in (-1.0, 1.0):
+                    # each pinna its own piece, 2 mm out from the rachis, short of the next
+                    a = line[i] + side * 0.002 * across
+                    b = line[i] + 0.9 * (line[i + 1] - line[i]) + side * 0.002 * across
                     tip = line[i] + side * reach * across + 0.3 * reach * fwd
-                    v = np.array([line[i], line[i + 1], tip, line[i] + 0.4 * (tip - line[i])])
+                    v = np.array([a, b, tip, a + 0.4 * (tip - a)])
                     v[3] += 0.012 * fwd
                     parts.append(
                         trimesh.Trimesh(v, np.array([(0, 1, 3), (1, 2, 3)]), process=False)

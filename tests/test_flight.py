@@ -237,6 +237,7 @@ def test_a_short_flight_through_the_default_forest_writes_every_output(tmp_path,
     parts = [k for k in sonar.files if k.startswith("echoes_")]
     assert {
         "echoes_leaf",
+        "echoes_ground_vegetation",
         "echoes_trunk",
         "echoes_branch",
         "echoes_dead_wood",

@@ -200,7 +200,14 @@ def test_a_crowns_echo_equals_the_numpy_echo(monkeypatch, cfg, moving):
     for name in ("echo", "impulse", "transfer"):
         a, b = getattr(fast, name), getattr(slow, name)
         assert np.abs(a - b).max() <= 1e-6 * np.abs(b).max(), name
-    assert set(fast.parts) == {"leaf", "trunk", "branch", "dead_wood", "ground"}
+    assert set(fast.parts) == {
+        "leaf",
+        "ground_vegetation",
+        "trunk",
+        "branch",
+        "dead_wood",
+        "ground",
+    }
     for name, part in fast.parts.items():
         assert np.abs(part - slow.parts[name]).max() <= 1e-6 * np.abs(slow.parts[name]).max()
     np.testing.assert_allclose(fast.labels["energy"], slow.labels["energy"], rtol=1e-9)

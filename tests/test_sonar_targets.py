@@ -157,7 +157,7 @@ def test_a_trunks_echo_matches_the_kirchhoff_integral_at_its_range(tmp_path):
     scene = extract_scene(_stage(tmp_path / "t.usda", trunk=(a, height, (r0, 0.0, 0.0))))
     cfg = SonarConfig(f_min=30e3, f_max=40e3, bands=16, ground=False)
     e = sonar_scan(scene, Pose(0, 0, 0), cfg)
-    assert set(e.parts) == {"leaf", "trunk", "branch", "dead_wood"}
+    assert set(e.parts) == {"leaf", "ground_vegetation", "trunk", "branch", "dead_wood"}
     assert e.reflectors["trunk"] in (6, 7)
     assert not np.any(e.parts["leaf"]) and not np.any(e.parts["branch"])  # silent: none
     c = cfg.speed_of_sound
@@ -226,16 +226,23 @@ def test_wood_and_ground_are_switchable_and_the_parts_add_up(tmp_path):
     stage = _stage(tmp_path / "s.usda", trunk=(0.2, 3.0, (4.0, 0.0, 0.0)), ground_z=-1.5)
     scene = extract_scene(stage)
     both = sonar_scan(scene, Pose(0, 0, 0), SonarConfig())
-    assert set(both.parts) == {"leaf", "trunk", "branch", "dead_wood", "ground"}
+    assert set(both.parts) == {
+        "leaf",
+        "ground_vegetation",
+        "trunk",
+        "branch",
+        "dead_wood",
+        "ground",
+    }
     np.testing.assert_allclose(
         sum(both.parts.values()), both.echo, atol=1e-12 * np.abs(both.echo).max()
     )
     assert np.abs(both.parts["trunk"]).max() > 0 and np.abs(both.parts["ground"]).max() > 0
     no_wood = sonar_scan(scene, Pose(0, 0, 0), SonarConfig(wood=False))
-    assert set(no_wood.parts) == {"leaf", "ground"}
+    assert set(no_wood.parts) == {"leaf", "ground_vegetation", "ground"}
     np.testing.assert_array_equal(no_wood.parts["ground"], both.parts["ground"])
     neither = sonar_scan(scene, Pose(0, 0, 0), SonarConfig(wood=False, ground=False))
-    assert set(neither.parts) == {"leaf"} and not np.any(neither.echo)
+    assert set(neither.parts) == {"leaf", "ground_vegetation"} and not np.any(neither.echo)
     # occlusion: the trunk hides the ground behind it, so less ground is heard; the trunk
     # itself (3 m tall, so seen up to 20 degrees off broadside) hides none of its own segments
     hidden = sonar_scan(scene, Pose(0, 0, 0), SonarConfig(occlusion=True))

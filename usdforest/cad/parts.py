@@ -28,10 +28,9 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from usdforest.errors import CADError
+from usdforest.meshgraph import face_components
 from usdforest.normals import vertex_normals
 from usdforest.paths import require_file
 
@@ -383,12 +382,7 @@ def to_metres_z_up(mesh: CADMesh, units: str, up: str, part: str) -> tuple[CADMe
 
 def components(mesh: CADMesh) -> np.ndarray:
     """``int[m]`` connected-component label of each face (faces sharing a vertex connect)."""
-    n = len(mesh.vertices)
-    f = mesh.faces
-    rows = np.repeat(f[:, 0], 3)
-    graph = coo_matrix((np.ones(rows.size), (rows, f.ravel())), shape=(n, n))
-    _, vertex_label = connected_components(graph, directed=False)
-    return vertex_label[f[:, 0]]
+    return face_components(mesh.faces, len(mesh.vertices))
 
 
 def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -170,6 +170,7 @@ def scan_cmd(
             "trunk": "trunk cylinders",
             "branch": "branch cylinders",
             "dead_wood": "dead-wood cylinders",
+            "ground_vegetation": "ground-vegetation blades",
             "ground": "ground facets",
         }
         text = (

@@ -40,6 +40,8 @@ CLASS_ID = {name: i for i, name in enumerate(CLASSES)}
 # prototypes kept as instances (two levels) rather than copied: trees, and ground-vegetation
 # patches (thousands of copies of four meshes of thousands of triangles each)
 INSTANCED = ("tree", "ground_vegetation")
+# ground vegetation that echoes as the rough ground under it does, not as leaves
+CARPETS = ("moss",)
 
 
 def class_counts(cls: np.ndarray) -> dict[str, int]:
@@ -111,6 +113,11 @@ def _class_of(prim, stop) -> int:
                 return CLASS_ID[label]
         p = p.GetParent()
     return 0
+
+
+def _form(prim) -> str:
+    """A ground-vegetation prototype's growth form (its ``usdforest:form``), else ``""``."""
+    return str((prim.GetCustomDataByKey("usdforest") or {}).get("form", ""))
 
 
 def _instanced(stage, target) -> bool:
@@ -201,10 +208,42 @@ def leaf_boxes(li: LeafInstances, shapes: tuple[Shape, ...]) -> tuple[np.ndarray
     return moved_boxes(box[:, 0], box[:, 1], li.matrix)
 
 
+def blade_reflectors(tri: np.ndarray) -> Leaves:
+    """Each connected blade, leaf or frond of ``tri (m, 3, 3)`` (a ground-vegetation patch's)
+    as a leaf reflector: its area-weighted centre, its area-weighted mean normal (turned up)
+    and its one-sided area."""
+    from usdforest.meshgraph import triangle_components
+
+    if not len(tri):
+        return Leaves.concat([])
+    t = np.asarray(tri, dtype=float)
+    label = triangle_components(t)
+    cross = 0.5 * np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    area = np.linalg.norm(cross, axis=1)
+    n = int(label.max()) + 1
+    total = np.bincount(label, area, n)
+    centre = (
+        np.stack([np.bincount(label, area * t[:, :, k].mean(axis=1), n) for k in range(3)], axis=1)
+        / np.maximum(total, 1e-30)[:, None]
+    )
+    # a triangle's normal turned up before summing: a curved blade's two faces do not cancel
+    up = np.where(cross[:, 2:3] < 0, -cross, cross)
+    vec = np.stack([np.bincount(label, up[:, k], n) for k in range(3)], axis=1)
+    length = np.linalg.norm(vec, axis=1, keepdims=True)
+    normal = np.where(length > 1e-30, vec / np.maximum(length, 1e-30), [0.0, 0.0, 1.0])
+    keep = total > 0
+    m = int(keep.sum())
+    return Leaves(
+        centre[keep], normal[keep], total[keep], np.full(m, -1, np.int64), np.ones(m, bool)
+    )
+
+
 def _placed_leaves(
     proto: Prototype, m: np.ndarray, tree: int, centre: np.ndarray | None, radius: float | None
 ) -> Leaves:
-    """A prototype's leaves placed by ``m`` (row-vector 4x4), those within reach only."""
+    """A prototype's leaves placed by ``m`` (row-vector 4x4), those within reach only. A
+    leaf's area vector moves by the cofactor of ``m`` (a patch is stretched more across than
+    up; a tree's uniform scale s gives s² times its area)."""
     lv = proto.leaves
     rot = m[:3, :3]
     c = lv.centre @ rot + m[3, :3]
@@ -212,9 +251,11 @@ def _placed_leaves(
     if centre is not None and radius is not None:
         keep = np.linalg.norm(c - centre, axis=1) <= radius + 2 * np.sqrt(lv.area) + 1e-6
     n = lv.normal[keep] @ np.linalg.inv(rot).T
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    s2 = abs(np.linalg.det(rot)) ** (2 / 3)
-    return Leaves(c[keep], n, lv.area[keep] * s2, np.full(int(keep.sum()), tree, np.int64))
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    n /= np.maximum(length, 1e-12)
+    area = lv.area[keep] * abs(np.linalg.det(rot)) * length[:, 0]
+    blade = lv.blade[keep] if lv.blade is not None else None
+    return Leaves(c[keep], n, area, np.full(int(keep.sum()), tree, np.int64), blade)
 
 
 def stage_frame(stage_path: str | Path) -> np.ndarray:
@@ -319,11 +360,15 @@ def extract_scene(
         lo, hi = leaf_boxes(kept, tuple(shapes))
         pts = np.concatenate([whole.tri.reshape(-1, 3).astype(float), lo, hi])
         lo, hi = (pts.min(axis=0), pts.max(axis=0)) if len(pts) else (np.zeros(3),) * 2
+        reflecting = [r[0] for r in realised]
+        if with_reflectors and _form(prim) not in CARPETS:
+            blades = whole.tri[whole.cls == CLASS_ID["ground_vegetation"]]
+            reflecting.append(blade_reflectors(blades))
         return Prototype(
             whole.tri,
             whole.cls,
             whole.path,
-            Leaves.concat([r[0] for r in realised]),
+            Leaves.concat(reflecting),
             np.array([lo, hi]),
             kept,
         )
@@ -527,7 +572,7 @@ def extract_scene(
         tree,
         whole.path,
         tuple(paths),
-        Leaves(leaves.centre, leaves.normal, leaves.area, leaf_tree),
+        Leaves(leaves.centre, leaves.normal, leaves.area, leaf_tree, leaves.blade),
         bounds,
         tuple(protos),
         inst,

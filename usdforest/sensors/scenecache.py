@@ -26,7 +26,7 @@ import numpy as np
 
 from usdforest.sensors.scenetypes import LeafInstances, Leaves, Prototype, Shape
 
-FORMAT = b"usdforest-scene-cache-1"  # bump when what is stored changes
+FORMAT = b"usdforest-scene-cache-2"  # bump when what is stored changes
 KEEP_STAGES = 4  # stage folders kept (0.4 GB for the default forest), least recently used first
 
 
@@ -160,7 +160,13 @@ def stored(
         "triangles": proto.triangles,
         "cls": proto.cls,
         "path_index": local(proto.path),
-        "leaves": (proto.leaves.centre, proto.leaves.normal, proto.leaves.area, proto.leaves.tree),
+        "leaves": (
+            proto.leaves.centre,
+            proto.leaves.normal,
+            proto.leaves.area,
+            proto.leaves.tree,
+            proto.leaves.blade,
+        ),
         "box": proto.box,
         "instances": (np.searchsorted(used, li.shape).astype(np.int64), li.matrix, li.tree),
         "shapes": [

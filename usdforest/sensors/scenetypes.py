@@ -12,15 +12,27 @@ import numpy as np
 
 @dataclass(frozen=True, eq=False)
 class Leaves:
-    """Leaves as reflectors: centre, unit normal, one-sided area (m²), tree id."""
+    """Leaves as reflectors: centre, unit normal, one-sided area (m²), tree id; ``blade``
+    marks the ground vegetation's (``None``: no leaf is)."""
 
     centre: np.ndarray
     normal: np.ndarray
     area: np.ndarray
     tree: np.ndarray
+    blade: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.centre.shape[0])
+
+    @property
+    def on_ground(self) -> np.ndarray:
+        """``bool[n]``: which leaves are the ground vegetation's blades."""
+        return self.blade if self.blade is not None else np.zeros(len(self), dtype=bool)
+
+    def take(self, sel: np.ndarray) -> Leaves:
+        """The leaves ``sel`` (indices or a mask)."""
+        blade = self.blade[sel] if self.blade is not None else None
+        return Leaves(self.centre[sel], self.normal[sel], self.area[sel], self.tree[sel], blade)
 
     @property
     def radius(self) -> np.ndarray:
@@ -31,11 +43,17 @@ class Leaves:
     def concat(parts: list[Leaves]) -> Leaves:
         if not parts:
             return Leaves(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
+        blade = (
+            np.concatenate([p.on_ground for p in parts])
+            if any(p.blade is not None for p in parts)
+            else None
+        )
         return Leaves(
             *(
                 np.concatenate([getattr(p, f) for p in parts])
                 for f in ("centre", "normal", "area", "tree")
-            )
+            ),
+            blade,
         )
 
 

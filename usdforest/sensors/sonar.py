@@ -586,24 +586,30 @@ def echo_from_targets(
     leaf_in = near(lv.centre)
     gaussian = cfg.beam == "gaussian"
 
-    def group_fit_leaves(sel: np.ndarray) -> tuple[np.ndarray, Callable]:
-        sub = _leaf_subset(lv, leaf_in[sel])
-        r, theta_b, theta_i = leaf_geometry(sub, pose)
-        return r, lambda tau: bandsum.group_fit_deposit(
-            r, theta_b, theta_i, sub.radius, tau, grid.sums
-        )
+    def leaf_source(k: int, idx: np.ndarray) -> _Source:
+        """The coherent sum of the leaves ``idx`` as class ``k``."""
 
-    # one coherent sum per class
-    sources = [
-        _Source(
-            CLASS_ID["leaf"],
-            lv.tree[leaf_in],
-            lv.centre[leaf_in],
-            lambda sel: leaf_amplitudes(_leaf_subset(lv, leaf_in[sel]), pose, cfg, grid.centres),
+        def group_fit_leaves(sel: np.ndarray) -> tuple[np.ndarray, Callable]:
+            sub = _leaf_subset(lv, idx[sel])
+            r, theta_b, theta_i = leaf_geometry(sub, pose)
+            return r, lambda tau: bandsum.group_fit_deposit(
+                r, theta_b, theta_i, sub.radius, tau, grid.sums
+            )
+
+        return _Source(
+            k,
+            lv.tree[idx],
+            lv.centre[idx],
+            lambda sel: leaf_amplitudes(_leaf_subset(lv, idx[sel]), pose, cfg, grid.centres),
             # the kernel's own model: the group's fit through a Gaussian beam
             group_fit_leaves if gaussian and cfg.leaf_model == "group-fit" else None,
         )
-    ]
+
+    # one coherent sum per class; the ground vegetation's blades are leaves of their own class
+    blade = lv.on_ground[leaf_in]
+    sources = [leaf_source(CLASS_ID["leaf"], leaf_in[~blade])]
+    if blade.any():
+        sources.append(leaf_source(CLASS_ID["ground_vegetation"], leaf_in[blade]))
     if cfg.wood and len(wood):
         w = wood.take(near(wood.centre))
         for k in (CLASS_ID["trunk"], CLASS_ID["branch"], CLASS_ID["dead_wood"]):
@@ -649,7 +655,7 @@ def echo_from_targets(
             labels.append(_labels(tree, np.full(len(position), k), energy, r))
     # every class the sonar listens to has its echo, silent when nothing of it is in range
     heard = (
-        ["leaf"]
+        ["leaf", "ground_vegetation"]
         + (["trunk", "branch", "dead_wood"] if cfg.wood else [])
         + (["ground"] if cfg.ground else [])
     )
@@ -682,7 +688,7 @@ def echo_from_leaves(
 
 
 def _leaf_subset(lv: Leaves, sel: np.ndarray) -> Leaves:
-    return Leaves(lv.centre[sel], lv.normal[sel], lv.area[sel], lv.tree[sel])
+    return lv.take(sel)
 
 
 def _labels(tree: np.ndarray, cls: np.ndarray, energy: np.ndarray, r: np.ndarray) -> np.ndarray:

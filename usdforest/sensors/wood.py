@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from usdforest.meshgraph import triangle_components
 from usdforest.runs import run_starts
 from usdforest.sensors.scene import CLASS_ID, Scene
 
@@ -251,7 +252,7 @@ def scene_cylinders(scene: Scene, segment: float) -> Cylinders:
     dead = np.flatnonzero(scene.cls == CLASS_ID["dead_wood"])
     if dead.size:  # instances copied into one prim path each: one fit per piece
         path = path.astype(np.int64).copy()
-        path[dead] = int(path.max()) + 1 + _connected(scene.triangles[dead])
+        path[dead] = int(path.max()) + 1 + triangle_components(scene.triangles[dead])
     parts = [fit_cylinders(scene.triangles, scene.cls, path, scene.tree, segment)]
     inst = scene.instances
     for k, proto in enumerate(scene.protos):
@@ -263,19 +264,3 @@ def scene_cylinders(scene: Scene, segment: float) -> Cylinders:
         )
         parts.append(local.placed(inst.matrix[which], inst.tree[which]))
     return Cylinders.concat(parts)
-
-
-def _connected(tri: np.ndarray) -> np.ndarray:
-    """A label per triangle of ``tri (m, 3, 3)``: its piece, triangles sharing vertices
-    (copies of one mesh placed apart share none)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    _, vertex = np.unique(tri.reshape(-1, 3), axis=0, return_inverse=True)
-    vertex = vertex.reshape(-1, 3)
-    m = len(tri)
-    rows = np.repeat(np.arange(m), 3)
-    graph = coo_matrix((np.ones(3 * m), (rows, vertex.ravel())), shape=(m, int(vertex.max()) + 1))
-    # triangles joined through their shared vertices: components of the bipartite graph
-    _, labels = connected_components((graph @ graph.T).tocsr(), directed=False)
-    return labels

@@ -1,0 +1,30 @@
+"""Connected pieces of triangle meshes (numpy and scipy only): a template's separate leaves
+or blades, copies of one mesh placed apart, a CAD file's separate parts."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def face_components(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """``int[m]`` connected-component label of each face of ``faces (m, 3)`` (vertex indices
+    below ``n_vertices``): faces sharing a vertex connect."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    rows = np.repeat(f[:, 0], 3)
+    graph = coo_matrix((np.ones(rows.size), (rows, f.ravel())), shape=(n_vertices, n_vertices))
+    _, vertex_label = connected_components(graph, directed=False)
+    return vertex_label[f[:, 0]]
+
+
+def triangle_components(tri: np.ndarray) -> np.ndarray:
+    """``int[m]`` piece of each of ``tri (m, 3, 3)``: triangles sharing a vertex position
+    connect (copies of one mesh placed apart share none)."""
+    t = np.asarray(tri).reshape(-1, 3)
+    if not len(t):
+        return np.zeros(0, dtype=np.int64)
+    _, vertex = np.unique(t, axis=0, return_inverse=True)
+    vertex = vertex.reshape(-1, 3)
+    return face_components(vertex, int(vertex.max()) + 1)
