@@ -70,7 +70,7 @@ bench: $(STAMP) $(BLENDER_STAMP)
 	USDFOREST_BLENDER_PYTHON=$(abspath $(BLENDER))/bin/python $(BIN)/python benchmarks/bench_lod.py
 	$(BIN)/python benchmarks/bench_startup.py
 	$(BIN)/python benchmarks/bench_flight.py
-	$(BIN)/python benchmarks/bench_deadwood.py
+	$(BIN)/python benchmarks/bench_floor.py
 	$(BIN)/python benchmarks/bench_tiles.py 1 10
 	$(BIN)/python benchmarks/bench_spatstat.py
 	$(BIN)/python benchmarks/bench_stats.py

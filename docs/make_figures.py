@@ -510,6 +510,79 @@ def dead_wood(out: Path, work: Path) -> None:
     save_figure(fig, out / "dead-wood.png")
 
 
+def ground_vegetation(out: Path, work: Path) -> None:
+    """The default forest's ground vegetation: the light on the floor and each cell's cover
+    (groundcover.csv), and a camera at eye height in the brightest corner of the plot, in
+    colour and by class."""
+    import csv
+
+    import numpy as np
+
+    from usdforest.grow.groundcover import FORMS
+    from usdforest.recipe import default_recipe_path
+    from usdforest.sensors import camera
+    from usdforest.sensors.pose import Pose
+    from usdforest.sensors.raycast import SceneCaster
+    from usdforest.sensors.scene import CLASS_ID, extract_scene
+
+    stage = work / "default.usda"
+    if not stage.exists():
+        write_forest(read_recipe(default_recipe_path()), stage, thumbnail=False)
+    with (work / "default_assets" / "groundcover.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    x, y, light, cover = (
+        np.array([float(r[k]) for r in rows]) for k in ("x", "y", "light", "cover")
+    )
+    cell = 2.0
+    i, j = np.floor(x / cell).astype(int), np.floor(y / cell).astype(int)
+    shape = (j.max() + 1, i.max() + 1)
+    grids = [np.full(shape, np.nan), np.full(shape, np.nan)]
+    grids[0][j, i], grids[1][j, i] = light, cover
+    # the camera: at eye height in the brightest 10 m square, looking across it and down
+    box = np.add.reduceat(np.add.reduceat(np.nan_to_num(grids[0]), np.arange(0, shape[0], 5), 0),
+                          np.arange(0, shape[1], 5), 1)  # fmt: skip
+    bj, bi = np.unravel_index(np.argmax(box), box.shape)
+    cx, cy = (bi * 5 + 2.5) * cell, (bj * 5 + 2.5) * cell
+    pose = Pose(cx - 4.0, cy - 4.0, 1.6, yaw=45.0, pitch=-25.0)
+    scene = extract_scene(stage, centre=pose.position, radius=40.0)
+    cam = camera.DepthCamera(800, 500, 90.0, 40.0, kind="camera")
+    frame = camera.render(
+        scene, cam, pose, camera.path_colours(stage, scene.paths), SceneCaster(scene)
+    )
+    share = float(np.mean(frame.semantic == CLASS_ID["ground_vegetation"]))
+    fig, axes = plt.subplots(2, 2, figsize=(12, 9.6), dpi=100)
+    extent = (0, shape[1] * cell, 0, shape[0] * cell)
+    for ax, grid, title, cmap in (
+        (axes[0, 0], grids[0], "relative light on the floor (Beer-Lambert under the crowns)",
+         "gray"),
+        (axes[0, 1], grids[1], "ground-vegetation cover of each 2 m cell", "YlGn"),
+    ):  # fmt: skip
+        im = ax.imshow(grid, origin="lower", extent=extent, cmap=cmap, vmin=0)
+        fig.colorbar(im, ax=ax, shrink=0.8)
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        ax.plot([pose.x], [pose.y], "r^", ms=8)
+    panels = (
+        (frame.rgb, "RGB from the red marker (1.6 m up, looking north-east and down)"),
+        (camera.PALETTE[frame.semantic], f"semantic: ground vegetation on {share:.1%} of it"),
+    )
+    for ax, (image, title) in zip(axes[1], panels, strict=True):
+        ax.imshow(image)
+        ax.set_title(title, fontsize=10)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    forms = np.array([r["form"] for r in rows])
+    area = cell**2 * len(rows)
+    by_form = ", ".join(f"{f} {np.sum(cover[forms == f]) * cell**2 / area:.3f}" for f in FORMS)
+    fig.suptitle(
+        f"default forest: ground vegetation hides {np.sum(cover) * cell**2 / area:.3f} of the "
+        f"floor ({by_form}); cover follows light, r = {np.corrcoef(light, cover)[0, 1]:.2f}",
+        fontsize=11,
+    )
+    save_figure(fig, out / "ground-vegetation.png")
+
+
 def terrain(out: Path, work: Path) -> None:
     """The default stand on a height field (a slope, a hill and a hollow), seen from the side."""
     import numpy as np
@@ -572,6 +645,7 @@ def main(out: Path) -> None:
         sensors(out, work)
         forest_sensors(out, work)
         dead_wood(out, work)
+        ground_vegetation(out, work)
         terrain(out, work)
         landscape(out, work)
     for p in sorted(out.glob("*.png")):
