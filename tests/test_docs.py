@@ -81,8 +81,10 @@ def _recipe_keys() -> set[str]:
     from dataclasses import fields
 
     from usdforest.grow.groundcover import GroundCoverSpec
+    from usdforest.grow.understorey import RegenerationSpec, ShrubSpec
 
-    keys |= {f.name for f in fields(GroundCoverSpec)}
+    for spec in (GroundCoverSpec, ShrubSpec, RegenerationSpec):
+        keys |= {f.name for f in fields(spec)}
     return keys
 
 

@@ -15,6 +15,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom
 from usdforest.cli import app
 from usdforest.recipe import default_recipe_path, read_recipe
 from usdforest.usd.forest import write_forest
+from usdforest.usd.layers import class_labels, open_stage
 from usdforest.usd.stats import stage_info
 from usdforest.usd.validate import validate
 
@@ -27,6 +28,24 @@ def default_forest(tmp_path_factory):
     out = tmp_path_factory.mktemp("forest") / "forest.usda"
     build = write_forest(read_recipe(default_recipe_path()), out)
     return out, build
+
+
+def _understorey_leaves(stage: Usd.Stage) -> int:
+    """The understorey's leaves at the stage's selected level: each prototype's leaf
+    instances (or clusters) times the plants that instance it."""
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Understorey"))
+    idx = np.asarray(pi.GetProtoIndicesAttr().Get())
+    total = 0
+    for k, target in enumerate(pi.GetPrototypesRel().GetTargets()):
+        leaves = sum(
+            len(UsdGeom.PointInstancer(p).GetProtoIndicesAttr().Get() or [])
+            for p in Usd.PrimRange(stage.GetPrimAtPath(target))
+            if p.IsA(UsdGeom.PointInstancer)
+            and "leaf" in class_labels(p)
+            and UsdGeom.Imageable(p).ComputePurpose() in ("default", "render")
+        )
+        total += leaves * int(np.sum(idx == k))
+    return total
 
 
 def test_default_forest_validates_and_composes(default_forest):
@@ -56,14 +75,24 @@ def test_default_forest_validates_and_composes(default_forest):
     assert ids.dtype == np.int64 and np.array_equal(ids, np.arange(build.n_trees))
     assert pi.GetOrientationsAttr().GetTypeName() == "quath[]"
     # clients open the forest at lod = medium (leaf clusters); sensors and stats see it full
+    # (the trees and the understorey's shrubs and young trees alike)
     info, full = stage_info(out), stage_info(out, full=True)
     assert info["trees"] == full["trees"] == build.n_trees
-    assert info["lod"] == {"medium": len(protos)} and full["lod"] == {"full": len(protos)}
+    n_under = len(
+        UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Understorey"))
+        .GetPrototypesRel()
+        .GetTargets()
+    )
+    assert info["lod"] == {"medium": len(protos) + n_under}
+    assert full["lod"] == {"full": len(protos) + n_under}
     per_proto = {k: tb.placement.n_leaves for k, tb in build.trees.items()}
     expected = sum(per_proto[build.prototypes[i]] for i in idx)
-    assert full["leaves"] == expected  # nested instancing expanded
+    under_full = _understorey_leaves(open_stage(out, full=True))
+    assert full["leaves"] == expected + under_full  # nested instancing expanded
     clusters = {k: len(tb.levels.clusters["position"]) for k, tb in build.trees.items()}
-    assert info["leaves"] == sum(clusters[build.prototypes[i]] for i in idx)
+    under_medium = _understorey_leaves(Usd.Stage.Open(str(out)))
+    assert under_medium < under_full
+    assert info["leaves"] == sum(clusters[build.prototypes[i]] for i in idx) + under_medium
     assert full["triangles"] > 5 * info["triangles"]
     stage = Usd.Stage.Open(str(out))  # the files are untouched by full=True
     pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
@@ -88,11 +117,12 @@ def test_blender_imports_the_default_forest_at_its_default_level(default_forest)
     report = json.loads(run.stdout.strip().splitlines()[-1])
     assert report["peak_rss_mb"] < 8 * 1024, report["peak_rss_mb"]
     materials = [m["material"] or "" for m in report["meshes"]]
-    # one leaf mesh per tree prototype (its clusters), its bark meshes, and the ground
-    n_protos = len(default_forest[1].prototypes)
-    assert sum(m.startswith("Leaf") for m in materials) == n_protos
+    # one leaf mesh per tree, shrub and young-tree prototype (its clusters) and one per
+    # ground-vegetation patch, their bark meshes, and the litter floor
+    n_protos = len(list((out.parent / "forest_assets" / "trees").glob("*.usdc")))
+    assert sum(m.startswith("Leaf") for m in materials) == n_protos + 4
     assert sum(m.startswith("Bark") for m in materials) >= n_protos
-    assert sum(m.startswith("Ground") for m in materials) == 1
+    assert sum(m.startswith("Litter") for m in materials) == 1
 
 
 def test_layout_and_ground_truth(default_forest):
@@ -103,6 +133,8 @@ def test_layout_and_ground_truth(default_forest):
         "deadwood.csv",
         "deadwood.usdc",
         "ground.usdc",
+        "groundcover.csv",
+        "groundcover.usdc",
         "instances.usdc",
         "physics.usda",
         "pipeline.toml",
@@ -110,13 +142,18 @@ def test_layout_and_ground_truth(default_forest):
         "thumbnail.png",
         "trees",
         "trees.csv",
+        "understorey.csv",
+        "understorey.usdc",
     ]
     assert sorted(p.name for p in out.parent.iterdir()) == ["forest.usda", "forest_assets"]
-    assert len(list((assets / "trees").glob("*.usdc"))) == len(build.prototypes)
+    # the trees' assets, and 2 x 3 shrubs and 4 species x 3 classes of young trees
+    assert len(list((assets / "trees").glob("*.usdc"))) == len(build.prototypes) + 6 + 12
     forest_layer = Sdf.Layer.FindOrOpen(str(out))
     assert list(forest_layer.subLayerPaths) == [
         "./forest_assets/instances.usdc",
         "./forest_assets/deadwood.usdc",
+        "./forest_assets/groundcover.usdc",
+        "./forest_assets/understorey.usdc",
         "./forest_assets/colliders.usdc",
         "./forest_assets/ground.usdc",
     ]

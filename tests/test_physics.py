@@ -129,7 +129,8 @@ def test_default_forest_stands_on_a_labelled_ground_collider(tmp_path):
     stage = Usd.Stage.Open(str(out))
     mesh = stage.GetPrimAtPath("/Forest/Ground/Mesh")
     assert mesh.IsA(UsdGeom.Mesh) and mesh.HasAPI(UsdPhysics.CollisionAPI)
-    assert list(mesh.GetAttribute("semantics:labels:class").Get()) == ["ground"]
+    # the default's ground vegetation lies on leaf litter
+    assert list(mesh.GetAttribute("semantics:labels:class").Get()) == ["ground", "litter"]
     pts = np.asarray(UsdGeom.Mesh(mesh).GetPointsAttr().Get(), dtype=float)
     # the plane covers the plot (100 m x 100 m) with its 5 m margin
     assert pts[:, :2].min(axis=0) == pytest.approx([-5, -5]) and pts[:, 2].max() == 0

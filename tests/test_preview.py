@@ -69,9 +69,10 @@ def test_forest_render_has_ground_and_trees(default_forest):
     out = default_forest
     img, _, kind = render_stage(out, view="top", size=(200, 200))
     assert kind == "forest"
-    # the stage's own ground, in its material's colour, lit from above (no stand-in drawn)
+    # the stage's own ground, in its material's colour (the default's leaf litter), lit from
+    # above (no stand-in drawn)
     stage = Usd.Stage.Open(str(out))
-    shader = stage.GetPrimAtPath("/Forest/Ground/Looks/Ground/PreviewSurface")
+    shader = stage.GetPrimAtPath("/Forest/Ground/Looks/Litter/PreviewSurface")
     colour = np.array(shader.GetAttribute("inputs:diffuseColor").Get())
     ground = np.abs(img - colour * 1.04).sum(axis=2) < 0.05
     c = classify(img)

@@ -244,6 +244,8 @@ TOP_KEYS = {
     "inhibition",
     "deadwood",
     "groundcover",
+    "shrubs",
+    "regeneration",
 }
 DEADWOOD_KEYS = {
     "volume",
@@ -326,6 +328,8 @@ class Recipe:
     inhibition: Any = None  # sites.inhibition.Inhibition: a Strauss process over the intensity
     deadwood: Any = None  # grow.deadwood.DeadWoodSpec: snags, stumps, logs and branches
     groundcover: Any = None  # grow.groundcover.GroundCoverSpec: grass, herbs, ferns, moss
+    shrubs: Any = None  # grow.understorey.ShrubSpec: hazel and bramble
+    regeneration: Any = None  # grow.understorey.RegenerationSpec: the stand's young trees
 
     @property
     def species_names(self) -> tuple[str, ...]:
@@ -773,6 +777,8 @@ def parse_recipe(
         )
         deadwood = _parse_deadwood(data.get("deadwood"))
         groundcover = _parse_groundcover(data.get("groundcover"))
+        shrubs = _parse_shrubs(data.get("shrubs"))
+        regeneration = _parse_regeneration(data.get("regeneration"))
     except RecipeError as exc:
         raise fail(exc) from None
     recipe = Recipe(
@@ -800,6 +806,8 @@ def parse_recipe(
         inhibition,
         deadwood,
         groundcover,
+        shrubs,
+        regeneration,
     )
     try:
         expected = recipe.expected_trees()
@@ -892,6 +900,75 @@ def _parse_groundcover(t: Any) -> Any:
     if not isinstance(litter, bool):
         raise RecipeError(f"groundcover.litter: expected true or false, got {litter!r}")
     return GroundCoverSpec(**values, litter=litter)
+
+
+def _parse_shrubs(t: Any) -> Any:
+    """``[shrubs]``: hazel and bramble by the cover of their crowns, in the light (see
+    :mod:`usdforest.grow.understorey`); absent: none."""
+    from dataclasses import fields
+
+    from usdforest.grow.understorey import SHRUB_FORMS, ShrubSpec
+
+    if t is None:
+        return None
+    if not isinstance(t, Mapping):
+        raise RecipeError("shrubs: expected a table, e.g. [shrubs] cover = 0.08")
+    d = ShrubSpec()
+    check_keys(t, {f.name for f in fields(d)}, "shrubs")
+    values: dict[str, Any] = {}
+    for k, lo, hi in (
+        ("cover", 0.0, 0.6),
+        *((f, 0.0, 1.0) for f in SHRUB_FORMS),
+        ("cell", 2.0, 50.0),
+        ("light_response", 0.0, 10.0),
+        ("clearance", 0.0, 10.0),
+    ):
+        v = _num(t.get(k, getattr(d, k)), f"shrubs.{k}", lo=0)
+        if not lo <= v <= hi:
+            raise RecipeError(f"shrubs.{k}: {v:.4g} is outside {lo:g} to {hi:g}")
+        values[k] = v
+    shares = sum(values[f] for f in SHRUB_FORMS)
+    if abs(shares - 1.0) > 1e-6:
+        raise RecipeError(f"shrubs: hazel + bramble = {shares:.4g}; the shares must add up to 1")
+    variants = t.get("variants", d.variants)
+    if not isinstance(variants, int) or isinstance(variants, bool) or not 1 <= variants <= 16:
+        raise RecipeError(f"shrubs.variants: expected a whole number 1-16, got {variants!r}")
+    return ShrubSpec(**values, variants=variants)
+
+
+def _parse_regeneration(t: Any) -> Any:
+    """``[regeneration]``: the stand's young trees by stems per hectare, in the light (see
+    :mod:`usdforest.grow.understorey`); absent: none."""
+    from dataclasses import fields
+
+    from usdforest.grow.understorey import RegenerationSpec
+
+    if t is None:
+        return None
+    if not isinstance(t, Mapping):
+        raise RecipeError("regeneration: expected a table, e.g. [regeneration] density = 1500")
+    d = RegenerationSpec()
+    check_keys(t, {f.name for f in fields(d)}, "regeneration")
+    values: dict[str, Any] = {}
+    for k, lo, hi in (
+        ("density", 0.0, 200_000.0),
+        ("cell", 0.5, 50.0),
+        ("light_response", 0.0, 10.0),
+        ("clearance", 0.0, 10.0),
+    ):
+        v = _num(t.get(k, getattr(d, k)), f"regeneration.{k}", lo=0)
+        if not lo <= v <= hi:
+            raise RecipeError(f"regeneration.{k}: {v:.4g} is outside {lo:g} to {hi:g}")
+        values[k] = v
+    height = coerce(t.get("height", list(d.height)), tuple[float, float], "regeneration.height")
+    if not 0.05 <= height[0] <= height[1] <= 15.0:
+        raise RecipeError(
+            f"regeneration.height: {list(height)} is not [low, high] metres within 0.05 to 15"
+        )
+    classes = t.get("classes", d.classes)
+    if not isinstance(classes, int) or isinstance(classes, bool) or not 1 <= classes <= 12:
+        raise RecipeError(f"regeneration.classes: expected a whole number 1-12, got {classes!r}")
+    return RegenerationSpec(**values, height=height, classes=classes)
 
 
 def _parse_deadwood(t: Any) -> Any:

@@ -48,7 +48,7 @@ from usdforest.cad.parts import (
     read_cad,
 )
 from usdforest.errors import CADError
-from usdforest.normals import vertex_normals
+from usdforest.meshes import vertex_normals
 
 WOOD_NAMES = re.compile(r"bark|wood|trunk|branch|stem|twig|log|limb", re.IGNORECASE)
 FOLIAGE_NAMES = re.compile(r"lea(f|ves)|foliage|needle|crown|canopy|frond|conifer", re.IGNORECASE)

@@ -30,8 +30,7 @@ import numpy as np
 import trimesh
 
 from usdforest.errors import CADError
-from usdforest.meshgraph import face_components
-from usdforest.normals import vertex_normals
+from usdforest.meshes import face_components, vertex_normals
 from usdforest.paths import require_file
 
 PARTS = ("trunk", "branch", "twig", "leaf", "deadwood", "groundcover")

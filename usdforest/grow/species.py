@@ -319,6 +319,81 @@ def _broadleaf() -> Species:
     )
 
 
+def _hazel() -> Species:
+    leaves = "[&(uniform(45,70)) L(1)] [^(uniform(45,70)) L(1)]"
+    stems = 7
+    axiom = "!(0.02) F(0.05) " + " ".join(
+        f"[/({k * 360 / stems:g}) /(uniform(-20,20)) &(uniform(8,30))"
+        " S(uniform(2.4,3.6),uniform(0.015,0.024))]"
+        for k in range(stems)
+    )
+    return Species(
+        name="hazel",
+        description="Shrub: common hazel (Corylus avellana), seven stems from the root collar "
+        "fanning 8-30 degrees out, 2.5-4 m tall, with leafy side shoots in two ranks.",
+        axiom=axiom,
+        rules=(
+            "S(l,r) -> !(r) F(l*0.2) [&(uniform(35,60)) /(uniform(0,360)) T(l*0.34,r*0.4)]"
+            " /(137.5) !(r*0.9) F(l*0.15) [&(uniform(35,60)) T(l*0.32,r*0.4)]"
+            " /(137.5) !(r*0.8) F(l*0.15) [&(uniform(35,60)) T(l*0.3,r*0.35)]"
+            " /(137.5) !(r*0.7) F(l*0.15) [&(uniform(35,60)) T(l*0.27,r*0.35)]"
+            " /(137.5) !(r*0.6) F(l*0.15) [&(uniform(35,60)) T(l*0.24,r*0.3)]"
+            " /(137.5) !(r*0.45) F(l*0.2) T(l*0.2,r*0.3)",
+            f"T(l,r) -> !(r) F(l/3) {leaves} /(90) F(l/3) {leaves} /(90) F(l/3) {leaves} L(1)",
+        ),
+        iterations=3,
+        turtle=TurtleConfig(
+            angle=30.0, step=0.5, radius=0.02, draw="F", elasticity=0.08, tropism=(0.0, 0.0, -1.0)
+        ),
+        kind="shrub",
+        geometry=Geometry(
+            leaf_size=0.11,
+            leaves_per_site=5.0,
+            leaf_angle=55.0,
+            phyllotaxis=180.0,
+            twig_radius=0.008,
+            bark_color=(0.45, 0.33, 0.24),
+            leaf_color=(0.25, 0.5, 0.16),
+        ),
+    )
+
+
+def _bramble() -> Species:
+    leaves = "[&(uniform(50,80)) L(1)]"
+    canes = 8
+    axiom = "!(0.008) " + " ".join(
+        f"[/({k * 360 / canes:g}) /(uniform(-20,20)) &(uniform(15,40))"
+        " C(uniform(1.4,2.4),uniform(0.006,0.009))]"
+        for k in range(canes)
+    )
+    seg = f"F(l/6) {leaves} /(180)"
+    return Species(
+        name="bramble",
+        description="Shrub: bramble (Rubus fruticosus agg.), eight arching canes 1.4-2.4 m "
+        "long bending back to the ground, a leaf of three to five leaflets at every node.",
+        axiom=axiom,
+        rules=(
+            f"C(l,r) -> !(r) {seg} {seg} [&(uniform(30,50)) D(l*0.35,r*0.6)] {seg} {seg}"
+            f" {seg} {seg} L(1)",
+            f"D(l,r) -> !(r) F(l/2) {leaves} /(180) F(l/2) L(1)",
+        ),
+        iterations=2,
+        turtle=TurtleConfig(
+            angle=30.0, step=0.3, radius=0.008, draw="F", elasticity=0.3, tropism=(0.0, 0.0, -1.0)
+        ),
+        kind="shrub",
+        geometry=Geometry(
+            leaf_size=0.08,
+            leaves_per_site=4.0,
+            leaf_angle=60.0,
+            leaf_angle_jitter=20.0,
+            twig_radius=0.01,
+            bark_color=(0.42, 0.22, 0.2),
+            leaf_color=(0.17, 0.38, 0.13),
+        ),
+    )
+
+
 # m: an allometric crown's leaf sites share the light of half-metre columns (Geometry.shade_cell)
 SHADE_CELL = 0.5
 
@@ -535,6 +610,8 @@ PRESETS: dict[str, Species] = {
         _pine(),
         _broadleaf(),
         *_allometric_presets(),
+        _hazel(),
+        _bramble(),
         _abop("abop-1.24a", "ABOP Fig. 1.24a, edge rewriting", "F", ("F -> F[+F]F[-F]F",), 5, 25.7),
         _abop("abop-1.24b", "ABOP Fig. 1.24b", "F", ("F -> F[+F]F[-F][F]",), 5, 20.0),
         _abop("abop-1.24c", "ABOP Fig. 1.24c", "F", ("F -> FF-[-F+F+F]+[+F-F-F]",), 4, 22.5),

@@ -38,6 +38,7 @@ SAMPLE_LEAVES = 400  # a prototype's leaves G is measured on (G to about 0.005 o
 Bounds = tuple[float, float, float, float]
 # hits that are not canopy: the ground and what lies or grows on it
 BELOW_CANOPY = (CLASS_ID["ground"], CLASS_ID["dead_wood"], CLASS_ID["ground_vegetation"])
+UNDERSTOREY = "/Understorey/"  # prims under a forest's understorey layer (usd.undergrowth)
 ANGLE_BIN = 10.0  # degrees: the leaf inclination distribution's classes, 0-10 ... 80-90
 ANGLE_BINS = 9
 
@@ -106,12 +107,15 @@ def gap_fractions(
         # rays start above the canopy, placed so that each lands at its grid point's x, y
         origin = np.column_stack([xy - d[:2] * (depth / max(-d[2], 1e-9)), np.full(len(xy), top)])
         gaps = 0
+        under = understorey_paths(scene)
         for start in range(0, len(xy), 1 << 20):
             o = origin[start : start + (1 << 20)]
             h = caster.first_hit(o, np.broadcast_to(d, o.shape))
-            # a gap is a ray through the living canopy: to the ground, or to dead wood (logs,
-            # stumps and snags are not canopy; a snag's side intercepts a few rays at most)
-            gaps += int(np.count_nonzero(~h.hit | np.isin(h.cls, BELOW_CANOPY)))
+            # a gap is a ray through the trees' canopy: to the ground, to dead wood (logs,
+            # stumps and snags are not canopy; a snag's side intercepts a few rays at most),
+            # to the ground vegetation, or to the understorey's shrubs and young trees
+            below = np.isin(h.cls, BELOW_CANOPY) | under[h.path]
+            gaps += int(np.count_nonzero(~h.hit | below))
         passed[zenith] += gaps
         cast[zenith] += len(xy)
     if progress is not None:
@@ -186,6 +190,12 @@ def _leaf_sums(shapes, li, rows, dirs) -> tuple[np.ndarray, float]:
     return num, den
 
 
+def understorey_paths(scene: Scene) -> np.ndarray:
+    """``bool[len(scene.paths) + 1]``: which prim paths are the understorey's shrubs and young
+    trees (the last entry, for path -1 of a miss, is False)."""
+    return np.array([UNDERSTOREY in p for p in scene.paths] + [False], dtype=bool)
+
+
 def leaf_projection(scene: Scene, zeniths: tuple[float, ...] = ZENITHS) -> np.ndarray:
     """``G(theta)`` of the scene's leaves at each of ``zeniths`` (degrees): the projected
     area of their triangles towards ``theta``, averaged over azimuths, over their one-sided
@@ -211,9 +221,13 @@ def leaf_angles(
         n, d = _leaf_sums(scene.shapes, li, np.arange(len(li)), dirs)
         num, den = num + n, den + d
     inst = scene.instances
+    under = understorey_paths(scene)
     scale2 = np.abs(np.linalg.det(inst.matrix[:, :3, :3])) ** (2 / 3) if len(inst) else None
     for k, proto in enumerate(scene.protos):
         li = proto.leaf_instances
+        # the trees' leaves only, not the understorey's
+        if len(proto.path) and under[proto.path].any():
+            continue
         weight = float(np.sum(scale2[inst.proto == k])) if scale2 is not None else 0.0
         if weight == 0 or not len(li):
             continue

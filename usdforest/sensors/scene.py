@@ -37,9 +37,10 @@ from usdforest.usd.layers import class_labels, mesh_triangles, open_stage, rende
 
 CLASSES = ("unknown", "trunk", "branch", "leaf", "ground", "dead_wood", "ground_vegetation")
 CLASS_ID = {name: i for i, name in enumerate(CLASSES)}
-# prototypes kept as instances (two levels) rather than copied: trees, and ground-vegetation
-# patches (thousands of copies of four meshes of thousands of triangles each)
-INSTANCED = ("tree", "ground_vegetation")
+# prototypes kept as instances (two levels) rather than copied: trees, shrubs and young trees
+# (tree assets), and ground-vegetation patches (thousands of copies of four meshes of
+# thousands of triangles each); only trees carry their instancer's ids as tree ids
+INSTANCED = ("tree", "shrub", "regeneration", "ground_vegetation")
 # ground vegetation that echoes as the rough ground under it does, not as leaves
 CARPETS = ("moss",)
 
@@ -212,7 +213,7 @@ def blade_reflectors(tri: np.ndarray) -> Leaves:
     """Each connected blade, leaf or frond of ``tri (m, 3, 3)`` (a ground-vegetation patch's)
     as a leaf reflector: its area-weighted centre, its area-weighted mean normal (turned up)
     and its one-sided area."""
-    from usdforest.meshgraph import triangle_components
+    from usdforest.meshes import triangle_components
 
     if not len(tri):
         return Leaves.concat([])

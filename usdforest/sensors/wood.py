@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from usdforest.meshgraph import triangle_components
+from usdforest.meshes import triangle_components
 from usdforest.runs import run_starts
 from usdforest.sensors.scene import CLASS_ID, Scene
 

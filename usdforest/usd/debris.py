@@ -120,7 +120,7 @@ def deadwood_layer(
     protos = [
         TemplateProto(
             prototype_name(kind, decay),
-            template_name(kind, decay),
+            f"./templates/{template_name(kind, decay)}.usdc",
             ("dead_wood", kind),
             {"kind": kind, "decayClass": decay},
         )

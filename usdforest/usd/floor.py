@@ -130,7 +130,7 @@ def groundcover_layer(
     protos = [
         TemplateProto(
             form.capitalize(),
-            template_name(form),
+            f"./templates/{template_name(form)}.usdc",
             (LABEL, form),
             {"form": form, "fill": round(shapes[form].fill, 6)},
         )

@@ -20,6 +20,10 @@
                                 (a PointInstancer of CAD templates), when the recipe has
                                 [groundcover]
       groundcover.csv           its ground truth, one row per patch
+      understorey.usdc          /Forest/Understorey: shrubs and young trees (a PointInstancer
+                                of tree assets in trees/), when the recipe has [shrubs] or
+                                [regeneration]
+      understorey.csv           its ground truth, one row per plant
       ground.usdc               /Forest/Ground: the plane or height field (collider, label)
       physics.usda              colliders and ground alone (no visual meshes), for physics
                                 engines; /Forest/PhysicsScene when the forest has one
@@ -50,19 +54,7 @@ from usdforest.recipe import Recipe, recipe_inputs, resolved_toml
 from usdforest.sites.local import Plan, classes_for, first_ids, place, squares, whole
 from usdforest.sites.stand import merge_sums
 from usdforest.sites.terrain import HeightField
-from usdforest.usd.debris import (
-    copy_deadwood_templates,
-    deadwood_capsules,
-    deadwood_extent,
-    deadwood_layer,
-    write_deadwood_csv,
-)
-from usdforest.usd.floor import (
-    copy_groundcover_templates,
-    groundcover_extent,
-    groundcover_layer,
-    write_groundcover_csv,
-)
+from usdforest.usd.beneath import has_beneath, litter, write_beneath
 from usdforest.usd.ground import ground_layer
 from usdforest.usd.instances import (
     ForestBuild,
@@ -346,18 +338,14 @@ def _write_forest(
                 len(written),
             )
             write_tiles_index(staged / "tiles.csv", written, anchor)
-            if recipe.deadwood is not None:
-                # placed among every tree's stem, as untiled: the same pieces with or without
-                # tiles (the client holds the stand's sites for it)
+            if has_beneath(recipe):
+                # placed among every tree's stem, as untiled: the same layers with or without
+                # tiles (the client holds the stand's sites for them)
                 placed = place(recipe, whole(recipe), plan)
                 stems = (placed.sites.xy, placed.proto_index, placed.sites.scale)
-                _, _, hint_boxes = _dead_wood(recipe, ordered, stems, staged, tick, True)
-                sublayers.append(f"./{assets.name}/deadwood.usdc")
-            if recipe.groundcover is not None:
-                placed = place(recipe, whole(recipe), plan)
-                stems = (placed.sites.xy, placed.proto_index, placed.sites.scale)
-                hint_boxes = (*hint_boxes, *_ground_cover(recipe, ordered, stems, staged, tick))
-                sublayers.append(f"./{assets.name}/groundcover.usdc")
+                below = write_beneath(recipe, ordered, stems, staged, tick, trees_by_species, True)
+                sublayers += [f"./{assets.name}/{name}" for name in below.layers]
+                hint_boxes = below.boxes
         else:
             build, write_csv = _untiled(
                 recipe, plan, prototypes, trees, ground, anchor, out, trees_by_species
@@ -376,15 +364,12 @@ def _write_forest(
                 staged / "instances.usdc",
             )
             sublayers.append(f"./{assets.name}/instances.usdc")
-            pieces = None
-            if recipe.deadwood is not None:
+            below = None
+            if has_beneath(recipe):
                 stems = (build.sites.xy + anchor, build.proto_index, build.sites.scale)
-                pieces, ids, hint_boxes = _dead_wood(recipe, ordered, stems, staged, tick, False)
-                sublayers.append(f"./{assets.name}/deadwood.usdc")
-            if recipe.groundcover is not None:
-                stems = (build.sites.xy + anchor, build.proto_index, build.sites.scale)
-                hint_boxes = (*hint_boxes, *_ground_cover(recipe, ordered, stems, staged, tick))
-                sublayers.append(f"./{assets.name}/groundcover.usdc")
+                below = write_beneath(recipe, ordered, stems, staged, tick, trees_by_species, False)
+                sublayers += [f"./{assets.name}/{name}" for name in below.layers]
+                hint_boxes = below.boxes
             if recipe.colliders != "none":
                 caps, cap_names = instance_capsules(
                     [t.colliders for t in ordered],
@@ -393,14 +378,14 @@ def _write_forest(
                     build.sites.yaw,
                     build.sites.scale,
                 )
-                if pieces is not None and len(pieces):
-                    caps = join_capsules(caps, deadwood_capsules(pieces, anchor, ids))
+                if below is not None and below.colliders is not None:
+                    caps = join_capsules(caps, below.colliders)
                     cap_names = list(caps.names)
                 save_layer(collision_layer(caps, cap_names), staged / "colliders.usdc")
                 sublayers.append(f"./{assets.name}/colliders.usdc")
             if ground is not None:
                 save_layer(
-                    ground_layer(ground, recipe.ground["color"], _litter(recipe)),
+                    ground_layer(ground, recipe.ground["color"], litter(recipe)),
                     staged / "ground.usdc",
                 )
                 sublayers.append(f"./{assets.name}/ground.usdc")
@@ -445,118 +430,6 @@ def _write_forest(
                 csv.result()
         publish(tmp, out, tmp / out.name, [(staged, assets)], force=force)
     return build
-
-
-def _dead_wood(
-    recipe: Recipe,
-    trees: list[TreeBuild],
-    stems: tuple[np.ndarray, np.ndarray, np.ndarray],
-    staged: Path,
-    tick: Progress,
-    own_colliders: bool,
-):
-    """The recipe's dead wood among the ``stems`` (their recipe x, y, prototype index and
-    scale), written to ``deadwood.usdc`` and ``deadwood.csv`` in ``staged`` with the
-    templates it references; its colliders in the layer itself with ``own_colliders`` (a
-    tiled forest), else returned for the forest's collision layer. Returns the pieces, their
-    ids and the extentsHint boxes they add."""
-    from usdforest.grow.deadwood import place_dead_wood
-    from usdforest.usd.debris import piece_shapes
-
-    tick("dead wood", 0, 1)
-    xy, proto_index, scale = stems
-    # a stem's footprint: its DBH (root flare 1.3x) where known, else its trunk collider
-    radius = np.array(
-        [
-            0.65 * t.size.dbh
-            if t.size is not None
-            else (float(t.colliders.radius[0]) if len(t.colliders) else 0.15)
-            for t in trees
-        ]
-    ).reshape(-1)
-    stems_r = radius[proto_index] * scale if len(xy) else np.zeros(0)
-    shapes = piece_shapes()
-    ground = recipe.ground["field"] if recipe.ground is not None else None
-    spec, region = recipe.deadwood, recipe.region
-    pieces = place_dead_wood(spec, region, recipe.seed, xy, stems_r, shapes, ground)
-    anchor = anchor_of(recipe)
-    ids = np.arange(len(pieces), dtype=np.int64)
-    copy_deadwood_templates(staged / "templates")
-    own = own_colliders and recipe.colliders != "none"
-    caps = deadwood_capsules(pieces, anchor, ids) if own else None
-    save_layer(deadwood_layer(pieces, shapes, anchor, ids, caps), staged / "deadwood.usdc")
-    write_deadwood_csv(staged / "deadwood.csv", pieces, ids)
-    tick("dead wood", 1, 1)
-    boxes = (deadwood_extent(pieces, shapes, anchor),) if len(pieces) else ()
-    return pieces, ids, boxes
-
-
-def _litter(recipe: Recipe) -> bool:
-    """Whether the forest's ground is leaf litter (``[groundcover] litter``)."""
-    return recipe.groundcover is not None and recipe.groundcover.litter
-
-
-def _crowns(trees: list[TreeBuild]) -> tuple[np.ndarray, np.ndarray]:
-    """Per prototype, the radius of the disc of its crown's footprint area (the hull of its
-    points on the ground) and its one-sided leaf area (m²)."""
-    from scipy.spatial import ConvexHull
-
-    radius, leaf = [], []
-    for t in trees:
-        fp = t.bounds["full"].footprint
-        area = float(ConvexHull(fp).volume) if len(fp) >= 3 else 0.0
-        radius.append(np.sqrt(area / np.pi))
-        p = t.placement
-        unit = np.array(
-            [
-                float(t.templates[n].measurements["leaf_area"])
-                / float(t.templates[n].measurements["length"]) ** 2
-                for n in p.leaf_templates
-            ]
-        ).reshape(-1)
-        leaf.append(
-            float(np.sum(unit[p.leaf_proto] * p.leaf_scale[:, 0] * p.leaf_scale[:, 1]))
-            if len(p.leaf_proto)
-            else 0.0
-        )
-    return np.array(radius).reshape(-1), np.array(leaf).reshape(-1)
-
-
-def _ground_cover(
-    recipe: Recipe,
-    trees: list[TreeBuild],
-    stems: tuple[np.ndarray, np.ndarray, np.ndarray],
-    staged: Path,
-    tick: Progress,
-) -> tuple[np.ndarray, ...]:
-    """The recipe's ground vegetation under the crowns of ``stems`` (their recipe x, y,
-    prototype index and scale), written to ``groundcover.usdc`` and ``groundcover.csv`` in
-    ``staged`` with the templates it references. Returns the extentsHint boxes it adds."""
-    from usdforest.grow.groundcover import place_ground_cover
-    from usdforest.usd.floor import patch_shapes
-
-    tick("ground vegetation", 0, 1)
-    xy, proto_index, scale = stems
-    r0, leaf0 = _crowns(trees)
-    r = r0[proto_index] * scale if len(xy) else np.zeros(0)
-    lai = np.divide(
-        leaf0[proto_index] * scale**2 if len(xy) else np.zeros(0),
-        np.pi * r**2,
-        out=np.zeros(len(r)),
-        where=r > 0,
-    )
-    shapes = patch_shapes()
-    ground = recipe.ground["field"] if recipe.ground is not None else None
-    patches = place_ground_cover(
-        recipe.groundcover, recipe.region, recipe.seed, (xy, r, lai), shapes, ground
-    )
-    anchor = anchor_of(recipe)
-    ids = np.arange(len(patches), dtype=np.int64)
-    copy_groundcover_templates(staged / "templates")
-    save_layer(groundcover_layer(patches, shapes, anchor, ids), staged / "groundcover.usdc")
-    write_groundcover_csv(staged / "groundcover.csv", patches, ids)
-    tick("ground vegetation", 1, 1)
-    return (groundcover_extent(patches, anchor),) if len(patches) else ()
 
 
 def _leans(trees: list[TreeBuild]) -> np.ndarray:

@@ -55,7 +55,7 @@ def add_ground(
 ) -> None:
     """``<root>/Ground``: the mesh of ``field``, with its collider, label and material (leaf
     litter with ``litter``, in :data:`LITTER_COLOR` unless ``color`` is not the default)."""
-    from usdforest.normals import vertex_normals
+    from usdforest.meshes import vertex_normals
 
     pts, tri = field.mesh()
     ground = prim(root, "Ground", "Xform")

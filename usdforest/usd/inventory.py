@@ -27,6 +27,7 @@ from usdforest.progress import Progress
 from usdforest.usd.debris import dead_wood_figures, is_dead_wood
 from usdforest.usd.floor import ground_vegetation_figures, is_ground_vegetation
 from usdforest.usd.layers import open_stage, rendered
+from usdforest.usd.undergrowth import is_understorey, understorey_figures
 
 CELL = 0.25  # m, the cover raster
 BREAST = 1.3
@@ -75,6 +76,53 @@ def _leaf_unit_area(proto: Usd.Prim) -> float:
             if tri is not None and len(tri):
                 total += one_sided_area(v, tri)
     return total
+
+
+def _footprints(instancer: Usd.Prim) -> dict[str, float]:
+    """Each prototype's crown footprint (m²: the hull of every point of its rendered wood and
+    leaf meshes, leaves placed by their instancers, on the ground, in its own space), by
+    prototype path."""
+    from scipy.spatial import ConvexHull
+
+    out = {}
+    stage = instancer.GetStage()
+    cache = UsdGeom.XformCache()
+    for target in UsdGeom.PointInstancer(instancer).GetPrototypesRel().GetTargets():
+        proto = stage.GetPrimAtPath(target)
+        inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(proto), dtype=float))
+        xy = []
+        it = iter(Usd.PrimRange(proto, Usd.TraverseInstanceProxies()))
+        for p in it:
+            if not rendered(p):
+                it.PruneChildren()
+            elif p.IsA(UsdGeom.Mesh):
+                xy.append(_mesh_world(p, cache, inv)[0][:, :2])
+            elif p.IsA(UsdGeom.PointInstancer):
+                it.PruneChildren()
+                pi = UsdGeom.PointInstancer(p)
+                mats = np.asarray(
+                    pi.ComputeInstanceTransformsAtTime(
+                        Usd.TimeCode.Default(), Usd.TimeCode.Default()
+                    )
+                )
+                idx = np.asarray(pi.GetProtoIndicesAttr().Get() or [], dtype=np.int64)
+                to = np.asarray(cache.GetLocalToWorldTransform(p), dtype=float) @ inv
+                for k, leaf in enumerate(pi.GetPrototypesRel().GetTargets()):
+                    lp = stage.GetPrimAtPath(leaf)
+                    own = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(lp), float))
+                    pts = np.concatenate(
+                        [
+                            _mesh_world(m, cache, own)[0]
+                            for m in Usd.PrimRange(lp)
+                            if m.IsA(UsdGeom.Mesh)
+                        ]
+                    )
+                    m = mats[idx == k] @ to
+                    placed = np.einsum("pj,njk->npk", pts, m[:, :3, :3]) + m[:, None, 3, :3]
+                    xy.append(placed[..., :2].reshape(-1, 2))
+        pts = np.concatenate(xy) if xy else np.zeros((0, 2))
+        out[str(target)] = float(ConvexHull(pts).volume) if len(pts) >= 3 else 0.0
+    return out
 
 
 def _tree_figures(tree: Usd.Prim, breast: np.ndarray) -> dict:
@@ -163,6 +211,7 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
     heights, dbhs, leaf, wood, species, where = [], [], [], [], [], []
     dead = dead_wood_figures(None, area)
     green = ground_vegetation_figures(None, area)
+    under = understorey_figures(None, area, {})
     grid = None
     if bounds is not None:
         b = np.asarray(list(bounds), dtype=float)
@@ -177,6 +226,9 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
             continue
         if is_ground_vegetation(p):
             green = ground_vegetation_figures(p, area)
+            continue
+        if is_understorey(p):
+            under = understorey_figures(p, area, _footprints(p))
             continue
         pi = UsdGeom.PointInstancer(p)
         idx = np.asarray(pi.GetProtoIndicesAttr().Get() or [], dtype=np.int64)
@@ -256,6 +308,7 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
         "crown_footprint_cover": float(grid[1].mean()) if grid is not None else None,
         **dead,
         **green,
+        **under,
         "region_bounds": [float(v) for v in bounds] if bounds is not None else None,
         "species": {
             str(n): int(c) for n, c in zip(*np.unique(sp, return_counts=True), strict=True)

@@ -1,13 +1,14 @@
-"""PointInstancers of shipped CAD templates scattered over a forest's ground (dead wood,
-ground vegetation): the layer's instancer, its prototypes, their labels, and the templates
-copied beside the forest.
+"""PointInstancers scattered over a forest's ground (dead wood, ground vegetation: shipped
+CAD templates; shrubs and young trees: tree assets): the layer's instancer, its prototypes,
+their labels, and the templates copied beside the forest.
 
 ::
 
     /Forest/<Name>                  PointInstancer (kind group): positions, orientations
                                     (quath), scales, protoIndices, ids (int64), extent
     /Forest/<Name>/Prototypes       Scope (kind group)
-    /Forest/<Name>/Prototypes/<P>   Xform -> ./templates/<template>.usdc, labelled
+    /Forest/<Name>/Prototypes/<P>   Xform -> ./templates/<template>.usdc (or a tree asset),
+                                    labelled
 """
 
 from __future__ import annotations
@@ -24,13 +25,16 @@ from usdforest.usd.layers import T, attr, class_labels, extents, prim, semantic_
 
 @dataclass(frozen=True)
 class TemplateProto:
-    """One prototype of a scattered instancer: its prim name, the shipped template it
-    references, its semantic labels and its ``usdforest`` customData."""
+    """One prototype of a scattered instancer: its prim name, the layer it references (a
+    path relative to the layer: ``./templates/<name>.usdc``, ``./trees/<name>.usdc``), its
+    semantic labels, its ``usdforest`` customData and the ``lod`` variant it selects (a tree
+    asset's; ``None`` for a template)."""
 
     name: str
-    template: str
+    reference: str
     labels: tuple[str, ...]
     data: dict = field(default_factory=dict)
+    lod: str | None = None
 
 
 def copy_shipped_templates(names: list[str], folder: Path) -> None:
@@ -63,7 +67,9 @@ def author_instancer(
     targets = []
     for p in prototypes:
         spec = prim(protos, p.name, "Xform")
-        spec.referenceList.prependedItems = [Sdf.Reference(f"./templates/{p.template}.usdc")]
+        spec.referenceList.prependedItems = [Sdf.Reference(p.reference)]
+        if p.lod is not None:
+            spec.variantSelections["lod"] = p.lod
         semantic_label(spec, list(p.labels))
         spec.customData = {"usdforest": dict(p.data)}
         targets.append(spec.path)

@@ -481,7 +481,7 @@ def _author_leaves(
 
 
 def _mesh(parent: Sdf.PrimSpec, name: str, v: np.ndarray, tri: np.ndarray, material, label):
-    from usdforest.normals import vertex_normals
+    from usdforest.meshes import vertex_normals
 
     mesh = triangle_mesh(parent, name, v, tri, vertex_normals(v, tri))
     bind_material(mesh, material)

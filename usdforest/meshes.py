@@ -1,9 +1,23 @@
-"""Connected pieces of triangle meshes (numpy and scipy only): a template's separate leaves
-or blades, copies of one mesh placed apart, a CAD file's separate parts."""
+"""Numpy helpers on triangle meshes (no CAD stack needed to author or read one): vertex
+normals, and connected pieces (a template's separate leaves or blades, copies of one mesh
+placed apart, a CAD file's separate parts)."""
 
 from __future__ import annotations
 
 import numpy as np
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals (unit length; +Z for isolated vertices)."""
+    tri = vertices[faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    vn = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(vn, faces[:, k], fn)
+    norm = np.linalg.norm(vn, axis=1)
+    vn[norm == 0] = (0.0, 0.0, 1.0)
+    norm[norm == 0] = 1.0
+    return vn / norm[:, None]
 
 
 def face_components(faces: np.ndarray, n_vertices: int) -> np.ndarray:
