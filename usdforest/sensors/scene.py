@@ -242,20 +242,28 @@ def blade_reflectors(tri: np.ndarray) -> Leaves:
 def _placed_leaves(
     proto: Prototype, m: np.ndarray, tree: int, centre: np.ndarray | None, radius: float | None
 ) -> Leaves:
-    """A prototype's leaves placed by ``m`` (row-vector 4x4), those within reach only. A
-    leaf's area vector moves by the cofactor of ``m`` (a patch is stretched more across than
-    up; a tree's uniform scale s gives s² times its area)."""
+    """A prototype's leaves placed by ``m`` (row-vector 4x4), those within reach only: a
+    tree's scaled by s² (its uniform scale), a ground-vegetation blade's area vector moved
+    by the cofactor of ``m`` (a patch is stretched more across than up)."""
     lv = proto.leaves
     rot = m[:3, :3]
     c = lv.centre @ rot + m[3, :3]
     keep = np.ones(len(c), dtype=bool)
     if centre is not None and radius is not None:
         keep = np.linalg.norm(c - centre, axis=1) <= radius + 2 * np.sqrt(lv.area) + 1e-6
-    n = lv.normal[keep] @ np.linalg.inv(rot).T
+    normal = lv.normal[keep]
+    n = normal @ np.linalg.inv(rot).T
     length = np.linalg.norm(n, axis=1, keepdims=True)
     n /= np.maximum(length, 1e-12)
-    area = lv.area[keep] * abs(np.linalg.det(rot)) * length[:, 0]
+    det = abs(np.linalg.det(rot))
+    # a tree is turned and scaled uniformly: s² (its half-float turn is not quite a rotation,
+    # so s² is taken from the determinant, as the copied scene does)
+    area = lv.area[keep] * det ** (2 / 3)
     blade = lv.blade[keep] if lv.blade is not None else None
+    if blade is not None and blade.any():
+        # a patch is stretched: |det M| |M^-T n| / |n|
+        stretch = length[blade, 0] / np.maximum(np.linalg.norm(normal[blade], axis=1), 1e-12)
+        area[blade] = lv.area[keep][blade] * det * stretch
     return Leaves(c[keep], n, area, np.full(int(keep.sum()), tree, np.int64), blade)
 
 
