@@ -158,6 +158,19 @@ def floor_light(
     return np.exp(-EXTINCTION * lai)
 
 
+def cells_in(region, cell: float) -> np.ndarray:
+    """Centres ``(m, 2)`` of the square cells of side ``cell`` that the region holds whole
+    (centre and corners), on a grid from the region's lower-left bound."""
+    x0, y0, x1, y1 = region.bounds
+    nx, ny = max(math.ceil((x1 - x0) / cell), 1), max(math.ceil((y1 - y0) / cell), 1)
+    gx, gy = np.meshgrid(x0 + cell * (np.arange(nx) + 0.5), y0 + cell * (np.arange(ny) + 0.5))
+    centre = np.column_stack([gx.ravel(), gy.ravel()])
+    inside = region.contains(centre[:, 0], centre[:, 1])
+    for dx, dy in ((-1, -1), (-1, 1), (1, -1), (1, 1)):
+        inside &= region.contains(centre[:, 0] + dx * cell / 2, centre[:, 1] + dy * cell / 2)
+    return centre[inside]
+
+
 def _fill(weight: np.ndarray, cap: np.ndarray, total: float) -> np.ndarray:
     """Covers ``min(t * weight, cap)`` adding up to ``total`` (bisection on ``t``)."""
     if total <= 0:
@@ -195,16 +208,8 @@ def place_ground_cover(
     seed give the same patches.
     """
     rng = stream(seed, "groundcover")
-    x0, y0, x1, y1 = region.bounds
     a = spec.cell
-    nx, ny = max(math.ceil((x1 - x0) / a), 1), max(math.ceil((y1 - y0) / a), 1)
-    gx, gy = np.meshgrid(x0 + a * (np.arange(nx) + 0.5), y0 + a * (np.arange(ny) + 0.5))
-    centre = np.column_stack([gx.ravel(), gy.ravel()])
-    # a cell counts when the region holds all of it (its centre and corners)
-    inside = region.contains(centre[:, 0], centre[:, 1])
-    for dx, dy in ((-1, -1), (-1, 1), (1, -1), (1, 1)):
-        inside &= region.contains(centre[:, 0] + dx * a / 2, centre[:, 1] + dy * a / 2)
-    centre = centre[inside]
+    centre = cells_in(region, a)
     n = len(centre)
     total = spec.cover * float(region.area) / a**2  # in cells' worth of cover
     form = rng.choice(len(FORMS), size=n, p=spec.shares / spec.shares.sum()).astype(np.int8)

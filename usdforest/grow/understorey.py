@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from usdforest.errors import RecipeError
-from usdforest.grow.groundcover import floor_light
+from usdforest.grow.groundcover import cells_in, floor_light
 from usdforest.seeds import stream
 
 SHRUB_FORMS = ("hazel", "bramble")
@@ -142,19 +142,6 @@ class Plants:
             return Plants.empty()
         fields = ("proto", "xy", "yaw", "scale", "height", "light")
         return Plants(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields))
-
-
-def cells_in(region, cell: float) -> np.ndarray:
-    """Centres ``(m, 2)`` of the square cells of side ``cell`` that the region holds whole
-    (centre and corners), on a grid from the region's lower-left bound."""
-    x0, y0, x1, y1 = region.bounds
-    nx, ny = max(math.ceil((x1 - x0) / cell), 1), max(math.ceil((y1 - y0) / cell), 1)
-    gx, gy = np.meshgrid(x0 + cell * (np.arange(nx) + 0.5), y0 + cell * (np.arange(ny) + 0.5))
-    centre = np.column_stack([gx.ravel(), gy.ravel()])
-    inside = region.contains(centre[:, 0], centre[:, 1])
-    for dx, dy in ((-1, -1), (-1, 1), (1, -1), (1, 1)):
-        inside &= region.contains(centre[:, 0] + dx * cell / 2, centre[:, 1] + dy * cell / 2)
-    return centre[inside]
 
 
 def _clear(xy: np.ndarray, stems_xy: np.ndarray, stems_r: np.ndarray, gap: float) -> bool:

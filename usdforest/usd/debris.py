@@ -31,6 +31,7 @@ from usdforest.usd.scatter import (
     copy_shipped_templates,
     instance_matrices,
     labelled,
+    prototype_meshes,
 )
 
 CSV_HEADER = (
@@ -222,21 +223,13 @@ def dead_wood_figures(instancer: Usd.Prim | None, area: float) -> dict:
     if not len(idx):
         return out
     det = np.abs(np.linalg.det(mats[:, :3, :3]))
-    cache = UsdGeom.XformCache()
     for k, target in enumerate(pi.GetPrototypesRel().GetTargets()):
         sel = idx == k
         if not sel.any():
             continue
         proto = stage.GetPrimAtPath(target)
         kind = str((proto.GetCustomDataByKey("usdforest") or {}).get("kind", "log"))
-        inv = np.asarray(cache.GetLocalToWorldTransform(proto).GetInverse(), dtype=float)
-        unit = sum(
-            mesh_volume(
-                mesh_triangles(m, np.asarray(cache.GetLocalToWorldTransform(m), float) @ inv)
-            )
-            for m in Usd.PrimRange(proto)
-            if m.IsA(UsdGeom.Mesh)
-        )
+        unit = sum(mesh_volume(tri) for tri in prototype_meshes(proto))
         volume = unit * float(det[sel].sum())
         out["dead_wood_by_kind_m3_per_ha"][kind] += volume / ha
         out["dead_wood_pieces_per_ha"][kind] += int(sel.sum()) / ha

@@ -30,6 +30,7 @@ from usdforest.usd.scatter import (
     copy_shipped_templates,
     instance_matrices,
     labelled,
+    prototype_meshes,
 )
 
 LABEL = "ground_vegetation"
@@ -203,21 +204,13 @@ def ground_vegetation_figures(instancer: Usd.Prim | None, area: float) -> dict:
     flat = np.abs(np.linalg.det(mats[:, :2, :2]))
     pi = UsdGeom.PointInstancer(instancer)
     stage = instancer.GetStage()
-    cache = UsdGeom.XformCache()
     for k, target in enumerate(pi.GetPrototypesRel().GetTargets()):
         sel = idx == k
         if not sel.any():
             continue
         proto = stage.GetPrimAtPath(target)
         form = str((proto.GetCustomDataByKey("usdforest") or {}).get("form", FORMS[0]))
-        inv = np.asarray(cache.GetLocalToWorldTransform(proto).GetInverse(), dtype=float)
-        tri = np.concatenate(
-            [
-                mesh_triangles(m, np.asarray(cache.GetLocalToWorldTransform(m), float) @ inv)
-                for m in Usd.PrimRange(proto)
-                if m.IsA(UsdGeom.Mesh)
-            ]
-        )
+        tri = np.concatenate(prototype_meshes(proto))
         out["ground_vegetation_cover_by_form"][form] += (
             projected_area(tri) * float(flat[sel].sum()) / area
         )

@@ -108,3 +108,16 @@ def instance_matrices(instancer: Usd.Prim) -> tuple[np.ndarray, np.ndarray]:
         pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
     )
     return idx, mats
+
+
+def prototype_meshes(proto: Usd.Prim) -> list[np.ndarray]:
+    """Each Mesh under a prototype as triangles ``(m, 3, 3)`` in the prototype's own space."""
+    from usdforest.usd.layers import mesh_triangles
+
+    cache = UsdGeom.XformCache()
+    inv = np.asarray(cache.GetLocalToWorldTransform(proto).GetInverse(), dtype=float)
+    return [
+        mesh_triangles(m, np.asarray(cache.GetLocalToWorldTransform(m), float) @ inv)
+        for m in Usd.PrimRange(proto)
+        if m.IsA(UsdGeom.Mesh)
+    ]
