@@ -76,28 +76,48 @@ def output_lock(out: Path) -> Iterator[None]:
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     lock = out.parent / f".{out.stem}{BUILD_MARK}{LOCK_NAME}"
-    while True:
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+
+    def ours(fd: int) -> bool:
+        """Whether the lock file at ``lock`` is the one ``fd`` holds (a holder before us may
+        have removed the file we locked)."""
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
-            raise UsdForestError(
-                f"{shown(out)}: another usdforest process is writing it; wait for it to finish "
-                "or write elsewhere"
-            ) from None
-        try:  # the holder before us may have removed the file we locked: lock the new one
-            if os.fstat(fd).st_ino == os.stat(lock).st_ino:
-                break
+            return os.fstat(fd).st_ino == os.stat(lock).st_ino
         except FileNotFoundError:
-            pass
-        os.close(fd)
+            return False
+
+    fd, held = -1, False
     try:
+        while True:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                fd = -1
+                raise UsdForestError(
+                    f"{shown(out)}: another usdforest process is writing it; wait for it to "
+                    "finish or write elsewhere"
+                ) from None
+            if ours(fd):
+                held = True
+                break
+            os.close(fd)
+            fd = -1
         os.write(fd, f"{os.getpid()}\n".encode())
         yield
     finally:
-        lock.unlink(missing_ok=True)
-        os.close(fd)
+        if fd >= 0:
+            # a Ctrl-C or SIGTERM between creating the file and locking it: the file is ours
+            # to remove if no one else holds it
+            if not held:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    held = ours(fd)
+                except BlockingIOError:
+                    pass
+            if held:
+                lock.unlink(missing_ok=True)
+            os.close(fd)
 
 
 def refuse_appeared(*paths: Path, force: bool) -> None:

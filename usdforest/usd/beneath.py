@@ -4,8 +4,9 @@ and under the light its crowns let through, written into the build's staging fol
 the templates and tree assets it references.
 
 Each writer takes the recipe, the tree prototypes' builds, the stems (recipe x, y,
-prototype index and scale of every tree) and the staging folder, and returns what the
-forest's interface layer needs (its extentsHint boxes).
+prototype index and scale of every tree) and the staging folder, and returns the extentsHint
+boxes the forest's interface layer needs (the dead wood's writer its pieces and ids too);
+:func:`write_beneath` runs every one the recipe asks for.
 """
 
 from __future__ import annotations
