@@ -144,6 +144,16 @@ class Plants:
         return Plants(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields))
 
 
+def _lit_cells(
+    region, cell: float, crowns: tuple[np.ndarray, np.ndarray, np.ndarray], response: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The region's whole cells of side ``cell``: their centres, the light at each
+    (:func:`~usdforest.grow.groundcover.floor_light`) and ``light ** response``."""
+    centre = cells_in(region, cell)
+    light = floor_light(centre, *crowns)
+    return centre, light, light**response
+
+
 def _clear(xy: np.ndarray, stems_xy: np.ndarray, stems_r: np.ndarray, gap: float) -> bool:
     if not len(stems_xy):
         return True
@@ -166,11 +176,9 @@ def place_shrubs(
     ``stems`` the living stems' xy and base radii. The same recipe and seed give the same
     shrubs."""
     rng = stream(seed, "shrubs")
-    centre = cells_in(region, spec.cell)
+    centre, light, weight = _lit_cells(region, spec.cell, crowns, spec.light_response)
     if not len(centre) or spec.cover <= 0:
         return Plants.empty()
-    light = floor_light(centre, *crowns)
-    weight = light**spec.light_response
     target = spec.cover * float(region.area)
     stems_xy, stems_r = (np.asarray(a, float) for a in stems)
     order = _weighted_order(weight, rng)
@@ -248,13 +256,11 @@ def place_regeneration(
     ``shares[k]``; prototype ``k * spec.classes + c`` is species ``k`` in height class ``c``
     (:func:`regeneration_heights`). ``crowns`` and ``stems`` as for :func:`place_shrubs`."""
     rng = stream(seed, "regeneration")
-    centre = cells_in(region, spec.cell)
+    centre, light, weight = _lit_cells(region, spec.cell, crowns, spec.light_response)
     n = round(spec.density * float(region.area) / 1e4)
     shares = np.asarray(shares, float)
     if not len(centre) or n == 0 or not len(shares) or shares.sum() <= 0:
         return Plants.empty()
-    light = floor_light(centre, *crowns)
-    weight = light**spec.light_response
     if weight.sum() <= 0:
         weight = np.ones(len(centre))
     counts = rng.multinomial(n, weight / weight.sum())

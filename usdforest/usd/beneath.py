@@ -136,8 +136,6 @@ def write_understorey(
     """The recipe's shrubs and young trees under the crowns of ``stems``, grown (as tree
     assets in ``trees/``), placed and written to ``understorey.usdc`` and
     ``understorey.csv`` in ``staged``. Returns the extentsHint boxes they add."""
-    from scipy.spatial import ConvexHull
-
     from usdforest.grow.species import get_species
     from usdforest.grow.understorey import (
         SHRUB_FORMS,
@@ -177,9 +175,7 @@ def write_understorey(
         tb = build_tree(
             species, recipe.seed, variant, template_base=base, colliders="none", target=size
         )
-        fp = tb.bounds["full"].footprint
-        area = float(ConvexHull(fp).volume) if len(fp) >= 3 else 0.0
-        kinds.append(Kind(layer, name, stem, float(tb.extent[1, 2]), area, tb.extent))
+        kinds.append(Kind(layer, name, stem, float(tb.extent[1, 2]), _footprint(tb), tb.extent))
         builds.append(tb)
         refs = copy_templates(tb, staged / "templates", "../templates/")
         layer_ = tree_layer(tb, refs, asset_name=stem, identifier=f"./{stem}.usdc")
@@ -278,16 +274,21 @@ def _crown_discs(
     return xy, r, lai
 
 
+def _footprint(tree: TreeBuild) -> float:
+    """Area (m²) of a grown plant's footprint: the hull of its full level's points on the
+    ground."""
+    from scipy.spatial import ConvexHull
+
+    fp = tree.bounds["full"].footprint
+    return float(ConvexHull(fp).volume) if len(fp) >= 3 else 0.0
+
+
 def _crowns(trees: list[TreeBuild]) -> tuple[np.ndarray, np.ndarray]:
     """Per prototype, the radius of the disc of its crown's footprint area (the hull of its
     points on the ground) and its one-sided leaf area (m²)."""
-    from scipy.spatial import ConvexHull
-
     radius, leaf = [], []
     for t in trees:
-        fp = t.bounds["full"].footprint
-        area = float(ConvexHull(fp).volume) if len(fp) >= 3 else 0.0
-        radius.append(np.sqrt(area / np.pi))
+        radius.append(np.sqrt(_footprint(t) / np.pi))
         p = t.placement
         unit = np.array(
             [
