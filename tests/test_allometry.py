@@ -18,6 +18,7 @@ from pxr import Usd, UsdGeom
 from stands import SPECIES
 
 from usdforest.errors import RecipeError
+from usdforest.grow.allometry import ALLOMETRY
 from usdforest.grow.species import get_species
 from usdforest.recipe import read_recipe
 from usdforest.usd.forest import write_forest
@@ -418,3 +419,77 @@ def test_an_absurd_yaw_is_refused_with_its_row(tmp_path, yaw):
     (tmp_path / "r.toml").write_text(text)
     with pytest.raises(RecipeError, match=r"stems.csv line 3\.yaw: "):
         read_recipe(tmp_path / "r.toml")
+
+
+def soderberg_beech(d_cm, age=100.0):
+    """Söderberg 1992 (SLU Dept. of Forest Survey Report 52, p. 42): beech, southern Sweden,
+    height (m) of a tree of DBH ``d_cm`` in a stand of ``age`` years, latitude 56°, 100 m
+    altitude, no spruce, a county of region 5, with the report's log-bias correction."""
+    x = (
+        -144.07 / (10 * d_cm + 50)
+        + 0.72319e-2 * age
+        - 0.27244e-4 * age**2
+        - 0.57810e-5 * 56 * 100
+        - 0.18416
+        + 5.2974
+        + 0.01296
+    )
+    return np.exp(x) / 10
+
+
+def soderberg_oak(d_cm, si=26.0, d_max=70.0):
+    """Söderberg 1992: oak, southern Sweden, pine site index ``si`` m, the plot's largest tree
+    ``d_max`` cm, latitude 56°, 100 m altitude, no spruce, region 5."""
+    u = 1 / (10 * d_cm + 50)
+    x = (
+        -258.11 * u
+        + 0.63100e4 * u**2
+        + 0.13039e-2 * si * 10
+        - 0.41543e-5 * 56 * 100
+        - 0.32505 * d_cm / d_max
+        - 0.047987
+        + 5.7884
+        + 0.01584
+    )
+    return np.exp(x) / 10
+
+
+def test_broadleaf_heights_follow_the_stand_grown_curves(tmp_path):
+    # beech and oak in a stand, DBH 10-60 cm: every 10 cm class within 15 % of Söderberg's
+    # individual-tree functions (the issue's bar), as the composed stage gives them
+    recipe = tmp_path / "broadleaf.toml"
+    recipe.write_text(
+        """seed = 4
+[region]
+bounds = [0, 0, 60, 60]
+[intensity]
+kind = "constant"
+value = 0.04
+[mix]
+european-beech = 0.5
+sessile-oak = 0.5
+[forest]
+variants = 8
+hard_core = 2.0
+[species.european-beech.stand]
+dbh_mean = 0.32
+dbh_cv = 0.4
+[species.sessile-oak.stand]
+dbh_mean = 0.32
+dbh_cv = 0.4
+"""
+    )
+    out = tmp_path / "broadleaf.usda"
+    write_forest(read_recipe(recipe), out, thumbnail=False)
+    t = stand_figures(out)["per_tree"]
+    for name, curve in (("european-beech", soderberg_beech), ("sessile-oak", soderberg_oak)):
+        mine = t["species"] == name
+        d_cm, h = t["dbh"][mine] * 100, t["height"][mine]
+        assert mine.sum() >= 30 and d_cm.max() > 45
+        for lo in range(10, 60, 10):
+            band = (d_cm >= lo) & (d_cm < lo + 10)
+            if band.sum() >= 3:
+                ratio = np.exp(np.median(np.log(h[band] / curve(d_cm[band]))))
+                assert abs(ratio - 1) < 0.15, (name, lo, ratio)
+        # at 8 m, the beech yield table's slenderness (Wiedemann 1931: 102-144)
+        assert 100 <= 8.0 / (ALLOMETRY[name].dbh(8.0) / 100) <= 144
