@@ -84,10 +84,15 @@ def _build(name: str, side: float | None = None) -> tuple[int, str, str]:
     try:
         b = write_forest(recipe, out)
         assets = out.parent / "forest_assets"
-        inst = (assets / "instances.usdc").stat().st_size
+        # the trees' instancers: one layer, or one a tile
+        layers = (
+            [assets / "instances.usdc"] if not b.n_tiles else [*(assets / "tiles").glob("*.usdc")]
+        )
+        inst = sum(p.stat().st_size for p in layers)
         total = sum(p.stat().st_size for p in assets.rglob("*") if p.is_file())
+        name = "instances.usdc" if not b.n_tiles else f"{b.n_tiles} tile layers"
         note = (
-            f"instances.usdc {inst / 2**20:,.1f} MiB ({inst / b.n_trees:.1f} B/tree), "
+            f"{name} {inst / 2**20:,.1f} MiB ({inst / b.n_trees:.1f} B/tree), "
             f"folder {total / 2**20:,.1f} MiB"
         )
         return b.n_trees, "trees", note
@@ -132,6 +137,7 @@ BENCHMARKS = {
     "thin: expression, 1 km²": thin_expression,
     "build: stand-1ha": lambda: _build("stand-1ha"),
     "build: stand-1km2": lambda: _build("stand-1km2"),
+    "build: landscape-4km2 (UTM, 16 tiles)": lambda: _build("landscape-4km2"),
     "thin: Gaussian mixture vs plain numpy, 1 km²": thin_mixture,
     "build: stress-1m": lambda: _build("stress-1m"),
     "build: stress-1m on 5 km² (5M trees)": lambda: _build("stress-1m", side=2236.0),

@@ -603,27 +603,19 @@ def terrain(out: Path, work: Path) -> None:
 
 
 def landscape(out: Path, work: Path) -> None:
-    """A 4 km² landscape in 500 m payload tiles, seen from above, the tile grid drawn over."""
-    data = {
-        "seed": 15,
-        "region": {"bounds": [0.0, 0.0, 2000.0, 2000.0]},
-        "intensity": {"kind": "expression", "expr": "0.025 + 0.024 * sin(x / 300) * cos(y / 240)"},
-        "mix": {"pine": 0.55, "broadleaf": 0.45},
-        "species": {"pine": {}, "broadleaf": {}},
-        "forest": {"variants": 2, "colliders": "none"},
-        "ground": {"kind": "plane"},
-        "tiles": {"size": 500.0},
-    }
+    """The shipped 4 km² landscape (``pipelines/landscape-4km2.toml``: UTM 33N, 500 m payload
+    tiles) seen from above about its south-west corner, the tile grid drawn over."""
     path = work / "landscape.usda"
-    build = write_forest(parse_recipe(data, work, "landscape.toml"), path, thumbnail=False)
+    recipe = read_recipe(PIPELINES / "landscape-4km2.toml")
+    build = write_forest(recipe, path, thumbnail=False)
     img, (u0, u1, v0, v1), _ = render_stage(path, view="top", size=(700, 700))
     fig, ax = plt.subplots(figsize=(7.4, 7.4), dpi=100)
     ax.imshow(img, extent=(u0, u1, v0, v1), interpolation="nearest")
     for k in range(5):
         ax.axvline(500 * k, color="k", lw=0.6, alpha=0.6)
         ax.axhline(500 * k, color="k", lw=0.6, alpha=0.6)
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
+    ax.set_xlabel(f"x (m east of the south-west corner, {recipe.crs})")
+    ax.set_ylabel("y (m north of it)")
     ax.set_title(f"{build.n_trees:,} trees in {build.n_tiles} payload tiles of 500 m", fontsize=10)
     save_figure(fig, out / "landscape-tiles.png")
 

@@ -280,7 +280,7 @@ def test_build_cli_refuses_overwrite_and_reports(tmp_path, runner):
     sorted(
         p.stem
         for p in PIPELINES.glob("*.toml")
-        if p.stem not in ("templates", "stress-1m", "stand-1km2")
+        if p.stem not in ("templates", "stress-1m", "stand-1km2", "landscape-4km2")
     ),
 )
 def test_every_shipped_recipe_builds_clean(tmp_path, name):
@@ -302,6 +302,68 @@ def test_recipes_at_scale_are_within_limits():
     stress = read_recipe(PIPELINES / "stress-1m.toml")
     assert stress.expected_trees() == pytest.approx(1_000_000)
     assert stress.variants == {"pine": 2, "broadleaf": 2}  # a handful of prototypes
+
+
+def test_a_hectare_of_the_1km2_stand_is_the_default_stands_kind(tmp_path):
+    # issue 39: the shipped 1 km² stand grows the allometric presets with the default's
+    # layers. A hectare of it (its recipe, the region cut to 100 m x 100 m away from the
+    # wetland) within the default's published ranges: one-sided LAI 3-9 (Asner, Scurlock &
+    # Hicke 2003), DBH and height CVs of a real stand (0.26 and 0.23 in a 33-year Scots pine
+    # stand, Forests 14:1779), slenderness 50-150, crowns over 60 % of the plot; and each layer
+    # at its recipe's figure, measured on the composed stage
+    from usdforest.recipe import parse_recipe
+    from usdforest.usd.inventory import stand_figures
+
+    km = read_recipe(PIPELINES / "stand-1km2.toml")
+    assert set(km.species) == {"scots-pine", "norway-spruce", "european-beech", "silver-birch"}
+    assert km.lod == "proxy"
+    data = dict(km.data, region={"kind": "rectangle", "bounds": [650, 150, 750, 250]})
+    out = tmp_path / "hectare.usda"
+    b = write_forest(parse_recipe(data, km.base, km.source), out, thumbnail=False)
+    assert validate(out) == []
+    f = stand_figures(out)
+    assert f["trees"] == b.n_trees and 300 <= f["stems_per_ha"] <= 900
+    assert 3.0 <= f["leaf_area_index"] <= 9.0 and f["crown_footprint_cover"] >= 0.6
+    assert f["dbh_m"]["cv"] >= 0.25 and f["height_m"]["cv"] >= 0.15
+    assert 50 <= np.median(f["per_tree"]["height"] / f["per_tree"]["dbh"]) <= 150
+    layers = km.data
+    assert f["dead_wood_m3_per_ha"] == pytest.approx(layers["deadwood"]["volume"], rel=0.1)
+    assert f["ground_vegetation_cover"] == pytest.approx(layers["groundcover"]["cover"], rel=0.1)
+    assert f["shrub_cover"] == pytest.approx(layers["shrubs"]["cover"], rel=0.1)
+    assert f["regeneration_stems_per_ha"] == pytest.approx(
+        layers["regeneration"]["density"], rel=0.1
+    )
+
+
+def test_the_shipped_landscape_is_tiled_georeferenced_and_layered(tmp_path):
+    # issue 39: the tiled, georeferenced example grows the default's kind of stand too. 6.25 ha
+    # of it in tiles of 125 m (tiles start at the region's corner: a 250 m cut of 500 m tiles
+    # is one tile): four payload tiles, the CRS and the stage origin (the cut region's
+    # south-west corner) recorded, every layer at its recipe's figure
+    from usdforest.recipe import parse_recipe
+    from usdforest.usd.inventory import stand_figures
+
+    land = read_recipe(PIPELINES / "landscape-4km2.toml")
+    assert land.crs == "EPSG:32633" and land.tiles == 500.0 and land.lod == "proxy"
+    assert 150_000 < land.expected_trees() < 220_000
+    e0, n0 = 451_375.0, 5_411_375.0
+    box = [[e0, n0], [e0 + 250, n0], [e0 + 250, n0 + 250], [e0, n0 + 250]]
+    data = dict(land.data, region={"kind": "polygon", "vertices": box}, tiles={"size": 125.0})
+    out = tmp_path / "corner.usda"
+    b = write_forest(parse_recipe(data, land.base, land.source), out, thumbnail=False)
+    assert b.n_tiles == 4 and validate(out) == []
+    root = Sdf.Layer.FindOrOpen(str(out))
+    assert root.customLayerData["crs"] == "EPSG:32633"
+    assert tuple(root.customLayerData["crsOrigin"]) == (e0, n0)
+    f = stand_figures(out)
+    assert f["trees"] == b.n_trees and 3.0 <= f["leaf_area_index"] <= 9.0
+    layers = land.data
+    assert f["dead_wood_m3_per_ha"] == pytest.approx(layers["deadwood"]["volume"], rel=0.1)
+    assert f["ground_vegetation_cover"] == pytest.approx(layers["groundcover"]["cover"], rel=0.1)
+    assert f["shrub_cover"] == pytest.approx(layers["shrubs"]["cover"], rel=0.1)
+    assert f["regeneration_stems_per_ha"] == pytest.approx(
+        layers["regeneration"]["density"], rel=0.1
+    )
 
 
 def test_sample_cli_replicates(tmp_path, runner):
