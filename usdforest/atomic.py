@@ -106,6 +106,14 @@ def output_lock(out: Path) -> Iterator[None]:
         os.write(fd, f"{os.getpid()}\n".encode())
         yield
     finally:
+        if fd < 0:
+            # a Ctrl-C or SIGTERM can land as os.open returns, before fd holds its result: the
+            # file it made is then reached by name (a file that no one holds is stale; a
+            # writer that made it and locks it after we remove it finds it gone and retries)
+            try:
+                fd = os.open(lock, os.O_RDWR)
+            except OSError:
+                fd = -1
         if fd >= 0:
             # a Ctrl-C or SIGTERM between creating the file and locking it: the file is ours
             # to remove if no one else holds it
