@@ -304,6 +304,18 @@ def test_recipes_at_scale_are_within_limits():
     assert stress.variants == {"pine": 2, "broadleaf": 2}  # a handful of prototypes
 
 
+def _each_layer_as_asked(f: dict, recipe: dict) -> None:
+    """Stand figures ``f`` give each layer beneath the crowns its ``recipe`` figure (10 %)."""
+    asked = (
+        ("dead_wood_m3_per_ha", recipe["deadwood"]["volume"]),
+        ("ground_vegetation_cover", recipe["groundcover"]["cover"]),
+        ("shrub_cover", recipe["shrubs"]["cover"]),
+        ("regeneration_stems_per_ha", recipe["regeneration"]["density"]),
+    )
+    for key, value in asked:
+        assert f[key] == pytest.approx(value, rel=0.1), key
+
+
 def test_a_hectare_of_the_1km2_stand_is_the_default_stands_kind(tmp_path):
     # issue 39: the shipped 1 km² stand grows the allometric presets with the default's
     # layers. A hectare of it (its recipe, the region cut to 100 m x 100 m away from the
@@ -326,13 +338,7 @@ def test_a_hectare_of_the_1km2_stand_is_the_default_stands_kind(tmp_path):
     assert 3.0 <= f["leaf_area_index"] <= 9.0 and f["crown_footprint_cover"] >= 0.6
     assert f["dbh_m"]["cv"] >= 0.25 and f["height_m"]["cv"] >= 0.15
     assert 50 <= np.median(f["per_tree"]["height"] / f["per_tree"]["dbh"]) <= 150
-    layers = km.data
-    assert f["dead_wood_m3_per_ha"] == pytest.approx(layers["deadwood"]["volume"], rel=0.1)
-    assert f["ground_vegetation_cover"] == pytest.approx(layers["groundcover"]["cover"], rel=0.1)
-    assert f["shrub_cover"] == pytest.approx(layers["shrubs"]["cover"], rel=0.1)
-    assert f["regeneration_stems_per_ha"] == pytest.approx(
-        layers["regeneration"]["density"], rel=0.1
-    )
+    _each_layer_as_asked(f, km.data)
 
 
 def test_the_shipped_landscape_is_tiled_georeferenced_and_layered(tmp_path):
@@ -357,13 +363,7 @@ def test_the_shipped_landscape_is_tiled_georeferenced_and_layered(tmp_path):
     assert tuple(root.customLayerData["crsOrigin"]) == (e0, n0)
     f = stand_figures(out)
     assert f["trees"] == b.n_trees and 3.0 <= f["leaf_area_index"] <= 9.0
-    layers = land.data
-    assert f["dead_wood_m3_per_ha"] == pytest.approx(layers["deadwood"]["volume"], rel=0.1)
-    assert f["ground_vegetation_cover"] == pytest.approx(layers["groundcover"]["cover"], rel=0.1)
-    assert f["shrub_cover"] == pytest.approx(layers["shrubs"]["cover"], rel=0.1)
-    assert f["regeneration_stems_per_ha"] == pytest.approx(
-        layers["regeneration"]["density"], rel=0.1
-    )
+    _each_layer_as_asked(f, land.data)
 
 
 def test_sample_cli_replicates(tmp_path, runner):
