@@ -31,6 +31,7 @@ import numpy as np
 
 from usdforest.errors import UsdForestError
 from usdforest.grow.allometry import weibull_for
+from usdforest.grow.obstacles import Stems, point_segment
 from usdforest.seeds import stream
 
 KINDS = ("log", "snag", "stump", "branch")
@@ -190,11 +191,7 @@ class _Room:
     """Footprints (2-D capsules) already taken: living stems and placed pieces."""
 
     def __init__(self, stems_xy: np.ndarray, stems_r: np.ndarray, clearance: float) -> None:
-        from scipy.spatial import cKDTree
-
-        self.stems = cKDTree(stems_xy) if len(stems_xy) else None
-        self.stems_xy, self.stems_r = stems_xy, stems_r
-        self.stem_reach = float(stems_r.max()) if len(stems_r) else 0.0
+        self.stems = Stems(stems_xy, stems_r)
         self.clearance = clearance
         self.cell = 4.0
         self.grid: dict[tuple[int, int], list[int]] = {}
@@ -212,13 +209,8 @@ class _Room:
     def free(self, a: np.ndarray, b: np.ndarray, r: float) -> bool:
         """Whether the capsule ``a``-``b`` of radius ``r`` keeps clear of everything."""
         c = self.clearance
-        if self.stems is not None:
-            half = float(np.linalg.norm(b - a)) / 2
-            near = self.stems.query_ball_point((a + b) / 2, half + r + self.stem_reach + c)
-            if near:
-                d = _point_segment(self.stems_xy[near], a, b)
-                if np.any(d < r + self.stems_r[near] + c):
-                    return False
+        if not self.stems.clear(a, b, r, c):
+            return False
         seen = set()
         for key in self._cells(a, b, r + c):
             for k in self.grid.get(key, ()):
@@ -238,13 +230,6 @@ class _Room:
             self.grid.setdefault(key, []).append(k)
 
 
-def _point_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distances of points ``p`` (m, 2) from the segment ``a``-``b``."""
-    ab = b - a
-    t = np.clip(((p - a) @ ab) / max(float(ab @ ab), 1e-18), 0.0, 1.0)
-    return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
-
-
 def _segment_segment(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray) -> float:
     """Distance between the 2-D segments ``a``-``b`` and ``c``-``d``."""
 
@@ -258,10 +243,10 @@ def _segment_segment(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray)
         if 0 <= t <= 1 and 0 <= u <= 1:
             return 0.0
     ends = (
-        _point_segment(c[None], a, b)[0],
-        _point_segment(d[None], a, b)[0],
-        _point_segment(a[None], c, d)[0],
-        _point_segment(b[None], c, d)[0],
+        point_segment(c[None], a, b)[0],
+        point_segment(d[None], a, b)[0],
+        point_segment(a[None], c, d)[0],
+        point_segment(b[None], c, d)[0],
     )
     return float(min(ends))
 
