@@ -138,6 +138,93 @@ def leaf() -> trimesh.Trimesh:
     return trimesh.util.concatenate([pet, blade_mesh])
 
 
+def _blade(
+    u: np.ndarray,
+    half_width: np.ndarray,
+    blade_len: float,
+    pet_len: float,
+    pet_radius: float,
+    fold: float = 0.04,
+    curl: float = 0.06,
+) -> trimesh.Trimesh:
+    """A leaf blade whose outline is ``half_width`` (k,) metres either side of a straight
+    midrib at ``u`` (k,), the fraction of the way from the blade's base (0) to its apex (1),
+    with a petiole.
+
+    Attachment at the origin, blade along +X in the XY plane; the two halves rise by ``fold``
+    of their width from the midrib (a shallow V) and the blade curls down by ``curl`` of its
+    length towards the apex: the blade's mean plane stays XY, within a few degrees.
+    """
+    across = np.array([-1.0, 0.0, 1.0])
+    x = pet_len + blade_len * u[:, None] + 0.0 * across
+    y = half_width[:, None] * across
+    z = fold * np.abs(y) - curl * blade_len * u[:, None] ** 2
+    blade = np.stack([x, y, z], axis=-1).reshape(-1, 3)
+    nw = len(across)
+    faces = []
+    for i in range(len(u) - 1):
+        for j in range(nw - 1):
+            a = i * nw + j
+            b, c, d = a + 1, a + nw, a + nw + 1
+            faces += [(a, c, d), (a, d, b)]
+    pet = tube(
+        np.stack([np.linspace(0.0, pet_len + 0.002, 2), np.zeros(2), np.zeros(2)], axis=1),
+        np.array([pet_radius, 0.75 * pet_radius]),
+        sections=4,
+    )
+    return trimesh.util.concatenate([pet, trimesh.Trimesh(blade, np.array(faces), process=False)])
+
+
+def leaf_beech() -> trimesh.Trimesh:
+    """European beech (Fagus sylvatica): an elliptic-ovate blade 8 x 5 cm, widest a little
+    below its middle, broadly wedge-shaped at the base, short-pointed at the apex, the margin
+    wavy with a small tooth where each of its 7 pairs of straight side veins ends; 1 cm
+    petiole."""
+    u = np.linspace(0.0, 1.0, 41)
+    envelope = np.sin(math.pi * u**0.88) ** 0.75
+    envelope *= 1.0 - 0.35 * np.clip((u - 0.82) / 0.18, 0, 1) ** 1.5  # short point
+    veins = 7
+    phase = np.clip((u - 0.08) / 0.84, 0.0, 1.0) * veins
+    wave = 1.0 - 0.05 * (1.0 - np.abs(np.cos(math.pi * phase))) ** 2
+    return _blade(u, 0.025 * envelope * wave, 0.08, 0.01, 0.0011)
+
+
+def leaf_oak() -> trimesh.Trimesh:
+    """Sessile oak (Quercus petraea): an obovate blade 10 x 6 cm, widest above its middle,
+    wedge-shaped at the base, with 6 pairs of rounded lobes whose sinuses reach 40 % of the way
+    to the midrib; 1.5 cm petiole."""
+    lobes, start = 6, 0.1
+    sinuses = start + (1.0 - start) * np.arange(lobes + 1) / (lobes + 0.5)
+    u = np.union1d(np.linspace(0.0, 1.0, 71), sinuses)
+    envelope = np.sin(math.pi * u**1.35) ** 0.6
+    phase = np.clip((u - start) / (1.0 - start), 0.0, 1.0) * (lobes + 0.5)
+    frac = phase % 1.0
+    rounded = np.sin(math.pi * frac) ** 0.8
+    depth = 0.4 * np.clip((u - start) / 0.08, 0.0, 1.0)
+    depth = np.where(phase > lobes, depth * (1.0 - (phase - lobes) * 2.0), depth)  # apex lobe
+    return _blade(u, 0.03 * envelope * (1.0 - depth + depth * rounded), 0.1, 0.015, 0.0012)
+
+
+def leaf_birch() -> trimesh.Trimesh:
+    """Silver birch (Betula pendula): a rhombic-deltoid blade 5 x 3.6 cm, widest near its
+    broad, almost straight base, tapering to a long point, the margin doubly serrate (12
+    large teeth a side, each with two small ones on its lower flank); 2 cm petiole."""
+    teeth, start, span = 12, 0.06, 0.84
+    # every small tooth's tip (just before the drop) and the notch after it
+    notch = start + span * np.arange(1, 3 * teeth + 1) / (3 * teeth)
+    u = np.union1d(np.linspace(0.0, 1.0, 25), np.concatenate([notch, notch - 2e-4]))
+    rise = np.clip(u / 0.28, 0.0, 1.0)
+    envelope = np.where(
+        u < 0.28, 0.3 + 0.7 * np.sin(0.5 * math.pi * rise), ((1.0 - u) / 0.72) ** 1.15
+    )
+    phase = np.round(np.clip((u - start) / span, 0.0, 1.0) * teeth, 9)
+    frac = phase % 1.0
+    big = 0.12 * frac**2.5  # a forward-pointing tooth: a slow rise, a sharp drop
+    small = 0.05 * ((3.0 * frac) % 1.0) * (frac < 0.67)
+    serration = np.where(phase >= teeth, 0.0, big + small)
+    return _blade(u, 0.018 * envelope * (0.9 + serration), 0.05, 0.02, 0.0008)
+
+
 def needle_fascicle() -> trimesh.Trimesh:
     """Two needles (as in Scots pine) of 7 cm from a 5 mm sheath, diverging by 10 degrees."""
     parts = [tube(np.array([[0, 0, 0], [0, 0, 0.005]], float), np.array([0.0012, 0.001]), 6)]
@@ -456,6 +543,9 @@ FILES = {
     "branch_curved_b.ply": lambda: branch(2.0, 0.06, 0.018, math.radians(40), s_curve=0.5),
     "twig.stl": lambda: branch(0.3, 0.008, 0.0025, math.radians(15), sections=6, rings=8),
     "leaf_broadleaf.obj": leaf,
+    "leaf_beech.obj": leaf_beech,
+    "leaf_oak.obj": leaf_oak,
+    "leaf_birch.obj": leaf_birch,
     "needle_fascicle.stl": needle_fascicle,
     "trunk_cone.obj": trunk_cone,
     "shoot_pine.stl": lambda: shoot("pine"),

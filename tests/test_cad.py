@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from pxr import Usd, UsdGeom
 
 from usdforest.cad.library import template_dir
 from usdforest.cad.parts import import_part, read_cad
@@ -104,6 +105,23 @@ def test_shipped_leaf_frame_and_area():
         math.sqrt(src.area / math.pi), rel=1e-6
     )
     assert 0.14 < t.measurements.length < 0.16
+
+
+@pytest.mark.parametrize("name", ["leaf_broadleaf", "leaf_beech", "leaf_oak", "leaf_birch"])
+def test_shipped_leaves_attach_at_their_petioles(name):
+    # the shipped layer's origin is the petiole (a stalk, round in section), not the pointed
+    # tip, which over its last few percent is narrower than a petiole and flat
+    stage = Usd.Stage.Open(str(template_dir() / f"{name}.usdc"))
+    v = np.concatenate(
+        [
+            np.array(UsdGeom.Mesh(p).GetPointsAttr().Get())
+            for p in stage.Traverse()
+            if p.IsA(UsdGeom.Mesh)
+        ]
+    )
+    stalk = v[v[:, 0] < 0.03]
+    assert np.ptp(stalk[:, 1]) > 0.005 and np.ptp(stalk[:, 2]) > 0.005  # a tube, not a point
+    assert np.abs(stalk[:, 1]).max() < 0.15 * np.abs(v[:, 1]).max()  # and thin
 
 
 def test_needle_fascicle_attaches_at_its_sheath():

@@ -35,11 +35,14 @@ def test_library_has_the_starter_parts():
         "branch_curved_b",
         "twig",
         "leaf_broadleaf",
+        "leaf_beech",
+        "leaf_oak",
+        "leaf_birch",
         "needle_fascicle",
     } <= names
     parts = {read_template(p).name: read_template(p).part for p in SHIPPED}
     assert parts["trunk"] == "trunk" and parts["twig"] == "twig"
-    assert parts["leaf_broadleaf"] == parts["needle_fascicle"] == "leaf"
+    assert parts["leaf_broadleaf"] == parts["needle_fascicle"] == parts["leaf_oak"] == "leaf"
 
 
 @pytest.mark.parametrize("name", ["branch_curved_a", "branch_curved_b"])
@@ -154,7 +157,7 @@ def test_shipped_templates_are_built_from_the_committed_cad(path):
 def test_manifest_rebuild_is_byte_identical(tmp_path):
     manifest = read_manifest(MANIFEST)
     # 16 tree parts, 16 dead-wood pieces, 4 ground-vegetation patches
-    assert len(manifest.templates) == 36
+    assert len(manifest.templates) == 39
     from usdforest.cad.library import build_manifest
 
     a = build_manifest(manifest, tmp_path / "a")
@@ -197,7 +200,7 @@ def test_rebuild_is_byte_identical_with_other_blas_kernels(tmp_path, kernel):
     )
     assert r.returncode == 0, r.stderr
     built = sorted(out.glob("*.usdc"))
-    assert len(built) == 36
+    assert len(built) == 39
     for p in built:
         assert p.read_bytes() == (template_dir() / p.name).read_bytes(), f"{p.name} ({kernel})"
 
@@ -215,7 +218,7 @@ def test_stored_measurements_are_rounded():
 def test_template_build_cli(tmp_path, runner):
     r = runner.invoke(app, ["template", "build", str(MANIFEST), "-o", str(tmp_path)])
     assert r.exit_code == 0, r.output
-    assert len(list(tmp_path.glob("*.usdc"))) == 36
+    assert len(list(tmp_path.glob("*.usdc"))) == 39
     assert not list(tmp_path.glob(".*"))  # no temporary files left behind
 
 

@@ -188,7 +188,9 @@ def test_plants_are_labelled_instanced_tree_assets_on_the_ground(forest):
         )
     )
     idx = np.asarray(UsdGeom.PointInstancer(inst).GetProtoIndicesAttr().Get())
-    scale = np.cbrt(np.abs(np.linalg.det(xf[:, :3, :3])))
+    # the composed vertical scale (a yaw leaves +Z alone; the determinant would also carry the
+    # half-precision quaternions' error in x and y, up to 6e-4)
+    scale = xf[:, 2, 2]
     measured = np.array([heights[targets[k].name] for k in idx]) * scale
     # the CSV keeps millimetres
     assert measured == pytest.approx([float(r["height"]) for r in rows], rel=1e-3, abs=6e-4)

@@ -31,6 +31,7 @@ import numpy as np
 
 from usdforest.config import check_keys, coerce, load_toml, override, table_array
 from usdforest.errors import RecipeError, UsdForestError
+from usdforest.grow import leafangles
 from usdforest.grow.architecture import BREAST_HEIGHT  # a tree shorter than this has DBH 0
 from usdforest.grow.species import Geometry, Species, get_species, species_from_profile
 from usdforest.grow.turtle import TurtleConfig
@@ -166,6 +167,11 @@ def _check_geometry(g: Geometry, where: str) -> None:
         raise RecipeError(f"{where}.leaf_spread: must be between 0 and 1")
     if not 0 <= g.shade_cell <= 10:
         raise RecipeError(f"{where}.shade_cell: must be between 0 and 10 metres (0: off)")
+    for key in ("leaf_inclination", "shade_inclination"):
+        if getattr(g, key):
+            leafangles.check(getattr(g, key), f"{where}.{key}")
+    if g.shade_inclination and not g.leaf_inclination:
+        raise RecipeError(f"{where}.shade_inclination: give leaf_inclination (the sun leaves') too")
     for key in ("bark_color", "leaf_color"):
         c = getattr(g, key)
         if not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in c):

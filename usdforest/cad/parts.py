@@ -474,6 +474,9 @@ DEFAULT_COLORS = {
 }
 
 
+LEAF_END = 0.1  # the share of a leaf's length at each end compared to find its attachment
+
+
 def _end_slab(t: np.ndarray, at_max: bool, fraction: float = 0.03) -> np.ndarray:
     lo, hi = float(t.min()), float(t.max())
     span = max(hi - lo, 1e-12)
@@ -524,8 +527,6 @@ def normalise_part(
     t = local[:, 0]
     lo_slab, hi_slab = _end_slab(t, False), _end_slab(t, True)
     radial = np.linalg.norm(local[:, 1:], axis=1)
-    width_lo = float(np.ptp(local[lo_slab, 1])) if lo_slab.any() else 0.0
-    width_hi = float(np.ptp(local[hi_slab, 1])) if hi_slab.any() else 0.0
 
     if part in WOOD_PARTS:
         r_lo = _slab_radius(local, lo_slab)
@@ -550,8 +551,10 @@ def normalise_part(
         base_r, tip_r = (r_hi, r_lo) if base_at_max else (r_lo, r_hi)
         width = 2.0 * float(radial.max())
     else:
-        # leaf: attachment at the narrow end of the blade axis
-        attach_at_max = width_hi < width_lo
+        # leaf: attachment at the narrow end of the blade axis, judged over a tenth of its
+        # length at each end: a pointed tip's last few percent are narrower than a petiole
+        wide_lo, wide_hi = _end_slab(t, False, LEAF_END), _end_slab(t, True, LEAF_END)
+        attach_at_max = float(np.ptp(local[wide_hi, 1])) < float(np.ptp(local[wide_lo, 1]))
         sign = -1.0 if attach_at_max else 1.0
         x = axes[0] * sign
         zn = axes[2]

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from usdforest.errors import UsdForestError
+from usdforest.grow.leafangles import LeafAngles
 from usdforest.grow.skeleton import Skeleton
 from usdforest.grow.species import Clumps, Geometry
 from usdforest.rotations import matrix_from_quat, quat_from_matrix
@@ -462,10 +463,22 @@ def _leaves(
     lean = rng.uniform(-g.leaf_angle_jitter, g.leaf_angle_jitter, n)
     tilt = rng.uniform(-35.0, 35.0, n)
     grow = rng.standard_normal(n)
+    incline = spin = None
+    if g.leaf_inclination:
+        incline, spin = _inclinations(sk, g, site, rng)
 
     def chunk(sl: slice) -> dict[str, np.ndarray]:
         leaves = _leaf_frames(
-            sk, g, site[sl], k[sl], spread[sl], turn[sl], lean[sl], tilt[sl], grow[sl]
+            sk,
+            g,
+            site[sl],
+            k[sl],
+            spread[sl],
+            turn[sl],
+            lean[sl],
+            tilt[sl],
+            grow[sl],
+            None if incline is None else (incline[sl], spin[sl]),
         )
         if finish is not None and len(leaves["leaf_segment"]):
             leaves["leaf_position"] = finish(
@@ -484,6 +497,42 @@ def _leaves(
     return {key: np.concatenate([d[key] for d in done]) for key in done[0]}
 
 
+def _inclinations(
+    sk: Skeleton, g: Geometry, site: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each leaf's inclination (radians; its normal's angle from the vertical) and the azimuth
+    of its normal about its blade's (radians): a sun leaf's from ``g.leaf_inclination``, a
+    shade leaf's from ``g.shade_inclination``, a leaf being a sun leaf with a probability
+    that rises linearly from 0 at the crown's lowest leaf site to 1 at its highest."""
+    n = len(site)
+    sun = LeafAngles.of(g.leaf_inclination)
+    shade = LeafAngles.of(g.shade_inclination) if g.shade_inclination else sun
+    z = sk.leaf_position[:, 2]
+    lo, hi = float(z.min()), float(z.max())
+    height = (z[site] - lo) / (hi - lo) if hi > lo else np.ones(n)
+    mix, u = rng.random(n), rng.random(n)
+    spin = rng.uniform(0.0, 2.0 * math.pi, n)
+    return np.where(mix < height, sun.sample(u), shade.sample(u)), spin
+
+
+def _inclined(
+    blade: np.ndarray, out: np.ndarray, incline: np.ndarray, spin: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Blade directions and normals of leaves whose normals lean ``incline`` from the vertical
+    towards the blade's azimuth plus ``spin``: each blade keeps as much of its direction from
+    the twig as a plane at that inclination allows."""
+    azimuth = np.arctan2(blade[:, 1], blade[:, 0]) + spin
+    s = np.sin(incline)
+    n = np.stack([s * np.cos(azimuth), s * np.sin(azimuth), np.cos(incline)], axis=1)
+    b = blade - n * np.sum(blade * n, axis=1, keepdims=True)
+    short = np.linalg.norm(b, axis=1) < 1e-6
+    if short.any():  # the blade along the normal: any direction in the leaf's plane
+        b[short] = np.cross(n[short], out[short])
+        still = short & (np.linalg.norm(b, axis=1) < 1e-6)
+        b[still] = np.cross(n[still], [1.0, 0.0, 0.0])
+    return b / np.linalg.norm(b, axis=1, keepdims=True), n
+
+
 def _leaf_frames(
     sk: Skeleton,
     g: Geometry,
@@ -494,9 +543,11 @@ def _leaf_frames(
     lean: np.ndarray,
     tilt_deg: np.ndarray,
     grow: np.ndarray,
+    inclined: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, np.ndarray]:
     """Positions, orientations and sizes of the leaves at ``site`` (their index ``k`` within
-    it), from their random draws."""
+    it), from their random draws; ``inclined``: their inclinations and spins
+    (:func:`_inclinations`), which set their normals instead of the twig's leaf angle."""
     seg = sk.leaf_segment[site]
     has_seg = seg >= 0
     segc = np.maximum(seg, 0)
@@ -526,15 +577,18 @@ def _leaf_frames(
     r = np.where(has_seg, sk.radius[segc], 0.0)
     pos = pos + out * r[:, None]
 
-    # blade normal: towards the sky, tilted at random about the blade
-    sky = np.array([0.0, 0.0, 1.0])
-    n = sky - blade * (blade @ sky)[:, None]
-    flat = np.linalg.norm(n, axis=1) < 1e-6
-    n[flat] = out[flat]
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    tilt = np.radians(tilt_deg)
-    side = np.cross(n, blade)
-    n = np.cos(tilt)[:, None] * n + np.sin(tilt)[:, None] * side
+    if inclined is not None:
+        blade, n = _inclined(blade, out, *inclined)
+    else:
+        # blade normal: towards the sky, tilted at random about the blade
+        sky = np.array([0.0, 0.0, 1.0])
+        n = sky - blade * (blade @ sky)[:, None]
+        flat = np.linalg.norm(n, axis=1) < 1e-6
+        n[flat] = out[flat]
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        tilt = np.radians(tilt_deg)
+        side = np.cross(n, blade)
+        n = np.cos(tilt)[:, None] * n + np.sin(tilt)[:, None] * side
     y = np.cross(n, blade)
     rot = np.stack([blade, y, n], axis=2)  # template +X -> blade, +Z -> normal
     size = g.leaf_size * sk.leaf_size[site] * np.clip(1.0 + g.leaf_size_jitter * grow, 0.4, 1.8)
