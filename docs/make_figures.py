@@ -253,6 +253,68 @@ def crowns(out: Path, work: Path) -> None:
     save_figure(fig, out / "crowns-from-above.png")
 
 
+def leaves(out: Path, work: Path) -> None:
+    """The broadleaf presets' leaf templates from above, and their leaves' inclinations on a
+    composed stage: the crown's top and bottom fifths beside the sun and shade distributions
+    the species names (usdforest.grow.leafangles)."""
+    import numpy as np
+    from pxr import Usd, UsdGeom
+
+    from usdforest.grow.leafangles import LeafAngles
+    from usdforest.rotations import matrix_from_quat
+
+    names = ("european-beech", "sessile-oak", "silver-birch")
+    recipe = work / "trio.toml"
+    recipe.write_text(
+        'seed = 3\n[region]\nbounds = [0, 0, 30, 30]\n[intensity]\nkind = "constant"\n'
+        "value = 0.01\n[mix]\n"
+        + "".join(f"{n} = 1\n" for n in names)
+        + "[forest]\nvariants = 1\nhard_core = 3.0\n"
+        + "".join(f"[species.{n}.stand]\ndbh_mean = 0.25\ndbh_cv = 0.2\n" for n in names)
+    )
+    write_forest(read_recipe(recipe), work / "trio.usda", thumbnail=False)
+    stage = Usd.Stage.Open(str(work / "trio.usda"))
+    fig, axes = plt.subplots(2, len(names), figsize=(13, 7.5), dpi=100)
+    for col, name in enumerate(names):
+        g = get_species(name).geometry
+        png = work / f"{g.leaf}.png"
+        preview(template_dir() / f"{g.leaf}.usdc", png, view="top", size=(420, 300),
+                annotate=False)  # fmt: skip
+        image_panel(axes[0, col], png, f"{name}: {g.leaf} (unit length; {g.leaf_size * 100:g} cm)")
+        tree = next(
+            p for p in stage.Traverse()
+            if p.GetCustomDataByKey("usdforest:species") == name
+            and p.GetChild("Leaves").IsValid()
+        )  # fmt: skip
+        pi = UsdGeom.PointInstancer(tree.GetChild("Leaves"))
+        quat = np.array([(q.imaginary[0], q.imaginary[1], q.imaginary[2], q.real)
+                         for q in pi.GetOrientationsAttr().Get()], dtype=float)  # fmt: skip
+        normal = matrix_from_quat(quat)[:, :, 2]
+        incl = np.degrees(np.arccos(np.clip(np.abs(normal[:, 2]), 0.0, 1.0)))
+        z = np.array(pi.GetPositionsAttr().Get())[:, 2]
+        rel = (z - z.min()) / np.ptp(z)
+        ax = axes[1, col]
+        bins = np.arange(0, 91, 5)
+        ax.hist(incl[rel > 0.8], bins, density=True, alpha=0.5, color="tab:orange",
+                label=f"top fifth: mean {incl[rel > 0.8].mean():.1f}°")  # fmt: skip
+        ax.hist(incl[rel < 0.2], bins, density=True, alpha=0.5, color="tab:blue",
+                label=f"bottom fifth: mean {incl[rel < 0.2].mean():.1f}°")  # fmt: skip
+        t = np.linspace(0, 90, 181)
+        shade = g.shade_inclination or g.leaf_inclination
+        for spec, colour, kind in ((g.leaf_inclination, "red", "sun"), (shade, "navy", "shade")):
+            law = LeafAngles.of(spec)
+            pdf = np.gradient(np.interp(np.radians(t), law.theta, law.cdf), t)
+            label = f"{kind}: {' '.join(map(str, spec))} ({law.mean_deg():.1f}°)"
+            ax.plot(t, pdf, color=colour, lw=1.2, label=label)
+        ax.set_xlabel("leaf inclination (normal from vertical), degrees")
+        ax.set_xlim(0, 90)
+        ax.legend(fontsize=7)
+        ax.set_title(f"{len(incl):,} leaves of one {name}", fontsize=9)
+    axes[1, 0].set_ylabel("density per degree")
+    fig.tight_layout()
+    save_figure(fig, out / "leaves.png")
+
+
 def stands(out: Path, work: Path) -> None:
     for name, view, size in (
         ("paper-two-tree-stand", "iso", (700, 600)),
@@ -632,6 +694,7 @@ def main(out: Path) -> None:
         stand_pattern(out, work)
         canopy_gaps(out, work / "forest.usda")
         crowns(out, work)
+        leaves(out, work)
         gallery(out, work)
         allometric(out, work)
         sensors(out, work)

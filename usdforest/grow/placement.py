@@ -21,7 +21,11 @@ Pure numpy (no pxr): the USD writer (:mod:`usdforest.usd.tree`) only copies thes
   into one column of the crown share it). They spread back from the site along the segment
   that carries it over ``leaf_spread`` of its length; their azimuths around the twig follow
   the phyllotaxis angle (180: two ranks, a flat spray); the blade leaves the twig at
-  ``leaf_angle`` and its normal leans towards the sky.
+  ``leaf_angle`` and its normal leans towards the sky. A species that names a leaf inclination
+  distribution (``Geometry.leaf_inclination``, sun leaves, and ``shade_inclination``) has each
+  leaf's normal drawn from it instead (a sun leaf with a probability rising linearly with the
+  site's height in the crown), the blade kept as close to its direction from the twig as the
+  leaf's plane allows.
 """
 
 from __future__ import annotations
