@@ -353,6 +353,11 @@ def test_scan_cli_outputs(stand, tmp_path, runner):
         (["--sensor", "lidar"], "[lidar]\nbeam_rings = 40\n", "lidar.beam_rings"),
         (["--sensor", "lidar"], "[lidar]\nmax_returns = 16\n", "LAS 1.4 holds 15"),
         (["--sensor", "lidar"], "[lidar]\nreturn_separation = 0.0\n", "return_separation"),
+        (["--sensor", "lidar"], "[lidar]\nmin_range = 200.0\n", "lidar.min_range"),
+        (["--sensor", "lidar"], "[lidar]\ndetect_range = -1.0\n", "lidar.detect_range"),
+        (["--sensor", "lidar"], "[lidar]\ndetect_reflectance = 0.0\n", "detect_reflectance"),
+        (["--sensor", "lidar"], "[lidar]\nintensity_noise = 2.0\n", "lidar.intensity_noise"),
+        (["--sensor", "lidar"], "[lidar]\nnoise = 'off'\n", "lidar.noise"),
         (["--sensor", "lidar"], "[sonar]\nbeam = 'x'\n", "unknown key 'sonar'"),
     ],
 )

@@ -27,7 +27,7 @@ from usdforest.atomic import atomic_path, save_npz
 from usdforest.errors import UsdForestError
 from usdforest.paths import require_file
 from usdforest.seeds import stream
-from usdforest.sensors.lidar import SpinningLidar, cast_pulses, counts
+from usdforest.sensors.lidar import SpinningLidar, cast_pulses, observed
 from usdforest.sensors.pose import Pose, rotations
 from usdforest.sensors.raycast import SceneCaster
 from usdforest.sensors.scene import CLASSES, Scene
@@ -221,9 +221,7 @@ def fly_lidar(
         pos, rot, _ = traj.at(times)
         dirs = np.einsum("nij,nj->ni", rot, local)
         e = cast_pulses(caster, pos, dirs, sensor)
-        rng_ = e.range
-        if sensor.range_noise > 0:
-            rng_ = rng_ + stream(seed, "flight-lidar", k).normal(0, sensor.range_noise, len(e))
+        rng_, intensity = observed(e, sensor, stream(seed, "flight-lidar", k))
         i = e.pulse
         parts.append(
             (
@@ -235,7 +233,7 @@ def fly_lidar(
                 e.path,
                 ring[i],
                 scan_angle[i],
-                counts(e.energy),
+                intensity,
                 e.return_number,
                 e.number_of_returns,
             )

@@ -43,6 +43,14 @@ class SpinningLidar:
     ``max_returns``). ``leaf_transmittance``: the share of the light a leaf lets through
     (0: opaque leaves); a sub-ray that hits a leaf goes on through :data:`LEAF_PASSES`
     leaves, what it then hits returning through them (``T²`` per leaf, there and back).
+
+    What the receiver detects and how exactly (the presets' figures from their datasheets):
+    no echo nearer than ``min_range``; none weaker than a Lambertian target of reflectance
+    ``detect_reflectance`` facing the sensor at ``detect_range`` metres (0: no limit), so
+    a darker target or one seen obliquely is lost sooner; ranges with Gaussian noise of
+    ``range_noise`` metres (standard deviation) and intensities with relative Gaussian noise
+    ``intensity_noise``, from the scan's seed. ``noise = False`` turns all four off: the exact
+    cloud, for ground truth. ``max_range`` is how far the rays are followed.
     """
 
     channels: int = 16
@@ -58,8 +66,21 @@ class SpinningLidar:
     max_returns: int = 4
     return_separation: float = 1.0
     leaf_transmittance: float = LEAF_TRANSMITTANCE
+    min_range: float = 0.0
+    detect_range: float = 0.0
+    detect_reflectance: float = 0.8
+    intensity_noise: float = 0.0
+    noise: bool = True
 
     def check(self) -> None:
+        if not (np.isfinite(self.min_range) and 0 <= self.min_range < self.max_range):
+            raise UsdForestError("lidar.min_range: must be >= 0 m and below max_range")
+        if not (np.isfinite(self.detect_range) and self.detect_range >= 0):
+            raise UsdForestError("lidar.detect_range: must be >= 0 m (0: no detection limit)")
+        if not (np.isfinite(self.detect_reflectance) and 0 < self.detect_reflectance <= 1):
+            raise UsdForestError("lidar.detect_reflectance: must be in (0, 1]")
+        if not (np.isfinite(self.intensity_noise) and 0 <= self.intensity_noise <= 1):
+            raise UsdForestError("lidar.intensity_noise: must be in [0, 1] (relative)")
         if not (np.isfinite(self.leaf_transmittance) and 0 <= self.leaf_transmittance < 1):
             raise UsdForestError("lidar.leaf_transmittance: must be in [0, 1)")
         if not 1 <= self.channels <= 1024:
@@ -141,12 +162,25 @@ def _check_common(max_range: float, noise: float, table: str = "lidar") -> None:
 # figure is unpublished), HDL-32E 3.3 mrad (its manual's 4" x 2" spot at 100 ft, the wider
 # side), OS1-64 2.3 mrad (0.13 deg FWHM); Velodyne's dual mode reports strongest and last,
 # the OS1 (older firmware) the strongest. See docs/notes/lidar-radiometry.md.
+#
+# Detection and noise (docs/guide/sensors.md has the quotes): VLP-16 no return nearer than
+# 0.9 m (the ROS velodyne driver's min_range; "no points returned ... at less than about 0.9
+# meters"), 100 m range (its reflectance unstated: taken at 80 %, as Ouster states its own),
+# +-3 cm range accuracy read as one standard deviation (HELIOS++ models the VLP-16 so),
+# rays followed to 130 m (the ROS driver's max_range; the packet's 2 mm x 65,535); HDL-32E
+# "Valid Data Range 5 cm to 100 m" (its accuracy not found in its manual: the VLP-16's); OS1
+# 0.8 m and "120 m @ 80%" ("40 m @ 10%" agrees within 12 %), "+-3 cm (1 sigma)" at SNR 100.
+# Intensity noise: 5 % (a stated choice; no datasheet gives one).
+_DATASHEET = {"range_noise": 0.03, "intensity_noise": 0.05, "detect_reflectance": 0.8}
 PRESETS: dict[str, SpinningLidar | DepthCamera] = {
-    "vlp-16": SpinningLidar(16, -15.0, 15.0, 0.2, 100.0, divergence=3.0, returns="dual"),
-    "hdl-32": SpinningLidar(32, -30.67, 10.67, 0.16, 100.0, divergence=3.3, returns="dual"),
-    "os1-64": SpinningLidar(64, -16.6, 16.6, 0.35, 120.0, divergence=2.3),
+    "vlp-16": SpinningLidar(16, -15.0, 15.0, 0.2, 130.0, divergence=3.0, returns="dual",
+                            min_range=0.9, detect_range=100.0, **_DATASHEET),
+    "hdl-32": SpinningLidar(32, -30.67, 10.67, 0.16, 130.0, divergence=3.3, returns="dual",
+                            min_range=0.05, detect_range=100.0, **_DATASHEET),
+    "os1-64": SpinningLidar(64, -16.6, 16.6, 0.35, 150.0, divergence=2.3,
+                            min_range=0.8, detect_range=120.0, **_DATASHEET),
     "depth-camera": DepthCamera(640, 480, 87.0, 10.0),
-}
+}  # fmt: skip
 
 
 # Hemispherical reflectance near 905 nm (the VLP-16's 903 nm; leaves differ by under 0.01 at
@@ -197,9 +231,14 @@ def cast_pulses(
     a depth camera's rays are thin and give their first hit."""
     from usdforest.sensors import returns_kernels
 
+    near = least = 0.0
     if isinstance(sensor, SpinningLidar):
         beam = beam_pattern(sensor.divergence, sensor.beam_rings)
         mode, most, apart = sensor.returns, sensor.max_returns, sensor.return_separation
+        if sensor.noise:
+            near = sensor.min_range
+            if sensor.detect_range > 0:  # what that target returns head-on (reflected())
+                least = sensor.detect_reflectance / sensor.detect_range**2
     else:
         beam, mode, most, apart = beam_pattern(0.0, 0), "first", 1, 1.0
     n, s = len(dirs), len(beam)
@@ -235,8 +274,25 @@ def cast_pulses(
         np.stack([c[k].reshape(n, s) for c in columns], axis=2).reshape(n, -1) for k in range(6)
     )
     return merge_echoes(
-        t, e, (cls, tree, path), spread=sp, separation=apart, mode=mode, max_returns=most
-    )
+        t, e, (cls, tree, path), spread=sp, separation=apart, mode=mode, max_returns=most,
+        min_range=near, threshold=least,
+    )  # fmt: skip
+
+
+def observed(
+    e: Echoes, sensor: SpinningLidar | DepthCamera, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ranges and intensities (:func:`counts`) the sensor reports for echoes ``e``: with
+    its range noise (Gaussian, metres) and a spinning lidar's relative intensity noise drawn
+    from ``rng``, unless its ``noise`` is off."""
+    on = getattr(sensor, "noise", True)
+    rng_, energy = e.range, e.energy
+    if on and sensor.range_noise > 0:
+        rng_ = rng_ + rng.normal(0.0, sensor.range_noise, len(e))
+    relative = getattr(sensor, "intensity_noise", 0.0)
+    if on and relative > 0:
+        energy = energy * np.maximum(1.0 + rng.normal(0.0, relative, len(e)), 0.0)
+    return rng_, counts(energy)
 
 
 @dataclass(frozen=True, eq=False)
@@ -276,9 +332,7 @@ def scan(
     origins = np.broadcast_to(pose.position, dirs.shape)
     caster = caster or SceneCaster(scene)
     e = cast_pulses(caster, origins, dirs, sensor)
-    rng_ = e.range
-    if sensor.range_noise > 0:
-        rng_ = rng_ + stream(seed, "lidar-noise").normal(0.0, sensor.range_noise, len(e))
+    rng_, intensity = observed(e, sensor, stream(seed, "lidar-noise"))
     pts = pose.position + dirs[e.pulse] * rng_[:, None]
     return Returns(
         pts,
@@ -290,7 +344,7 @@ def scan(
         scene.paths,
         len(dirs),
         {**asdict(sensor), "pose": asdict(pose)},
-        counts(e.energy),
+        intensity,
         e.return_number,
         e.number_of_returns,
     )

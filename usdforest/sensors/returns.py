@@ -110,6 +110,8 @@ def merge_echoes(
     separation: float,
     mode: str,
     max_returns: int = 1,
+    min_range: float = 0.0,
+    threshold: float = 0.0,
 ) -> Echoes:
     """Echoes of pulses from their sub-rays' hits.
 
@@ -127,7 +129,10 @@ def merge_echoes(
     mode
         ``first``, ``last``, ``strongest``, ``dual`` (the strongest and the last; the
         second strongest and the last when the strongest is last, as Velodyne's dual mode)
-        or ``all`` (the nearest ``max_returns``).
+        or ``all`` (the nearest ``max_returns``), chosen among the detected echoes.
+    min_range, threshold
+        An echo nearer than ``min_range`` metres, or with less energy than ``threshold``,
+        is not detected: the sensor never sees it (0, 0: every echo is).
     """
     if mode not in MODES:
         raise ValueError(f"mode {mode!r} is not one of {MODES}")
@@ -138,6 +143,7 @@ def merge_echoes(
     cls, tree, path = (np.ascontiguousarray(x) for x in labels)
     out = returns_kernels.merge(
         t, np.ascontiguousarray(energy, np.float64), spread, cls, tree, path,
-        float(separation), MODES.index(mode), int(max_returns),
+        float(separation), MODES.index(mode), int(max_returns), float(min_range),
+        float(threshold),
     )  # fmt: skip
     return Echoes(*out)

@@ -43,6 +43,21 @@ def _echoes(t, energy, spread, separation, order, start, e_sum, et_sum, top):
 
 
 @njit(cache=True, inline="always")
+def _detect(count, t, order, start, e_sum, et_sum, top, near, least):
+    """Drop the echoes the receiver cannot report, keeping the rest in order: those nearer
+    than ``near`` (metres, by their range) and those weaker than ``least`` (their energy).
+    Returns the number left."""
+    kept = 0
+    for c in range(count):
+        rng = et_sum[c] / e_sum[c] if e_sum[c] > 0 else t[order[start[c]]]
+        if rng < near or e_sum[c] < least:
+            continue
+        start[kept], e_sum[kept], et_sum[kept], top[kept] = start[c], e_sum[c], et_sum[c], top[c]
+        kept += 1
+    return kept
+
+
+@njit(cache=True, inline="always")
 def _keep(count, e_sum, mode, most, keep):
     """Which of a pulse's ``count`` echoes the sensor reports."""
     for c in range(count):
@@ -70,9 +85,10 @@ def _keep(count, e_sum, mode, most, keep):
 
 
 @njit(cache=True, parallel=True)
-def merge(t, energy, spread, cls, tree, path, separation, mode, most):
+def merge(t, energy, spread, cls, tree, path, separation, mode, most, near, least):
     """``(pulse, range, energy, cls, tree, path, return number, number of returns)`` of the
-    reported echoes, ordered by pulse then range."""
+    reported echoes, ordered by pulse then range; echoes nearer than ``near`` or weaker than
+    ``least`` are never detected (:func:`_detect`)."""
     n, s = t.shape
     per = np.zeros(n, np.int64)
     for p in prange(n):  # pass 1: how many each pulse reports
@@ -83,6 +99,7 @@ def merge(t, energy, spread, cls, tree, path, separation, mode, most):
         et_sum = np.empty(s)
         keep = np.empty(s, np.bool_)
         count = _echoes(t[p], energy[p], spread[p], separation, order, start, e_sum, et_sum, top)
+        count = _detect(count, t[p], order, start, e_sum, et_sum, top, near, least)
         per[p] = _keep(count, e_sum, mode, most, keep)
     first = np.zeros(n + 1, np.int64)
     for p in range(n):
@@ -106,6 +123,7 @@ def merge(t, energy, spread, cls, tree, path, separation, mode, most):
         et_sum = np.empty(s)
         keep = np.empty(s, np.bool_)
         count = _echoes(t[p], energy[p], spread[p], separation, order, start, e_sum, et_sum, top)
+        count = _detect(count, t[p], order, start, e_sum, et_sum, top, near, least)
         _keep(count, e_sum, mode, most, keep)
         k = first[p]
         for c in range(count):
