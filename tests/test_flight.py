@@ -138,7 +138,21 @@ def test_a_flight_through_a_built_forest_writes_las_and_sonar(tmp_path, runner):
     assert set(np.unique(tree[tree >= 0])) == {0, 1}  # both trees of the stand are hit
     cls = np.asarray(las.usdforest_class)
     assert {1, 3} <= set(np.unique(cls))  # trunk and leaf returns
-    assert np.all(np.asarray(las.classification)[cls == 3] == 5)  # high vegetation
+    # vegetation by its height above the ground (the stand's ground is z = 0): low under 2 m,
+    # medium under 5 m, high above (LAStools' lasheight: -classify_between 0.5 2 3, 2 5 4);
+    # ground 2; the height is kept in its own dimension
+    asprs, z = np.asarray(las.classification), np.asarray(las.z)
+    assert np.all(np.abs(z[cls == 4]) < 0.01) and np.all(asprs[cls == 4] == 2)
+    veg = np.isin(cls, [1, 2, 3])
+    np.testing.assert_allclose(np.asarray(las.height)[veg], z[veg], atol=1e-3)
+    expected = np.where(z[veg] < 2, 3, np.where(z[veg] < 5, 4, 5))
+    clear = np.min(np.abs(z[veg][:, None] - [2.0, 5.0]), axis=1) > 1e-3  # z is kept to 0.1 mm
+    assert np.array_equal(asprs[veg][clear], expected[clear]) and {3, 4} <= set(asprs[veg])
+    # the header as the field writes it
+    assert las.header.system_identifier == "Velodyne VLP-16"
+    assert las.header.generating_software.startswith("usdforest ")
+    assert las.header.file_source_id == 1
+    assert las.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.WEEK_TIME
     # the VLP-16's dual mode: one or two returns per pulse (a pulse is its GPS time and
     # laser), numbered by range; some pulses through foliage give two
     pulse = np.unique(np.column_stack([las.gps_time, las.ring]), axis=0, return_inverse=True)[1]
@@ -152,17 +166,27 @@ def test_a_flight_through_a_built_forest_writes_las_and_sonar(tmp_path, runner):
     # flight line 1, no CRS (the stage has none)
     assert np.all(las.point_source_id == 1) and not las.header.global_encoding.wkt
     assert np.mean(np.asarray(las.intensity) > 0) > 0.9  # the lidar equation (a wall test below)
-    # every point's ring and scan angle are the laser and azimuth it was fired at, seen from
-    # where the trajectory file puts the platform at the point's GPS time
+    # every point's ring, azimuth and scan angle are the laser and direction it was fired
+    # at, seen from where the trajectory file (an SBET record's fields) puts the platform at
+    # the point's GPS time
     traj = np.genfromtxt(tmp_path / "run_trajectory.csv", delimiter=",", names=True)
-    assert traj["t"][0] == 0 and traj["t"][-1] == pytest.approx(1.0)
-    np.testing.assert_allclose(traj["x"], 1 + 8 * traj["t"], atol=1e-6)
+    assert traj.dtype.names[:4] == ("time", "x", "y", "z") and len(traj.dtype.names) == 17
+    assert traj["time"][0] == 0 and traj["time"][-1] == pytest.approx(1.0)
+    np.testing.assert_allclose(traj["x"], 1 + 8 * traj["time"], atol=1e-6)
+    np.testing.assert_allclose(traj["x_velocity"], 8.0, atol=1e-6)
+    np.testing.assert_allclose(traj["heading"], 90.0, atol=1e-6)  # +x is east: 90 from north
+    for k in ("roll", "pitch", "x_acceleration", "z_angular_rate"):
+        np.testing.assert_allclose(traj[k], 0.0, atol=1e-6)
     gps = np.asarray(las.gps_time)
-    at = np.column_stack([np.interp(gps, traj["t"], traj[k]) for k in "xyz"])
+    at = np.column_stack([np.interp(gps, traj["time"], traj[k]) for k in "xyz"])
     d = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]) - at
     azimuth = np.degrees(np.arctan2(d[:, 1], d[:, 0]))  # heading +x: azimuth from forward
+    assert np.all(np.abs((azimuth - np.asarray(las.azimuth) + 180) % 360 - 180) < 0.01)
+    # ASPRS: the angle from straight down across the track, positive counter-clockwise seen
+    # from behind facing along it: towards the right, which is -y when heading +x
+    down = np.degrees(np.arctan2(-d[:, 1], -d[:, 2]))
     scan = np.asarray(las.scan_angle) * 0.006
-    assert np.all(np.abs((azimuth - scan + 180) % 360 - 180) < 0.01)
+    assert np.all(np.abs((down - scan + 180) % 360 - 180) < 0.01)
     elevation = np.degrees(np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1])))
     ring = np.asarray(las.ring)
     assert set(np.unique(ring)) <= set(range(16)) and len(np.unique(ring)) > 8
@@ -322,3 +346,39 @@ def test_lidar_intensity_follows_the_lidar_equation_on_a_wall(tmp_path):
     expected = 65535 * 0.5 * (10.0 / dist) / dist**2
     assert np.abs(r.intensity.astype(float) - expected).max() <= 1.0
     assert r.intensity.max() == 328  # head-on: 65,535 x 0.5 / 100, and less obliquely
+
+
+def test_a_start_time_gives_adjusted_standard_gps_time(tmp_path, runner):
+    """LAS 1.4: "standard GPS Time (satellite GPS Time) minus 1 x 10^9" with the global
+    encoding's bit 0 set: seconds since 1980-01-06 00:00:00 UTC plus the 18 leap seconds GPS
+    has gained by 2017 (GPS time at 2017-01-01 00:00:00 UTC is 1,167,264,018 s)."""
+    from datetime import UTC, datetime
+
+    import laspy
+
+    from usdforest.sensors.flight import write_las, write_trajectory
+    from usdforest.sensors.gpstime import gps_seconds, parse_utc
+
+    assert gps_seconds(parse_utc("2017-01-01T00:00:00Z")) == 1_167_264_018
+    assert gps_seconds(parse_utc("2016-12-31T23:59:59Z")) == 1_167_264_016  # before the leap
+    scene = extract_scene(_wall(tmp_path, 30.0))
+    traj = Trajectory.line((0, 0, 0), (10, 0, 0), 20.0)
+    lidar = SpinningLidar(channels=1, vfov_min=0, vfov_max=0, azimuth_step=1.0, max_range=100)
+    r = fly_lidar(scene, lidar, traj, rate=10.0)
+    start = "2026-06-21T12:00:00+02:00"  # 10:00 UTC
+    write_las(r, tmp_path / "f.las", start_time=start)
+    write_trajectory(traj, tmp_path / "f.csv", start_time=start)
+    las = laspy.read(str(tmp_path / "f.las"))
+    epoch = datetime(2026, 6, 21, 10, tzinfo=UTC) - datetime(1980, 1, 6, tzinfo=UTC)
+    t0 = epoch.total_seconds() + 18 - 1e9
+    assert las.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
+    np.testing.assert_allclose(np.asarray(las.gps_time), t0 + r.gps_time, atol=1e-6)
+    csv = np.genfromtxt(tmp_path / "f.csv", delimiter=",", names=True)
+    assert csv["time"][0] == pytest.approx(t0, abs=1e-6)
+    assert las.header.system_identifier == "OTHER"  # a lidar without a model name
+    for bad, words in (("yesterday", "not an ISO 8601 time"), ("2026-06-21T10:00", "no time zone"),
+                       ("1970-01-01T00:00:00Z", "before the GPS epoch")):  # fmt: skip
+        r = runner.invoke(app, ["fly", str(tmp_path / "wall.usda"), "--line", "0,0,1:1,0,1",
+                                "-o", str(tmp_path / "x"), "--start-time", bad])  # fmt: skip
+        assert r.exit_code == 2 and words in r.stderr and "Traceback" not in r.output, r.output
+        assert not list(tmp_path.glob("x*"))

@@ -229,6 +229,14 @@ def fly_cmd(
     seed: Annotated[
         int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise and ground roughness.")
     ] = 0,
+    start_time: Annotated[
+        str | None,
+        typer.Option(
+            help="UTC time of the path's t = 0 (ISO 8601, e.g. 2026-06-21T10:00:00Z): the LAS "
+            "and trajectory then carry Adjusted Standard GPS Time; without it, GPS week time "
+            "from 0."
+        ),
+    ] = None,
     device: DeviceOption = "cpu",
     force: Annotated[bool, typer.Option("--force", help="Overwrite the outputs.")] = False,
     long: Annotated[
@@ -272,6 +280,9 @@ def fly_cmd(
         except ValueError:
             raise UsdForestError(f"--line: expected x0,y0,z0:x1,y1,z1, got {line!r}") from None
     require_output(output, "output stem")
+    if start_time is not None:
+        flight.gps_times(np.zeros(1), start_time.strip())  # a bad time fails before any work
+        start_time = start_time.strip()
     traj = trajectory(stage, path=path, line=ends, speed=speed)
     tables = {}
     if config is not None:
@@ -322,8 +333,10 @@ def fly_cmd(
         writes = sum(x is not None for x in (done.lidar, done.sonar, done.camera))
         tick("writing outputs", 0, writes)
         if (r := done.lidar) is not None:
-            flight.write_las(r, staged.with_name(las.name), crs=done.crs, origin=done.origin)
-            flight.write_trajectory(traj, staged.with_name(trajectory_csv.name), origin=done.origin)
+            flight.write_las(r, staged.with_name(las.name), crs=done.crs, origin=done.origin,
+                             start_time=start_time)  # fmt: skip
+            flight.write_trajectory(traj, staged.with_name(trajectory_csv.name),
+                                    origin=done.origin, start_time=start_time)  # fmt: skip
             tick("writing outputs", 1, writes)
             summary["lidar"] = {
                 "sweeps": r.sweeps,

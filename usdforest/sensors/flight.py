@@ -36,19 +36,14 @@ from usdforest.sensors.sonar import SonarConfig, SonarScene
 MAX_COORDINATE = 1e8  # stage units: no flight goes further
 MAX_ANGLE = 3600.0  # degrees of pitch or roll in a path (ten turns)
 
-# ASPRS LAS classes for our semantic classes: unclassified, high vegetation (trunk, branch,
-# leaf) and ground; our own class is kept in the extra dimension "usdforest_class"
-# dead wood is not vegetation: unclassified (1), its own class in the usdforest_class dimension;
-# ground vegetation (grass, herbs, ferns, moss, under a metre) is low vegetation (3)
-ASPRS = {
-    "unknown": 1,
-    "trunk": 5,
-    "branch": 5,
-    "leaf": 5,
-    "ground": 2,
-    "dead_wood": 1,
-    "ground_vegetation": 3,
-}
+# ASPRS LAS classes for our semantic classes: unclassified, ground, and vegetation (trunk,
+# branch, leaf, ground vegetation) by its height above the ground: low (3) under 2 m, medium
+# (4) under 5 m, high (5) above; ASPRS sets no heights, these are the LAStools lasheight
+# README's "-classify_between 0.5 2 3 -classify_between 2 5 4" (and high above 5 m). Dead
+# wood is unclassified (1); our own class stays in the extra dimension "usdforest_class".
+ASPRS = {"unknown": 1, "ground": 2, "dead_wood": 1}
+VEGETATION = ("trunk", "branch", "leaf", "ground_vegetation")
+VEGETATION_HEIGHTS = (2.0, 5.0)  # m: low below the first, medium below the second, high above
 
 
 @dataclass(frozen=True, eq=False)
@@ -186,10 +181,13 @@ class FlightReturns:
     n_rays: int
     sweeps: int
     ring: np.ndarray  # the laser (channel) of each return, 0 the lowest
-    scan_angle: np.ndarray  # its azimuth from the sensor's forward axis, degrees in [-180, 180)
+    azimuth: np.ndarray  # its azimuth from the sensor's forward axis, degrees in [-180, 180)
     intensity: np.ndarray  # uint16, see usdforest.sensors.lidar.counts
     return_number: np.ndarray  # uint8, 1-based, by range among its pulse's returns
     number_of_returns: np.ndarray  # uint8, of its pulse
+    scan_angle: np.ndarray  # ASPRS: from straight down, positive to the right (see scan_angles)
+    height: np.ndarray  # above the ground under it, metres (see ground_height)
+    system: str = "OTHER"  # the sensor's name (LAS system identifier)
 
     def __len__(self) -> int:
         return len(self.range)
@@ -212,7 +210,7 @@ def fly_lidar(
     caster = caster or SceneCaster(scene)
     az, el = sensor.angles()
     ring = np.unique(el, return_inverse=True)[1].astype(np.uint16)
-    scan_angle = (az + 180.0) % 360.0 - 180.0
+    azimuth = (az + 180.0) % 360.0 - 180.0
     local = sensor.directions()
     starts = traj.t[0] + np.arange(0.0, traj.duration, 1.0 / rate)
     parts = []
@@ -232,35 +230,86 @@ def fly_lidar(
                 e.tree,
                 e.path,
                 ring[i],
-                scan_angle[i],
+                azimuth[i],
                 intensity,
                 e.return_number,
                 e.number_of_returns,
+                scan_angles(dirs[i], rot[i][:, :, 0]),
             )
         )
         if progress is not None:
             progress(k + 1, len(starts))
     cat = (
-        [np.concatenate([p[i] for p in parts]) for i in range(11)]
+        [np.concatenate([p[i] for p in parts]) for i in range(12)]
         if parts
-        else [np.zeros((0, 3)), *(np.zeros(0) for _ in range(10))]
+        else [np.zeros((0, 3)), *(np.zeros(0) for _ in range(11))]
     )
     return FlightReturns(
-        cat[0],
-        cat[1],
-        cat[2],
-        cat[3].astype(np.uint8),
-        cat[4].astype(np.int32),
-        cat[5].astype(np.int32),
-        scene.paths,
-        len(starts) * len(local),
-        len(starts),
-        cat[6].astype(np.uint16),
-        cat[7],
-        cat[8].astype(np.uint16),
-        cat[9].astype(np.uint8),
-        cat[10].astype(np.uint8),
+        points=cat[0],
+        gps_time=cat[1],
+        range=cat[2],
+        cls=cat[3].astype(np.uint8),
+        tree=cat[4].astype(np.int32),
+        path=cat[5].astype(np.int32),
+        paths=scene.paths,
+        n_rays=len(starts) * len(local),
+        sweeps=len(starts),
+        ring=cat[6].astype(np.uint16),
+        azimuth=cat[7],
+        intensity=cat[8].astype(np.uint16),
+        return_number=cat[9].astype(np.uint8),
+        number_of_returns=cat[10].astype(np.uint8),
+        scan_angle=cat[11],
+        height=cat[0][:, 2] - ground_height(scene, cat[0][:, :2]),
+        system=sensor.model or "OTHER",
     )
+
+
+def scan_angles(dirs: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """LAS 1.4's scan angle of rays along ``dirs`` (n, 3) from a platform heading along
+    ``forward`` (n, 3), degrees in (-180, 180]: the ray's angle from straight down (the data's
+    vertical) in the plane across the track, positive counter-clockwise seen from behind the
+    sensor facing along the track (towards its right), so a ray level to the right is +90."""
+    along = np.asarray(forward, dtype=float) * [1.0, 1.0, 0.0]
+    flat = np.linalg.norm(along, axis=1) < 1e-9  # heading straight up or down: x is along
+    along[flat] = [1.0, 0.0, 0.0]
+    along /= np.linalg.norm(along, axis=1, keepdims=True)
+    right = np.column_stack([along[:, 1], -along[:, 0], np.zeros(len(along))])  # along x up
+    return np.degrees(np.arctan2(np.sum(dirs * right, axis=1), -dirs[:, 2]))
+
+
+def ground_height(scene: Scene, xy: np.ndarray) -> np.ndarray:
+    """The height of the scene's ground (its ``ground`` class triangles) under each of ``xy``
+    (n, 2): linear between the ground's vertices, the nearest vertex's beyond them, 0 where
+    the scene has no ground."""
+    tri = scene.triangles[scene.cls == CLASSES.index("ground")]
+    if not len(tri) or not len(xy):
+        return np.zeros(len(xy))
+    from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+
+    v = np.unique(np.asarray(tri, dtype=float).reshape(-1, 3), axis=0)
+    if len(v) < 3:
+        return np.full(len(xy), float(v[:, 2].mean()))
+    try:
+        z = LinearNDInterpolator(v[:, :2], v[:, 2])(xy)
+    except Exception:  # the ground's vertices on a line (QhullError): no plane to interpolate
+        z = np.full(len(xy), np.nan)
+    far = np.isnan(z)
+    if far.any():
+        z[far] = NearestNDInterpolator(v[:, :2], v[:, 2])(xy[far])
+    return z
+
+
+def asprs_classes(cls: np.ndarray, height: np.ndarray) -> np.ndarray:
+    """ASPRS classification of returns of our classes ``cls`` at ``height`` above the ground:
+    vegetation low (3), medium (4) or high (5) by :data:`VEGETATION_HEIGHTS`, the others by
+    :data:`ASPRS`."""
+    lut = np.array([ASPRS.get(c, 0) for c in CLASSES], dtype=np.uint8)
+    out = lut[cls]
+    veg = np.isin(cls, [CLASSES.index(c) for c in VEGETATION])
+    low, mid = VEGETATION_HEIGHTS
+    out[veg] = np.where(height[veg] < low, 3, np.where(height[veg] < mid, 4, 5))
+    return out
 
 
 def stage_georeference(stage: str | Path) -> tuple[str | None, np.ndarray]:
@@ -276,6 +325,17 @@ def stage_georeference(stage: str | Path) -> tuple[str | None, np.ndarray]:
     return (str(crs) if crs else None), origin
 
 
+def gps_times(t: np.ndarray, start_time: str | None) -> np.ndarray:
+    """LAS GPS times of path times ``t`` (seconds): Adjusted Standard GPS Time with the path's
+    t = 0 at ``start_time`` (ISO 8601 UTC, e.g. ``2026-06-21T10:00:00Z``); without one, the
+    seconds themselves, as GPS week time (the week starting at t = 0)."""
+    if start_time is None:
+        return np.asarray(t, dtype=float)
+    from usdforest.sensors.gpstime import ADJUSTMENT, gps_seconds, parse_utc
+
+    return gps_seconds(parse_utc(start_time)) - ADJUSTMENT + np.asarray(t, dtype=float)
+
+
 def write_las(
     r: FlightReturns,
     out: Path,
@@ -283,18 +343,27 @@ def write_las(
     crs: str | None = None,
     origin: np.ndarray | None = None,
     flight_line: int = 1,
+    start_time: str | None = None,
 ) -> Path:
-    """LAS 1.4, point format 6, as point-cloud tools expect it: x, y, z (0.1 mm; in ``crs``
-    with the stage origin's map position ``origin`` added to x and y), GPS time (the path's
-    seconds), return number and number of returns of each pulse, intensity (the lidar equation, see
-    :func:`usdforest.sensors.lidar.counts`), scan angle (the laser's azimuth from the
-    platform's forward axis), point source = ``flight_line``, ASPRS classification, and the
-    extra dimensions ``ring`` (uint16, the laser: 0 the lowest), ``tree_id`` (int32, -1 off
-    any tree) and ``usdforest_class`` (0 unknown, 1 trunk, 2 branch, 3 leaf, 4 ground, 5 dead
-    wood). With a ``crs`` the global encoding's WKT bit is set and a WKT CRS record written
-    (pyproj)."""
+    """LAS 1.4, point format 6, as the ASPRS specification defines it and point-cloud tools
+    read it (checked with laspy): x, y, z (0.1 mm; in ``crs`` with the stage origin's map
+    position ``origin`` added to x and y); GPS time (Adjusted Standard GPS Time from
+    ``start_time``, see :func:`gps_times`; without one the path's seconds as GPS week time);
+    return number and number of returns of each pulse; intensity (the lidar equation, see
+    :func:`usdforest.sensors.lidar.counts`); scan angle (:func:`scan_angles`: from straight
+    down, positive to the right); ASPRS classification (:func:`asprs_classes`: vegetation
+    low, medium or high by its height above the ground); point source and file source =
+    ``flight_line``; system identifier the sensor's model, generating software "usdforest
+    <version>"; and the extra dimensions ``ring`` (uint16, the laser: 0 the lowest),
+    ``azimuth`` (float32, degrees from the platform's forward axis), ``height`` (float32, m
+    above the ground), ``tree_id`` (int32, -1 off any tree) and ``usdforest_class`` (0
+    unknown, 1 trunk, 2 branch, 3 leaf, 4 ground, 5 dead wood, 6 ground vegetation). With a
+    ``crs`` the global encoding's WKT bit is set and a WKT CRS record written (pyproj)."""
     import laspy
 
+    from usdforest import __version__
+
+    gps = gps_times(r.gps_time, start_time)  # checks start_time before any work
     shift = np.zeros(3)
     if origin is not None:
         shift[:2] = origin
@@ -302,6 +371,11 @@ def write_las(
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.scales = np.array([1e-4, 1e-4, 1e-4])
     header.offsets = np.floor(points.min(axis=0)) if len(r) else shift
+    header.system_identifier = r.system[:32]
+    header.generating_software = f"usdforest {__version__}"[:32]
+    header.file_source_id = flight_line
+    if start_time is not None:
+        header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
     if crs is not None:
         try:
             import pyproj
@@ -314,21 +388,24 @@ def write_las(
     header.add_extra_dims(
         [
             laspy.ExtraBytesParams(name="ring", type=np.uint16),
+            laspy.ExtraBytesParams(name="azimuth", type=np.float32),
+            laspy.ExtraBytesParams(name="height", type=np.float32),
             laspy.ExtraBytesParams(name="tree_id", type=np.int32),
             laspy.ExtraBytesParams(name="usdforest_class", type=np.uint8),
         ]
     )
     las = laspy.LasData(header)
     las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
-    las.gps_time = r.gps_time
+    las.gps_time = gps
     las.return_number = r.return_number
     las.number_of_returns = r.number_of_returns
     las.intensity = r.intensity
     las.scan_angle = np.round(r.scan_angle / 0.006).astype(np.int16)  # 0.006 degree units
     las.point_source_id = np.full(len(r), flight_line, np.uint16)
-    lut = np.array([ASPRS[c] for c in CLASSES], dtype=np.uint8)
-    las.classification = lut[r.cls]
+    las.classification = asprs_classes(r.cls, r.height)
     las.ring = r.ring
+    las.azimuth = r.azimuth.astype(np.float32)
+    las.height = r.height.astype(np.float32)
     las.tree_id = r.tree
     las.usdforest_class = r.cls
     with atomic_path(out) as tmp:
@@ -336,21 +413,58 @@ def write_las(
     return out
 
 
+SBET_COLUMNS = (
+    "time", "x", "y", "z", "x_velocity", "y_velocity", "z_velocity", "roll", "pitch",
+    "heading", "wander_angle", "x_acceleration", "y_acceleration", "z_acceleration",
+    "x_angular_rate", "y_angular_rate", "z_angular_rate",
+)  # fmt: skip
+
+
 def write_trajectory(
-    traj: Trajectory, out: Path, *, origin: np.ndarray | None = None, rate: float = 100.0
+    traj: Trajectory,
+    out: Path,
+    *,
+    origin: np.ndarray | None = None,
+    rate: float = 100.0,
+    start_time: str | None = None,
 ) -> Path:
-    """The platform's trajectory beside its LAS: a CSV ``t,x,y,z,yaw,pitch,roll`` (s, the
-    LAS's coordinates, degrees) at ``rate`` Hz and at the path's end."""
+    """The platform's trajectory beside its LAS, as a CSV with an Applanix SBET record's 17
+    fields in their order (:data:`SBET_COLUMNS`), at ``rate`` Hz and at the path's end: the
+    LAS's GPS time (:func:`gps_times`), position in the LAS's coordinates (where an SBET has
+    latitude, longitude and height), velocity (m/s, east, north, up), roll, pitch and heading
+    (degrees; heading clockwise from grid north, +y), wander angle (0: the grid's north),
+    and the body's acceleration (m/s², gravity left out) and angular rates (degrees/s) about
+    its forward, right and down axes, from the path by finite differences."""
+    gps0 = gps_times(np.zeros(1), start_time)[0]  # checks start_time before any work
     times = np.unique(np.append(traj.t[0] + np.arange(0.0, traj.duration, 1.0 / rate), traj.t[-1]))
-    pos, _, _ = traj.at(times)
+    pos, rot, vel = traj.at(times)
     if origin is not None:
         pos = pos + np.array([origin[0], origin[1], 0.0])
     yaw, pitch, roll = traj.attitude(times)
-    table = np.column_stack([times, pos, yaw, pitch, roll])
+    body = np.stack([rot[:, :, 0], -rot[:, :, 1], -rot[:, :, 2]], axis=1)  # forward, right, down
+    moving = len(times) > 1
+    accel = np.einsum("nij,nj->ni", body, np.gradient(vel, times, axis=0) if moving else 0 * vel)
+    # the angular velocity in the body's own axes: R^T dR/dt is its cross-product matrix
+    turn = np.gradient(rot, times, axis=0) if moving else 0 * rot
+    spin = np.einsum("nji,njk->nik", rot, turn)
+    w_local = np.column_stack([spin[:, 2, 1], spin[:, 0, 2], spin[:, 1, 0]])  # forward, left, up
+    w_body = np.degrees(w_local * [1.0, -1.0, -1.0])
+    table = np.column_stack(
+        [
+            gps0 + times,
+            pos,
+            vel,
+            roll,
+            pitch,
+            (90.0 - yaw) % 360.0,
+            np.zeros(len(times)),
+            accel,
+            w_body,
+        ]
+    )
     with atomic_path(out) as tmp:
-        np.savetxt(
-            tmp, table, fmt="%.6f", delimiter=",", header="t,x,y,z,yaw,pitch,roll", comments=""
-        )
+        np.savetxt(tmp, table, fmt="%.6f", delimiter=",", header=",".join(SBET_COLUMNS),
+                   comments="")  # fmt: skip
     return out
 
 

@@ -50,7 +50,8 @@ class SpinningLidar:
     a darker target or one seen obliquely is lost sooner; ranges with Gaussian noise of
     ``range_noise`` metres (standard deviation) and intensities with relative Gaussian noise
     ``intensity_noise``, from the scan's seed. ``noise = False`` turns all four off: the exact
-    cloud, for ground truth. ``max_range`` is how far the rays are followed.
+    cloud, for ground truth. ``max_range`` is how far the rays are followed. ``model`` names
+    the sensor (a flight's LAS system identifier).
     """
 
     channels: int = 16
@@ -71,8 +72,11 @@ class SpinningLidar:
     detect_reflectance: float = 0.8
     intensity_noise: float = 0.0
     noise: bool = True
+    model: str = ""
 
     def check(self) -> None:
+        if len(self.model.encode()) > 32:
+            raise UsdForestError("lidar.model: at most 32 bytes (the LAS system identifier)")
         if not (np.isfinite(self.min_range) and 0 <= self.min_range < self.max_range):
             raise UsdForestError("lidar.min_range: must be >= 0 m and below max_range")
         if not (np.isfinite(self.detect_range) and self.detect_range >= 0):
@@ -174,11 +178,14 @@ def _check_common(max_range: float, noise: float, table: str = "lidar") -> None:
 _DATASHEET = {"range_noise": 0.03, "intensity_noise": 0.05, "detect_reflectance": 0.8}
 PRESETS: dict[str, SpinningLidar | DepthCamera] = {
     "vlp-16": SpinningLidar(16, -15.0, 15.0, 0.2, 130.0, divergence=3.0, returns="dual",
-                            min_range=0.9, detect_range=100.0, **_DATASHEET),
+                            min_range=0.9, detect_range=100.0, model="Velodyne VLP-16",
+                            **_DATASHEET),
     "hdl-32": SpinningLidar(32, -30.67, 10.67, 0.16, 130.0, divergence=3.3, returns="dual",
-                            min_range=0.05, detect_range=100.0, **_DATASHEET),
+                            min_range=0.05, detect_range=100.0, model="Velodyne HDL-32E",
+                            **_DATASHEET),
     "os1-64": SpinningLidar(64, -16.6, 16.6, 0.35, 150.0, divergence=2.3,
-                            min_range=0.8, detect_range=120.0, **_DATASHEET),
+                            min_range=0.8, detect_range=120.0, model="Ouster OS1-64",
+                            **_DATASHEET),
     "depth-camera": DepthCamera(640, 480, 87.0, 10.0),
 }  # fmt: skip
 
