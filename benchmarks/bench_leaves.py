@@ -19,7 +19,7 @@ import tomllib
 from pathlib import Path
 
 import tomli_w
-from bench_floor import EXE, POSE, _run
+from bench_floor import EXE, best_of_two
 
 DEFAULT = Path(__file__).resolve().parents[1] / "pipelines" / "default.toml"
 TARGET = 1.3
@@ -59,20 +59,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         recipes = _recipes(work)
-        best: dict[tuple[str, str], tuple[float, float]] = {}
-        for _ in range(2):
-            for k, (name, recipe) in enumerate(recipes.items()):
-                stem = work / f"v{k}"
-                steps = {
-                    "build": ["build", f"{stem}.usda", "-p", str(recipe), "--force"],
-                    "preview": ["preview", f"{stem}.usda", "-o", f"{stem}.png", "--force"],
-                    "scan": ["scan", f"{stem}.usda", "--sensor", "lidar", "--pose", POSE,
-                             "-o", f"{stem}.npz", "--force"],
-                }  # fmt: skip
-                for step, args in steps.items():
-                    s, mib = _run(args)
-                    old = best.get((step, name), (float("inf"), 0.0))
-                    best[(step, name)] = (min(old[0], s), max(old[1], mib))
+        best = best_of_two(recipes, work)
         triangles = {n: _triangles(work / f"v{k}.usda") for k, n in enumerate(recipes)}
     names = list(recipes)
     print("| step | " + " | ".join(names) + " | ratio: time | memory | target |")
