@@ -49,7 +49,9 @@ def test_range_and_intensity_noise_are_the_datasheets_on_a_wall_at_10_m(tmp_path
 def test_noise_off_is_the_exact_cloud(tmp_path):
     scene = _wall(tmp_path, 10.0)
     exact = scan(scene, replace(PRESETS["vlp-16"], noise=False), Pose(0, 0, 0))
-    bare = SpinningLidar(16, -15.0, 15.0, 0.2, 130.0, divergence=3.0, returns="dual")
+    bare = SpinningLidar(
+        16, -15.0, 15.0, 0.2, 130.0, divergence=3.0, returns="dual", pulse_width=4.0
+    )
     ideal = scan(scene, bare, Pose(0, 0, 0))
     assert np.array_equal(exact.range, ideal.range)
     assert np.array_equal(exact.intensity, ideal.intensity)

@@ -112,6 +112,7 @@ def merge_echoes(
     max_returns: int = 1,
     min_range: float = 0.0,
     threshold: float = 0.0,
+    pulse_sigma: float = 0.0,
 ) -> Echoes:
     """Echoes of pulses from their sub-rays' hits.
 
@@ -133,6 +134,11 @@ def merge_echoes(
     min_range, threshold
         An echo nearer than ``min_range`` metres, or with less energy than ``threshold``,
         is not detected: the sensor never sees it (0, 0: every echo is).
+    pulse_sigma
+        > 0: the echoes are the peaks of each pulse's return waveform, its hits seen
+        through a Gaussian pulse of this standard deviation in range (metres), each peak at
+        its own range, peaks closer than ``separation`` one echo at the stronger's; 0: hits
+        closer than ``separation`` are one echo at their energy-weighted mean range.
     """
     if mode not in MODES:
         raise ValueError(f"mode {mode!r} is not one of {MODES}")
@@ -144,6 +150,6 @@ def merge_echoes(
     out = returns_kernels.merge(
         t, np.ascontiguousarray(energy, np.float64), spread, cls, tree, path,
         float(separation), MODES.index(mode), int(max_returns), float(min_range),
-        float(threshold),
+        float(threshold), float(pulse_sigma),
     )  # fmt: skip
     return Echoes(*out)

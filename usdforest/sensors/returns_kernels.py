@@ -28,7 +28,7 @@ def _echoes(t, energy, spread, separation, order, start, e_sum, et_sum, top):
         j = order[m]
         if not math.isfinite(t[j]):
             break
-        if m == 0 or (t[j] - spread[j]) - (t[order[m - 1]] + spread[order[m - 1]]) > separation:
+        if m == 0 or (t[j] - spread[j]) - (t[order[m - 1]] + spread[order[m - 1]]) >= separation:
             start[count] = m
             e_sum[count] = 0.0
             et_sum[count] = 0.0
@@ -40,6 +40,135 @@ def _echoes(t, energy, spread, separation, order, start, e_sum, et_sum, top):
         if energy[j] > energy[top[c]]:
             top[c] = j
     return count
+
+
+@njit(cache=True, inline="always")
+def _pulse_shape(x, t, e, spread, sigma):
+    """Energy ``e`` returned from range ``t`` spread evenly over +-``spread``, seen through a
+    Gaussian pulse of standard deviation ``sigma`` (metres of range), at range ``x``, per
+    metre: the box convolved with the pulse, as the Gaussian of the same mean and variance
+    (sigma^2 + spread^2 / 3; exact for a surface seen head-on, and one exp, not two erfs)."""
+    v = sigma * sigma + spread * spread / 3.0
+    d = x - t
+    return e * math.exp(-0.5 * d * d / v) / math.sqrt(2.0 * math.pi * v)
+
+
+@njit(cache=True, inline="always")
+def _waveform(t, energy, spread, separation, sigma, order, start, e_sum, et_sum, top):
+    """Echoes of one pulse from its return waveform (replacing :func:`_echoes`' clusters):
+    the hits, sorted by range, make a waveform (each hit's energy through the pulse shape,
+    :func:`_pulse_shape`); its peaks (a sample above both neighbours, refined by a parabola
+    through the logs of three samples: exact for a Gaussian) are the echoes, each hit counted
+    in the nearest; peaks closer than ``separation`` are one echo at the stronger's range.
+    Each echo's ``et_sum`` is its range times its energy; ``start`` its first hit."""
+    s = t.size
+    for j in range(s):  # insertion sort: stable, and a beam has a few dozen sub-rays
+        order[j] = j
+        m = j
+        while m > 0 and t[order[m - 1]] > t[j]:
+            order[m] = order[m - 1]
+            m -= 1
+        order[m] = j
+    hits = 0
+    while hits < s and math.isfinite(t[order[hits]]):
+        hits += 1
+    count = 0
+    h = 0.5 * sigma
+    peak = np.empty(s)
+    near = np.empty(s)  # each echo's hits' patches: the nearest and farthest range they span
+    far = np.empty(s)
+    m0 = 0
+    while m0 < hits:  # segments: hits whose pulses overlap
+        m1 = m0 + 1
+        reach = t[order[m0]] + spread[order[m0]] + 4.0 * sigma
+        while m1 < hits and t[order[m1]] - spread[order[m1]] - 4.0 * sigma <= reach:
+            reach = max(reach, t[order[m1]] + spread[order[m1]] + 4.0 * sigma)
+            m1 += 1
+        lo = t[order[m0]] - spread[order[m0]] - 4.0 * sigma
+        for m in range(m0, m1):
+            lo = min(lo, t[order[m]] - spread[order[m]] - 4.0 * sigma)
+        first = count
+        span_lo, span_hi, e_seg, et_seg = np.inf, -np.inf, 0.0, 0.0
+        for m in range(m0, m1):
+            j = order[m]
+            span_lo = min(span_lo, t[j] - spread[j])
+            span_hi = max(span_hi, t[j] + spread[j])
+            e_seg += energy[j]
+            et_seg += energy[j] * t[j]
+        if span_hi - span_lo < 0.25 * sigma and e_seg > 0.0 and count < s:
+            # narrower than a quarter of the pulse: one peak, where the energy's mean is (the
+            # peak of Gaussians this close together, to within 1e-3 of their spread)
+            peak[count] = et_seg / e_seg
+            count += 1
+            g = 0
+        else:
+            # half the pulse's deviation (a Gaussian's peak is found exactly from three samples
+            # of it), or coarser on a long oblique footprint, whose waveform is as broad
+            h = max(0.5 * sigma, (reach - lo) / 48.0)
+            g = math.ceil((reach - lo) / h) + 1
+        w = np.zeros(g)
+        for i in range(g):
+            x = lo + i * h
+            for m in range(m0, m1):
+                j = order[m]
+                w[i] += _pulse_shape(x, t[j], energy[j], spread[j], sigma)
+        top_w = 0.0
+        for i in range(g):
+            top_w = max(top_w, w[i])
+        if top_w > 0.0:
+            for i in range(1, g - 1):
+                if w[i] > w[i - 1] and w[i] >= w[i + 1] and w[i] > 1e-6 * top_w:
+                    a, b, c = math.log(w[i - 1]), math.log(w[i]), math.log(w[i + 1])
+                    d = a - 2.0 * b + c
+                    off = 0.5 * (a - c) / d if d < 0.0 else 0.0
+                    if count < s:
+                        peak[count] = lo + (i + min(max(off, -1.0), 1.0)) * h
+                        count += 1
+        if count == first and count < s:  # no energy (grazing hits): one echo at the nearest
+            peak[count] = t[order[m0]]
+            count += 1
+        for c in range(first, count):
+            start[c] = -1
+            e_sum[c] = 0.0
+            et_sum[c] = 0.0
+            top[c] = -1
+            near[c] = np.inf
+            far[c] = -np.inf
+        for m in range(m0, m1):  # each hit to its nearest peak
+            j = order[m]
+            best = first
+            for c in range(first + 1, count):
+                if abs(peak[c] - t[j]) < abs(peak[best] - t[j]):
+                    best = c
+            if start[best] < 0:
+                start[best] = m
+            e_sum[best] += energy[j]
+            if top[best] < 0 or energy[j] > energy[top[best]]:
+                top[best] = j
+            near[best] = min(near[best], t[j] - spread[j])
+            far[best] = max(far[best], t[j] + spread[j])
+        m0 = m1
+    # drop peaks no hit fell to; echoes whose surfaces (their hits' patches) come closer in
+    # range than the separation are one, at the stronger peak's range (as _echoes cuts them)
+    kept = 0
+    for c in range(count):
+        if start[c] < 0:
+            continue
+        if kept > 0 and near[c] - far[kept - 1] < separation:
+            k = kept - 1
+            if e_sum[c] > e_sum[k]:
+                peak[k] = peak[c]
+            if energy[top[c]] > energy[top[k]]:
+                top[k] = top[c]
+            e_sum[k] += e_sum[c]
+            far[k] = max(far[k], far[c])
+            continue
+        start[kept], e_sum[kept], top[kept] = start[c], e_sum[c], top[c]
+        peak[kept], near[kept], far[kept] = peak[c], near[c], far[c]
+        kept += 1
+    for c in range(kept):  # from here on an echo's range is et_sum / e_sum: its peak's
+        et_sum[c] = peak[c] * e_sum[c] if e_sum[c] > 0 else 0.0
+    return kept
 
 
 @njit(cache=True, inline="always")
@@ -85,10 +214,12 @@ def _keep(count, e_sum, mode, most, keep):
 
 
 @njit(cache=True, parallel=True)
-def merge(t, energy, spread, cls, tree, path, separation, mode, most, near, least):
+def merge(t, energy, spread, cls, tree, path, separation, mode, most, near, least, sigma):
     """``(pulse, range, energy, cls, tree, path, return number, number of returns)`` of the
     reported echoes, ordered by pulse then range; echoes nearer than ``near`` or weaker than
-    ``least`` are never detected (:func:`_detect`)."""
+    ``least`` are never detected (:func:`_detect`). ``sigma`` > 0: echoes are the peaks of
+    the return waveform of a pulse of that standard deviation in range (:func:`_waveform`);
+    0: hits closer than ``separation`` are one echo at their energy-weighted range."""
     n, s = t.shape
     per = np.zeros(n, np.int64)
     for p in prange(n):  # pass 1: how many each pulse reports
@@ -98,7 +229,12 @@ def merge(t, energy, spread, cls, tree, path, separation, mode, most, near, leas
         e_sum = np.empty(s)
         et_sum = np.empty(s)
         keep = np.empty(s, np.bool_)
-        count = _echoes(t[p], energy[p], spread[p], separation, order, start, e_sum, et_sum, top)
+        if sigma > 0:
+            count = _waveform(t[p], energy[p], spread[p], separation, sigma, order, start,
+                              e_sum, et_sum, top)  # fmt: skip
+        else:
+            count = _echoes(t[p], energy[p], spread[p], separation, order, start, e_sum, et_sum,
+                            top)  # fmt: skip
         count = _detect(count, t[p], order, start, e_sum, et_sum, top, near, least)
         per[p] = _keep(count, e_sum, mode, most, keep)
     first = np.zeros(n + 1, np.int64)
@@ -122,7 +258,12 @@ def merge(t, energy, spread, cls, tree, path, separation, mode, most, near, leas
         e_sum = np.empty(s)
         et_sum = np.empty(s)
         keep = np.empty(s, np.bool_)
-        count = _echoes(t[p], energy[p], spread[p], separation, order, start, e_sum, et_sum, top)
+        if sigma > 0:
+            count = _waveform(t[p], energy[p], spread[p], separation, sigma, order, start,
+                              e_sum, et_sum, top)  # fmt: skip
+        else:
+            count = _echoes(t[p], energy[p], spread[p], separation, order, start, e_sum, et_sum,
+                            top)  # fmt: skip
         count = _detect(count, t[p], order, start, e_sum, et_sum, top, near, least)
         _keep(count, e_sum, mode, most, keep)
         k = first[p]
