@@ -335,3 +335,28 @@ def test_a_pulse_through_a_leaf_returns_the_transmitted_light_from_the_wall_behi
         stage([5.0]), _beam(beam_rings=2, returns="all", leaf_transmittance=0.0), Pose(0, 0, 0)
     )
     np.testing.assert_allclose(_pulse(r)[0], [5.0], atol=1e-3)
+
+
+def test_a_waveform_never_gives_more_echoes_than_hits():
+    """Random pulses of up to 19 hits, many on broad oblique patches (flat-topped waveforms
+    whose rounding ripples are no peaks): every pulse's echoes number at most its hits, their
+    energies sum to its hits' and every echo lies within its hits' span."""
+    rng = np.random.default_rng(3)
+    n, s = 20_000, 19
+    t = rng.uniform(2.0, 60.0, (n, s))
+    t[:, :10] = t[:, :1] + rng.uniform(0.0, 0.3, (n, 10))  # a cluster in each pulse
+    t[rng.random((n, s)) < 0.2] = np.inf
+    energy = np.where(np.isfinite(t), rng.uniform(0.0, 1e-3, (n, s)), 0.0)
+    spread = rng.uniform(0.0, 3.0, (n, s)) * (rng.random((n, s)) < 0.5)
+    labels = tuple(np.zeros((n, s), np.int64) for _ in range(3))
+    e = merge_echoes(t, energy, labels, spread=spread, separation=0.01, mode="all",
+                     max_returns=15, pulse_sigma=0.2546)  # fmt: skip
+    hits = np.isfinite(t).sum(axis=1)
+    per = np.bincount(e.pulse, minlength=n)
+    assert np.all(per <= np.maximum(hits, 0)) and np.all(per[hits > 0] >= 1)
+    full = per <= 15  # 'all' keeps the nearest 15
+    np.testing.assert_allclose(np.bincount(e.pulse, e.energy, minlength=n)[full & (hits > 0)],
+                               energy.sum(axis=1)[full & (hits > 0)], rtol=1e-9)  # fmt: skip
+    lo = np.where(np.isfinite(t), t - spread, np.inf).min(axis=1) - 0.01
+    hi = np.where(np.isfinite(t), t + spread, -np.inf).max(axis=1) + 0.01
+    assert np.all((e.range >= lo[e.pulse]) & (e.range <= hi[e.pulse]))

@@ -59,8 +59,9 @@ def _waveform(t, energy, spread, separation, sigma, order, start, e_sum, et_sum,
     the hits, sorted by range, make a waveform (each hit's energy through the pulse shape,
     :func:`_pulse_shape`); its peaks (a sample above both neighbours, refined by a parabola
     through the logs of three samples: exact for a Gaussian) are the echoes, each hit counted
-    in the nearest; peaks closer than ``separation`` are one echo at the stronger's range.
-    Each echo's ``et_sum`` is its range times its energy; ``start`` its first hit."""
+    in the nearest; echoes whose hits' patches come closer in range than ``separation`` are
+    one, at the stronger peak's range. Each echo's ``et_sum`` is its range times its energy;
+    ``start`` its first hit. A segment of m hits gives at most m echoes."""
     s = t.size
     for j in range(s):  # insertion sort: stable, and a beam has a few dozen sub-rays
         order[j] = j
@@ -95,7 +96,7 @@ def _waveform(t, energy, spread, separation, sigma, order, start, e_sum, et_sum,
             span_hi = max(span_hi, t[j] + spread[j])
             e_seg += energy[j]
             et_seg += energy[j] * t[j]
-        if span_hi - span_lo < 0.25 * sigma and e_seg > 0.0 and count < s:
+        if span_hi - span_lo < 0.25 * sigma and e_seg > 0.0:
             # narrower than a quarter of the pulse: one peak, where the energy's mean is (the
             # peak of Gaussians this close together, to within 1e-3 of their spread)
             peak[count] = et_seg / e_seg
@@ -117,14 +118,18 @@ def _waveform(t, energy, spread, separation, sigma, order, start, e_sum, et_sum,
             top_w = max(top_w, w[i])
         if top_w > 0.0:
             for i in range(1, g - 1):
+                # no more peaks than hits in the segment (a sum of m Gaussians has at most m
+                # in one dimension; rounding ripples are not peaks), so the echoes never
+                # outnumber the pulse's hits
+                if count - first >= m1 - m0:
+                    break
                 if w[i] > w[i - 1] and w[i] >= w[i + 1] and w[i] > 1e-6 * top_w:
                     a, b, c = math.log(w[i - 1]), math.log(w[i]), math.log(w[i + 1])
                     d = a - 2.0 * b + c
                     off = 0.5 * (a - c) / d if d < 0.0 else 0.0
-                    if count < s:
-                        peak[count] = lo + (i + min(max(off, -1.0), 1.0)) * h
-                        count += 1
-        if count == first and count < s:  # no energy (grazing hits): one echo at the nearest
+                    peak[count] = lo + (i + min(max(off, -1.0), 1.0)) * h
+                    count += 1
+        if count == first:  # no energy (grazing hits): one echo at the nearest
             peak[count] = t[order[m0]]
             count += 1
         for c in range(first, count):
