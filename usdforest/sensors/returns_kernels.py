@@ -11,18 +11,25 @@ FIRST, LAST, STRONGEST, DUAL, ALL = range(5)
 
 
 @njit(cache=True, inline="always")
-def _echoes(t, energy, spread, separation, order, start, e_sum, et_sum, top):
-    """Sort one pulse's hits by range (stably), cut them into echoes: ``start`` (each
-    echo's first sorted hit), sums of energy and energy x range, and its strongest hit (the
-    first of the largest energy, in range order). Returns the number of echoes."""
-    s = t.size
-    for j in range(s):  # insertion sort: stable, and a beam has a few dozen sub-rays
+def _sort(t, order):
+    """``order``: the indices of ``t`` by range, stably (an insertion sort: a beam has a few
+    dozen sub-rays)."""
+    for j in range(t.size):
         order[j] = j
         m = j
         while m > 0 and t[order[m - 1]] > t[j]:
             order[m] = order[m - 1]
             m -= 1
         order[m] = j
+
+
+@njit(cache=True, inline="always")
+def _echoes(t, energy, spread, separation, order, start, e_sum, et_sum, top):
+    """Sort one pulse's hits by range (stably), cut them into echoes: ``start`` (each
+    echo's first sorted hit), sums of energy and energy x range, and its strongest hit (the
+    first of the largest energy, in range order). Returns the number of echoes."""
+    s = t.size
+    _sort(t, order)
     count = 0
     for m in range(s):
         j = order[m]
@@ -63,13 +70,7 @@ def _waveform(t, energy, spread, separation, sigma, order, start, e_sum, et_sum,
     one, at the stronger peak's range. Each echo's ``et_sum`` is its range times its energy;
     ``start`` its first hit. A segment of m hits gives at most m echoes."""
     s = t.size
-    for j in range(s):  # insertion sort: stable, and a beam has a few dozen sub-rays
-        order[j] = j
-        m = j
-        while m > 0 and t[order[m - 1]] > t[j]:
-            order[m] = order[m - 1]
-            m -= 1
-        order[m] = j
+    _sort(t, order)
     hits = 0
     while hits < s and math.isfinite(t[order[hits]]):
         hits += 1
@@ -218,6 +219,17 @@ def _keep(count, e_sum, mode, most, keep):
     return kept
 
 
+@njit(cache=True, inline="always")
+def _cut(t, energy, spread, separation, sigma, near, least, order, start, e_sum, et_sum, top):
+    """One pulse's detected echoes (:func:`_waveform` with a pulse shape, :func:`_echoes`
+    without, then :func:`_detect`); returns how many."""
+    if sigma > 0:
+        count = _waveform(t, energy, spread, separation, sigma, order, start, e_sum, et_sum, top)
+    else:
+        count = _echoes(t, energy, spread, separation, order, start, e_sum, et_sum, top)
+    return _detect(count, t, order, start, e_sum, et_sum, top, near, least)
+
+
 @njit(cache=True, parallel=True)
 def merge(t, energy, spread, cls, tree, path, separation, mode, most, near, least, sigma):
     """``(pulse, range, energy, cls, tree, path, return number, number of returns)`` of the
@@ -234,13 +246,8 @@ def merge(t, energy, spread, cls, tree, path, separation, mode, most, near, leas
         e_sum = np.empty(s)
         et_sum = np.empty(s)
         keep = np.empty(s, np.bool_)
-        if sigma > 0:
-            count = _waveform(t[p], energy[p], spread[p], separation, sigma, order, start,
-                              e_sum, et_sum, top)  # fmt: skip
-        else:
-            count = _echoes(t[p], energy[p], spread[p], separation, order, start, e_sum, et_sum,
-                            top)  # fmt: skip
-        count = _detect(count, t[p], order, start, e_sum, et_sum, top, near, least)
+        count = _cut(t[p], energy[p], spread[p], separation, sigma, near, least, order, start,
+                     e_sum, et_sum, top)  # fmt: skip
         per[p] = _keep(count, e_sum, mode, most, keep)
     first = np.zeros(n + 1, np.int64)
     for p in range(n):
@@ -263,13 +270,8 @@ def merge(t, energy, spread, cls, tree, path, separation, mode, most, near, leas
         e_sum = np.empty(s)
         et_sum = np.empty(s)
         keep = np.empty(s, np.bool_)
-        if sigma > 0:
-            count = _waveform(t[p], energy[p], spread[p], separation, sigma, order, start,
-                              e_sum, et_sum, top)  # fmt: skip
-        else:
-            count = _echoes(t[p], energy[p], spread[p], separation, order, start, e_sum, et_sum,
-                            top)  # fmt: skip
-        count = _detect(count, t[p], order, start, e_sum, et_sum, top, near, least)
+        count = _cut(t[p], energy[p], spread[p], separation, sigma, near, least, order, start,
+                     e_sum, et_sum, top)  # fmt: skip
         _keep(count, e_sum, mode, most, keep)
         k = first[p]
         for c in range(count):
