@@ -83,10 +83,10 @@ def lidar_forest_scan() -> tuple[int, str, str]:
     )
 
 
-def lidar_leaf_transmittance() -> tuple[int, str, str]:
-    """What following light through leaves costs: a VLP-16 at head height in the default
-    forest, leaves at 0.42 transmittance against opaque leaves, on one warm caster, best of
-    three each in this run (target: within 2x)."""
+def _vlp16_variants(variants: dict, target: float) -> tuple[int, str, str]:
+    """A VLP-16 at head height in the default forest as each of ``variants`` (name -> its
+    changes to the preset), on one warm caster, alternating, best of three each in this run;
+    the first against the second, with its ``target`` ratio."""
     from usdforest.recipe import default_recipe_path, read_recipe
     from usdforest.sensors.lidar import PRESETS
     from usdforest.usd.forest import write_forest
@@ -99,19 +99,35 @@ def lidar_leaf_transmittance() -> tuple[int, str, str]:
     caster = SceneCaster(scene)
     best, returns = {}, {}
     for _ in range(3):
-        for name, t in (("through", PRESETS["vlp-16"].leaf_transmittance), ("opaque", 0.0)):
-            sensor = replace(PRESETS["vlp-16"], leaf_transmittance=t)
+        for name, changes in variants.items():
+            sensor = replace(PRESETS["vlp-16"], **changes)
             t0 = time.perf_counter()
             r = scan(scene, sensor, pose, caster=caster)
             best[name] = min(best.get(name, np.inf), time.perf_counter() - t0)
             returns[name] = len(r)
+    a, b = list(variants)[:2]
     return (
         r.n_rays,
         "pulses",
-        f"{best['through']:.2f} s vs {best['opaque']:.2f} s opaque: "
-        f"{best['through'] / best['opaque']:.2f}x (target 2x); {returns['through']:,} returns "
-        f"vs {returns['opaque']:,}",
+        f"{best[a]:.2f} s vs {best[b]:.2f} s {b}: {best[a] / best[b]:.2f}x (target "
+        f"{target:g}x); {returns[a]:,} returns vs {returns[b]:,}",
     )
+
+
+def lidar_leaf_transmittance() -> tuple[int, str, str]:
+    """What following light through leaves costs: leaves at 0.42 transmittance against
+    opaque leaves (target: within 2x)."""
+    from usdforest.sensors.lidar import PRESETS
+
+    through = {"leaf_transmittance": PRESETS["vlp-16"].leaf_transmittance}
+    return _vlp16_variants({"through": through, "opaque": {"leaf_transmittance": 0.0}}, 2.0)
+
+
+def lidar_waveform() -> tuple[int, str, str]:
+    """What echoes from the return waveform cost (issue 40): the preset's 4 ns pulse against
+    no pulse shape (echoes at the energy-weighted range of their hits; target: within
+    1.3x)."""
+    return _vlp16_variants({"waveform": {}, "no waveform": {"pulse_width": 0.0}}, 1.3)
 
 
 def full_detail_open() -> tuple[int, str, str]:
@@ -202,6 +218,7 @@ BENCHMARKS = {
     "lidar: light through leaves vs opaque leaves, VLP-16 in the default forest": (
         lidar_leaf_transmittance
     ),
+    "lidar: echoes from the waveform vs without, VLP-16 in the default forest": lidar_waveform,
     "sensors: default forest opened at full detail": full_detail_open,
     "lidar: quick-mixed 15 m, VLP-16 vs Embree on copied triangles": lidar_forest_floor,
     "camera: quick-mixed 15 m, 640 x 480 vs Embree on copied triangles": camera_forest_floor,
