@@ -6,7 +6,8 @@ like a lidar ray, so the images are pixel-exact ground truth of the composed sta
 
 * ``depth``: z-depth in metres (distance along the optical axis, as depth sensors and
   OpenCV's pinhole model report it), ``inf`` where nothing is within ``max_range``;
-* ``semantic``: class index (0 unknown/sky, 1 trunk, 2 branch, 3 leaf, 4 ground);
+* ``semantic``: class index (0 unknown/sky, 1 trunk, 2 branch, 3 leaf, 4 ground, 5 dead
+  wood, 6 ground vegetation);
 * ``instance``: tree id (the forest's ``ids`` and ``trees.csv``'s ``id``), -1 off any tree;
 * ``rgb``: the hit prim's bound material colour, Lambert-shaded under the preview renderer's
   light (leaves lit on both sides), sky where nothing is hit.

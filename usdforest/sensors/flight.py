@@ -1,4 +1,5 @@
-"""Flights: a platform moving along a path with a spinning lidar and a sonar on board.
+"""Flights: a platform moving along a path with a spinning lidar, a sonar and a camera on
+board.
 
 * **Trajectory**: poses at times (a CSV ``t,x,y,z[,yaw,pitch,roll]`` or a straight line at a
   speed), linearly interpolated; without yaw the platform faces where it is going (pitch and
@@ -6,11 +7,14 @@
 * **Lidar**: sweeps at ``rate`` Hz; every ray is fired at its own time within the sweep (its
   azimuth's share of the turn) from where the platform is then, so a fast platform's points
   are not smeared. Returns (several per pulse: see :mod:`usdforest.sensors.returns`) carry
-  GPS time, class, tree id and prim path; written as LAS 1.4 (point format 6) with laspy.
+  GPS time, class, tree id and prim path; written as LAS 1.4 (point format 6) with laspy,
+  as :func:`write_las` details, beside an SBET-like trajectory (:func:`write_trajectory`).
 * **Sonar**: pulses at ``pulse_rate`` from the pose at each pulse's time, the platform's
-  velocity giving each leaf's echo its Doppler factor (see
+  velocity giving every reflector's echo its Doppler factor (see
   :func:`usdforest.sensors.sonar.echo_from_targets`): leaves, wood and ground, each
   class's echo kept apart as well.
+* **Camera**: frames at ``camera_rate`` from the pose at each frame's time
+  (:mod:`usdforest.sensors.camera`).
 """
 
 from __future__ import annotations

@@ -48,7 +48,8 @@ amplitude is interpolated in frequency between K band centres (hat functions), a
 terms become delays: for each band, the amplitudes, moved to baseband at the band's centre,
 are accumulated into a delay histogram (linear interpolation, sampled 32x finer than the
 hat's half-width), whose spectrum times the hat gives that band's share of H on the bins the
-hat covers. The impulse response is H's inverse FFT (at 8x the output rate, decimated); the
+hat covers. The impulse response is H's inverse FFT, taken at the output rate (the same
+samples as at 8x the rate, decimated: see ``_impulse``); the
 echo is the impulse response convolved with the call (a linear FM sweep).
 
 Modelled: leaves, wood, ground, beam, backscatter, spreading, absorption, optional occlusion
