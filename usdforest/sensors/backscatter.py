@@ -15,17 +15,34 @@ it, so leaves, wood and ground interfere as physics has them.
   +1.63 rad, is a plate's +pi/2 to within 0.07 rad) or a rigid disk in physical optics,
   S = i k A / (2 pi) 2 J1(x) / x cos(theta), x = 2 k a sin(theta), each sidelobe with its
   sign.
-* Wood: a rigid finite cylinder in the Kirchhoff (physical-optics) approximation, the high-ka
-  limit of Stanton (1988, 1989): for length L, radius a and tilt beta of the line of sight
-  from the plane normal to the axis,
+* Wood: a rigid cylinder in the Kirchhoff (physical-optics) approximation at the sonar's own
+  range, not in the far field: a bat flies within a few Fresnel zones of a branch. Stationary
+  phase round the circumference (valid for k a >~ 1) leaves a line integral along the axis,
+  amplitude per metre of axis
 
-      S = (L / 2) sqrt(k a cos(beta) / pi) sinc(k L sin(beta)) exp(+i pi / 4),
-      sinc(x) = sin(x) / x,
+      D = (e^(i pi/4) / 2) sqrt(k a rho / (pi h)) (h - a) / rho,
 
-  (stationary phase round the circumference, a line integral along the axis; x0 on the
-  specular line, range r - a cos(beta)); at broadside
-  the cross-section k a L^2 / (4 pi) is Stanton's. Valid for k a >~ 1 (twigs thinner than
-  lambda / (2 pi) are overestimated) and for segments short against the range.
+  h the sonar's distance from the axis line, rho = sqrt(tau^2 + (h - a)^2) its distance from
+  the wall at axial offset tau. That integral of D exp(-2 i k rho) over a straight piece is a
+  Fresnel integral, which splits exactly into the echo of its specular point (where the
+  perpendicular from the sonar meets the axis, when it meets it inside the piece; range
+  h - a)
+
+      S = ((h - a) / 2) sqrt(a / h),
+
+  the near-field echo of a cylinder longer than its Fresnel zone (its far-field, finite
+  counterpart is Stanton's k a L^2 / (4 pi) cross-section), and one echo of each end (range
+  rho there), with rho' = tau / rho and q = (h - a)^2 / (2 rho^3) the range's slope and half
+  its curvature along the axis and x = |rho'| sqrt(k / (pi q)),
+
+      S = +-D i sgn(rho') sqrt(pi / (4 k q)) (f(x) + i g(x))       (+ at the far end),
+
+  f and g the auxiliary Fresnel functions (Abramowitz and Stegun 7.3.5-6; far from the
+  specular point D i / (2 k rho'), the edge of integration by parts). Where two pieces of
+  one branch meet, their end echoes cancel but for the bend between them, so a long straight
+  branch echoes from its specular point and its two ends only, as the integral over its
+  whole wall does, however it was cut. Valid for k a >~ 1 (twigs thinner than
+  lambda / (2 pi) are overestimated) and a sonar outside the cylinder.
 * Ground: a rough facet, the Kirchhoff geometric-optics limit (Gaussian slopes of rms ``s``;
   Bass and Fuks 1979, Ogilvy 1991) for its near-normal glint plus Lambert's law (parameter
   mu) for the diffuse scattering of small-scale roughness and litter that geometric optics
@@ -83,22 +100,49 @@ def leaf_backscatter(
     return group_fit_backscatter(f, theta_i, a, c)
 
 
-def cylinder_backscatter(
-    f: np.ndarray, beta: np.ndarray, length: np.ndarray, a: np.ndarray, c: float
-) -> np.ndarray:
-    """S of a rigid finite cylinder (complex, m) at tilt ``beta`` (rad) from broadside."""
-    k = 2 * math.pi * np.asarray(f, dtype=float) / c
-    beta = np.asarray(beta, dtype=float)
-    length = np.asarray(length, dtype=float)
-    cos_b = np.abs(np.cos(beta))
-    delta = k * length * np.sin(beta)
-    return (
-        length
-        / 2
-        * np.sqrt(k * np.asarray(a, dtype=float) * cos_b / math.pi)
-        * np.sinc(delta / math.pi)
-        * np.exp(0.25j * math.pi)
+def cylinder_specular(a: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """S (real, m) and range of a rigid cylinder's specular point, ``h`` from its axis:
+    ((h - a) / 2) sqrt(a / h) at range h - a."""
+    d = np.maximum(h - a, 1e-9)
+    return d / 2 * np.sqrt(a / np.maximum(h, d)), d
+
+
+def end_geometry(
+    a: np.ndarray, h: np.ndarray, tau: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A wall's end at axial offset ``tau``, a sonar ``h`` from the axis: its range rho, the
+    range's slope rho' and half curvature q along the axis, and ``lead``, D i sgn(rho')
+    over sqrt(k) (module docstring)."""
+    d = np.maximum(h - a, 1e-9)
+    rho = np.hypot(tau, d)
+    slope = tau / rho
+    lead = (
+        np.exp(0.75j * math.pi) / 2 * np.sqrt(a * rho / (math.pi * np.maximum(h, d))) * d / rho
+    ) * np.sign(slope)
+    return rho, slope, d * d / (2 * rho**3), lead
+
+
+def cylinder_end(
+    k: np.ndarray, a: np.ndarray, h: np.ndarray, tau: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """S (complex, m) of a rigid cylinder's wall ending at axial offset ``tau`` (the wall
+    lying on the side of smaller ``tau``; negate it for a wall that starts there) and the
+    range of that end, for a sonar ``h`` from the axis (see the module docstring).
+
+    The geometry (``a``, ``h``, ``tau``, broadcast together) is worked out once and the
+    wavenumbers ``k`` broadcast against it: ``(n, 1)`` geometry and ``(1, K)`` wavenumbers
+    give ``(n, K)`` amplitudes and ``(n, 1)`` ranges."""
+    from usdforest.sensors import wood_kernels
+
+    k = np.asarray(k, dtype=float)
+    a, h, tau = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (a, h, tau)))
+    rho, slope, q, lead = end_geometry(a, h, tau)
+    shape = np.broadcast_shapes(k.shape, a.shape)
+    flat = [np.ascontiguousarray(np.broadcast_to(v, shape)).ravel() for v in (slope, q, lead, k)]
+    out = wood_kernels.end_amplitudes(
+        *flat, wood_kernels.TABLE, np.empty(flat[0].size, dtype=complex)
     )
+    return out.reshape(shape), rho
 
 
 def facet_sigma0(

@@ -26,11 +26,13 @@ frequency f (wavenumber k = 2 pi f / c)::
     units, and at normal incidence this S meets the disk's k a^2 / 2 as k a grows), or
     ``disk``: physical-optics backscatter of a rigid disk,
     S = i (k a^2 / 2) (2 J1(x) / x) |cos theta_i| with x = 2 k a sin theta_i.
-  - wood (``wood = true``) is cut into rigid finite cylinders of at most ``wood_segment`` m
-    (:mod:`usdforest.sensors.wood`), each a Kirchhoff cylinder
-    S = (L / 2) sqrt(k a cos beta / pi) sinc(k L sin beta) exp(+i pi / 4) (beta: the line of
-    sight's tilt from the plane normal to the axis), its range that of its specular line
-    (centre less a cos beta).
+  - wood (``wood = true``) is cut into chains of rigid cylinders of at most ``wood_segment``
+    m (:mod:`usdforest.sensors.wood`), each piece starting where the one before it ends, and
+    heard as the Kirchhoff integral over its wall at the sonar's own range (not the far
+    field): one echo from each piece's specular point, where the perpendicular from the sonar
+    meets its axis inside it, ((h - a) / 2) sqrt(a / h) at range h - a, and one from each
+    chain's ends and joints, the Fresnel-integral end terms of
+    :mod:`usdforest.sensors.backscatter` (a straight joint's two cancel; a bend's do not).
   - the ground (``ground = true``) is sampled as rough facets of ``ground_patch`` m
     (:mod:`usdforest.sensors.facets`), each with the two-part rough-surface cross-section
     sigma0 = R^2 exp(-tan^2 theta / s^2) / (s^2 cos^4 theta) + 4 pi mu cos^2 theta (a glint
@@ -65,7 +67,7 @@ import functools
 import json
 import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -78,7 +80,8 @@ from usdforest.runs import run_starts
 from usdforest.sensors import bandsum
 from usdforest.sensors.backscatter import (
     LEAF_MODELS,
-    cylinder_backscatter,
+    cylinder_specular,
+    end_geometry,
     facet_backscatter,
     leaf_backscatter,
 )
@@ -113,9 +116,9 @@ class SonarConfig:
     window: str = "none"  # or "hann": the band weighted before the impulse response
     doppler_bins: int = 4  # Doppler factors a moving sonar's echo is computed with
     pulse_rate: float = 20.0  # pulses per second along a flight
-    wood: bool = True  # trunks and branches echo, as finite cylinders
-    # m: the longest cylinder a wood prim is cut into; a segment s long at range R is off
-    # a curved wavefront by a phase k s^2 / (4 R): under 0.6 rad beyond 2 m at 100 kHz
+    wood: bool = True  # trunks and branches echo, as chains of cylinders
+    # m: the longest piece a wood prim is cut into: how closely the chain follows its bends
+    # and taper (a straight piece's echo does not depend on its length)
     wood_segment: float = 0.05
     ground: bool = True  # the ground echoes, as rough facets
     ground_patch: float = 0.05  # m: one facet per cell of this size
@@ -290,22 +293,110 @@ def leaf_amplitudes(
     return _propagation(r, tb, f, cfg) * s, r
 
 
-def wood_amplitudes(
-    cyl: Cylinders, pose: Pose, cfg: SonarConfig, f: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(n, len(f))`` amplitudes of wood cylinders and the ranges of their specular lines
-    (the centre's range less a cos beta: where the reflection comes from)."""
-    r, u, tb = _sight(cyl.centre, pose)
-    beta = np.arcsin(np.clip(np.abs(np.sum(u * cyl.axis, axis=1)), 0, 1))
-    s = cylinder_backscatter(
-        np.asarray(f)[None, :],
-        beta[:, None],
-        cyl.length[:, None],
-        cyl.radius[:, None],
-        cfg.speed_of_sound,
+@dataclass(frozen=True, eq=False)
+class WoodPoints:
+    """Where a sonar at one pose hears a set of wood cylinders: each chain's ends and the
+    joints between its pieces (``inward`` the axis of the piece ending there, ``outward`` that
+    of the piece starting there, zero where none; ``radius`` the wall's there), and each
+    piece's specular point (``specular`` its weight: 1 inside, 1/2 on an end, 0 for a joint;
+    ``outward`` its piece's axis),
+    with the class and tree id of the cylinder each comes from."""
+
+    position: np.ndarray
+    radius: np.ndarray
+    inward: np.ndarray
+    outward: np.ndarray
+    specular: np.ndarray
+    cls: np.ndarray
+    tree: np.ndarray
+
+    def take(self, sel: np.ndarray) -> WoodPoints:
+        return WoodPoints(*(getattr(self, f.name)[sel] for f in fields(self)))
+
+
+def wood_points(cyl: Cylinders, position: np.ndarray) -> WoodPoints:
+    """The :class:`WoodPoints` of ``cyl`` heard from ``position``: a joint per piece's start
+    (shared with the piece before it where ``cyl.joined``), an end per chain, and a specular
+    point per piece that the perpendicular from ``position`` to its axis meets."""
+    n = len(cyl)
+    half = cyl.axis * (cyl.length / 2)[:, None]
+    start, end = cyl.centre - half, cyl.centre + half
+    joined = cyl.joined
+    prev = np.maximum(np.arange(n) - 1, 0)
+    last = ~np.r_[joined[1:], False]  # no piece continues this one
+    ends = np.zeros((int(last.sum()), 3))
+    t0 = np.einsum("nk,nk->n", start - position, cyl.axis)
+    t1 = np.einsum("nk,nk->n", end - position, cyl.axis)
+    weight = (np.sign(t1) - np.sign(t0)) / 2
+    hit = np.flatnonzero(weight != 0)
+    foot = start[hit] - t0[hit, None] * cyl.axis[hit]
+    joint_radius = np.where(joined, (cyl.radius + cyl.radius[prev]) / 2, cyl.radius)
+    return WoodPoints(
+        np.concatenate([start, end[last], foot]),
+        np.concatenate([joint_radius, cyl.radius[last], cyl.radius[hit]]),
+        np.concatenate(
+            [np.where(joined[:, None], cyl.axis[prev], 0.0), cyl.axis[last], np.zeros_like(foot)]
+        ),
+        np.concatenate([cyl.axis, ends, cyl.axis[hit]]),
+        np.concatenate([np.zeros(n + int(last.sum())), weight[hit]]),
+        np.concatenate([cyl.cls, cyl.cls[last], cyl.cls[hit]]),
+        np.concatenate([cyl.tree, cyl.tree[last], cyl.tree[hit]]),
     )
-    surface = np.maximum(r - cyl.radius * np.cos(beta), 1e-6)
-    return _propagation(surface, tb, f, cfg) * s, surface
+
+
+def _wall(
+    point: np.ndarray, axis: np.ndarray, position: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Axial offset of ``point`` from the foot of the perpendicular from ``position`` to its
+    axis line, and the distance of ``position`` from that line."""
+    d = point - position
+    tau = np.einsum("nk,nk->n", d, axis)
+    return tau, np.linalg.norm(d - tau[:, None] * axis, axis=1)
+
+
+def wood_amplitudes(
+    points: WoodPoints, pose: Pose, cfg: SonarConfig, f: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(n, len(f))`` amplitudes of :class:`WoodPoints` (the Kirchhoff cylinder of
+    :mod:`usdforest.sensors.backscatter` at the sonar's own range) and their ranges."""
+    f = np.asarray(f, dtype=float)
+    k = 2 * math.pi * f[None, :] / cfg.speed_of_sound
+    n = len(points.radius)
+    amp = np.empty((n, f.size), dtype=complex)
+    r = np.empty(n)
+    spec = points.specular != 0
+    if spec.any():
+        _, h = _wall(points.position[spec], points.outward[spec], pose.position)
+        s, r[spec] = cylinder_specular(points.radius[spec], h)
+        amp[spec] = (points.specular[spec] * s)[:, None]
+
+    # a joint: the piece ending there (+) less the one starting there, each at its own range
+    # (a bend turns the wall's nearest point round the axis), referred to the second's; a
+    # chain's first end has no piece ending there, its last none starting there
+    joint = np.flatnonzero(~spec)
+    if joint.size:
+        ranges, terms = [], []
+        for axis_of in (points.inward, points.outward):
+            e = axis_of[joint]
+            tau, h = _wall(points.position[joint], e, pose.position)
+            rho, slope, q, lead = end_geometry(points.radius[joint], h, tau)
+            lead = np.where(np.any(e != 0, axis=1), lead, 0)
+            ranges.append(rho)
+            terms.append((slope, q, lead))
+        (rho_in, rho_out), present = ranges, np.any(points.outward[joint] != 0, axis=1)
+        r[joint] = np.where(present, rho_out, rho_in)
+        from usdforest.sensors import wood_kernels
+
+        wood_kernels.joint_ends(
+            *terms[0], *terms[1], rho_in - r[joint], k[0], _evenly_spaced(k[0]),
+            wood_kernels.TABLE, joint, amp,
+        )  # fmt: skip
+    _, _, theta_b = _sight(points.position, pose)
+    return _propagation(r, theta_b, f, cfg) * amp, r
+
+
+def _evenly_spaced(k: np.ndarray) -> bool:
+    return k.size >= 2 and bool(np.allclose(np.diff(k), k[1] - k[0], rtol=1e-12, atol=0))
 
 
 def ground_backscatter(
@@ -350,7 +441,8 @@ class Echo:
     ``parts`` holds the echo of each class heard (``leaf``, ``trunk``, ``branch``,
     ``dead_wood``, ``ground``; they add up to ``echo``); ``labels`` one row per (tree id,
     class) heard: its share of the echo's energy (the band's mean of sum |H|^2) and the
-    ranges of its first and last reflectors."""
+    ranges of its first and last reflectors; ``reflectors`` how many of each class were
+    summed (leaves, wood cylinders, ground facets)."""
 
     freqs: np.ndarray
     transfer: np.ndarray
@@ -476,6 +568,7 @@ class _Source:
     position: np.ndarray
     amplitudes: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
     modelled: Callable[[np.ndarray], tuple[np.ndarray, Callable]] | None = None
+    count: int | None = None  # the reflectors it stands for (wood: cylinders), if not its points
 
 
 def _coherent(
@@ -616,12 +709,14 @@ def echo_from_targets(
         for k in (CLASS_ID["trunk"], CLASS_ID["branch"], CLASS_ID["dead_wood"]):
             wk = w.take(np.flatnonzero(w.cls == k))
             if len(wk):
+                points = wood_points(wk, pose.position)
                 sources.append(
                     _Source(
                         k,
-                        wk.tree,
-                        wk.centre,
-                        lambda sel, wk=wk: wood_amplitudes(wk.take(sel), pose, cfg, grid.centres),
+                        points.tree,
+                        points.position,
+                        lambda sel, p=points: wood_amplitudes(p.take(sel), pose, cfg, grid.centres),
+                        count=len(wk),
                     )
                 )
     if cfg.ground and len(ground):
@@ -651,7 +746,7 @@ def echo_from_targets(
         impulse += imp
         echo += ec
         parts[CLASSES[k]] = ec
-        reflectors[CLASSES[k]] = len(position)
+        reflectors[CLASSES[k]] = len(position) if source.count is None else source.count
         if len(position):
             labels.append(_labels(tree, np.full(len(position), k), energy, r))
     # every class the sonar listens to has its echo, silent when nothing of it is in range

@@ -31,7 +31,9 @@ MAX_MISFIT = 0.15  # a slice's rms distance from its circle, as a share of the r
 @dataclass(frozen=True, eq=False)
 class Cylinders:
     """Finite cylinders: centre (n, 3), unit axis (n, 3), length, radius (n,) in metres,
-    class (trunk or branch) and tree id (-1: none)."""
+    class (trunk, branch or dead wood), tree id (-1: none) and ``joined`` (n,): this piece
+    continues the one before it in the arrays (one wood prim's chain of pieces, each
+    starting where the one before it ends; default none)."""
 
     centre: np.ndarray
     axis: np.ndarray
@@ -39,12 +41,21 @@ class Cylinders:
     radius: np.ndarray
     cls: np.ndarray
     tree: np.ndarray
+    joined: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.joined is None:
+            object.__setattr__(self, "joined", np.zeros(len(self.radius), bool))
 
     def __len__(self) -> int:
         return int(self.centre.shape[0])
 
     def take(self, sel: np.ndarray) -> Cylinders:
-        return Cylinders(*(getattr(self, f)[sel] for f in _FIELDS))
+        """The cylinders ``sel`` (indices, ascending, or a mask); a piece stays joined where
+        the one before it is taken too."""
+        sel = np.flatnonzero(sel) if np.asarray(sel).dtype == bool else np.asarray(sel, np.int64)
+        joined = self.joined[sel] & np.r_[False, np.diff(sel) == 1]
+        return Cylinders(*(getattr(self, f)[sel] for f in _FIELDS[:-1]), joined)
 
     @staticmethod
     def concat(parts: list[Cylinders]) -> Cylinders:
@@ -56,6 +67,7 @@ class Cylinders:
                 np.zeros(0),
                 np.zeros(0, np.uint8),
                 np.zeros(0, np.int64),
+                np.zeros(0, bool),
             )
         return Cylinders(*(np.concatenate([getattr(p, f) for p in parts]) for f in _FIELDS))
 
@@ -74,10 +86,11 @@ class Cylinders:
             (self.radius[None, :] * scale[:, None]).ravel(),
             np.tile(self.cls, n),
             np.repeat(np.asarray(tree, np.int64), c),
+            np.tile(self.joined, n),
         )
 
 
-_FIELDS = ("centre", "axis", "length", "radius", "cls", "tree")
+_FIELDS = ("centre", "axis", "length", "radius", "cls", "tree", "joined")
 
 
 def fit_cylinders(
@@ -168,11 +181,12 @@ def _fit_prims(
     n = np.maximum(1, np.ceil(span / segment * (1 - 1e-6)).astype(np.int64))  # float32: 2.0000001
     step = np.where(span > 0, span / n, 1.0)
     # end caps (faces across the axis) are no part of the side wall a circle is fitted to
-    side = np.abs(np.einsum("nk,nk->n", normal, axis[pp])) < 0.7
-    d, t, pp = d[side], t[side], pp[side]
-    b = np.minimum(((t - lo[pp]) / step[pp]).astype(np.int64), n[pp] - 1)
     offset = np.cumsum(n) - n
-    gb = offset[pp] + b  # every prim's slices in one numbering
+    # every prim's slices in one numbering
+    every = offset[pp] + np.minimum(((t - lo[pp]) / step[pp]).astype(np.int64), n[pp] - 1)
+    ends = (mean[pp] + d, every)  # all points, caps too: where a chain's free ends lie
+    side = np.abs(np.einsum("nk,nk->n", normal, axis[pp])) < 0.7
+    d, t, pp, gb = d[side], t[side], pp[side], every[side]
     S = int(n.sum())
     count = np.bincount(gb, minlength=S)
     used = np.flatnonzero(count >= 3)
@@ -206,14 +220,76 @@ def _fit_prims(
     miss = np.hypot(x[inside] - cx[k], y[inside] - cy[k]) - radius[k]
     rms = np.sqrt(np.bincount(k, miss * miss, minlength=len(used)) / count[used])
     ok &= (radius > 1e-4) & (radius < span[sp] + step[sp]) & (rms <= MAX_MISFIT * radius)
+    keep = np.flatnonzero(ok)
+    # consecutive slices of one prim make a chain: a polyline through the midpoints between
+    # their centres, so that each piece starts exactly where the one before it ends
+    slice_no = used[keep] - offset[sp[keep]]
+    joined = np.r_[False, (np.diff(sp[keep]) == 0) & (np.diff(slice_no) == 1)]
+    start, end = _polyline(centre[keep], local[keep] * length[keep, None], joined)
+    start, end = _free_ends(start, end, joined, used[keep], S, *ends)
+    axis_v = end - start
+    seg_len = np.linalg.norm(axis_v, axis=1)
     return Cylinders(
-        centre[ok],
-        local[ok],
-        length[ok],
-        radius[ok],
-        np.asarray(cls, np.uint8)[sp[ok]],
-        np.asarray(tree, np.int64)[sp[ok]],
+        (start + end) / 2,
+        axis_v / np.maximum(seg_len, 1e-12)[:, None],
+        seg_len,
+        radius[keep],
+        np.asarray(cls, np.uint8)[sp[keep]],
+        np.asarray(tree, np.int64)[sp[keep]],
+        joined,
     )
+
+
+def _polyline(
+    centre: np.ndarray, span: np.ndarray, joined: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Start and end of each piece of the chains through ``centre`` (``joined``: a piece
+    continues the one before it): a joint halfway between two centres, a chain's free end as
+    far beyond its last centre as the joint before it (a lone piece: its centre -+ ``span``
+    / 2, ``span`` its axis times its length)."""
+    nxt = np.r_[joined[1:], False]
+    mid = (centre[:-1] + centre[1:]) / 2  # between piece i and i + 1
+    start = centre - span / 2
+    end = centre + span / 2
+    i = np.flatnonzero(joined)
+    start[i] = mid[i - 1]
+    i = np.flatnonzero(nxt)
+    end[i] = mid[i]
+    i = np.flatnonzero(joined & ~nxt)  # a chain's last piece
+    end[i] = 2 * centre[i] - start[i]
+    i = np.flatnonzero(nxt & ~joined)  # a chain's first piece
+    start[i] = 2 * centre[i] - end[i]
+    return start, end
+
+
+def _free_ends(
+    start: np.ndarray,
+    end: np.ndarray,
+    joined: np.ndarray,
+    slice_of: np.ndarray,
+    n_slices: int,
+    points: np.ndarray,
+    point_slice: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each chain's free ends moved along its end pieces to the furthest of their slices'
+    ``points`` (a prim's end cap lies across its own axis, not across the principal axis it
+    was sliced along, which a handful of sampled points tilts by a few mrad)."""
+    piece = np.full(n_slices, -1)
+    piece[slice_of] = np.arange(len(slice_of))
+    pc = piece[point_slice]
+    on = pc >= 0
+    pc, points = pc[on], points[on]
+    axis = end - start
+    axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
+    first = ~joined
+    last = ~np.r_[joined[1:], False]
+    lo = np.full(len(start), np.inf)
+    hi = np.full(len(start), -np.inf)
+    np.minimum.at(lo, pc, np.einsum("nk,nk->n", points - start[pc], axis[pc]))
+    np.maximum.at(hi, pc, np.einsum("nk,nk->n", points - end[pc], axis[pc]))
+    start = start + np.where(first & np.isfinite(lo), lo, 0.0)[:, None] * axis
+    end = end + np.where(last & np.isfinite(hi), hi, 0.0)[:, None] * axis
+    return start, end
 
 
 def _gradient(centre: np.ndarray, mid: np.ndarray, sp: np.ndarray, axis: np.ndarray) -> np.ndarray:
