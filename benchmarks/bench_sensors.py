@@ -130,6 +130,50 @@ def lidar_waveform() -> tuple[int, str, str]:
     return _vlp16_variants({"waveform": {}, "no waveform": {"pulse_width": 0.0}}, 1.3)
 
 
+def sonar_wood() -> tuple[int, str, str]:
+    """What hearing wood at the sonar's own range costs (issue 40, item 2): a ``paper``
+    pulse's wood echoes in the default forest (specular points, ends and joints of the
+    chains in range, through the near-field Kirchhoff model) against the floor of any wood
+    model, the same points' two-way beam, absorption and spreading alone (target: within
+    5x)."""
+    import timeit
+
+    from usdforest.recipe import default_recipe_path, read_recipe
+    from usdforest.sensors.sonar import (
+        PRESETS,
+        SonarScene,
+        _Grid,
+        _propagation,
+        _sight,
+        wood_amplitudes,
+        wood_points,
+    )
+    from usdforest.usd.forest import write_forest
+
+    if "forest" not in _CACHE:
+        write_forest(read_recipe(default_recipe_path()), WORK / "forest.usda", thumbnail=False)
+        _CACHE["forest"] = WORK / "forest.usda"
+    cfg, pose = PRESETS["paper"], Pose(50.0, 50.0, 2.0)
+    scene = extract_scene(_CACHE["forest"], centre=pose.position, radius=cfg.max_range + 5)
+    wood = SonarScene(scene, cfg).targets(pose, cfg).wood
+    f = _Grid.of(cfg).centres
+
+    def heard() -> None:
+        wood_amplitudes(wood_points(wood, pose.position), pose, cfg, f)
+
+    points = wood_points(wood, pose.position)
+    r, _, theta_b = _sight(points.position, pose)
+    heard()  # numba compiles or loads its kernel on the first call
+    ours = min(timeit.repeat(heard, number=1, repeat=3))
+    base = min(timeit.repeat(lambda: _propagation(r, theta_b, f, cfg), number=1, repeat=3))
+    return (
+        len(points.radius),
+        "wood points",
+        f"{ours * 1e3:.0f} ms for {len(wood):,} pieces' echoes vs {base * 1e3:.0f} ms their beam "
+        f"and spreading alone: {ours / base:.1f}x",
+    )
+
+
 def full_detail_open() -> tuple[int, str, str]:
     """What selecting full detail costs the sensors: the default forest (which selects lod =
     medium for clients) opened as scan, fly, stats and preview open it (switched to full in
@@ -219,6 +263,7 @@ BENCHMARKS = {
         lidar_leaf_transmittance
     ),
     "lidar: echoes from the waveform vs without, VLP-16 in the default forest": lidar_waveform,
+    "sonar: wood echoes of a pulse vs their beam and spreading, default forest": sonar_wood,
     "sensors: default forest opened at full detail": full_detail_open,
     "lidar: quick-mixed 15 m, VLP-16 vs Embree on copied triangles": lidar_forest_floor,
     "camera: quick-mixed 15 m, 640 x 480 vs Embree on copied triangles": camera_forest_floor,
