@@ -207,6 +207,8 @@ def test_a_flight_films_frames_at_its_rate(stand, tmp_path, runner):
         ("[camera]\nkind = 'spinning'\n", "camera.kind"),
         ("[camera]\nmax_range = -1.0\n", "camera.max_range"),
         ("[camera]\nrange_noise = 0.01\n", "camera.range_noise: not a camera setting"),
+        ("[camera]\nbaseline = 0.1\nk1 = 0.1\n", "camera.baseline: a stereo pair is rectified"),
+        ("[camera]\nnoise = -1.0\n", "camera.noise"),
     ],
 )
 def test_bad_camera_settings_are_named(stand, tmp_path, runner, table, fragment):

@@ -48,7 +48,7 @@ def scan_cmd(
         str | None,
         typer.Option(
             help="lidar: vlp-16, hdl-32, os1-64, depth-camera; sonar: bat-fm, paper, narrow, "
-            "wide; camera: pinhole-640, d435, fpv-1280."
+            "wide; camera: pinhole-640, d435, d435-stereo, fpv-1280."
         ),
     ] = None,
     config: Annotated[
@@ -148,7 +148,7 @@ def scan_cmd(
         }
         seen = summary["pixels_by_class"]
         text = (
-            f"{output} (+ 4 PNGs): {settings.width} x {settings.height} pixels ("
+            f"{output} (+ {len(files) - 1} PNGs): {settings.width} x {settings.height} pixels ("
             + ", ".join(f"{k} {v:,}" for k, v in seen.items() if v and k != "unknown")
             + f"), {summary['trees_seen']} trees in view"
         )
@@ -219,7 +219,11 @@ def fly_cmd(
         ),
     ] = "none",
     camera_preset: Annotated[
-        str, typer.Option("--camera", help="pinhole-640, d435, fpv-1280 or none.")
+        str,
+        typer.Option(
+            "--camera",
+            help="pinhole-640, d435, d435-stereo (its left camera), fpv-1280 or none.",
+        ),
     ] = "none",
     camera_rate: Annotated[float, typer.Option(help="Camera frames per second.")] = 2.0,
     config: Annotated[

@@ -14,21 +14,43 @@ like a lidar ray, so the images are pixel-exact ground truth of the composed sta
 
 Intrinsics follow OpenCV (pixel centres at integer coordinates): fx = fy = (width / 2) /
 tan(hfov / 2), cx = (width - 1) / 2, cy = (height - 1) / 2; a point at camera coordinates
-(forward x, left y, up z) projects to pixel u = cx - fx y / x, v = cy - fy z / x.
+(forward x, left y, up z) is OpenCV's (X, Y, Z) = (-y, -z, x) and, without distortion,
+projects to pixel u = cx - fx y / x, v = cy - fy z / x.
+
+The lens is OpenCV's Brown-Conrady model with its coefficient names (``k1``, ``k2``, ``p1``,
+``p2``, ``k3``): an ideal normalised point (x, y) = (X / Z, Y / Z) is seen at
+
+    x' = x (1 + k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 x^2)
+    y' = y (1 + k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y^2) + 2 p2 x y,   r^2 = x^2 + y^2,
+
+pixel (fx x' + cx, fy y' + cy). Each pixel's ray is the inverse of that at its centre (Newton's
+method, to 1e-12), so the images are what a camera with that lens records and
+``cv2.projectPoints`` of a pixel's ray lands on the pixel (tested).
+
+The image is linear light: a surface of albedo rho lit by the renderer's sun at incidence i
+gives rho (AMBIENT + (1 - AMBIENT) cos i) times 2^``exposure``, clipped at full scale; then,
+from the frame's seed, shot noise (Poisson on that share of ``full_well`` electrons) and read
+noise (Gaussian, ``noise`` counts of 255), and rounding to 8 bits. Depth, classes and tree ids
+stay exact ground truth.
+
+A stereo camera (``baseline`` > 0) renders a rectified pair: the right camera ``baseline``
+metres to the right (camera -y) with the same intrinsics and no distortion, and the left
+image's disparity ground truth fx baseline / depth (pixels; 0 where nothing is hit).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from usdforest.atomic import atomic_path, save_npz
 from usdforest.errors import UsdForestError
-from usdforest.sensors.lidar import DepthCamera
+from usdforest.seeds import stream
+from usdforest.sensors.lidar import CAMERA_ONLY, DISTORTION, DepthCamera
 from usdforest.sensors.pose import Pose
 from usdforest.sensors.raycast import SceneCaster
 from usdforest.sensors.scene import CLASSES, Scene
@@ -37,6 +59,9 @@ PRESETS: dict[str, DepthCamera] = {
     "pinhole-640": DepthCamera(640, 480, 90.0, 200.0, kind="camera"),
     "d435": DepthCamera(848, 480, 87.0, 10.0, kind="camera"),  # RealSense D435's depth stream
     "fpv-1280": DepthCamera(1280, 720, 120.0, 200.0, kind="camera"),
+    # the D435's rectified infrared pair: 848 x 480, 87 degrees, "Baseline 50 mm" (Intel
+    # RealSense D400 series datasheet)
+    "d435-stereo": DepthCamera(848, 480, 87.0, 10.0, kind="camera", baseline=0.050),
 }
 # semantic palette for pictures: unknown/sky, trunk, branch, leaf, ground, dead wood, ground
 # vegetation
@@ -60,7 +85,9 @@ MAX_FRAME_BYTES = 4 * 2**30  # a flight's frames held in memory at once
 @dataclass(frozen=True, eq=False)
 class Frame:
     """One image of every kind, ``(height, width)`` each (``rgb`` has 3 channels), and the
-    camera's position and rotation (column-vector, camera -> world) when it was taken."""
+    camera's position and rotation (column-vector, camera -> world) when it was taken; for a
+    stereo camera also the ``right`` camera's frame and the left image's ``disparity``
+    (pixels, 0 where nothing is hit)."""
 
     depth: np.ndarray
     semantic: np.ndarray
@@ -68,16 +95,78 @@ class Frame:
     rgb: np.ndarray
     position: np.ndarray
     rotation: np.ndarray
+    right: Frame | None = None
+    disparity: np.ndarray | None = None
 
 
 def refuse_lidar_keys(table: dict, where) -> None:
-    """A ``[camera]`` table sets width, height, hfov and max_range; the depth camera's lidar
-    keys (``kind``, ``range_noise``) are refused by name, not silently ignored."""
+    """A ``[camera]`` table sets the camera's image, lens, noise, exposure and baseline; the
+    depth camera's lidar keys (``kind``, ``range_noise``) are refused by name, not silently
+    ignored."""
     for key in ("kind", "range_noise"):
         if key in table:
             raise UsdForestError(
-                f"{where}: camera.{key}: not a camera setting (width, height, hfov, max_range)"
+                f"{where}: camera.{key}: not a camera setting (width, height, hfov, max_range, "
+                f"{', '.join(CAMERA_ONLY)})"
             )
+
+
+def dist_coeffs(cam: DepthCamera) -> np.ndarray:
+    """OpenCV's ``distCoeffs``: (k1, k2, p1, p2, k3)."""
+    return np.array([getattr(cam, k) for k in DISTORTION], dtype=float)
+
+
+def distort(x: np.ndarray, y: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Brown-Conrady: where ideal normalised points (x, y) are seen, for OpenCV's
+    ``d = (k1, k2, p1, p2, k3)`` (the module docstring)."""
+    k1, k2, p1, p2, k3 = d
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return (
+        x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+        y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y,
+    )
+
+
+def undistort(
+    xd: np.ndarray, yd: np.ndarray, d: np.ndarray, tolerance: float = 1e-12
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ideal normalised points that :func:`distort` sees at (xd, yd): Newton's method on
+    the 2x2 system from (xd, yd), refusing a lens that does not invert over them (a
+    distortion that folds the image back on itself)."""
+    k1, k2, p1, p2, k3 = d
+    x, y = xd.copy(), yd.copy()
+    for _ in range(50):
+        fx, fy = distort(x, y, d)
+        ex, ey = fx - xd, fy - yd
+        if max(np.abs(ex).max(initial=0), np.abs(ey).max(initial=0)) < tolerance:
+            return x, y
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dradial = 2 * (k1 + r2 * (2 * k2 + 3 * r2 * k3))  # d radial / d (r^2) times 2
+        a = radial + x * x * dradial + 2 * p1 * y + 6 * p2 * x  # d x' / d x
+        b = x * y * dradial + 2 * p1 * x + 2 * p2 * y  # d x' / d y = d y' / d x
+        c = radial + y * y * dradial + 6 * p1 * y + 2 * p2 * x  # d y' / d y
+        det = a * c - b * b
+        det = np.where(np.abs(det) > 1e-12, det, 1e-12)
+        x, y = x - (c * ex - b * ey) / det, y - (a * ey - b * ex) / det
+    raise UsdForestError(
+        "camera: the lens distortion (k1, k2, p1, p2, k3 = "
+        + ", ".join(f"{v:g}" for v in d)
+        + ") does not invert over the image: it folds the image back on itself"
+    )
+
+
+def pixel_rays(cam: DepthCamera) -> np.ndarray:
+    """``(height * width, 3)`` unit rays through the pixel centres, row by row, in the
+    camera's frame (forward x, left y, up z), through the lens."""
+    k = intrinsics(cam)
+    u, v = np.meshgrid(np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float))
+    xd, yd = (u.ravel() - k[0, 2]) / k[0, 0], (v.ravel() - k[1, 2]) / k[1, 1]
+    d = dist_coeffs(cam)
+    x, y = undistort(xd, yd, d) if d.any() else (xd, yd)
+    rays = np.column_stack([np.ones_like(x), -x, -y])
+    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
 
 def intrinsics(cam: DepthCamera) -> np.ndarray:
@@ -107,10 +196,11 @@ def render(
     pose: Pose,
     colours: np.ndarray,
     caster: SceneCaster | None = None,
+    seed: int = 0,
 ) -> Frame:
     """The images of ``scene`` seen from ``pose``; ``colours`` per scene path
-    (:func:`path_colours`)."""
-    return render_at(scene, cam, pose.position, pose.rotation(), colours, caster)
+    (:func:`path_colours`); ``seed`` the image noise's."""
+    return render_at(scene, cam, pose.position, pose.rotation(), colours, caster, seed)
 
 
 def render_at(
@@ -120,14 +210,41 @@ def render_at(
     rotation: np.ndarray,
     colours: np.ndarray,
     caster: SceneCaster | None = None,
+    seed: int = 0,
+    key: int = 0,
 ) -> Frame:
-    """:func:`render` from a position and a camera -> world rotation matrix."""
+    """:func:`render` from a position and a camera -> world rotation matrix (``key``: the
+    frame's own noise stream along a flight)."""
+    cam.check()
+    caster = caster or SceneCaster(scene)
+    rotation = np.asarray(rotation, dtype=float)
+    left = _image(cam, pixel_rays(cam), position, rotation, colours, caster,
+                  stream(seed, "camera", key))  # fmt: skip
+    if cam.baseline <= 0:
+        return left
+    # the rectified pair: the right camera baseline to the right (-y), the same rays
+    moved = np.asarray(position, dtype=float) + rotation @ np.array([0.0, -cam.baseline, 0.0])
+    right = _image(cam, pixel_rays(cam), moved, rotation, colours, caster,
+                   stream(seed, "camera-right", key))  # fmt: skip
+    f = intrinsics(cam)[0, 0]
+    with np.errstate(divide="ignore"):
+        disparity = np.where(np.isfinite(left.depth), f * cam.baseline / left.depth, 0.0)
+    return replace(left, right=right, disparity=disparity.astype(np.float32))
+
+
+def _image(
+    cam: DepthCamera,
+    local: np.ndarray,
+    position: np.ndarray,
+    rotation: np.ndarray,
+    colours: np.ndarray,
+    caster: SceneCaster,
+    rng: np.random.Generator,
+) -> Frame:
+    """One camera's images through its rays ``local`` (camera frame)."""
     from usdforest.view.preview import LIGHT, SKY
 
-    cam.check()
-    local = cam.directions()
-    dirs = local @ np.asarray(rotation).T
-    caster = caster or SceneCaster(scene)
+    dirs = local @ rotation.T
     h = caster.first_hit(np.broadcast_to(position, dirs.shape), dirs, cam.max_range)
     shape = (cam.height, cam.width)
     depth = np.where(h.hit, h.t * local[:, 0], np.inf).astype(np.float32)
@@ -140,10 +257,22 @@ def render_at(
         depth.reshape(shape),
         h.cls.reshape(shape).astype(np.uint8),
         np.where(h.hit, h.tree, -1).reshape(shape).astype(np.int64),
-        np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8).reshape(*shape, 3),
+        expose(rgb, cam, rng).reshape(*shape, 3),
         np.asarray(position, dtype=float),
-        np.asarray(rotation, dtype=float),
+        rotation,
     )
+
+
+def expose(linear: np.ndarray, cam: DepthCamera, rng: np.random.Generator) -> np.ndarray:
+    """8-bit counts of ``linear`` light (1: a white surface facing the sun) through the
+    camera's exposure, shot noise and read noise (the module docstring)."""
+    signal = np.clip(linear * 2.0**cam.exposure, 0.0, 1.0)
+    if cam.full_well > 0:
+        signal = rng.poisson(signal * cam.full_well) / cam.full_well
+    counts = signal * 255
+    if cam.noise > 0:
+        counts = counts + rng.normal(0.0, cam.noise, counts.shape)
+    return np.round(np.clip(counts, 0, 255)).astype(np.uint8)
 
 
 def instance_colours(instance: np.ndarray) -> np.ndarray:
@@ -164,16 +293,35 @@ def _png(array: np.ndarray, path: Path) -> None:
 
 
 def write_frame(frame: Frame, cam: DepthCamera, out: str | Path) -> list[Path]:
-    """``OUT.npz`` (depth in m, semantic, instance, rgb, K, position, rotation camera -> world,
-    class names) and four PNGs
-    beside it: ``OUT_rgb.png``, ``OUT_depth.png`` (16-bit millimetres, 0 where nothing),
-    ``OUT_semantic.png`` and ``OUT_instance.png`` (colour-coded for looking at). Depths
+    """``OUT.npz`` (depth in m, semantic, instance, rgb, K, dist_coeffs, position, rotation
+    camera -> world, class names; a stereo pair's ``right_*`` images and ``disparity``) and
+    PNGs beside it: ``OUT_rgb.png``, ``OUT_depth.png`` (16-bit millimetres, 0 where nothing),
+    ``OUT_semantic.png`` and ``OUT_instance.png`` (colour-coded for looking at), and for a
+    pair ``OUT_right_rgb.png`` and ``OUT_disparity.png`` (:func:`disparity_png`). Depths
     beyond 65.534 m are clipped to 65534 in the PNG (the npz keeps them)."""
     import json
 
     out = Path(out)
     if out.suffix != ".npz":
         raise UsdForestError(f"{out}: camera output must end in .npz")
+    pair = {}
+    images = [
+        ("rgb", frame.rgb),
+        ("depth", depth_millimetres(frame.depth)),
+        ("semantic", PALETTE[frame.semantic]),
+        ("instance", instance_colours(frame.instance)),
+    ]
+    if frame.right is not None:
+        r = frame.right
+        pair = {
+            "right_depth": r.depth,
+            "right_semantic": r.semantic,
+            "right_instance": r.instance,
+            "right_rgb": r.rgb,
+            "right_position": r.position,
+            "disparity": frame.disparity,
+        }
+        images += [("right_rgb", r.rgb), ("disparity", disparity_png(frame.disparity))]
     save_npz(
         out,
         depth=frame.depth,
@@ -181,23 +329,26 @@ def write_frame(frame: Frame, cam: DepthCamera, out: str | Path) -> list[Path]:
         instance=frame.instance,
         rgb=frame.rgb,
         K=intrinsics(cam),
+        dist_coeffs=dist_coeffs(cam),
         position=frame.position,
         rotation=frame.rotation,
         classes=np.array(CLASSES),
         camera=json.dumps(asdict(cam)),
+        **pair,
     )
     stem = out.with_suffix("")
     files = [out]
-    for name, image in (
-        ("rgb", frame.rgb),
-        ("depth", depth_millimetres(frame.depth)),
-        ("semantic", PALETTE[frame.semantic]),
-        ("instance", instance_colours(frame.instance)),
-    ):
+    for name, image in images:
         path = stem.with_name(f"{stem.name}_{name}.png")
         _png(image, path)
         files.append(path)
     return files
+
+
+def disparity_png(disparity: np.ndarray) -> np.ndarray:
+    """uint16 disparity times 256, 0 where there is none (the KITTI stereo benchmark's
+    format; over 255.99 pixels clipped)."""
+    return np.clip(np.round(disparity * 256.0), 0, 65535).astype(np.uint16)
 
 
 def depth_millimetres(depth: np.ndarray) -> np.ndarray:
@@ -254,10 +405,12 @@ def fly_camera(
     colours: np.ndarray,
     caster: SceneCaster | None = None,
     progress: Callable[[int, int], None] | None = None,
+    seed: int = 0,
 ) -> Frames:
     """Frames at ``rate`` per second along ``traj`` (a
-    :class:`~usdforest.sensors.flight.Trajectory`), each from the pose at its time;
-    ``progress(done, total)`` after each frame."""
+    :class:`~usdforest.sensors.flight.Trajectory`), each from the pose at its time (a stereo
+    camera's left one), with its own noise from ``seed``; ``progress(done, total)`` after
+    each frame."""
     times = frame_times(cam, traj, rate)
     shape = (len(times), cam.height, cam.width)
     pos, rot, _ = traj.at(times)
@@ -273,7 +426,7 @@ def fly_camera(
         cam,
     )
     for k, (p, r) in enumerate(zip(pos, rot, strict=True)):
-        f = render_at(scene, cam, p, r, colours, caster)
+        f = render_at(scene, replace(cam, baseline=0.0), p, r, colours, caster, seed, k)
         out.depth[k], out.semantic[k], out.instance[k], out.rgb[k] = (
             f.depth,
             f.semantic,

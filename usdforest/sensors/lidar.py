@@ -11,6 +11,7 @@ from a seeded generator.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -133,7 +134,14 @@ class SpinningLidar:
 
 @dataclass(frozen=True)
 class DepthCamera:
-    """A pinhole camera looking along +X: ``width`` x ``height`` rays, horizontal FOV."""
+    """A pinhole camera looking along +X: ``width`` x ``height`` rays, horizontal FOV.
+
+    As ``kind = "camera"`` (:mod:`usdforest.sensors.camera`) it also has a lens with
+    Brown-Conrady distortion under OpenCV's names (``k1``, ``k2``, ``p1``, ``p2``, ``k3``),
+    image noise (``noise``: Gaussian read noise, standard deviation in 8-bit counts;
+    ``full_well``: electrons at full scale, for shot noise, 0 for none), an ``exposure``
+    (EV: a white surface facing the renderer's sun is full scale at 0) and, for a rectified
+    stereo pair, a ``baseline`` (m) to its right camera."""
 
     width: int = 640
     height: int = 480
@@ -141,9 +149,33 @@ class DepthCamera:
     max_range: float = 10.0
     range_noise: float = 0.0
     kind: str = "depth-camera"
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    k3: float = 0.0
+    noise: float = 0.0
+    full_well: float = 0.0
+    exposure: float = 0.0
+    baseline: float = 0.0
 
     def check(self) -> None:
         table = "camera" if self.kind == "camera" else "lidar"
+        lens = {k: getattr(self, k) for k in CAMERA_ONLY}
+        for key, value in lens.items():
+            if not math.isfinite(value):
+                raise UsdForestError(f"{table}.{key}: must be a finite number")
+            if self.kind != "camera" and value != 0:
+                raise UsdForestError(f"lidar.{key}: a camera setting, not a depth camera's")
+        if self.noise < 0 or self.full_well < 0 or self.baseline < 0:
+            raise UsdForestError(f"{table}.noise, full_well and baseline must be >= 0")
+        if self.baseline > 0 and any(getattr(self, k) for k in DISTORTION):
+            raise UsdForestError(
+                f"{table}.baseline: a stereo pair is rectified (its images undistorted): set "
+                "k1, k2, p1, p2 and k3 to 0"
+            )
+        if abs(self.exposure) > 20:
+            raise UsdForestError(f"{table}.exposure: {self.exposure:g} EV is beyond +-20")
         if self.width < 1 or self.height < 1:
             raise UsdForestError(f"{table}.width/height: the image needs at least one pixel")
         if self.width * self.height > 50_000_000:
@@ -161,6 +193,10 @@ class DepthCamera:
             [np.full(u.size, f), -(u.ravel() - self.width / 2), -(v.ravel() - self.height / 2)]
         )
         return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+DISTORTION = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's distCoeffs, in its order
+CAMERA_ONLY = (*DISTORTION, "noise", "full_well", "exposure", "baseline")
 
 
 def _check_common(max_range: float, noise: float, table: str = "lidar") -> None:

@@ -149,7 +149,7 @@ def scan(
     scene = extract_scene(
         stage,
         centre=p.position,
-        radius=settings.max_range,
+        radius=settings.max_range + getattr(settings, "baseline", 0.0),
         leaf_triangles=sensor != "sonar" or occlusion,
         reflectors=sensor == "sonar",
         progress=progress,
@@ -165,7 +165,8 @@ def scan(
     if sensor == "lidar":
         result = lidar.scan(scene, settings, p, seed=seed, caster=caster)
     elif sensor == "camera":
-        result = camera.render(scene, settings, p, camera.path_colours(stage, scene.paths), caster)
+        colours = camera.path_colours(stage, scene.paths)
+        result = camera.render(scene, settings, p, colours, caster, seed=seed)
     else:
         result = sonar.sonar_scan(scene, p, settings, caster, seed=seed)
         if not any(result.reflectors.values()):
@@ -377,6 +378,6 @@ def fly(
         colours = CAMERA_MODULE.path_colours(stage, scene.paths)
         frames = CAMERA_MODULE.fly_camera(
             scene, camera, traj, camera_rate, colours, caster=caster,
-            progress=lambda d, n: tick("camera frames", d, n),
+            progress=lambda d, n: tick("camera frames", d, n), seed=seed,
         )  # fmt: skip
     return Flight(traj, returns, echoes, frames, crs, origin, warnings, time.perf_counter() - t0)
