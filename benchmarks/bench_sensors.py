@@ -62,16 +62,11 @@ def sonar_100k_leaves() -> tuple[int, str, str]:
 
 def lidar_forest_scan() -> tuple[int, str, str]:
     """End to end in the default forest: extract (culled), build, cast a VLP-16 at 30 m."""
-    from usdforest.recipe import default_recipe_path, read_recipe
     from usdforest.sensors.lidar import PRESETS
-    from usdforest.usd.forest import write_forest
 
-    if "forest" not in _CACHE:
-        write_forest(read_recipe(default_recipe_path()), WORK / "forest.usda", thumbnail=False)
-        _CACHE["forest"] = WORK / "forest.usda"
     sensor = replace(PRESETS["vlp-16"], max_range=30.0)
     pose = Pose(30.0, 70.0, 1.5)
-    scene = extract_scene(_CACHE["forest"], centre=pose.position, radius=sensor.max_range)
+    scene = extract_scene(_default_forest(), centre=pose.position, radius=sensor.max_range)
     r = scan(scene, sensor, pose)
     return (
         r.n_rays,
@@ -83,19 +78,51 @@ def lidar_forest_scan() -> tuple[int, str, str]:
     )
 
 
-def _vlp16_variants(variants: dict, target: float) -> tuple[int, str, str]:
-    """A VLP-16 at head height in the default forest as each of ``variants`` (name -> its
-    changes to the preset), on one warm caster, alternating, best of three each in this run;
-    the first against the second, with its ``target`` ratio."""
+def _default_forest() -> Path:
+    """The default forest, built once per process."""
     from usdforest.recipe import default_recipe_path, read_recipe
-    from usdforest.sensors.lidar import PRESETS
     from usdforest.usd.forest import write_forest
 
     if "forest" not in _CACHE:
         write_forest(read_recipe(default_recipe_path()), WORK / "forest.usda", thumbnail=False)
         _CACHE["forest"] = WORK / "forest.usda"
+    return _CACHE["forest"]
+
+
+def camera_shadows() -> tuple[int, str, str]:
+    """What the sun's shadows cost the camera (issue 40, item 3): a 640 x 480 frame at head
+    height in the default forest with a shadow ray per sunlit pixel against none, on one warm
+    caster, alternating, best of three (target: within 2x: at most one more ray a pixel)."""
+    from usdforest.sensors.camera import PRESETS, path_colours, render
+
+    pose = Pose(50.0, 50.0, 1.6, yaw=20.0, pitch=5.0)
+    cam = PRESETS["pinhole-640"]
+    scene = extract_scene(_default_forest(), centre=pose.position, radius=cam.max_range)
+    colours = path_colours(_default_forest(), scene.paths)
+    caster = SceneCaster(scene)
+    render(scene, cam, pose, colours, caster)  # builds the caster's trees
+    best = {}
+    for _ in range(3):
+        for name, c in (("shadows", replace(cam, shadows=True)), ("none", cam)):
+            t0 = time.perf_counter()
+            render(scene, c, pose, colours, caster)
+            best[name] = min(best.get(name, np.inf), time.perf_counter() - t0)
+    return (
+        cam.width * cam.height,
+        "pixels",
+        f"{best['shadows']:.2f} s vs {best['none']:.2f} s without: "
+        f"{best['shadows'] / best['none']:.2f}x (target 2x)",
+    )
+
+
+def _vlp16_variants(variants: dict, target: float) -> tuple[int, str, str]:
+    """A VLP-16 at head height in the default forest as each of ``variants`` (name -> its
+    changes to the preset), on one warm caster, alternating, best of three each in this run;
+    the first against the second, with its ``target`` ratio."""
+    from usdforest.sensors.lidar import PRESETS
+
     pose = Pose(50.0, 50.0, 2.0)
-    scene = extract_scene(_CACHE["forest"], centre=pose.position, radius=100.0)
+    scene = extract_scene(_default_forest(), centre=pose.position, radius=100.0)
     caster = SceneCaster(scene)
     best, returns = {}, {}
     for _ in range(3):
@@ -138,7 +165,6 @@ def sonar_wood() -> tuple[int, str, str]:
     5x)."""
     import timeit
 
-    from usdforest.recipe import default_recipe_path, read_recipe
     from usdforest.sensors.sonar import (
         PRESETS,
         SonarScene,
@@ -148,13 +174,9 @@ def sonar_wood() -> tuple[int, str, str]:
         wood_amplitudes,
         wood_points,
     )
-    from usdforest.usd.forest import write_forest
 
-    if "forest" not in _CACHE:
-        write_forest(read_recipe(default_recipe_path()), WORK / "forest.usda", thumbnail=False)
-        _CACHE["forest"] = WORK / "forest.usda"
     cfg, pose = PRESETS["paper"], Pose(50.0, 50.0, 2.0)
-    scene = extract_scene(_CACHE["forest"], centre=pose.position, radius=cfg.max_range + 5)
+    scene = extract_scene(_default_forest(), centre=pose.position, radius=cfg.max_range + 5)
     wood = SonarScene(scene, cfg).targets(pose, cfg).wood
     f = _Grid.of(cfg).centres
 
@@ -264,6 +286,7 @@ BENCHMARKS = {
     ),
     "lidar: echoes from the waveform vs without, VLP-16 in the default forest": lidar_waveform,
     "sonar: wood echoes of a pulse vs their beam and spreading, default forest": sonar_wood,
+    "camera: sun shadows vs none, 640 x 480 in the default forest": camera_shadows,
     "sensors: default forest opened at full detail": full_detail_open,
     "lidar: quick-mixed 15 m, VLP-16 vs Embree on copied triangles": lidar_forest_floor,
     "camera: quick-mixed 15 m, 640 x 480 vs Embree on copied triangles": camera_forest_floor,

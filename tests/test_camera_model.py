@@ -225,3 +225,74 @@ def test_a_lens_that_folds_the_image_is_refused():
     cam = DepthCamera(64, 48, 150.0, 10.0, kind="camera", k1=-1.0)
     with pytest.raises(UsdForestError, match="does not invert"):
         pixel_rays(cam)
+
+
+def _floor_and_roof(path, roof=(5.0, 0.0, 2.0), half=1.0):
+    """A floor at z = 0 and a square roof plate (side 2 ``half``) at ``roof``."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    world = UsdGeom.Xform.Define(stage, "/World")
+    stage.SetDefaultPrim(world.GetPrim())
+    x, y, z = roof
+    for name, pts in (
+        ("Floor", [(-50, -50, 0), (50, -50, 0), (50, 50, 0), (-50, 50, 0)]),
+        ("Roof", [(x - half, y - half, z), (x + half, y - half, z), (x + half, y + half, z),
+                  (x - half, y + half, z)]),
+    ):  # fmt: skip
+        m = UsdGeom.Mesh.Define(stage, f"/World/{name}")
+        m.CreatePointsAttr(pts)
+        m.CreateFaceVertexCountsAttr([4])
+        m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    stage.Save()
+    return extract_scene(path)
+
+
+def test_shadows_leave_the_roofs_shadow_to_the_sky_light(tmp_path):
+    """A roof plate 2 m over the floor: with ``shadows`` every floor pixel whose point sees
+    the roof towards the sun (a ray-square test written here) is the sky's AMBIENT share of
+    its colour, every other one AMBIENT + (1 - AMBIENT) cos i, within a count (a band of 2
+    cm round the shadow's edge left out); without, the shadow is not there."""
+    from usdforest.sensors.camera import AMBIENT
+    from usdforest.view.preview import LIGHT
+
+    scene = _floor_and_roof(tmp_path / "r.usda")
+    cam = DepthCamera(320, 240, 90.0, 50.0, kind="camera", shadows=True)
+    pose = Pose(0.0, 0.0, 6.0, pitch=-45.0)
+    colours = np.full((len(scene.paths), 3), 0.8)
+    frame = render(scene, cam, pose, colours)
+    flat = render(scene, replace(cam, shadows=False), pose, colours)
+    local = pixel_rays(cam)
+    rays = local @ pose.rotation().T
+    s = -pose.position[2] / rays[:, 2]  # each ray down to the floor
+    point = pose.position + s[:, None] * rays
+    floor = np.abs(frame.depth.ravel() - s * local[:, 0]) < 1e-3  # seen: not roof, not sky
+    up = (2.0 - point[:, 2]) / LIGHT[2]  # along the sun's direction to the roof's height
+    at = point[:, :2] + up[:, None] * LIGHT[:2]
+    inside = np.max(np.abs(at - [5.0, 0.0]), axis=1)
+    on_floor = floor & (rays[:, 2] < 0) & (np.abs(inside - 1.0) > 0.02)
+    cos_i = LIGHT[2]  # the floor's normal is +z
+    lit = round(0.8 * (AMBIENT + (1 - AMBIENT) * cos_i) * 255)
+    dark = round(0.8 * AMBIENT * 255)
+    expected = np.where(inside < 1.0, dark, lit)
+    got = frame.rgb.reshape(-1, 3)[:, 0]
+    assert np.sum(on_floor & (inside < 1.0)) > 300  # the shadow is in view
+    np.testing.assert_allclose(got[on_floor], expected[on_floor], atol=1)
+    assert np.all(flat.rgb.reshape(-1, 3)[on_floor, 0] >= lit - 1)
+
+
+def test_auto_exposure_meters_the_frame_to_middle_grey(tmp_path):
+    """A wall filling the view: auto exposure makes the mean luminance 18 % of full scale
+    (within a count of 46) however dark its albedo, +1 EV of compensation doubles it, and
+    the npz keeps the gain."""
+    scene = _scene(tmp_path / "w.usda", ball=(50.0, 0.0, 0.0), radius=0.01, wall=5.0)
+    cam = DepthCamera(200, 150, 60.0, 50.0, kind="camera", auto_exposure=True)
+    luma = np.array([0.2126, 0.7152, 0.0722])
+    for albedo in (0.1, 0.4):
+        colours = np.full((len(scene.paths), 3), albedo)
+        frame = render(scene, cam, Pose(0, 0, 0), colours)
+        assert float(np.mean(frame.rgb @ luma)) == pytest.approx(0.18 * 255, abs=1.0)
+        brighter = render(scene, replace(cam, exposure=1.0), Pose(0, 0, 0), colours)
+        assert float(np.mean(brighter.rgb @ luma)) == pytest.approx(0.36 * 255, abs=1.0)
+    write_frame(frame, cam, tmp_path / "a.npz")
+    with np.load(tmp_path / "a.npz") as z:
+        assert float(z["gain"]) == pytest.approx(frame.gain) and frame.gain > 1

@@ -28,10 +28,13 @@ method, to 1e-12), so the images are what a camera with that lens records and
 ``cv2.projectPoints`` of a pixel's ray lands on the pixel (tested).
 
 The image is linear light: a surface of albedo rho lit by the renderer's sun at incidence i
-gives rho (AMBIENT + (1 - AMBIENT) cos i) times 2^``exposure``, clipped at full scale; then,
-from the frame's seed, shot noise (Poisson on that share of ``full_well`` electrons) and read
-noise (Gaussian, ``noise`` counts of 255), and rounding to 8 bits. Depth, classes and tree ids
-stay exact ground truth.
+gives rho (AMBIENT + (1 - AMBIENT) cos i), the sun's share only where a ray towards the sun
+leaves the scene (``shadows``: under a closed canopy the understory gets the sky's AMBIENT
+alone). A gain makes it counts: 2^``exposure``, times 0.18 over the frame's mean luminance
+(Rec. 709) with ``auto_exposure`` (average metering to 18 % grey), clipped at full scale;
+then, from the frame's seed, shot noise (Poisson on that share of ``full_well`` electrons) and
+read noise (Gaussian, ``noise`` counts of 255), and rounding to 8 bits. Depth, classes and tree
+ids stay exact ground truth.
 
 A stereo camera (``baseline`` > 0) renders a rectified pair: the right camera ``baseline``
 metres to the right (camera -y) with the same intrinsics and no distortion, and the left
@@ -87,7 +90,7 @@ class Frame:
     """One image of every kind, ``(height, width)`` each (``rgb`` has 3 channels), and the
     camera's position and rotation (column-vector, camera -> world) when it was taken; for a
     stereo camera also the ``right`` camera's frame and the left image's ``disparity``
-    (pixels, 0 where nothing is hit)."""
+    (pixels, 0 where nothing is hit), and the ``gain`` its exposure gave."""
 
     depth: np.ndarray
     semantic: np.ndarray
@@ -97,6 +100,7 @@ class Frame:
     rotation: np.ndarray
     right: Frame | None = None
     disparity: np.ndarray | None = None
+    gain: float = 1.0  # full scale over linear light (1: a white surface facing the sun)
 
 
 def refuse_lidar_keys(table: dict, where) -> None:
@@ -224,8 +228,9 @@ def render_at(
         return left
     # the rectified pair: the right camera baseline to the right (-y), the same rays
     moved = np.asarray(position, dtype=float) + rotation @ np.array([0.0, -cam.baseline, 0.0])
+    # one exposure for the pair, as a stereo head meters
     right = _image(cam, pixel_rays(cam), moved, rotation, colours, caster,
-                   stream(seed, "camera-right", key))  # fmt: skip
+                   stream(seed, "camera-right", key), left.gain)  # fmt: skip
     f = intrinsics(cam)[0, 0]
     with np.errstate(divide="ignore"):
         disparity = np.where(np.isfinite(left.depth), f * cam.baseline / left.depth, 0.0)
@@ -240,8 +245,10 @@ def _image(
     colours: np.ndarray,
     caster: SceneCaster,
     rng: np.random.Generator,
+    gain: float | None = None,
 ) -> Frame:
-    """One camera's images through its rays ``local`` (camera frame)."""
+    """One camera's images through its rays ``local`` (camera frame); ``gain``: the
+    exposure's, metered here if None."""
     from usdforest.view.preview import LIGHT, SKY
 
     dirs = local @ rotation.T
@@ -250,23 +257,66 @@ def _image(
     depth = np.where(h.hit, h.t * local[:, 0], np.inf).astype(np.float32)
     n = h.normal / np.maximum(np.linalg.norm(h.normal, axis=1, keepdims=True), 1e-30)
     n *= np.where(np.sum(n * dirs, axis=1) > 0, -1.0, 1.0)[:, None]  # facing the camera
-    shade = AMBIENT + (1 - AMBIENT) * np.clip(n @ LIGHT, 0.0, 1.0)
+    sun = np.clip(n @ LIGHT, 0.0, 1.0)
+    surface = h.hit & (h.path >= 0)
+    if cam.shadows:
+        sun *= ~_shadowed(np.asarray(position, float) + dirs * h.t[:, None], n,
+                          surface & (sun > 0), caster)  # fmt: skip
+    shade = AMBIENT + (1 - AMBIENT) * sun
     base = colours[np.maximum(h.path, 0)] if len(colours) else np.full(dirs.shape, 0.6)
-    rgb = np.where((h.hit & (h.path >= 0))[:, None], base * shade[:, None], SKY)
+    rgb = np.where(surface[:, None], base * shade[:, None], SKY)
+    if gain is None:
+        gain = exposure_gain(rgb, cam)
     return Frame(
         depth.reshape(shape),
         h.cls.reshape(shape).astype(np.uint8),
         np.where(h.hit, h.tree, -1).reshape(shape).astype(np.int64),
-        expose(rgb, cam, rng).reshape(*shape, 3),
+        expose(rgb, cam, rng, gain).reshape(*shape, 3),
         np.asarray(position, dtype=float),
         rotation,
+        gain=gain,
     )
 
 
-def expose(linear: np.ndarray, cam: DepthCamera, rng: np.random.Generator) -> np.ndarray:
-    """8-bit counts of ``linear`` light (1: a white surface facing the sun) through the
-    camera's exposure, shot noise and read noise (the module docstring)."""
-    signal = np.clip(linear * 2.0**cam.exposure, 0.0, 1.0)
+SHADOW_OFFSET = 1e-3  # m off the surface, towards the camera: clear of its own triangle
+SHADOW_REACH = 200.0  # m towards the sun: past the tallest canopy at the sun's 52 degrees
+
+
+def _shadowed(
+    points: np.ndarray, normal: np.ndarray, ask: np.ndarray, caster: SceneCaster
+) -> np.ndarray:
+    """Which of ``points`` (those ``ask``-ed) see something between them and the sun."""
+    from usdforest.view.preview import LIGHT
+
+    out = np.zeros(len(points), dtype=bool)
+    idx = np.flatnonzero(ask)
+    if idx.size:
+        start = points[idx] + SHADOW_OFFSET * normal[idx]
+        towards = np.broadcast_to(LIGHT, start.shape)
+        out[idx] = caster.first_hit(start, towards, SHADOW_REACH).hit
+    return out
+
+
+MIDDLE_GREY = 0.18
+REC709 = np.array([0.2126, 0.7152, 0.0722])  # linear luminance from linear RGB
+
+
+def exposure_gain(linear: np.ndarray, cam: DepthCamera) -> float:
+    """The exposure's gain for ``linear`` light ``(n, 3)``: 2^``exposure``, times
+    MIDDLE_GREY over the mean luminance with ``auto_exposure``."""
+    gain = 2.0**cam.exposure
+    if cam.auto_exposure:
+        gain *= MIDDLE_GREY / max(float(np.mean(linear @ REC709)), 1e-6)
+    return gain
+
+
+def expose(
+    linear: np.ndarray, cam: DepthCamera, rng: np.random.Generator, gain: float = 1.0
+) -> np.ndarray:
+    """8-bit counts of ``linear`` light (1: a white surface facing the sun) times ``gain``
+    (:func:`exposure_gain`), with the camera's shot noise and read noise (the module
+    docstring)."""
+    signal = np.clip(linear * gain, 0.0, 1.0)
     if cam.full_well > 0:
         signal = rng.poisson(signal * cam.full_well) / cam.full_well
     counts = signal * 255
@@ -330,6 +380,7 @@ def write_frame(frame: Frame, cam: DepthCamera, out: str | Path) -> list[Path]:
         rgb=frame.rgb,
         K=intrinsics(cam),
         dist_coeffs=dist_coeffs(cam),
+        gain=frame.gain,
         position=frame.position,
         rotation=frame.rotation,
         classes=np.array(CLASSES),
@@ -359,8 +410,8 @@ def depth_millimetres(depth: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class Frames:
-    """Frames along a flight: times, camera positions and rotations, and the images stacked
-    ``(frames, height, width[, 3])``."""
+    """Frames along a flight: times, camera positions and rotations, the images stacked
+    ``(frames, height, width[, 3])`` and each frame's exposure gain."""
 
     t: np.ndarray
     position: np.ndarray
@@ -370,6 +421,7 @@ class Frames:
     instance: np.ndarray
     rgb: np.ndarray
     camera: DepthCamera
+    gain: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.t)
@@ -424,9 +476,11 @@ def fly_camera(
         np.empty(shape, np.int32),
         np.empty((*shape, 3), np.uint8),
         cam,
+        np.ones(len(times)),
     )
     for k, (p, r) in enumerate(zip(pos, rot, strict=True)):
         f = render_at(scene, replace(cam, baseline=0.0), p, r, colours, caster, seed, k)
+        out.gain[k] = f.gain
         out.depth[k], out.semantic[k], out.instance[k], out.rgb[k] = (
             f.depth,
             f.semantic,
@@ -454,6 +508,8 @@ def write_frames(f: Frames, out: Path) -> list[Path]:
         instance=f.instance,
         rgb=f.rgb,
         K=intrinsics(f.camera),
+        dist_coeffs=dist_coeffs(f.camera),
+        gain=f.gain if f.gain is not None else np.ones(len(f)),
         classes=np.array(CLASSES),
         camera=json.dumps(asdict(f.camera)),
     )

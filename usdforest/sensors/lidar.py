@@ -140,7 +140,9 @@ class DepthCamera:
     Brown-Conrady distortion under OpenCV's names (``k1``, ``k2``, ``p1``, ``p2``, ``k3``),
     image noise (``noise``: Gaussian read noise, standard deviation in 8-bit counts;
     ``full_well``: electrons at full scale, for shot noise, 0 for none), an ``exposure``
-    (EV: a white surface facing the renderer's sun is full scale at 0) and, for a rectified
+    (EV: a white surface facing the renderer's sun is full scale at 0), ``auto_exposure``
+    (metered: the frame's mean luminance made 18 % grey, ``exposure`` then compensating),
+    ``shadows`` (the sun's light cast: a shadow ray per sunlit pixel) and, for a rectified
     stereo pair, a ``baseline`` (m) to its right camera."""
 
     width: int = 640
@@ -157,6 +159,8 @@ class DepthCamera:
     noise: float = 0.0
     full_well: float = 0.0
     exposure: float = 0.0
+    auto_exposure: bool = False
+    shadows: bool = False
     baseline: float = 0.0
 
     def check(self) -> None:
@@ -196,7 +200,15 @@ class DepthCamera:
 
 
 DISTORTION = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's distCoeffs, in its order
-CAMERA_ONLY = (*DISTORTION, "noise", "full_well", "exposure", "baseline")
+CAMERA_ONLY = (
+    *DISTORTION,
+    "noise",
+    "full_well",
+    "exposure",
+    "auto_exposure",
+    "shadows",
+    "baseline",
+)
 
 
 def _check_common(max_range: float, noise: float, table: str = "lidar") -> None:
