@@ -506,6 +506,55 @@ def forest_sensors(out: Path, work: Path) -> None:
     save_figure(fig, out / "flight-camera.png")
 
 
+def camera_model(out: Path, work: Path) -> None:
+    """The camera model in the default forest, at eye height: the pinhole, the same view
+    through a wide-angle lens (OpenCV's k1 -0.28, k2 0.07), the sun's shadows with the frame
+    metered, and the D435 pair's disparity ground truth."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from usdforest.recipe import default_recipe_path
+    from usdforest.sensors import camera
+    from usdforest.sensors.pose import Pose
+    from usdforest.sensors.raycast import SceneCaster
+    from usdforest.sensors.scene import extract_scene
+
+    stage = work / "default.usda"
+    if not stage.exists():
+        write_forest(read_recipe(default_recipe_path()), stage, thumbnail=False)
+    pose = Pose(50.0, 50.0, 1.6, yaw=20, pitch=5)
+    scene = extract_scene(stage, centre=pose.position, radius=200.0)
+    caster = SceneCaster(scene)
+    colours = camera.path_colours(stage, scene.paths)
+    cam = camera.PRESETS["pinhole-640"]
+    lens = replace(cam, hfov=110.0, k1=-0.28, k2=0.07)
+    lit = replace(cam, shadows=True, auto_exposure=True)
+    pair = camera.render(scene, camera.PRESETS["d435-stereo"], pose, colours, caster)
+    disparity = np.where(pair.disparity > 0, pair.disparity, np.nan)
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8.2), dpi=100)
+    for ax, (image, kw, title) in zip(
+        axes.ravel(),
+        (
+            (camera.render(scene, cam, pose, colours, caster).rgb, {}, "pinhole, 90°"),
+            (camera.render(scene, lens, pose, colours, caster).rgb, {},
+             "110° through a lens: k1 = -0.28, k2 = 0.07 (OpenCV's names)"),
+            (camera.render(scene, lit, pose, colours, caster).rgb, {},
+             "the sun's shadows, metered to 18 % grey"),
+            (disparity, {"cmap": "magma"},
+             "d435-stereo: disparity ground truth (px), 50 mm baseline"),
+        ),
+        strict=True,
+    ):  # fmt: skip
+        shown = ax.imshow(image, **kw)
+        ax.set_title(title, fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        if kw:
+            fig.colorbar(shown, ax=ax, fraction=0.035)
+    save_figure(fig, out / "camera-model.png")
+
+
 def dead_wood(out: Path, work: Path) -> None:
     """The default forest's dead wood from a walker's eye: a camera 6 m beside its thickest
     log, in colour and by class, with what deadwood.csv says of the pieces in view."""
@@ -699,6 +748,7 @@ def main(out: Path) -> None:
         allometric(out, work)
         sensors(out, work)
         forest_sensors(out, work)
+        camera_model(out, work)
         dead_wood(out, work)
         ground_vegetation(out, work)
         terrain(out, work)

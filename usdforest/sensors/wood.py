@@ -4,8 +4,11 @@ own wood triangles.
 Every wood prim (triangles labelled trunk or branch, grouped by prim path) is cut along its
 principal axis into segments no longer than ``segment`` metres. Each segment becomes one
 cylinder fitted to points spread over the prim's side wall: a circle through them in the plane
-across the principal axis gives its centre and radius (so a bent branch keeps its bend), and
-its own axis joins its neighbours' centres. A slice whose points do not lie on a circle (rms
+across the principal axis gives its centre and radius (so a bent branch keeps its bend). A
+prim's consecutive segments make a chain (``Cylinders.joined``): a polyline through the
+midpoints between their centres, each piece starting where the one before it ends, its free
+ends on the prim's own end caps, so the sonar hears the prim's wall whole however it was cut
+(:mod:`usdforest.sensors.backscatter`). A slice whose points do not lie on a circle (rms
 misfit over 15 % of the radius: the two limbs of a fork in one prim, a stump cut across its
 axis) is left out rather than fitted as a phantom cylinder. Nothing here depends on how the
 tree was made: L-system trees, whole-tree CAD decompositions and a user's own meshes are
