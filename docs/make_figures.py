@@ -490,13 +490,7 @@ def forest_sensors(out: Path, work: Path) -> None:
         (depth, {"cmap": "viridis_r"}, "depth (z, m)"),
         (camera.instance_colours(frame.instance), {}, "instance: one colour per tree id"),
     )
-    for ax, (image, kw, title) in zip(axes.ravel(), panels, strict=True):
-        shown = ax.imshow(image, **kw)
-        ax.set_title(title, fontsize=10)
-        ax.set_xticks([])
-        ax.set_yticks([])
-        if kw:
-            fig.colorbar(shown, ax=ax, fraction=0.035)
+    image_grid(fig, axes, panels, 10)
     save_figure(fig, out / "camera.png")
     traj = Trajectory.line((20.0, 40.0, 2.0), (30.0, 40.0, 2.0), 5.0)
     frames = camera.fly_camera(scene, cam, traj, 2.0, colours, caster)
@@ -504,6 +498,18 @@ def forest_sensors(out: Path, work: Path) -> None:
     fig, ax = plt.subplots(figsize=(14, 7), dpi=100)
     image_panel(ax, work / "flight_camera.png", "")
     save_figure(fig, out / "flight-camera.png")
+
+
+def image_grid(fig, axes, panels, fontsize: int) -> None:
+    """Images in ``axes`` (row by row), each ``(image, imshow keywords, title)``, without
+    ticks; a colour bar beside each drawn through a colour map."""
+    for ax, (image, kw, title) in zip(axes.ravel(), panels, strict=True):
+        shown = ax.imshow(image, **kw)
+        ax.set_title(title, fontsize=fontsize)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        if kw:
+            fig.colorbar(shown, ax=ax, fraction=0.035)
 
 
 def camera_model(out: Path, work: Path) -> None:
@@ -533,25 +539,15 @@ def camera_model(out: Path, work: Path) -> None:
     pair = camera.render(scene, camera.PRESETS["d435-stereo"], pose, colours, caster)
     disparity = np.where(pair.disparity > 0, pair.disparity, np.nan)
     fig, axes = plt.subplots(2, 2, figsize=(11, 8.2), dpi=100)
-    for ax, (image, kw, title) in zip(
-        axes.ravel(),
-        (
-            (camera.render(scene, cam, pose, colours, caster).rgb, {}, "pinhole, 90°"),
-            (camera.render(scene, lens, pose, colours, caster).rgb, {},
-             "110° through a lens: k1 = -0.28, k2 = 0.07 (OpenCV's names)"),
-            (camera.render(scene, lit, pose, colours, caster).rgb, {},
-             "the sun's shadows, metered to 18 % grey"),
-            (disparity, {"cmap": "magma"},
-             "d435-stereo: disparity ground truth (px), 50 mm baseline"),
-        ),
-        strict=True,
-    ):  # fmt: skip
-        shown = ax.imshow(image, **kw)
-        ax.set_title(title, fontsize=9)
-        ax.set_xticks([])
-        ax.set_yticks([])
-        if kw:
-            fig.colorbar(shown, ax=ax, fraction=0.035)
+    panels = (
+        (camera.render(scene, cam, pose, colours, caster).rgb, {}, "pinhole, 90°"),
+        (camera.render(scene, lens, pose, colours, caster).rgb, {},
+         "110° through a lens: k1 = -0.28, k2 = 0.07 (OpenCV's names)"),
+        (camera.render(scene, lit, pose, colours, caster).rgb, {},
+         "the sun's shadows, metered to 18 % grey"),
+        (disparity, {"cmap": "magma"}, "d435-stereo: disparity ground truth (px), 50 mm baseline"),
+    )  # fmt: skip
+    image_grid(fig, axes, panels, 9)
     save_figure(fig, out / "camera-model.png")
 
 

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 from PIL import Image
-from pxr import Gf, Usd, UsdGeom
+from scenes import ball_and_wall
 
 from usdforest.cli import app
 from usdforest.recipe import default_recipe_path, read_recipe
@@ -20,23 +20,6 @@ from usdforest.sensors.lidar import DepthCamera
 from usdforest.sensors.pose import Pose
 from usdforest.sensors.scene import CLASS_ID, extract_scene
 from usdforest.usd.forest import write_forest
-
-
-def _ball_and_wall(path, centre=(6.0, 1.0, 0.5), radius=1.0, wall=20.0):
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
-    world = UsdGeom.Xform.Define(stage, "/World")
-    stage.SetDefaultPrim(world.GetPrim())
-    ball = UsdGeom.Sphere.Define(stage, "/World/Ball")
-    ball.CreateRadiusAttr(radius)
-    UsdGeom.XformCommonAPI(ball).SetTranslate(Gf.Vec3d(*centre))
-    w = UsdGeom.Mesh.Define(stage, "/World/Wall")
-    s = 100.0
-    w.CreatePointsAttr([(wall, -s, -s), (wall, s, -s), (wall, s, s), (wall, -s, s)])
-    w.CreateFaceVertexCountsAttr([4])
-    w.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-    stage.Save()
-    return path
 
 
 def _world_rays(cam: DepthCamera, pose: Pose) -> np.ndarray:
@@ -52,7 +35,7 @@ def _world_rays(cam: DepthCamera, pose: Pose) -> np.ndarray:
 def test_depth_is_the_z_depth_of_analytic_surfaces(tmp_path):
     """Sphere of radius 1 at (6, 1, 0.5), a wall at x = 20: every pixel's depth is the
     z-depth of the nearest intersection (the sphere is tessellated to 0.2 mm)."""
-    scene = extract_scene(_ball_and_wall(tmp_path / "s.usda"))
+    scene = extract_scene(ball_and_wall(tmp_path / "s.usda"))
     cam = DepthCamera(160, 120, 90.0, 100.0, kind="camera")
     pose = Pose(0, 0, 0)
     frame = render(scene, cam, pose, path_colours(tmp_path / "s.usda", scene.paths))
@@ -84,7 +67,7 @@ def test_a_point_is_seen_where_K_projects_it(tmp_path):
     """A 5 cm ball off-axis, camera yawed and pitched: the ball's pixel indices centre on K's
     projection of its centre within half a pixel (OpenCV's convention)."""
     centre = np.array([8.0, 2.5, 2.0])
-    scene = extract_scene(_ball_and_wall(tmp_path / "s.usda", tuple(centre), 0.05))
+    scene = extract_scene(ball_and_wall(tmp_path / "s.usda", tuple(centre), 0.05))
     cam = DepthCamera(640, 480, 60.0, 100.0, kind="camera")
     pose = Pose(0.5, 0.2, 1.0, yaw=15, pitch=5, roll=3)
     frame = render(scene, cam, pose, np.zeros((len(scene.paths), 3)))

@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from PIL import Image
-from pxr import Gf, Usd, UsdGeom
+from scenes import ball_and_wall, new_stage, quad
 
 from usdforest.errors import UsdForestError
 from usdforest.sensors.camera import (
@@ -37,36 +37,16 @@ def _cv2():
 
 def _scene(path, ball=(6.0, 1.0, 0.5), radius=1.0, wall=20.0):
     """A ball and a wall across the view at x = ``wall`` (the camera looks along +x)."""
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
-    world = UsdGeom.Xform.Define(stage, "/World")
-    stage.SetDefaultPrim(world.GetPrim())
-    b = UsdGeom.Sphere.Define(stage, "/World/Ball")
-    b.CreateRadiusAttr(radius)
-    UsdGeom.XformCommonAPI(b).SetTranslate(Gf.Vec3d(*ball))
-    w = UsdGeom.Mesh.Define(stage, "/World/Wall")
-    s = 200.0
-    w.CreatePointsAttr([(wall, -s, -s), (wall, s, -s), (wall, s, s), (wall, -s, s)])
-    w.CreateFaceVertexCountsAttr([4])
-    w.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-    stage.Save()
-    return extract_scene(path)
+    return extract_scene(ball_and_wall(path, ball, radius, wall))
 
 
 def _card(path, x: float, half: float, wall: float):
     """A square card facing the camera at ``x`` (side 2 ``half``, centred on the axis) in
     front of a wall at ``wall``."""
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
-    world = UsdGeom.Xform.Define(stage, "/World")
-    stage.SetDefaultPrim(world.GetPrim())
+    stage = new_stage(path)
     for name, at, size in (("Card", x, half), ("Wall", wall, 200.0)):
-        m = UsdGeom.Mesh.Define(stage, f"/World/{name}")
-        m.CreatePointsAttr(
-            [(at, -size, -size), (at, size, -size), (at, size, size), (at, -size, size)]
-        )
-        m.CreateFaceVertexCountsAttr([4])
-        m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+        quad(stage, name, [(at, -size, -size), (at, size, -size), (at, size, size),
+                           (at, -size, size)])  # fmt: skip
     stage.Save()
     return extract_scene(path)
 
@@ -229,20 +209,11 @@ def test_a_lens_that_folds_the_image_is_refused():
 
 def _floor_and_roof(path, roof=(5.0, 0.0, 2.0), half=1.0):
     """A floor at z = 0 and a square roof plate (side 2 ``half``) at ``roof``."""
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
-    world = UsdGeom.Xform.Define(stage, "/World")
-    stage.SetDefaultPrim(world.GetPrim())
+    stage = new_stage(path)
     x, y, z = roof
-    for name, pts in (
-        ("Floor", [(-50, -50, 0), (50, -50, 0), (50, 50, 0), (-50, 50, 0)]),
-        ("Roof", [(x - half, y - half, z), (x + half, y - half, z), (x + half, y + half, z),
-                  (x - half, y + half, z)]),
-    ):  # fmt: skip
-        m = UsdGeom.Mesh.Define(stage, f"/World/{name}")
-        m.CreatePointsAttr(pts)
-        m.CreateFaceVertexCountsAttr([4])
-        m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    quad(stage, "Floor", [(-50, -50, 0), (50, -50, 0), (50, 50, 0), (-50, 50, 0)])
+    quad(stage, "Roof", [(x - half, y - half, z), (x + half, y - half, z),
+                         (x + half, y + half, z), (x - half, y + half, z)])  # fmt: skip
     stage.Save()
     return extract_scene(path)
 
