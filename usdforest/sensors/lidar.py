@@ -171,8 +171,9 @@ class DepthCamera:
                 raise UsdForestError(f"{table}.{key}: must be a finite number")
             if self.kind != "camera" and value != 0:
                 raise UsdForestError(f"lidar.{key}: a camera setting, not a depth camera's")
-        if self.noise < 0 or self.full_well < 0 or self.baseline < 0:
-            raise UsdForestError(f"{table}.noise, full_well and baseline must be >= 0")
+        for key in ("noise", "full_well", "baseline"):
+            if getattr(self, key) < 0:
+                raise UsdForestError(f"{table}.{key}: must be >= 0, got {getattr(self, key):g}")
         if self.baseline > 0 and any(getattr(self, k) for k in DISTORTION):
             raise UsdForestError(
                 f"{table}.baseline: a stereo pair is rectified (its images undistorted): set "

@@ -295,12 +295,14 @@ def leaf_amplitudes(
 
 @dataclass(frozen=True, eq=False)
 class WoodPoints:
-    """Where a sonar at one pose hears a set of wood cylinders: each chain's ends and the
-    joints between its pieces (``inward`` the axis of the piece ending there, ``outward`` that
-    of the piece starting there, zero where none; ``radius`` the wall's there), and each
-    piece's specular point (``specular`` its weight: 1 inside, 1/2 on an end, 0 for a joint;
-    ``outward`` its piece's axis),
-    with the class and tree id of the cylinder each comes from."""
+    """Where a sonar at one pose hears a set of wood cylinders, with the class and tree id
+    of the cylinder each point comes from:
+
+    * each chain's ends and the joints between its pieces: ``inward`` the axis of the piece
+      ending there, ``outward`` that of the piece starting there (zero where none),
+      ``radius`` the wall's there, ``specular`` 0;
+    * each piece's specular point: ``specular`` its weight (1 inside the piece, 1/2 on its
+      end), ``outward`` the piece's axis."""
 
     position: np.ndarray
     radius: np.ndarray
