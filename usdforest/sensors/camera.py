@@ -43,6 +43,7 @@ image's disparity ground truth fx baseline / depth (pixels; 0 where nothing is h
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
@@ -161,16 +162,20 @@ def undistort(
     )
 
 
+@functools.lru_cache(maxsize=8)
 def pixel_rays(cam: DepthCamera) -> np.ndarray:
     """``(height * width, 3)`` unit rays through the pixel centres, row by row, in the
-    camera's frame (forward x, left y, up z), through the lens."""
+    camera's frame (forward x, left y, up z), through the lens: worked out once per camera
+    (a flight's frames and a stereo pair's two images share them; read-only)."""
     k = intrinsics(cam)
     u, v = np.meshgrid(np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float))
     xd, yd = (u.ravel() - k[0, 2]) / k[0, 0], (v.ravel() - k[1, 2]) / k[1, 1]
     d = dist_coeffs(cam)
     x, y = undistort(xd, yd, d) if d.any() else (xd, yd)
     rays = np.column_stack([np.ones_like(x), -x, -y])
-    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    rays.flags.writeable = False
+    return rays
 
 
 def intrinsics(cam: DepthCamera) -> np.ndarray:
@@ -222,14 +227,15 @@ def render_at(
     cam.check()
     caster = caster or SceneCaster(scene)
     rotation = np.asarray(rotation, dtype=float)
-    left = _image(cam, pixel_rays(cam), position, rotation, colours, caster,
+    local = pixel_rays(cam)
+    left = _image(cam, local, position, rotation, colours, caster,
                   stream(seed, "camera", key))  # fmt: skip
     if cam.baseline <= 0:
         return left
     # the rectified pair: the right camera baseline to the right (-y), the same rays
     moved = np.asarray(position, dtype=float) + rotation @ np.array([0.0, -cam.baseline, 0.0])
     # one exposure for the pair, as a stereo head meters
-    right = _image(cam, pixel_rays(cam), moved, rotation, colours, caster,
+    right = _image(cam, local, moved, rotation, colours, caster,
                    stream(seed, "camera-right", key), left.gain)  # fmt: skip
     f = intrinsics(cam)[0, 0]
     with np.errstate(divide="ignore"):
