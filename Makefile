@@ -72,6 +72,7 @@ bench: $(STAMP) $(BLENDER_STAMP)
 	$(BIN)/python benchmarks/bench_flight.py
 	$(BIN)/python benchmarks/bench_floor.py
 	$(BIN)/python benchmarks/bench_leaves.py
+	$(BIN)/python benchmarks/bench_wind.py
 	$(BIN)/python benchmarks/bench_tiles.py 1 10
 	$(BIN)/python benchmarks/bench_spatstat.py
 	$(BIN)/python benchmarks/bench_stats.py

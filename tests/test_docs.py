@@ -81,9 +81,10 @@ def _recipe_keys() -> set[str]:
     from dataclasses import fields
 
     from usdforest.grow.groundcover import GroundCoverSpec
+    from usdforest.grow.sway import WindSpec
     from usdforest.grow.understorey import RegenerationSpec, ShrubSpec
 
-    for spec in (GroundCoverSpec, ShrubSpec, RegenerationSpec):
+    for spec in (GroundCoverSpec, ShrubSpec, RegenerationSpec, WindSpec):
         keys |= {f.name for f in fields(spec)}
     return keys
 

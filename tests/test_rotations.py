@@ -7,7 +7,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from usdforest.grow.placement import frames_from_directions
-from usdforest.rotations import matrix_from_quat, quat_from_matrix
+from usdforest.rotations import matrix_from_quat, quat_from_matrix, quat_multiply
 
 
 def test_quaternions_are_scipys_bit_for_bit():
@@ -31,3 +31,10 @@ def test_round_trip():
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-15)
     # an unnormalised quaternion is normalised first
     np.testing.assert_allclose(matrix_from_quat(3 * q), rot, atol=1e-14)
+
+
+def test_quaternion_products_compose_rotations_as_scipy_does():
+    rng = np.random.default_rng(7)
+    a, b = Rotation.random(50, random_state=rng), Rotation.random(50, random_state=rng)
+    q = quat_multiply(a.as_quat(), b.as_quat())
+    np.testing.assert_allclose(matrix_from_quat(q), (a * b).as_matrix(), atol=1e-12)

@@ -139,17 +139,19 @@ def scan(
     seed: int = 0,
     device: str = "cpu",
     progress: Callable[[str, int, int], None] | bool | None = None,
+    time: float | None = None,
 ) -> Scan:
     """Scan ``stage`` with a ``lidar``, ``sonar`` or ``camera`` at ``pose`` (x, y, z[, yaw,
     pitch, roll]: the stage's units and axes, degrees), casting rays on ``device`` ("cpu",
-    "cuda" or "cuda:N"); ``progress`` as :func:`build_forest` takes it; see
+    "cuda" or "cuda:N"), ``time`` seconds into the stage's animation (a forest's wind; the
+    still stage when omitted); ``progress`` as :func:`build_forest` takes it; see
     :func:`usdforest.sensors.survey.scan`."""
     from usdforest.progress import resolve_progress
     from usdforest.sensors import survey
 
     return survey.scan(
         stage, sensor, pose, preset=preset, settings=settings, seed=seed, device=device,
-        progress=resolve_progress(progress),
+        progress=resolve_progress(progress), time=time,
     )  # fmt: skip
 
 

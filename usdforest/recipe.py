@@ -252,6 +252,7 @@ TOP_KEYS = {
     "groundcover",
     "shrubs",
     "regeneration",
+    "wind",
 }
 DEADWOOD_KEYS = {
     "volume",
@@ -336,6 +337,7 @@ class Recipe:
     groundcover: Any = None  # grow.groundcover.GroundCoverSpec: grass, herbs, ferns, moss
     shrubs: Any = None  # grow.understorey.ShrubSpec: hazel and bramble
     regeneration: Any = None  # grow.understorey.RegenerationSpec: the stand's young trees
+    wind: Any = None  # grow.sway.WindSpec: the trees' sway, as a layer of time samples
 
     @property
     def species_names(self) -> tuple[str, ...]:
@@ -785,6 +787,7 @@ def parse_recipe(
         groundcover = _parse_groundcover(data.get("groundcover"))
         shrubs = _parse_shrubs(data.get("shrubs"))
         regeneration = _parse_regeneration(data.get("regeneration"))
+        wind = _parse_wind(data.get("wind"), tiles)
     except RecipeError as exc:
         raise fail(exc) from None
     recipe = Recipe(
@@ -814,6 +817,7 @@ def parse_recipe(
         groundcover,
         shrubs,
         regeneration,
+        wind,
     )
     try:
         expected = recipe.expected_trees()
@@ -906,6 +910,47 @@ def _parse_groundcover(t: Any) -> Any:
     if not isinstance(litter, bool):
         raise RecipeError(f"groundcover.litter: expected true or false, got {litter!r}")
     return GroundCoverSpec(**values, litter=litter)
+
+
+WIND_RANGES = {  # key: (lowest, highest, whether the lowest itself is refused)
+    "speed": (0.0, 60.0, False),
+    "direction": (0.0, 360.0, False),
+    "gustiness": (0.0, 1.0, False),
+    "duration": (0.0, 3600.0, True),
+    "fps": (0.0, 240.0, True),
+    "damping": (0.0, 2.0, False),
+    "drag": (0.0, 2.0, False),
+    "wood_modulus": (1e8, 5e10, False),
+    "wood_density": (100.0, 2000.0, False),
+    "gust_length": (0.1, 10_000.0, False),
+    "gust_width": (0.1, 10_000.0, False),
+    "attenuation": (0.0, 10.0, False),
+}
+
+
+def _parse_wind(t: Any, tiles: float | None) -> Any:
+    """``[wind]``: the trees sway in gusts, written as a layer of time samples (see
+    :mod:`usdforest.grow.sway`); absent: a still forest."""
+    from usdforest.grow.sway import WindSpec
+
+    if t is None:
+        return None
+    if not isinstance(t, Mapping):
+        raise RecipeError("wind: expected a table, e.g. [wind] speed = 5")
+    if tiles is not None:
+        raise RecipeError("wind: a tiled forest cannot be animated yet; remove [tiles] or [wind]")
+    check_keys(t, set(WIND_RANGES), "wind")
+    d = WindSpec()
+    values = {}
+    for k, (lo, hi, open_lo) in WIND_RANGES.items():
+        v = _num(t.get(k, getattr(d, k)), f"wind.{k}")
+        if not (lo < v if open_lo else lo <= v) or v > hi:
+            bound = f"above {lo:g}" if open_lo else f"{lo:g}"
+            raise RecipeError(f"wind.{k}: {v:.4g} is outside {bound} to {hi:g}")
+        values[k] = v
+    if values["duration"] * values["fps"] < 1:
+        raise RecipeError("wind: duration x fps is under one frame")
+    return WindSpec(**values)
 
 
 def _parse_shrubs(t: Any) -> Any:

@@ -9,6 +9,7 @@ from typing import Annotated
 
 import typer
 
+from usdforest import arguments
 from usdforest.atomic import move_into_place, output_lock, refuse_overwrite, staging_folder
 from usdforest.cli.app import (
     MAX_SEED,
@@ -65,6 +66,14 @@ def scan_cmd(
         int, typer.Option(min=0, max=MAX_SEED, help="Seed for range noise and ground roughness.")
     ] = 0,
     device: DeviceOption = "cpu",
+    at: Annotated[
+        float | None,
+        typer.Option(
+            "--time",
+            help="Seconds into the stage's animation (a forest's wind): the trees where they "
+            "sway then. Default: the still forest.",
+        ),
+    ] = None,
     force: ForceOption = False,
     quiet: QuietOption = False,
     as_json: SummaryJsonOption = False,
@@ -97,6 +106,8 @@ def scan_cmd(
     refuse_inputs([output, *companions], [stage, config])
     refuse_overwrite(output, *companions, force=force)
     p = parse_pose(pose)
+    if at is not None:
+        arguments.number(at, "--time")
     presets, default = SENSORS[sensor]
     name = preset or default
     if name not in presets:
@@ -113,7 +124,9 @@ def scan_cmd(
     settings = sensor_settings(sensor, name, table, where=str(config) if config else "")
     t0 = time.perf_counter()
     with progress_bars(not (quiet or as_json), t0) as tick:
-        done = scan(stage, sensor, p, settings=settings, seed=seed, device=device, progress=tick)
+        done = scan(
+            stage, sensor, p, settings=settings, seed=seed, device=device, progress=tick, time=at
+        )
     for w in done.warnings:
         err.print(f"warning: {w}", highlight=False)
     triangles = done.triangles

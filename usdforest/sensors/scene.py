@@ -294,6 +294,15 @@ def to_frame(points: np.ndarray, frame: np.ndarray) -> np.ndarray:
     return np.asarray(points, dtype=float) @ frame[:3, :3] + frame[3, :3]
 
 
+def stage_time(stage, seconds: float | None):
+    """The ``Usd.TimeCode`` of ``seconds`` into ``stage``'s animation (``None``: default)."""
+    from pxr import Usd
+
+    if seconds is None:
+        return Usd.TimeCode.Default()
+    return Usd.TimeCode(float(seconds) * stage.GetTimeCodesPerSecond())
+
+
 def extract_scene(
     stage_path: str | Path,
     *,
@@ -304,6 +313,7 @@ def extract_scene(
     reflectors: bool = True,
     cache: bool = True,
     progress: Callable[[str, int, int], None] | None = None,
+    time: float | None = None,
 ) -> Scene:
     """Triangles and leaf reflectors of a stage, culled to a sphere around ``centre``, in
     metres with Z up whatever the stage's own units and up axis (:func:`stage_frame`).
@@ -330,6 +340,12 @@ def extract_scene(
     progress
         ``progress(stage, done, total)`` as tree prototypes are gathered and each tree's
         leaves placed as reflectors.
+    time
+        Seconds into the stage's animation (its time codes over ``timeCodesPerSecond``):
+        instances and prims stand where the stage's time samples put them then, e.g. a
+        forest's trees swaying in its wind layer. Tree prototypes are read as they are
+        (their own geometry is not animated). Omitted: the stage's default values, the
+        still forest.
     """
     from pxr import Usd, UsdGeom
 
@@ -337,8 +353,9 @@ def extract_scene(
     use_store = cache and instancing  # read before ``cache`` names the transform cache
     stage = open_stage(path, sound=True, full=True)
     frame = stage_frame(path)
-    cache = UsdGeom.XformCache()
-    bbox = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"], True)
+    when = stage_time(stage, time)
+    cache = UsdGeom.XformCache(when)
+    bbox = UsdGeom.BBoxCache(when, ["default", "render"], True)
     paths: list[str] = []
     path_index: dict[str, int] = {}
     memo: dict = {}
@@ -469,8 +486,8 @@ def extract_scene(
     def instances(p, to_root: np.ndarray, top: bool = False) -> _Part:
         """A PointInstancer's instances, in the space of the subtree being gathered."""
         pi = UsdGeom.PointInstancer(p)
-        xf = pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
-        idx = pi.GetProtoIndicesAttr().Get()
+        xf = pi.ComputeInstanceTransformsAtTime(when, when)
+        idx = pi.GetProtoIndicesAttr().Get(when)
         if xf is None or idx is None or len(idx) == 0:
             return _Part.concat([])
         xf = np.asarray(xf, dtype=float).reshape(-1, 4, 4)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
+import time as clock
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -119,18 +119,22 @@ def scan(
     seed: int = 0,
     device: str = "cpu",
     progress: Progress | None = None,
+    time: float | None = None,
 ) -> Scan:
     """Scan ``stage`` with ``sensor`` (``lidar``, ``sonar`` or ``camera``) at ``pose``
     (x, y, z[, yaw, pitch, roll] in the stage's units and axes, degrees). ``settings``: a
     sensor settings object, or a mapping of keys over ``preset`` (e.g. ``{"max_range":
     30}``). ``seed``: range noise and ground roughness. ``device``: where rays are cast,
     ``"cpu"`` (Embree on every core) or ``"cuda"``/``"cuda:N"`` (Warp on an NVIDIA GPU).
-    ``progress(stage, done, total)`` as the scene is gathered and its casting scene built."""
+    ``progress(stage, done, total)`` as the scene is gathered and its casting scene built.
+    ``time``: seconds into the stage's animation (a forest's wind layer), the still stage
+    when omitted."""
     from usdforest import arguments
     from usdforest.sensors.raycast import SceneCaster, resolve_device
 
     device = resolve_device(device)
     seed = arguments.seed(seed)
+    at = None if time is None else arguments.number(time, "time")
     if settings is None or isinstance(settings, Mapping):
         settings = sensor_settings(sensor, preset, settings)
     else:
@@ -144,7 +148,7 @@ def scan(
     p = _pose(pose)
     x, y, z = to_frame(p.position, stage_frame(stage))
     p = dataclasses.replace(p, x=float(x), y=float(y), z=float(z))
-    t0 = time.perf_counter()
+    t0 = clock.perf_counter()
     occlusion = sensor == "sonar" and settings.occlusion
     scene = extract_scene(
         stage,
@@ -153,6 +157,7 @@ def scan(
         leaf_triangles=sensor != "sonar" or occlusion,
         reflectors=sensor == "sonar",
         progress=progress,
+        time=at,
     )
     warnings = tuple(
         w for w in [*pose_warnings(scene, p, settings.max_range), unseen_warning(scene)] if w
@@ -171,7 +176,7 @@ def scan(
         result = sonar.sonar_scan(scene, p, settings, caster, seed=seed)
         if not any(result.reflectors.values()):
             warnings += ("nothing within range of the sonar: the echo is silent",)
-    return Scan(sensor, settings, p, result, len(scene), warnings, time.perf_counter() - t0)
+    return Scan(sensor, settings, p, result, len(scene), warnings, clock.perf_counter() - t0)
 
 
 @dataclass(frozen=True)
@@ -340,7 +345,7 @@ def fly(
     if camera is not None:
         CAMERA_MODULE.frame_times(camera, traj, camera_rate)  # checks the memory
     tick = progress or (lambda stage, done, total: None)
-    t0 = time.perf_counter()
+    t0 = clock.perf_counter()
     reach = max(c.max_range for c in (lidar, sonar, camera) if c is not None)
     lo, hi = traj.position.min(axis=0), traj.position.max(axis=0)
     casts = lidar is not None or camera is not None
@@ -380,4 +385,4 @@ def fly(
             scene, camera, traj, camera_rate, colours, caster=caster,
             progress=lambda d, n: tick("camera frames", d, n), seed=seed,
         )  # fmt: skip
-    return Flight(traj, returns, echoes, frames, crs, origin, warnings, time.perf_counter() - t0)
+    return Flight(traj, returns, echoes, frames, crs, origin, warnings, clock.perf_counter() - t0)

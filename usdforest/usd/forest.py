@@ -27,6 +27,9 @@
       ground.usdc               /Forest/Ground: the plane or height field (collider, label)
       physics.usda              colliders and ground alone (no visual meshes), for physics
                                 engines; /Forest/PhysicsScene when the forest has one
+      wind.usdc                 over /Forest/Trees: the trees' sway as time samples of their
+                                orientations, when the recipe has [wind] (the strongest
+                                sublayer; :mod:`usdforest.usd.wind`)
       trees.csv                 ground truth, one row per instance
       pipeline.toml             the resolved recipe (seed included)
     forest_assets/thumbnail.png a 256x256 thumbnail (customLayerData.thumbnail)
@@ -111,6 +114,19 @@ def physics_layer(sublayers: list[str], build: ForestBuild, recipe: Recipe) -> S
     return layer
 
 
+WIND = "wind.usdc"
+
+
+def _write_wind(recipe: Recipe, staged: Path, extent: np.ndarray) -> None:
+    """The wind layer beside the instancer layer, from the trees composed there."""
+    from pxr import Usd
+
+    from usdforest.usd.wind import wind_layer
+
+    stage = Usd.Stage.Open(str(staged / "instances.usdc"))
+    save_layer(wind_layer(stage, recipe.wind, recipe.seed, extent), staged / WIND)
+
+
 def interface_layer(
     build: ForestBuild,
     recipe: Recipe,
@@ -134,6 +150,11 @@ def interface_layer(
         data["crsOrigin"] = Gf.Vec2d(*(float(v) for v in _stage_origin(build, recipe)))
     if data:
         layer.customLayerData = data
+    if recipe.wind is not None:  # time codes are the wind's frames
+        layer.startTimeCode = 0
+        layer.endTimeCode = recipe.wind.frames
+        layer.timeCodesPerSecond = recipe.wind.fps
+        layer.framesPerSecond = recipe.wind.fps
     with Sdf.ChangeBlock():
         forest = prim(layer, "Forest", "Xform")
         forest.kind = "assembly"
@@ -364,6 +385,11 @@ def _write_forest(
                 staged / "instances.usdc",
             )
             sublayers.append(f"./{assets.name}/instances.usdc")
+            if recipe.wind is not None:
+                tick("writing wind", 0, 1)
+                _write_wind(recipe, staged, build.extent)
+                sublayers.insert(0, f"./{assets.name}/{WIND}")
+                tick("writing wind", 1, 1)
             below = None
             if has_beneath(recipe):
                 stems = (build.sites.xy + anchor, build.proto_index, build.sites.scale)

@@ -1,0 +1,282 @@
+"""Wind: the trees' sway as time samples in a layer over the static forest, measured on the
+composed stage against the cantilever and drag formulas written here, and sensors that scan
+the forest at a time."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from pxr import Sdf, Usd, UsdGeom
+from scipy.spatial import ConvexHull
+
+from usdforest import api
+from usdforest.errors import RecipeError, UsdForestError
+from usdforest.recipe import parse_recipe
+from usdforest.usd.forest import write_forest
+from usdforest.usd.validate import validate
+
+# two allometric Scots pines 20 m apart along y = 20; the wind blows from the west (+x)
+TWO_PINES = """
+seed = 5
+[region]
+bounds = [0.0, 0.0, 40.0, 40.0]
+[[sites]]
+x = 10.0
+y = 20.0
+species = "pine"
+dbh = 0.30
+height = 22.0
+[[sites]]
+x = 30.0
+y = 20.0
+species = "pine"
+dbh = 0.30
+height = 22.0
+[species.pine]
+preset = "scots-pine"
+"""
+RHO_AIR = 1.204  # kg/m³
+E, RHO_WOOD = 8.0e9, 900.0  # the defaults: green wood
+
+
+def _recipe(text: str, base: Path):
+    return parse_recipe(tomllib.loads(text), base, "wind.toml")
+
+
+def _build(root: Path, name: str, wind: str | None) -> Path:
+    recipe = _recipe(TWO_PINES + (f"[wind]\n{wind}\n" if wind is not None else ""), root)
+    out = root / f"{name}.usda"
+    write_forest(recipe, out, thumbnail=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def forests(tmp_path_factory):
+    root = tmp_path_factory.mktemp("wind")
+    return {
+        "still": _build(root, "still", None),
+        "steady8": _build(root, "steady8", "speed = 8.0\ngustiness = 0.0\nduration = 2\nfps = 5"),
+        "steady4": _build(root, "steady4", "speed = 4.0\ngustiness = 0.0\nduration = 2\nfps = 5"),
+        "gusty": _build(root, "gusty", "speed = 8.0\ngustiness = 0.05\nduration = 400\nfps = 4"),
+        "calm": _build(root, "calm", "speed = 0.0\nduration = 2\nfps = 5"),
+    }
+
+
+def _instancer(stage: Usd.Stage) -> UsdGeom.PointInstancer:
+    return UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+
+
+def _tops(path: Path, height: float) -> np.ndarray:
+    """``(time codes, trees, 3)``: each stem top's displacement from its base, from the
+    composed instance transforms at every time code."""
+    stage = Usd.Stage.Open(str(path))
+    pi = _instancer(stage)
+    out = []
+    for t in range(int(stage.GetStartTimeCode()), int(stage.GetEndTimeCode()) + 1):
+        m = np.asarray(pi.ComputeInstanceTransformsAtTime(t, t), dtype=float)
+        top = np.array([0.0, 0.0, height, 1.0]) @ m
+        out.append(top[:, :3] - m[:, 3, :3])
+    return np.array(out)
+
+
+def _measured_pine(path: Path) -> dict:
+    """The pines measured here on their prototype, times their instance scale: height
+    (bounds), DBH (a girth tape at 1.3 m round the trunk mesh, trimesh's section), crown
+    silhouette (the leaves' 5th height percentile to
+    the top, twice their 95th radial percentile wide, an ellipse) and crown centre (the
+    leaves' mean height)."""
+    stage = Usd.Stage.Open(str(path))
+    proto = stage.GetPrimAtPath(_instancer(stage).GetPrototypesRel().GetTargets()[0])
+    cache = UsdGeom.XformCache()
+    inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(proto), dtype=float))
+    leaves, trunk = [], None
+    for p in Usd.PrimRange(proto, Usd.TraverseInstanceProxies()):
+        purpose = p.GetAttribute("purpose")
+        if purpose and purpose.Get() in ("proxy", "guide"):
+            continue
+        to = np.asarray(cache.GetLocalToWorldTransform(p), dtype=float) @ inv
+        if p.IsA(UsdGeom.PointInstancer) and "/Leaves" in str(p.GetPath()):
+            m = np.asarray(UsdGeom.PointInstancer(p).ComputeInstanceTransformsAtTime(0, 0))
+            leaves.append(m[:, 3, :3] @ to[:3, :3] + to[3, :3])
+        elif p.IsA(UsdGeom.Mesh) and "/Trunk" in str(p.GetPath()) and trunk is None:
+            mesh = UsdGeom.Mesh(p)
+            v = np.asarray(mesh.GetPointsAttr().Get(), dtype=float) @ to[:3, :3] + to[3, :3]
+            f = np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+            trunk = trimesh.Trimesh(v, f, process=False)
+    section = trimesh.intersections.mesh_plane(trunk, [0, 0, 1], [0, 0, 1.3]).reshape(-1, 3)
+    hull = ConvexHull(section[:, :2])
+    ring = section[hull.vertices, :2]
+    dbh = np.linalg.norm(ring - np.roll(ring, 1, axis=0), axis=1).sum() / math.pi
+    bbox = UsdGeom.BBoxCache(0, ["default", "render"], True).ComputeUntransformedBound(proto)
+    height = bbox.ComputeAlignedRange().GetMax()[2]
+    crown = np.concatenate(leaves)
+    base = np.percentile(crown[:, 2], 5)
+    width = 2 * np.percentile(np.hypot(crown[:, 0], crown[:, 1]), 95)
+    s = float(_instancer(stage).GetScalesAttr().Get()[0][2])  # both trees' (the same size)
+    return {
+        "height": float(height) * s,
+        "dbh": float(dbh) * s,
+        "area": math.pi / 4 * width * (height - base) * s * s,
+        "centre": float(crown[:, 2].mean()) * s,
+    }
+
+
+def _cantilever_frequency(dbh: float, height: float) -> float:
+    # first mode of a uniform clamped-free Euler-Bernoulli beam of circular section:
+    # w1 = (1.8751)² sqrt(E I / (mu L⁴)), I = pi d⁴ / 64, mu = rho pi d² / 4
+    inertia, mu = math.pi * dbh**4 / 64, RHO_WOOD * math.pi * dbh**2 / 4
+    return 1.875104**2 * math.sqrt(E * inertia / (mu * height**4)) / (2 * math.pi)
+
+
+def _static_deflection(tree: dict, speed: float) -> float:
+    """Top deflection of the cantilever under the crown's drag at its centre, the wind there
+    below the canopy top by the exponential profile (a = 2.5; the tallest tree is the top)."""
+    u = speed * math.exp(2.5 * (min(tree["centre"] / tree["height"], 1.0) - 1.0))
+    force = 0.5 * RHO_AIR * 0.35 * tree["area"] * u * u
+    zc, h = tree["centre"], tree["height"]
+    return force * zc**2 * (3 * h - zc) / (6 * E * math.pi * tree["dbh"] ** 4 / 64)
+
+
+def test_the_wind_layer_composes_over_the_static_forest_and_validates(forests):
+    still, windy = forests["still"], forests["gusty"]
+    assets, wind_assets = still.parent / "still_assets", windy.parent / "gusty_assets"
+    # every layer but the wind's is the still forest's, byte for byte
+    for name in ("instances.usdc", "colliders.usdc"):
+        assert (assets / name).read_bytes() == (wind_assets / name).read_bytes()
+    for tree in (assets / "trees").iterdir():
+        assert tree.read_bytes() == (wind_assets / "trees" / tree.name).read_bytes()
+    layer = Sdf.Layer.FindOrOpen(str(windy))
+    assert layer.subLayerPaths[0] == "./gusty_assets/wind.usdc"
+    assert (layer.timeCodesPerSecond, layer.startTimeCode, layer.endTimeCode) == (4, 0, 1600)
+    # muted, the still forest; unmuted at its default time, too
+    stage, still_stage = Usd.Stage.Open(str(windy)), Usd.Stage.Open(str(still))
+    static = np.asarray(
+        _instancer(still_stage).ComputeInstanceTransformsAtTime(
+            Usd.TimeCode.Default(), Usd.TimeCode.Default()
+        )
+    )
+    default = _instancer(stage).ComputeInstanceTransformsAtTime(
+        Usd.TimeCode.Default(), Usd.TimeCode.Default()
+    )
+    assert np.array_equal(np.asarray(default), static)
+    stage.MuteLayer(str(wind_assets / "wind.usdc"))
+    muted = _instancer(stage).ComputeInstanceTransformsAtTime(5, 5)
+    assert np.array_equal(np.asarray(muted), static)
+    assert validate(windy) == []
+    # the swaying trees stay inside the instancer's extent at every time code
+    stage = Usd.Stage.Open(str(windy))
+    lo, hi = np.asarray(_instancer(stage).GetExtentAttr().Get(), dtype=float)
+    tops = _tops(windy, _measured_pine(windy)["height"])
+    base = np.asarray(_instancer(stage).GetPositionsAttr().Get(), dtype=float)
+    swayed = tops[..., :2] + base[:, :2]
+    assert np.all(swayed >= lo[:2]) and np.all(swayed <= hi[:2])
+
+
+def test_a_steady_wind_bends_each_tree_as_the_cantilever_under_its_crowns_drag(forests):
+    tree = _measured_pine(forests["steady8"])
+    expected = _static_deflection(tree, 8.0)
+    for name, speed in (("steady8", 8.0), ("steady4", 4.0)):
+        tops = _tops(forests[name], tree["height"])
+        along = tops[..., 0]  # the wind blows towards +x
+        np.testing.assert_allclose(along, expected * (speed / 8.0) ** 2, rtol=0.02)
+        np.testing.assert_allclose(tops[..., 1], 0.0, atol=1e-6)
+    # 8 m/s bends a 22 m, 30 cm pine by centimetres, not metres (a plausibility bound)
+    assert 0.02 < expected < 0.3
+    # the deflection is the drag's: four times at twice the speed, exactly
+    ratio = (
+        _tops(forests["steady8"], tree["height"])[..., 0]
+        / _tops(forests["steady4"], tree["height"])[..., 0]
+    )
+    np.testing.assert_allclose(ratio, 4.0, rtol=1e-5)
+
+
+def test_gusts_sway_a_tree_at_its_cantilever_frequency_by_the_predicted_amount(forests):
+    path = forests["gusty"]
+    tree = _measured_pine(path)
+    f0 = _cantilever_frequency(tree["dbh"], tree["height"])
+    stage = Usd.Stage.Open(str(path))
+    stored = _instancer(stage).GetPrim().GetAttribute("usdforest:swayFrequency").Get()
+    np.testing.assert_allclose(stored, f0, rtol=0.01)
+    assert 0.15 < f0 < 0.4  # Scots pines of this size sway at 0.2-0.3 Hz
+    x = _tops(path, tree["height"])[:-1, 0, 0]  # one period of the loop, along the wind
+    fps, n = 4.0, len(x)
+    f = np.fft.rfftfreq(n, 1 / fps)
+    power = np.abs(np.fft.rfft(x - x.mean())) ** 2
+    # the model's spectrum: von Kármán gusts (L = 20 m) through the drag's linear term and a
+    # damped oscillator (zeta = 0.1)
+    scale = 20.0 / 8.0
+    gusts = 4 * scale / (1 + 70.8 * (f * scale) ** 2) ** (5 / 6)
+    w, w0 = 2 * math.pi * f, 2 * math.pi * f0
+    gain = w0**4 / ((w0**2 - w**2) ** 2 + (2 * 0.1 * w0 * w) ** 2)
+    model = gain * gusts
+    # the resonance's centre (power-weighted mean frequency within 30 % of f0) is the
+    # model's, whose peak is f0's (the gusts' falling spectrum pulls both down a little)
+    near = (f > 0.7 * f0) & (f < 1.3 * f0)
+    centre = np.sum(f[near] * power[near]) / np.sum(power[near])
+    assert centre == pytest.approx(np.sum(f[near] * model[near]) / np.sum(model[near]), rel=0.01)
+    assert f[near][np.argmax(model[near])] == pytest.approx(f0, rel=0.03)
+    # the sway's standard deviation: 2 g times the mean deflection (the drag's linear term)
+    # through the oscillator, over the bins the gusts fill (not the mean, not Nyquist's)
+    fill = slice(1, n // 2)
+    through = math.sqrt(np.sum(model[fill]) / np.sum(gusts[fill]))
+    sd = 2 * 0.05 * _static_deflection(tree, 8.0) * through
+    assert x.std() == pytest.approx(sd, rel=0.1)
+
+
+def test_gusts_cross_the_stand_with_the_wind(forests):
+    """Taylor's frozen turbulence: the downwind pine sways as the upwind one did 20 m / 8 m/s
+    = 2.5 s (10 time codes) earlier."""
+    tops = _tops(forests["gusty"], _measured_pine(forests["gusty"])["height"])[:-1]
+    upwind, downwind = tops[:, 0, :2], tops[:, 1, :2]
+    np.testing.assert_allclose(downwind, np.roll(upwind, 10, axis=0), atol=2e-4)
+    assert not np.allclose(downwind, upwind, atol=2e-3)
+
+
+def _leaf_points(path: Path, time: float | None) -> np.ndarray:
+    done = api.scan(path, "lidar", (20.0, 20.0, 12.0), settings={"noise": False}, time=time)
+    return np.sort(np.round(np.asarray(done.result.points, dtype=float), 6), axis=0)
+
+
+def test_a_lidar_sees_the_trees_move_in_wind_and_stand_still_in_calm_air(forests):
+    windy = [_leaf_points(forests["gusty"], t) for t in (0.0, 3.0)]
+    assert len(windy[0]) > 1000
+    assert windy[0].shape != windy[1].shape or not np.array_equal(*windy)
+    calm = [_leaf_points(forests["calm"], t) for t in (0.0, 0.3)]
+    assert np.array_equal(*calm)
+    # still air sways nothing: the calm forest at any time is the still forest
+    assert np.array_equal(calm[0], _leaf_points(forests["still"], None))
+
+
+@pytest.mark.parametrize(
+    ("table", "message"),
+    [
+        ("speed = -1", r"wind\.speed: -1 is outside 0 to 60"),
+        ("gustiness = 2", r"wind\.gustiness: 2 is outside 0 to 1"),
+        ("fps = 0", r"wind\.fps: 0 is outside above 0 to 240"),
+        ("gusts = 1", r"wind: unknown key 'gusts'"),
+        ("speed = 'fast'", r"wind\.speed"),
+    ],
+)
+def test_the_recipe_checks_its_wind_table(tmp_path, table, message):
+    with pytest.raises(RecipeError, match=message):
+        _recipe(TWO_PINES + f"[wind]\n{table}\n", tmp_path)
+
+
+def test_a_tiled_forest_refuses_wind_and_the_scan_a_time_that_is_no_number(tmp_path, forests):
+    with pytest.raises(RecipeError, match=r"wind: a tiled forest"):
+        _recipe(TWO_PINES + "[tiles]\nsize = 20\n[wind]\n", tmp_path)
+    with pytest.raises(UsdForestError, match=r"time: expected a finite number"):
+        api.scan(forests["calm"], "lidar", (20.0, 20.0, 12.0), time=float("nan"))
+    out = tmp_path / "s.npz"
+    cmd = [sys.executable, "-m", "usdforest", "scan", str(forests["calm"]), "--sensor",
+           "lidar", "--pose", "20,20,12", "--time", "inf", "-o", str(out)]  # fmt: skip
+    run = subprocess.run(cmd, capture_output=True, text=True)
+    assert run.returncode != 0 and not out.exists()
+    assert run.stderr.strip().count("\n") == 0 and "--time" in run.stderr

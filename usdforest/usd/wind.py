@@ -1,0 +1,157 @@
+"""The wind layer: the forest's trees swaying, as time samples over the static forest.
+
+``wind.usdc`` (beside the forest's other layers, the strongest of the forest's sublayers when
+the recipe has a ``[wind]`` table) holds only an ``over`` of ``/Forest/Trees``: the
+instancer's ``orientations`` (half floats, what Blender reads) and ``orientationsf`` (floats,
+which pxr-based clients and the sensors read before them) at every time code, each tree tilted
+about its base by its own sway (:mod:`usdforest.grow.sway`); the trees' first natural
+frequencies (``usdforest:swayFrequency``, Hz, one per instance); and the instancer's extent
+grown by the largest sway. Time codes are frames (``timeCodesPerSecond`` = ``fps`` on the
+forest's root layer); the last repeats the first, so the animation loops. Muting the layer
+leaves the static forest exactly as it was built: nothing else differs.
+
+Each tree's sizes are measured on its composed prototype, as a user would: the height from
+its bounds, the DBH with a girth tape at 1.3 m (:mod:`usdforest.usd.inventory`'s), the
+crown's silhouette and centre from its leaves (or, leafless, its branches), all times the
+instance's scale.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pxr import Sdf, Usd, UsdGeom, Vt
+
+from usdforest.errors import UsdForestError
+from usdforest.grow.sway import Stems, WindSpec, natural_frequency, sway, tilts
+from usdforest.rotations import quat_multiply
+from usdforest.usd.layers import T, attr, extents, new_layer, prim, rendered
+
+BREAST = 1.3  # m
+MAX_SAMPLE_BYTES = 4 * 2**30  # the layer's orientation samples, at most
+SAMPLE_BYTES = 8 + 16  # a tree a frame: quath and quatf
+
+
+@dataclass(frozen=True)
+class Crown:
+    """One prototype in its own space (scale 1): height, DBH, crown silhouette area and
+    the height of the crown's centre (m, m, m², m)."""
+
+    height: float
+    dbh: float
+    area: float
+    centre: float
+
+
+def crown_of(proto: Usd.Prim) -> Crown:
+    """Measure a composed tree prototype (its base at its origin)."""
+    from usdforest.usd.inventory import _girth_dbh, _mesh_world
+
+    cache = UsdGeom.XformCache()
+    inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(proto), dtype=float))
+    leaves, wood, trunk = [], [], None
+    it = iter(Usd.PrimRange(proto, Usd.TraverseInstanceProxies()))
+    for p in it:
+        if not rendered(p):
+            it.PruneChildren()
+        elif p.IsA(UsdGeom.PointInstancer):
+            it.PruneChildren()
+            mats = np.asarray(
+                UsdGeom.PointInstancer(p).ComputeInstanceTransformsAtTime(
+                    Usd.TimeCode.Default(), Usd.TimeCode.Default()
+                )
+            )
+            if len(mats):
+                m = np.asarray(cache.GetLocalToWorldTransform(p), dtype=float) @ inv
+                leaves.append(mats[:, 3, :3] @ m[:3, :3] + m[3, :3])
+        elif p.IsA(UsdGeom.Mesh):
+            v, tri = _mesh_world(p, cache, inv)
+            if "/Trunk" in str(p.GetPath()) and tri is not None and trunk is None:
+                trunk = (v, tri)
+            else:
+                wood.append(v)
+    bbox = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"], True)
+    r = bbox.ComputeWorldBound(proto).ComputeAlignedRange()
+    height = float((np.array(r.GetMax()) @ inv[:3, :3] + inv[3, :3])[2])
+    crown = np.concatenate(leaves) if leaves else np.concatenate(wood) if wood else None
+    if trunk is None or crown is None or height <= 0:
+        raise UsdForestError(f"{proto.GetPath()}: a tree without a trunk or crown cannot sway")
+    dbh = float(_girth_dbh(*trunk, np.array([min(BREAST, 0.5 * height)]))[0])
+    base = float(np.percentile(crown[:, 2], 5))
+    width = 2 * float(np.percentile(np.hypot(crown[:, 0], crown[:, 1]), 95))
+    length = max(height - base, 0.0)
+    return Crown(height, dbh, math.pi / 4 * width * length, float(crown[:, 2].mean()))
+
+
+def stems_of(stage: Usd.Stage, path: str = "/Forest/Trees") -> tuple[Stems, np.ndarray]:
+    """The swaying trees of the instancer at ``path``: their :class:`Stems` and static
+    orientations ``(n, 4)`` (x, y, z, w)."""
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath(path))
+    if not pi:
+        raise UsdForestError(f"{path}: no tree instancer to animate")
+    crowns = [crown_of(stage.GetPrimAtPath(t)) for t in pi.GetPrototypesRel().GetTargets()]
+    table = np.array([[c.height, c.dbh, c.area, c.centre] for c in crowns]).reshape(-1, 4)
+    idx = np.asarray(pi.GetProtoIndicesAttr().Get() or [], dtype=np.int64)
+    pos = np.asarray(pi.GetPositionsAttr().Get() or [], dtype=float).reshape(-1, 3)
+    scale = np.asarray(pi.GetScalesAttr().Get() or np.ones((len(idx), 3)), float).reshape(-1, 3)
+    s = scale[:, 2]
+    h, d, a, c = table[idx].T if len(idx) else np.zeros((4, 0))
+    quats = pi.GetOrientationsAttr().Get()
+    q = (
+        np.asarray(quats, dtype=float).reshape(-1, 4)
+        if quats
+        else np.tile([0.0, 0.0, 0.0, 1.0], (len(idx), 1))
+    )
+    return Stems(pos[:, :2], h * s, d * s, a * s**2, c * s), q
+
+
+def sample_bytes(trees: int, spec: WindSpec) -> int:
+    """What the layer's orientation samples take (bytes)."""
+    return trees * (spec.frames + 1) * SAMPLE_BYTES
+
+
+def wind_layer(stage: Usd.Stage, spec: WindSpec, seed: int, extent: np.ndarray) -> Sdf.Layer:
+    """The wind layer of the forest composed on ``stage`` (its trees at ``/Forest/Trees``,
+    static ``extent`` (2, 3) of the instancer)."""
+    stems, static = stems_of(stage)
+    need = sample_bytes(len(stems.xy), spec)
+    if need > MAX_SAMPLE_BYTES:
+        raise UsdForestError(
+            f"wind: {len(stems.xy):,} trees x {spec.frames + 1:,} time codes would take "
+            f"{need / 2**30:.1f} GiB of samples (at most {MAX_SAMPLE_BYTES / 2**30:g}); "
+            "lower wind.duration or wind.fps"
+        )
+    top = sway(stems, spec, seed)
+    layer = new_layer("Forest", comment="usdforest wind: the trees' sway as time samples")
+    # the root layer's rate too: a sublayer of another rate has its time codes rescaled
+    layer.timeCodesPerSecond = layer.framesPerSecond = spec.fps
+    layer.startTimeCode, layer.endTimeCode = 0, spec.frames
+    with Sdf.ChangeBlock():
+        forest = prim(layer, "Forest", specifier=Sdf.SpecifierOver)
+        trees = prim(forest, "Trees", specifier=Sdf.SpecifierOver)
+        # orientationsf wins over orientations wherever it is authored, at the default time
+        # too: its default is the still forest's
+        full = attr(
+            trees, "orientationsf", T.QuatfArray, Vt.QuatfArray.FromNumpy(static.astype(np.float32))
+        )
+        freq = natural_frequency(stems.dbh, stems.height, spec)
+        attr(
+            trees,
+            "usdforest:swayFrequency",
+            T.FloatArray,
+            Vt.FloatArray.FromNumpy(freq.astype(np.float32)),
+        ).SetInfo("documentation", "each tree's first natural frequency (Hz)")
+        reach = float(np.linalg.norm(top, axis=-1).max()) if top.size else 0.0
+        grown = np.asarray(extent, dtype=float) + np.array([[-reach, -reach, 0], [reach, reach, 0]])
+        attr(trees, "extent", T.Float3Array, extents(grown))
+        if not np.any(top):  # still air: nothing moves, no samples (nor their interpolation)
+            return layer
+        half = attr(trees, "orientations", T.QuathArray)
+        for k in range(spec.frames + 1):
+            # Vt's quaternion arrays hold (x, y, z, w) as numpy does here
+            q = quat_multiply(tilts(top[k], stems.height), static)
+            layer.SetTimeSample(full.path, float(k), Vt.QuatfArray.FromNumpy(q.astype(np.float32)))
+            layer.SetTimeSample(half.path, float(k), Vt.QuathArray.FromNumpy(q.astype(np.float16)))
+    return layer
