@@ -42,11 +42,13 @@ def load_recipe(
     seed: int | None = None,
     hard_core: float | None = None,
     base: str | Path | None = None,
+    season: str | None = None,
 ) -> Recipe:
     """Read and check a recipe: a TOML file, a shipped recipe's name (``"stand-1ha"``),
     None (the embedded default), or the recipe's data as a mapping (what ``tomllib`` reads;
-    its relative file names are taken from ``base``, default the current folder). ``seed``
-    and ``hard_core`` override the recipe's."""
+    its relative file names are taken from ``base``, default the current folder). ``seed``,
+    ``hard_core`` and ``season`` (``"summer"``, ``"autumn"`` or ``"winter"``) override the
+    recipe's."""
     from usdforest import arguments
     from usdforest.recipe import parse_recipe, read_recipe, recipe_path
 
@@ -54,9 +56,14 @@ def load_recipe(
     if isinstance(recipe, Mapping):
         folder = Path(base) if base is not None else Path.cwd()
         return parse_recipe(
-            copy.deepcopy(dict(recipe)), folder, "recipe", seed=seed, hard_core=hard_core
+            copy.deepcopy(dict(recipe)),
+            folder,
+            "recipe",
+            seed=seed,
+            hard_core=hard_core,
+            season=season,
         )
-    return read_recipe(recipe_path(recipe), seed=seed, hard_core=hard_core)
+    return read_recipe(recipe_path(recipe), seed=seed, hard_core=hard_core, season=season)
 
 
 @interruptible

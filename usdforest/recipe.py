@@ -33,6 +33,7 @@ from usdforest.config import check_keys, coerce, load_toml, override, table_arra
 from usdforest.errors import RecipeError, UsdForestError
 from usdforest.grow import leafangles
 from usdforest.grow.architecture import BREAST_HEIGHT  # a tree shorter than this has DBH 0
+from usdforest.grow.seasons import seasonal
 from usdforest.grow.species import Geometry, Species, get_species, species_from_profile
 from usdforest.grow.turtle import TurtleConfig
 
@@ -172,7 +173,10 @@ def _check_geometry(g: Geometry, where: str) -> None:
             leafangles.check(getattr(g, key), f"{where}.{key}")
     if g.shade_inclination and not g.leaf_inclination:
         raise RecipeError(f"{where}.shade_inclination: give leaf_inclination (the sun leaves') too")
-    for key in ("bark_color", "leaf_color"):
+    for key in ("leaf_on", "autumn_leaf_on", "winter_leaf_on"):
+        if not 0 <= getattr(g, key) <= 1:
+            raise RecipeError(f"{where}.{key}: {getattr(g, key):g} is outside 0..1")
+    for key in ("bark_color", "leaf_color", "autumn_color"):
         c = getattr(g, key)
         if not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in c):
             raise RecipeError(f"{where}.{key}: {list(c)} is outside 0..1 (linear RGB)")
@@ -237,6 +241,7 @@ __all__ = [
 
 TOP_KEYS = {
     "seed",
+    "season",
     "crs",
     "region",
     "intensity",
@@ -338,6 +343,7 @@ class Recipe:
     shrubs: Any = None  # grow.understorey.ShrubSpec: hazel and bramble
     regeneration: Any = None  # grow.understorey.RegenerationSpec: the stand's young trees
     wind: Any = None  # grow.sway.WindSpec: the trees' sway, as a layer of time samples
+    season: str = "summer"  # the species' leaves and their colour (usdforest.grow.seasons)
 
     @property
     def species_names(self) -> tuple[str, ...]:
@@ -668,13 +674,18 @@ def parse_recipe(
     *,
     seed: int | None = None,
     hard_core: float | None = None,
+    season: str | None = None,
 ) -> Recipe:
     """Check and convert a pipeline's TOML data; every error names ``source`` and the key.
 
-    ``seed`` and ``hard_core`` override the recipe's ``seed`` and ``[forest] hard_core``
-    (the overrides are part of the recipe's data, so a resolved recipe records them).
+    ``seed``, ``hard_core`` and ``season`` override the recipe's ``seed``, ``[forest]
+    hard_core`` and ``season`` (the overrides are part of the recipe's data, so a resolved
+    recipe records them).
     """
     from usdforest.expr import compile_expression
+
+    if season is not None:
+        data = {**data, "season": season}
 
     if hard_core is not None:
         forest_t = data.get("forest", {})
@@ -698,6 +709,8 @@ def parse_recipe(
         if not isinstance(species_tables, Mapping) or not species_tables:
             raise RecipeError("species: no [species.NAME] tables")
         species = {n: parse_species(n, t, base, f"species.{n}") for n, t in species_tables.items()}
+        season = _parse_season(data.get("season", "summer"))
+        species = {n: replace(e, species=seasonal(e.species, season)) for n, e in species.items()}
         mix_t = data.get("mix", {n: 1.0 for n in species})
         if not isinstance(mix_t, Mapping) or not mix_t:
             raise RecipeError("mix: expected a table of species = weight")
@@ -818,6 +831,7 @@ def parse_recipe(
         shrubs,
         regeneration,
         wind,
+        season,
     )
     try:
         expected = recipe.expected_trees()
@@ -910,6 +924,16 @@ def _parse_groundcover(t: Any) -> Any:
     if not isinstance(litter, bool):
         raise RecipeError(f"groundcover.litter: expected true or false, got {litter!r}")
     return GroundCoverSpec(**values, litter=litter)
+
+
+def _parse_season(v: Any) -> str:
+    """``season = "summer" | "autumn" | "winter"`` (see :mod:`usdforest.grow.seasons`)."""
+    from usdforest.grow.seasons import SEASONS
+
+    s = coerce(v, str, "season")
+    if s not in SEASONS:
+        raise RecipeError(f"season: {s!r} is not one of {', '.join(SEASONS)}")
+    return s
 
 
 WIND_RANGES = {  # key: (lowest, highest, whether the lowest itself is refused)
@@ -1188,11 +1212,18 @@ def _parse_scale(t: Any) -> ScaleSpec:
 
 
 def read_recipe(
-    path: str | Path, *, seed: int | None = None, hard_core: float | None = None
+    path: str | Path,
+    *,
+    seed: int | None = None,
+    hard_core: float | None = None,
+    season: str | None = None,
 ) -> Recipe:
-    """Read and check a pipeline recipe file (``seed``, ``hard_core``: overrides)."""
+    """Read and check a pipeline recipe file (``seed``, ``hard_core``, ``season``:
+    overrides)."""
     path = Path(path)
-    return parse_recipe(load_toml(path), path.parent, str(path), seed=seed, hard_core=hard_core)
+    return parse_recipe(
+        load_toml(path), path.parent, str(path), seed=seed, hard_core=hard_core, season=season
+    )
 
 
 def default_recipe_path() -> Path:

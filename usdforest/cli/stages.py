@@ -213,10 +213,15 @@ def _before_interaction(recipe, sep: str) -> str:
     return ""
 
 
-def _load_recipe(pipeline: Path | None, seed: int | None, hard_core: float | None = None):
+def _load_recipe(
+    pipeline: Path | None,
+    seed: int | None,
+    hard_core: float | None = None,
+    season: str | None = None,
+):
     from usdforest.recipe import read_recipe, recipe_path
 
-    return read_recipe(recipe_path(pipeline), seed=seed, hard_core=hard_core)
+    return read_recipe(recipe_path(pipeline), seed=seed, hard_core=hard_core, season=season)
 
 
 @app.command("build", cls=Command)
@@ -226,6 +231,14 @@ def build_cmd(
     pipeline: RecipeOption = None,
     seed: SeedOverride = None,
     hard_core: HardCoreOverride = None,
+    season: Annotated[
+        str | None,
+        typer.Option(
+            "--season",
+            help="summer, autumn or winter (overrides the recipe's season): broadleaves "
+            "leaf-off in winter, in autumn colours in autumn.",
+        ),
+    ] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing output.")] = False,
     quiet: QuietOption = False,
     as_json: SummaryJsonOption = False,
@@ -268,7 +281,7 @@ def build_cmd(
 
         scheduler_address(scheduler, "--scheduler")
     t0 = time.perf_counter()
-    recipe = _load_recipe(pipeline, seed, hard_core)
+    recipe = _load_recipe(pipeline, seed, hard_core, season)
     with progress_bars(not (quiet or as_json), t0) as tick:
         b = write_forest(
             recipe,

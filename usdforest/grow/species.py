@@ -73,6 +73,14 @@ class Geometry:
     trunk_roll
         Roll of the trunk template about its axis in degrees (the azimuth its +X points to);
         ``None`` draws one at random. A measured trunk keeps the roll it had in its model.
+    bark_color, leaf_color
+        Linear RGB of the bark and the leaves (their preview materials).
+    leaf_on
+        Fraction of its leaves the tree carries (1: all); a recipe's ``season`` sets it from
+        the two below.
+    autumn_leaf_on, winter_leaf_on, autumn_color
+        The fraction of leaves kept in autumn and in winter (a broadleaf's winter: 0, leaf
+        off; an evergreen's: 1) and their colour then (an evergreen's: ``leaf_color``).
     """
 
     trunk: str = "trunk"
@@ -95,6 +103,15 @@ class Geometry:
     trunk_roll: float | None = None
     bark_color: tuple[float, float, float] = (0.33, 0.24, 0.17)
     leaf_color: tuple[float, float, float] = (0.23, 0.48, 0.17)
+    leaf_on: float = 1.0
+    autumn_leaf_on: float = 1.0
+    winter_leaf_on: float = 0.0
+    autumn_color: tuple[float, float, float] = (0.55, 0.3, 0.08)
+
+
+def evergreen(color: tuple[float, float, float]) -> dict:
+    """The season keys of an evergreen's geometry: every leaf kept, its colour unchanged."""
+    return {"autumn_leaf_on": 1.0, "winter_leaf_on": 1.0, "autumn_color": color}
 
 
 @dataclass(frozen=True, eq=False)
@@ -297,6 +314,7 @@ def _pine() -> Species:
             leaf_angle=40.0,
             bark_color=(0.36, 0.22, 0.14),
             leaf_color=(0.13, 0.3, 0.14),
+            **evergreen((0.13, 0.3, 0.14)),
         ),
     )
 
@@ -363,6 +381,7 @@ def _hazel() -> Species:
             twig_radius=0.008,
             bark_color=(0.45, 0.33, 0.24),
             leaf_color=(0.25, 0.5, 0.16),
+            autumn_color=(0.65, 0.5, 0.1),  # hazel: yellow
         ),
     )
 
@@ -399,6 +418,8 @@ def _bramble() -> Species:
             twig_radius=0.01,
             bark_color=(0.42, 0.22, 0.2),
             leaf_color=(0.17, 0.38, 0.13),
+            autumn_color=(0.4, 0.1, 0.1),  # bramble: red
+            winter_leaf_on=0.5,  # semi-evergreen
         ),
     )
 
@@ -465,6 +486,7 @@ def _allometric_presets() -> tuple[Species, ...]:
                 leaf_angle=35.0,
                 bark_color=(0.36, 0.22, 0.14),
                 leaf_color=(0.13, 0.3, 0.14),
+                **evergreen((0.13, 0.3, 0.14)),
             ),
         ),
         _allometric(
@@ -485,6 +507,7 @@ def _allometric_presets() -> tuple[Species, ...]:
                 leaf_angle=30.0,
                 bark_color=(0.35, 0.25, 0.2),
                 leaf_color=(0.1, 0.26, 0.12),
+                **evergreen((0.1, 0.26, 0.12)),
             ),
         ),
         _allometric(
@@ -514,6 +537,7 @@ def _allometric_presets() -> tuple[Species, ...]:
                 phyllotaxis=180.0,
                 bark_color=(0.45, 0.43, 0.4),
                 leaf_color=(0.25, 0.5, 0.17),
+                autumn_color=(0.5, 0.2, 0.04),  # beech: copper
             ),
         ),
         _allometric(
@@ -544,6 +568,7 @@ def _allometric_presets() -> tuple[Species, ...]:
                 shade_inclination=OAK_SHADE,
                 bark_color=(0.3, 0.27, 0.23),
                 leaf_color=(0.2, 0.42, 0.14),
+                autumn_color=(0.38, 0.24, 0.07),  # oak: brown
             ),
         ),
         _allometric(
@@ -572,6 +597,7 @@ def _allometric_presets() -> tuple[Species, ...]:
                 phyllotaxis=180.0,
                 bark_color=(0.85, 0.83, 0.8),
                 leaf_color=(0.3, 0.55, 0.2),
+                autumn_color=(0.7, 0.55, 0.08),  # birch: yellow
             ),
             reference_dbh=15.0,
         ),

@@ -136,6 +136,7 @@ def write_understorey(
     """The recipe's shrubs and young trees under the crowns of ``stems``, grown (as tree
     assets in ``trees/``), placed and written to ``understorey.usdc`` and
     ``understorey.csv`` in ``staged``. Returns the extentsHint boxes they add."""
+    from usdforest.grow.seasons import seasonal
     from usdforest.grow.species import get_species
     from usdforest.grow.understorey import (
         SHRUB_FORMS,
@@ -158,7 +159,8 @@ def write_understorey(
     if recipe.shrubs is not None:
         for form in SHRUB_FORMS:
             for v in range(recipe.shrubs.variants):
-                jobs.append(("shrub", form, f"{form}_{v}", (get_species(form), v, None, None)))
+                shrub = seasonal(get_species(form), recipe.season)
+                jobs.append(("shrub", form, f"{form}_{v}", (shrub, v, None, None)))
     young = []
     if recipe.regeneration is not None:
         heights = regeneration_heights(recipe.regeneration)
@@ -175,7 +177,9 @@ def write_understorey(
         tb = build_tree(
             species, recipe.seed, variant, template_base=base, colliders="none", target=size
         )
-        kinds.append(Kind(layer, name, stem, float(tb.extent[1, 2]), _footprint(tb), tb.extent))
+        kinds.append(
+            Kind(layer, name, stem, float(tb.sized_extent[1, 2]), _footprint(tb), tb.extent)
+        )
         builds.append(tb)
         refs = copy_templates(tb, staged / "templates", "../templates/")
         layer_ = tree_layer(tb, refs, asset_name=stem, identifier=f"./{stem}.usdc")
@@ -186,10 +190,7 @@ def write_understorey(
     if recipe.shrubs is not None:
         shrub = kinds[:n_shrubs]
         reach = np.array(
-            [
-                float(np.linalg.norm(b.bounds["full"].footprint, axis=1).max())
-                for b in builds[:n_shrubs]
-            ]
+            [float(np.linalg.norm(b.summer_footprint, axis=1).max()) for b in builds[:n_shrubs]]
         )
         parts.append(
             place_shrubs(
@@ -276,32 +277,20 @@ def _crown_discs(
 
 def _footprint(tree: TreeBuild) -> float:
     """Area (m²) of a grown plant's footprint: the hull of its full level's points on the
-    ground."""
+    ground, with every leaf it has in summer (a season leaves its place and size as they
+    were)."""
     from scipy.spatial import ConvexHull
 
-    fp = tree.bounds["full"].footprint
+    fp = tree.summer_footprint
     return float(ConvexHull(fp).volume) if len(fp) >= 3 else 0.0
 
 
 def _crowns(trees: list[TreeBuild]) -> tuple[np.ndarray, np.ndarray]:
     """Per prototype, the radius of the disc of its crown's footprint area (the hull of its
-    points on the ground) and its one-sided leaf area (m²)."""
-    radius, leaf = [], []
-    for t in trees:
-        radius.append(np.sqrt(_footprint(t) / np.pi))
-        p = t.placement
-        unit = np.array(
-            [
-                float(t.templates[n].measurements["leaf_area"])
-                / float(t.templates[n].measurements["length"]) ** 2
-                for n in p.leaf_templates
-            ]
-        ).reshape(-1)
-        leaf.append(
-            float(np.sum(unit[p.leaf_proto] * p.leaf_scale[:, 0] * p.leaf_scale[:, 1]))
-            if len(p.leaf_proto)
-            else 0.0
-        )
+    points on the ground) and its one-sided leaf area (m²), both in summer: the growing
+    season's light places what grows under the crowns, whatever the recipe's season."""
+    radius = [np.sqrt(_footprint(t) / np.pi) for t in trees]
+    leaf = [t.leaf_area for t in trees]
     return np.array(radius).reshape(-1), np.array(leaf).reshape(-1)
 
 

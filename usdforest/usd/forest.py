@@ -290,7 +290,7 @@ def _write_forest(
         )
     tick("growing trees", len(prototypes), len(prototypes))
     ordered = [trees[p] for p in prototypes]
-    proto_extent = np.stack([t.extent for t in ordered])
+    proto_extent = np.stack([t.sized_extent for t in ordered])
     grown = proto_extent[:, 1, 2] - proto_extent[:, 0, 2] if recipe.sites is not None else None
     plan = Plan(classes, lookup, _leans(ordered), first_ids(recipe, surveys), grown)
 
@@ -460,11 +460,12 @@ def _write_forest(
 
 def _leans(trees: list[TreeBuild]) -> np.ndarray:
     """Per prototype, the direction (degrees from +x) of its one-sided crown (the mean of its
-    leaves' xy, measured on the grown tree); NaN for a symmetric one."""
+    leaves' xy, measured on the grown tree in leaf: the same in every season); NaN for a
+    symmetric one."""
     return np.array(
         [
-            np.degrees(np.arctan2(*t.placement.leaf_position[:, 1::-1].mean(axis=0)))
-            if t.size is not None and t.size.asymmetry > 0 and len(t.placement.leaf_position)
+            np.degrees(np.arctan2(*t.leaf_centre))
+            if t.size is not None and t.size.asymmetry > 0 and t.leaf_centre is not None
             else np.nan
             for t in trees
         ]

@@ -36,6 +36,7 @@ from usdforest.grow.bounds import EMPTY, EMPTY_EXTENT, Bounds, instances_bounds
 from usdforest.grow.colliders import Capsules, tree_capsules
 from usdforest.grow.placement import Placement, place
 from usdforest.grow.proxy import Levels, levels
+from usdforest.grow.seasons import keep_leaves
 from usdforest.grow.species import Geometry, Grown, Species, grow, sized, tree_size
 from usdforest.seeds import stream
 from usdforest.usd.layers import (
@@ -98,12 +99,52 @@ class TreeBuild:
     # of the leaf instancers: "leaves", "clusters")
     colliders: Capsules | None = None  # the wood's collider capsules
     size: TreeSize | None = None  # an allometric tree's target sizes
+    # with some leaves off (a season), the full level's bounds and the one-sided leaf area
+    # it has with all of them: its size and the shade it casts in the growing season
+    summer_bounds: Bounds | None = None
+    summer_leaf_area: float | None = None
+    # the mean (y, x) of all its leaves (a season's too), None without any: its crown's lean
+    leaf_centre: np.ndarray | None = None
+
+    @property
+    def sized_extent(self) -> np.ndarray:
+        """The extent that sizes the tree (placed trees are scaled to their height): its
+        summer one, so a tree keeps its size whatever leaves a season leaves it."""
+        return self.extent if self.summer_bounds is None else self.summer_bounds.extent
+
+    @property
+    def summer_footprint(self) -> np.ndarray:
+        """The full level's footprint with every leaf (what shades the floor in summer)."""
+        b = self.bounds["full"] if self.summer_bounds is None else self.summer_bounds
+        return b.footprint
+
+    @property
+    def leaf_area(self) -> float:
+        """One-sided leaf area (m²) of the leaves it carries in summer."""
+        if self.summer_leaf_area is not None:
+            return self.summer_leaf_area
+        return placed_leaf_area(self.placement, self.templates)
 
     def used_templates(self) -> dict[str, TemplateInfo]:
         """The templates the placed wood and leaves reference, by name."""
         used = {self.placement.templates[i] for i in np.unique(self.placement.template)}
         used.update(self.placement.leaf_templates)
         return {n: info for n, info in self.templates.items() if n in used}
+
+
+def placed_leaf_area(p: Placement, templates: Mapping[str, TemplateInfo]) -> float:
+    """One-sided area (m²) of the placed leaves: each template's measured area at its length,
+    times the leaf's scale across and along."""
+    if not len(p.leaf_proto):
+        return 0.0
+    unit = np.array(
+        [
+            float(templates[n].measurements["leaf_area"])
+            / float(templates[n].measurements["length"]) ** 2
+            for n in p.leaf_templates
+        ]
+    ).reshape(-1)
+    return float(np.sum(unit[p.leaf_proto] * p.leaf_scale[:, 0] * p.leaf_scale[:, 1]))
 
 
 def copy_templates(build: TreeBuild, folder: Path, prefix: str) -> dict[str, str]:
@@ -163,6 +204,13 @@ def build_tree(
         clumps=species.clumps,
         stouter={n: v for n, v in stouter.items() if v},
     )
+    summer, summer_area = None, None
+    centre = placement.leaf_position[:, 1::-1].mean(axis=0) if placement.n_leaves else None
+    if g.leaf_on < 1.0:  # a season's leaves (usdforest.grow.seasons)
+        summer = Bounds.union([_wood_bounds(placement, infos), _leaf_bounds(placement, infos)])
+        summer_area = placed_leaf_area(placement, infos)
+        rng = stream(seed, species.name, variant, "leaf on")
+        placement = keep_leaves(placement, g.leaf_on, rng)
     lv, bounds = _levels_and_bounds(placement, infos)
     return TreeBuild(
         grown,
@@ -174,6 +222,9 @@ def build_tree(
         bounds,
         tree_capsules(placement, colliders),
         size,
+        summer,
+        summer_area,
+        centre,
     )
 
 
@@ -254,6 +305,12 @@ class _InPlace:
         return done
 
 
+def _leaf_bounds(p: Placement, infos: Mapping[str, TemplateInfo]) -> Bounds:
+    return instances_bounds_as_stored(
+        p.leaf_position, p.leaf_orient, p.leaf_scale, p.leaf_proto, p.leaf_templates, infos
+    )
+
+
 def _levels_and_bounds(
     p: Placement, infos: Mapping[str, TemplateInfo]
 ) -> tuple[Levels, dict[str, Bounds]]:
@@ -262,15 +319,7 @@ def _levels_and_bounds(
     the GIL; a small tree is quicker without the threads)."""
     with ThreadPoolExecutor(2) if p.n_leaves >= 20_000 else _InPlace() as pool:
         lv_done = pool.submit(levels, p)
-        leaves_done = pool.submit(
-            instances_bounds_as_stored,
-            p.leaf_position,
-            p.leaf_orient,
-            p.leaf_scale,
-            p.leaf_proto,
-            p.leaf_templates,
-            infos,
-        )
+        leaves_done = pool.submit(_leaf_bounds, p, infos)
         wood = _wood_bounds(p, infos)
         lv = lv_done.result()
         c = lv.clusters
