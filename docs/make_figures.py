@@ -551,6 +551,76 @@ def camera_model(out: Path, work: Path) -> None:
     save_figure(fig, out / "camera-model.png")
 
 
+def _default_variant(work: Path, name: str, **change) -> Path:
+    """The default forest with ``change`` over its recipe's data (built once into ``work``)."""
+    import tomllib
+
+    from usdforest.recipe import default_recipe_path
+
+    stage = work / f"{name}.usda"
+    if not stage.exists():
+        path = default_recipe_path()
+        data = {**tomllib.loads(path.read_text()), **change}
+        write_forest(parse_recipe(data, path.parent, str(path)), stage, thumbnail=False)
+    return stage
+
+
+def seasons(out: Path, work: Path) -> None:
+    """The default forest in summer, autumn and winter (``season``) from one pose: at eye
+    height, and looking up into the crowns."""
+    from usdforest.sensors import camera
+    from usdforest.sensors.pose import Pose
+    from usdforest.sensors.raycast import SceneCaster
+    from usdforest.sensors.scene import extract_scene
+
+    stages = {"summer": _default_variant(work, "default")}  # the default is summer's
+    stages.update(
+        {k: _default_variant(work, f"default-{k}", season=k) for k in ("autumn", "winter")}
+    )
+    poses = (Pose(50.0, 50.0, 1.6, yaw=20, pitch=5), Pose(50.0, 50.0, 1.6, yaw=20, pitch=70))
+    cam = camera.PRESETS["pinhole-640"]
+    fig, axes = plt.subplots(2, 3, figsize=(15, 7.6), dpi=100)
+    panels = [None] * 6
+    for col, (season, stage) in enumerate(stages.items()):
+        scene = extract_scene(stage, centre=poses[0].position, radius=200.0)
+        caster = SceneCaster(scene)
+        colours = camera.path_colours(stage, scene.paths)
+        for row, pose in enumerate(poses):
+            look = "eye height" if row == 0 else "looking up (70°)"
+            image = camera.render(scene, cam, pose, colours, caster).rgb
+            panels[row * 3 + col] = (image, {}, f"{season}, {look}")
+    image_grid(fig, axes, panels, 10)
+    save_figure(fig, out / "seasons.png")
+
+
+def wind(out: Path, work: Path) -> None:
+    """The default forest's edge in a 12 m/s gusty wind (``[wind]``), seen from beside it:
+    4 s of camera frames at 10 frames/s, each with the trees where the wind layer has them
+    then (as ``fly`` sees them), as an animated GIF."""
+    from PIL import Image
+
+    from usdforest.sensors import camera
+    from usdforest.sensors.pose import Pose
+    from usdforest.sensors.raycast import SceneCaster
+    from usdforest.sensors.scene import SceneMotion, extract_scene
+
+    stage = _default_variant(
+        work, "default-wind", wind={"speed": 12.0, "duration": 4.0, "fps": 10.0}
+    )
+    pose = Pose(-12.0, 40.0, 8.0, yaw=0, pitch=12)
+    cam = camera.PRESETS["pinhole-640"]
+    scene = extract_scene(stage, centre=pose.position, radius=cam.max_range)
+    caster, motion = SceneCaster(scene), SceneMotion(stage, scene)
+    colours = camera.path_colours(stage, scene.paths)
+    frames = []
+    for k in range(40):
+        now = caster.moved(motion.at(k / 10.0))
+        rgb = camera.render(now.scene, cam, pose, colours, now).rgb
+        crowns = Image.fromarray(rgb[:300])  # the crowns, where the motion is
+        frames.append(crowns.resize((400, 188), Image.LANCZOS))
+    frames[0].save(out / "wind.gif", save_all=True, append_images=frames[1:], duration=100, loop=0)
+
+
 def dead_wood(out: Path, work: Path) -> None:
     """The default forest's dead wood from a walker's eye: a camera 6 m beside its thickest
     log, in colour and by class, with what deadwood.csv says of the pieces in view."""
@@ -745,11 +815,13 @@ def main(out: Path) -> None:
         sensors(out, work)
         forest_sensors(out, work)
         camera_model(out, work)
+        seasons(out, work)
+        wind(out, work)
         dead_wood(out, work)
         ground_vegetation(out, work)
         terrain(out, work)
         landscape(out, work)
-    for p in sorted(out.glob("*.png")):
+    for p in sorted([*out.glob("*.png"), *out.glob("*.gif")]):
         print(f"wrote {p}")
 
 

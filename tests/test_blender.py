@@ -99,3 +99,52 @@ def test_blender_keeps_a_lone_trees_colours(tmp_path):
     report = _open_in_blender(out)
     bark = [m["color"] for m in report["meshes"] if m["material"].startswith("Bark")]
     assert bark and np.allclose(bark, [0.8, 0.2, 0.1], atol=1e-4)
+
+
+def test_blender_plays_the_wind_layers_sway(tmp_path):
+    """Blender imports the wind layer's frames and tilts each tree as pxr composes it (from the
+    half-float orientations, the ones Blender reads: within 2e-3 of the stage's rotation)."""
+    import tomllib
+
+    from usdforest.usd.forest import write_forest as build
+
+    text = (
+        "seed = 5\n[region]\nbounds = [0.0, 0.0, 40.0, 40.0]\n"
+        + "".join(
+            f'[[sites]]\nx = {x}\ny = 20.0\nspecies = "pine"\ndbh = 0.3\nheight = 22.0\n'
+            for x in (10.0, 30.0)
+        )
+        + '[species.pine]\npreset = "scots-pine"\n[wind]\nspeed = 15.0\nduration = 4\nfps = 5\n'
+    )
+    stage = tmp_path / "windy.usda"
+    build(parse_recipe(tomllib.loads(text), tmp_path, "windy.toml"), stage, thumbnail=False)
+    run = subprocess.run(
+        [_blender_python(), str(PROBE.with_name("blender_sway_probe.py")), str(stage), "0", "7"],
+        capture_output=True, text=True, check=False, timeout=600,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-2000:]
+    seen = json.loads(run.stdout.strip().splitlines()[-1])
+    assert (seen["frame_start"], seen["frame_end"]) == (0, 20)
+    from pxr import UsdGeom
+
+    usd = Usd.Stage.Open(str(stage))
+    pi = UsdGeom.PointInstancer(usd.GetPrimAtPath("/Forest/Trees"))
+
+    def rotations(mats: list) -> list[np.ndarray]:
+        # column-vector linear parts (Blender's), tree by tree from west to east
+        return [m[:3, :3] for m in sorted(map(np.asarray, mats), key=lambda m: m[0, 3])]
+
+    blender = {f: rotations(seen["frames"][str(f)]) for f in (0, 7)}
+    stage_at = {
+        f: rotations([np.asarray(m).T for m in pi.ComputeInstanceTransformsAtTime(f, f)])
+        for f in (0, 7)
+    }
+    assert len(blender[0]) == len(blender[7]) == 2
+    moved = 0.0
+    for k in range(2):
+        # the tilt between the frames: the tree's, whatever the branch's own transform
+        b = blender[7][k] @ np.linalg.inv(blender[0][k])
+        s = stage_at[7][k] @ np.linalg.inv(stage_at[0][k])
+        np.testing.assert_allclose(b, s, atol=2e-3)
+        moved = max(moved, float(np.abs(s - np.eye(3)).max()))
+    assert moved > 5e-3  # the trees did sway between the frames

@@ -280,3 +280,59 @@ def test_a_tiled_forest_refuses_wind_and_the_scan_a_time_that_is_no_number(tmp_p
     run = subprocess.run(cmd, capture_output=True, text=True)
     assert run.returncode != 0 and not out.exists()
     assert run.stderr.strip().count("\n") == 0 and "--time" in run.stderr
+
+
+def _hover(seconds: float):
+    """A platform hovering at (20, 20, 12), facing +x, for ``seconds``."""
+    from usdforest.sensors.flight import Trajectory
+
+    return Trajectory(
+        np.array([0.0, seconds]), np.array([[20.0, 20.0, 12.0]] * 2), yaw=np.zeros(2),
+        pitch=np.zeros(2), roll=np.zeros(2),
+    )  # fmt: skip
+
+
+def test_a_flight_sees_each_sweep_where_the_trees_sway_then(forests):
+    """A hovering VLP-16 flown through the gusty forest: each sweep's returns are a scan of
+    the stage at the sweep's middle (the trees moved between sweeps, by the wind layer's
+    samples, and the flight reads them); in calm air every sweep is the still forest's."""
+    import dataclasses
+
+    from usdforest.sensors.lidar import PRESETS
+    from usdforest.sensors.scene import animated
+
+    assert animated(forests["gusty"]) and not animated(forests["still"])
+    sensor = dataclasses.replace(PRESETS["vlp-16"], noise=False)
+    flown = api.fly(forests["gusty"], path=_hover(0.25), lidar=sensor, lidar_rate=10.0).lidar
+    sweep = np.floor(flown.gps_time * 10.0 + 1e-9).astype(int)
+    assert sorted(set(sweep)) == [0, 1, 2]
+    seen = []
+    for k in (0, 2):
+        scanned = api.scan(
+            forests["gusty"], "lidar", (20.0, 20.0, 12.0), settings=sensor, time=k / 10 + 0.05
+        ).result
+        mine = np.sort(np.round(flown.points[sweep == k], 4), axis=0)
+        np.testing.assert_allclose(mine, np.sort(np.round(scanned.points, 4), axis=0), atol=2e-4)
+        seen.append(mine)
+    assert seen[0].shape != seen[1].shape or not np.allclose(seen[0], seen[1], atol=1e-3)
+    calm = api.fly(forests["calm"], path=_hover(0.25), lidar=sensor, lidar_rate=10.0).lidar
+    still = api.fly(forests["still"], path=_hover(0.25), lidar=sensor, lidar_rate=10.0).lidar
+    np.testing.assert_array_equal(calm.points, still.points)
+
+
+def test_a_flights_camera_frames_see_the_trees_at_their_own_times(forests):
+    import dataclasses
+
+    from usdforest.sensors import camera
+
+    cam = dataclasses.replace(camera.PRESETS["pinhole-640"], width=96, height=72)
+    frames = api.fly(
+        forests["gusty"], path=_hover(0.25), lidar=None, camera=cam, camera_rate=10.0
+    ).camera
+    assert len(frames.t) == 3
+    depths = []
+    for k, t in enumerate(frames.t):
+        shot = api.scan(forests["gusty"], "camera", (20.0, 20.0, 12.0), settings=cam, time=t)
+        np.testing.assert_allclose(frames.depth[k], shot.result.depth, atol=1e-4)
+        depths.append(frames.depth[k])
+    assert not np.allclose(depths[0], depths[2], atol=1e-3)

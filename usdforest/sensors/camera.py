@@ -57,7 +57,7 @@ from usdforest.seeds import stream
 from usdforest.sensors.lidar import CAMERA_ONLY, DISTORTION, DepthCamera
 from usdforest.sensors.pose import Pose
 from usdforest.sensors.raycast import SceneCaster
-from usdforest.sensors.scene import CLASSES, Scene
+from usdforest.sensors.scene import CLASSES, Scene, SceneMotion
 
 PRESETS: dict[str, DepthCamera] = {
     "pinhole-640": DepthCamera(640, 480, 90.0, 200.0, kind="camera"),
@@ -464,11 +464,13 @@ def fly_camera(
     caster: SceneCaster | None = None,
     progress: Callable[[int, int], None] | None = None,
     seed: int = 0,
+    motion: SceneMotion | None = None,
 ) -> Frames:
     """Frames at ``rate`` per second along ``traj`` (a
     :class:`~usdforest.sensors.flight.Trajectory`), each from the pose at its time (a stereo
     camera's left one), with its own noise from ``seed``; ``progress(done, total)`` after
-    each frame."""
+    each frame. With ``motion`` (an animated stage) each frame sees the trees where they
+    stand at its time."""
     times = frame_times(cam, traj, rate)
     shape = (len(times), cam.height, cam.width)
     pos, rot, _ = traj.at(times)
@@ -485,7 +487,8 @@ def fly_camera(
         np.ones(len(times)),
     )
     for k, (p, r) in enumerate(zip(pos, rot, strict=True)):
-        f = render_at(scene, replace(cam, baseline=0.0), p, r, colours, caster, seed, k)
+        now = caster if motion is None else caster.moved(motion.at(times[k]))
+        f = render_at(now.scene, replace(cam, baseline=0.0), p, r, colours, now, seed, k)
         out.gain[k] = f.gain
         out.depth[k], out.semantic[k], out.instance[k], out.rgb[k] = (
             f.depth,

@@ -278,9 +278,30 @@ class EmbreeCaster:
             lib.check("building a prototype's scene")
             owner_scene[g] = s
             tick("ray-casting scene", g + 1, rs.owners + 1)
-        # the top level: the world (identity) and every tree that can be entered
-        inst = np.flatnonzero(rs.inst_ok & (owner_scene[rs.inst_proto + 1] != 0))
+        self._owner_scene = owner_scene
+        self._top_level(rs)
+        tick("ray-casting scene", rs.owners + 1, rs.owners + 1)
+
+    def moved(self, rs: RayScene) -> EmbreeCaster:
+        """A caster of ``rs``, this one's ray scene with its trees placed anew
+        (:meth:`RayScene.moved`): the prototypes' scenes are shared, the top level is built
+        again (milliseconds)."""
+        other = object.__new__(EmbreeCaster)
+        other.__dict__.update(self.__dict__)
+        other._base = self  # the prototypes' scenes live as long as this caster
+        scenes: list[int] = []
+        other._scenes = scenes
+        weakref.finalize(other, _release, self._lib.lib, scenes)
+        other._keep = []
+        other._top_level(rs)
+        return other
+
+    def _top_level(self, rs: RayScene) -> None:
+        """The top scene: the world (identity) and every tree that can be entered."""
+        lib, owner_scene, keep = self._lib, self._owner_scene, self._keep
+        self._rs = rs
         world = [-1] if owner_scene[0] else []
+        inst = np.flatnonzero(rs.inst_ok & (owner_scene[rs.inst_proto + 1] != 0))
         self._entry_inst = np.concatenate([world, inst]).astype(np.int64)
         self._entry_owner = np.concatenate([[0] * len(world), rs.inst_proto[inst] + 1]).astype(
             np.int64
@@ -291,7 +312,8 @@ class EmbreeCaster:
         if len(inst):  # object to world, column form
             xf[len(world) :, :, :3] = rs.inst_fwd[inst]
             xf[len(world) :, :, 3] = rs.inst_shift[inst]
-        self._top = new_scene()
+        self._top = lib.scene()
+        self._scenes.append(self._top)
         if len(xf):
             table = np.ascontiguousarray(owner_scene[used], np.uint64)
             idx = np.ascontiguousarray(index, np.uint32)
@@ -310,7 +332,6 @@ class EmbreeCaster:
             lib.rtcReleaseGeometry(geom)
         lib.rtcCommitScene(self._top)
         lib.check("building the forest's scene")
-        tick("ray-casting scene", rs.owners + 1, rs.owners + 1)
 
     def cast(self, o: np.ndarray, d: np.ndarray, limit: np.ndarray, group: int = 1) -> RawHits:
         """Raw hits of rays ``o``, ``d`` (float32 (n, 3)) within ``limit``; rays that come in

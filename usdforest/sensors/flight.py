@@ -34,7 +34,7 @@ from usdforest.seeds import stream
 from usdforest.sensors.lidar import SpinningLidar, cast_pulses, observed
 from usdforest.sensors.pose import Pose, rotations
 from usdforest.sensors.raycast import SceneCaster
-from usdforest.sensors.scene import CLASSES, Scene
+from usdforest.sensors.scene import CLASSES, Scene, SceneMotion
 from usdforest.sensors.sonar import SonarConfig, SonarScene
 
 MAX_COORDINATE = 1e8  # stage units: no flight goes further
@@ -206,12 +206,16 @@ def fly_lidar(
     seed: int = 0,
     caster: SceneCaster | None = None,
     progress: Callable[[int, int], None] | None = None,
+    motion: SceneMotion | None = None,
 ) -> FlightReturns:
     """Sweeps at ``rate`` Hz along ``traj`` (returns as the sensor's ``returns`` mode says;
-    each pulse its own time and pose); ``progress(done, total)`` after each sweep."""
+    each pulse its own time and pose); ``progress(done, total)`` after each sweep. With
+    ``motion`` (an animated stage: a forest's wind) each sweep sees the trees where they
+    stand at its middle (the trajectory's times are the stage's seconds)."""
     sensor.check()
     check_lidar_rate(rate)
     caster = caster or SceneCaster(scene)
+    static = caster
     az, el = sensor.angles()
     ring = np.unique(el, return_inverse=True)[1].astype(np.uint16)
     azimuth = (az + 180.0) % 360.0 - 180.0
@@ -222,6 +226,8 @@ def fly_lidar(
         times = np.minimum(t0 + (az % 360.0) / 360.0 / rate, traj.t[-1])
         pos, rot, _ = traj.at(times)
         dirs = np.einsum("nij,nj->ni", rot, local)
+        if motion is not None:
+            caster = static.moved(motion.at(t0 + 0.5 / rate))
         e = cast_pulses(caster, pos, dirs, sensor)
         rng_, intensity = observed(e, sensor, stream(seed, "flight-lidar", k))
         i = e.pulse

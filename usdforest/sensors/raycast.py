@@ -144,6 +144,22 @@ class SceneCaster:
 
             self._impl = WarpCaster(self._rs, self.device)
 
+    def moved(self, scene: Scene) -> SceneCaster:
+        """A caster of ``scene``: this one's scene with its tree instances placed anew (the
+        same prototypes and instances; :class:`~usdforest.sensors.scene.SceneMotion`). On
+        the CPU the prototypes' Embree scenes are shared and only the top level is built
+        again; Warp builds its scene again."""
+        other = object.__new__(SceneCaster)
+        other.scene, other.device = scene, self.device
+        other._rs = self._rs.moved(scene)
+        if self.device == "cpu":
+            other._impl = self._impl.moved(other._rs)
+        else:
+            from usdforest.sensors.warpcast import WarpCaster
+
+            other._impl = WarpCaster(other._rs, "cpu" if self.device == "warp-cpu" else self.device)
+        return other
+
     def first_hit(
         self,
         origins: np.ndarray,

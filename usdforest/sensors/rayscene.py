@@ -9,7 +9,7 @@ tree instances. Casters return raw hits in one convention (:class:`RawHits`), tu
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -139,10 +139,6 @@ class RayScene:
             tree.append(li.tree[keep])
             n_leaf.append(int(good.sum()))
         leaf_lo, leaf_hi = outward32(np.concatenate(lo), np.concatenate(hi))
-        inst = scene.instances
-        box = np.array([p.box for p in protos]).reshape(-1, 2, 3)[inst.proto]
-        a, b, good = inverse_columns(inst.matrix)
-        w_lo, w_hi = moved_boxes(box[:, 0], box[:, 1], inst.matrix)
         return RayScene(
             wood=wood,
             wood_first=np.concatenate([[0], np.cumsum(n_tri)]),
@@ -160,15 +156,13 @@ class RayScene:
             shape_first=np.concatenate([[0], np.cumsum([len(t) for t in s_tri])]).astype(np.int64),
             shape_cls=np.concatenate([s.cls for s in shapes] or [np.zeros(0)]).astype(np.uint8),
             shape_path=np.concatenate([s.path for s in shapes] or [np.zeros(0)]).astype(np.int64),
-            inst_inv=a,
-            inst_fwd=inst.matrix[:, :3, :3].transpose(0, 2, 1).astype(np.float32),
-            inst_shift=b,
-            inst_proto=inst.proto.astype(np.int64),
-            inst_tree=inst.tree.astype(np.int64),
-            inst_lo=w_lo,
-            inst_hi=w_hi,
-            inst_ok=good,
+            **_instance_fields(scene),
         )
+
+    def moved(self, scene: Scene) -> RayScene:
+        """This ray scene with ``scene``'s instance transforms: the same prototypes and
+        instances, placed anew (a forest swaying in its wind)."""
+        return replace(self, **_instance_fields(scene))
 
     def hits(self, raw: RawHits, max_range: float) -> Hits:
         """Raw caster output as :class:`Hits`: classes, paths and tree ids looked up; hits
@@ -184,3 +178,21 @@ class RayScene:
             self.leaf_tree, self.inst_tree,
         )  # fmt: skip
         return h
+
+
+def _instance_fields(scene: Scene) -> dict[str, np.ndarray]:
+    """The instance arrays of :class:`RayScene` for ``scene``'s tree instances."""
+    inst = scene.instances
+    box = np.array([p.box for p in scene.protos]).reshape(-1, 2, 3)[inst.proto]
+    a, b, good = inverse_columns(inst.matrix)
+    w_lo, w_hi = moved_boxes(box[:, 0], box[:, 1], inst.matrix)
+    return {
+        "inst_inv": a,
+        "inst_fwd": inst.matrix[:, :3, :3].transpose(0, 2, 1).astype(np.float32),
+        "inst_shift": b,
+        "inst_proto": inst.proto.astype(np.int64),
+        "inst_tree": inst.tree.astype(np.int64),
+        "inst_lo": w_lo,
+        "inst_hi": w_hi,
+        "inst_ok": good,
+    }

@@ -31,6 +31,7 @@ from usdforest.sensors.scenetypes import (
     Prototype,
     Scene,
     Shape,
+    Sources,
     no_leaves,
 )
 from usdforest.usd.layers import class_labels, mesh_triangles, open_stage, rendered
@@ -363,6 +364,8 @@ def extract_scene(
     proto_of: dict = {}
     unseen: list[str] = []
     placed: list[tuple[int, np.ndarray, int]] = []
+    # per placed instance: its instancer's path, its row there, the transforms around the row
+    sources: list[tuple[str, int, np.ndarray, np.ndarray]] = []
     shapes: list[Shape] = []
     shape_of: dict = {}
     shape_keys: list[str] = []
@@ -551,6 +554,7 @@ def extract_scene(
                 k_proto = prototype(proto)
                 for i in sel:
                     placed.append((k_proto, own @ xf[i] @ to_root, int(ids[i]) if is_tree else -1))
+                    sources.append((str(p.GetPath()), int(i), own, to_root))
                 continue
             local = subtree(proto)
             for i in sel:
@@ -607,4 +611,87 @@ def extract_scene(
         if world_leaves.shape.size or any(len(p.leaf_instances) for p in protos)
         else (),
         world_leaves,
+        _sources(sources),
     )
+
+
+def _sources(sources: list[tuple[str, int, np.ndarray, np.ndarray]]) -> Sources:
+    names = tuple(dict.fromkeys(s[0] for s in sources))
+    index = {n: k for k, n in enumerate(names)}
+    return Sources(
+        names,
+        np.array([index[s[0]] for s in sources], dtype=np.int64),
+        np.array([s[1] for s in sources], dtype=np.int64),
+        np.array([s[2] for s in sources]).reshape(-1, 4, 4),
+        np.array([s[3] for s in sources]).reshape(-1, 4, 4),
+    )
+
+
+def animated(stage_path: str | Path) -> bool:
+    """Whether the stage's root layer gives a time range (start before end): a forest with
+    ``[wind]`` does. Reads the root layer only."""
+    from pxr import Sdf
+
+    layer = Sdf.Layer.FindOrOpen(str(stage_path))
+    return bool(
+        layer is not None
+        and layer.HasStartTimeCode()
+        and layer.HasEndTimeCode()
+        and layer.endTimeCode > layer.startTimeCode
+    )
+
+
+class SceneMotion:
+    """A scene's tree instances at other times of its stage's animation (a forest's wind):
+    ``at(seconds)`` is the scene with every instance placed where the stage's time samples
+    put it then (its prototypes, leaves as reflectors and everything else as extracted).
+
+    Opens the stage once. A stage whose root layer says its animation loops (a forest with
+    ``[wind]``: ``customLayerData`` ``loops``) is read at the time modulo its length, so a
+    flight longer than the wind's ``duration`` sees it go on."""
+
+    def __init__(self, stage_path: str | Path, scene: Scene):
+        from pxr import UsdGeom
+
+        self.scene = scene
+        self._stage = open_stage(Path(stage_path), sound=True, full=True)
+        self._instancers = [
+            UsdGeom.PointInstancer(self._stage.GetPrimAtPath(p))
+            for p in (scene.sources.instancers if scene.sources is not None else ())
+        ]
+        tcps = self._stage.GetTimeCodesPerSecond()
+        start, end = self._stage.GetStartTimeCode(), self._stage.GetEndTimeCode()
+        loops = bool(self._stage.GetRootLayer().customLayerData.get("loops", False))
+        self.period = (end - start) / tcps if loops and end > start else None
+        self.start = start / tcps
+
+    @property
+    def moves(self) -> bool:
+        """Whether any of the scene's instancers has time samples."""
+        return any(
+            pi.GetOrientationsfAttr().GetNumTimeSamples()
+            or pi.GetOrientationsAttr().GetNumTimeSamples()
+            or pi.GetPositionsAttr().GetNumTimeSamples()
+            for pi in self._instancers
+        )
+
+    def at(self, seconds: float) -> Scene:
+        src = self.scene.sources
+        if src is None or not len(src):
+            return self.scene
+        t = float(seconds)
+        if self.period:
+            t = self.start + (t - self.start) % self.period
+        when = stage_time(self._stage, t)
+        rows = [
+            np.asarray(pi.ComputeInstanceTransformsAtTime(when, when), dtype=float).reshape(
+                -1, 4, 4
+            )
+            for pi in self._instancers
+        ]
+        xf = np.empty((len(src), 4, 4))
+        for k, m in enumerate(rows):
+            sel = src.instancer == k
+            xf[sel] = m[src.row[sel]]
+        matrix = src.before @ xf @ src.after
+        return replace(self.scene, instances=replace(self.scene.instances, matrix=matrix))

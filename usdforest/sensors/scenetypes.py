@@ -138,6 +138,23 @@ class Instances:
 
 
 @dataclass(frozen=True, eq=False)
+class Sources:
+    """Where each of a scene's :class:`Instances` comes from on its stage, so that it can be
+    placed again at another time: its PointInstancer (``instancer``, an index into
+    ``instancers``), its row there, and the transforms before and after the instancer's own
+    (row vectors: ``matrix = before @ instance row @ after``)."""
+
+    instancers: tuple[str, ...]
+    instancer: np.ndarray
+    row: np.ndarray
+    before: np.ndarray
+    after: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.row.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
 class Scene:
     """World-space triangles (m, 3, 3) with class, tree id and path index, plus instances of
     tree prototypes, and every leaf in reach as a reflector."""
@@ -158,6 +175,7 @@ class Scene:
     unseen: tuple[str, ...] = ()  # geometry prims the scene cannot hold (curves, points...)
     shapes: tuple[Shape, ...] = ()  # leaf shapes of every LeafInstances
     leaf_instances: LeafInstances = field(default_factory=no_leaves)  # in world space
+    sources: Sources | None = None  # where its instances come from (to move them in time)
 
     def instance_spheres(self) -> tuple[np.ndarray, np.ndarray]:
         """World-space bounding spheres (centres ``(n, 3)``, radii ``(n,)``) of the tree

@@ -22,7 +22,7 @@ from usdforest.errors import UsdForestError
 from usdforest.sensors import camera, flight, lidar, sonar
 from usdforest.sensors.checks import check_not_inside_wood, pose_warnings, unseen_warning
 from usdforest.sensors.pose import Pose, parse_pose
-from usdforest.sensors.scene import extract_scene, stage_frame, to_frame
+from usdforest.sensors.scene import SceneMotion, animated, extract_scene, stage_frame, to_frame
 
 SENSORS = {
     "lidar": (lidar.PRESETS, "vlp-16"),
@@ -368,11 +368,13 @@ def fly(
         if casts or (sonar is not None and sonar.occlusion)
         else None
     )
+    # an animated stage (a forest's wind): the lidar and camera see the trees move
+    motion = SceneMotion(stage, scene) if caster is not None and animated(stage) else None
     returns = echoes = frames = None
     if lidar is not None:
         returns = flight.fly_lidar(
             scene, lidar, traj, lidar_rate, seed=seed, caster=caster,
-            progress=lambda d, n: tick("lidar sweeps", d, n),
+            progress=lambda d, n: tick("lidar sweeps", d, n), motion=motion,
         )  # fmt: skip
     if sonar is not None:
         echoes = flight.fly_sonar(
@@ -383,6 +385,6 @@ def fly(
         colours = CAMERA_MODULE.path_colours(stage, scene.paths)
         frames = CAMERA_MODULE.fly_camera(
             scene, camera, traj, camera_rate, colours, caster=caster,
-            progress=lambda d, n: tick("camera frames", d, n), seed=seed,
+            progress=lambda d, n: tick("camera frames", d, n), seed=seed, motion=motion,
         )  # fmt: skip
     return Flight(traj, returns, echoes, frames, crs, origin, warnings, clock.perf_counter() - t0)

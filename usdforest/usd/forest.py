@@ -148,6 +148,8 @@ def interface_layer(
     if recipe.crs:  # where the stage's origin is on the map
         data["crs"] = recipe.crs
         data["crsOrigin"] = Gf.Vec2d(*(float(v) for v in _stage_origin(build, recipe)))
+    if recipe.wind is not None:  # the wind's last frame is its first: sensors wrap time
+        data["loops"] = True
     if data:
         layer.customLayerData = data
     if recipe.wind is not None:  # time codes are the wind's frames
