@@ -1,6 +1,10 @@
-"""Small stands of allometric trees that several tests build: a recipe from its sites."""
+"""Small stands of allometric trees that several tests build: a recipe from its sites, and
+a forest built from a recipe's text."""
 
 from __future__ import annotations
+
+import tomllib
+from pathlib import Path
 
 # the four allometric presets, each under a short name the sites use
 SPECIES = """
@@ -24,3 +28,15 @@ def allometric_stand(seed: int, size: float, sites: list[str], extra: str = "") 
         + SPECIES
         + extra
     )
+
+
+def build_text(root: Path, name: str, text: str, **overrides) -> Path:
+    """``root/name.usda``, the forest of the recipe ``text`` (``overrides``: ``seed``,
+    ``hard_core`` or ``season`` over it), built without a thumbnail."""
+    from usdforest.recipe import parse_recipe
+    from usdforest.usd.forest import write_forest
+
+    out = root / f"{name}.usda"
+    recipe = parse_recipe(tomllib.loads(text), root, f"{name}.toml", **overrides)
+    write_forest(recipe, out, thumbnail=False)
+    return out

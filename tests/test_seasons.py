@@ -11,13 +11,13 @@ from pathlib import Path
 
 import pytest
 from pxr import Usd, UsdGeom, UsdShade
+from stands import build_text
 
 from usdforest import api
 from usdforest.errors import RecipeError
 from usdforest.grow.species import get_species
 from usdforest.recipe import parse_recipe
 from usdforest.sensors.scene import CLASS_ID
-from usdforest.usd.forest import write_forest
 from usdforest.usd.inventory import stand_figures
 
 SITES = """
@@ -52,20 +52,13 @@ cover = 0.1
 """
 
 
-def _build(root: Path, name: str, text: str, season: str | None = None) -> Path:
-    recipe = parse_recipe(tomllib.loads(text), root, f"{name}.toml", season=season)
-    out = root / f"{name}.usda"
-    write_forest(recipe, out, thumbnail=False)
-    return out
-
-
 @pytest.fixture(scope="module")
 def stands(tmp_path_factory):
     root = tmp_path_factory.mktemp("seasons")
     return {
-        "summer": _build(root, "summer", MIXED),
-        "autumn": _build(root, "autumn", MIXED, "autumn"),
-        "winter": _build(root, "winter", MIXED, "winter"),
+        "summer": build_text(root, "summer", MIXED),
+        "autumn": build_text(root, "autumn", MIXED, season="autumn"),
+        "winter": build_text(root, "winter", MIXED, season="winter"),
     }
 
 

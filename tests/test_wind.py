@@ -15,11 +15,11 @@ import pytest
 import trimesh
 from pxr import Sdf, Usd, UsdGeom
 from scipy.spatial import ConvexHull
+from stands import build_text
 
 from usdforest import api
 from usdforest.errors import RecipeError, UsdForestError
 from usdforest.recipe import parse_recipe
-from usdforest.usd.forest import write_forest
 from usdforest.usd.validate import validate
 
 # two allometric Scots pines 20 m apart along y = 20; the wind blows from the west (+x)
@@ -51,10 +51,7 @@ def _recipe(text: str, base: Path):
 
 
 def _build(root: Path, name: str, wind: str | None) -> Path:
-    recipe = _recipe(TWO_PINES + (f"[wind]\n{wind}\n" if wind is not None else ""), root)
-    out = root / f"{name}.usda"
-    write_forest(recipe, out, thumbnail=False)
-    return out
+    return build_text(root, name, TWO_PINES + (f"[wind]\n{wind}\n" if wind is not None else ""))
 
 
 @pytest.fixture(scope="module")

@@ -33,7 +33,9 @@ CELL = 0.25  # m, the cover raster
 BREAST = 1.3
 
 
-def _mesh_world(prim: Usd.Prim, cache: UsdGeom.XformCache, to_local: np.ndarray):
+def mesh_world(prim: Usd.Prim, cache: UsdGeom.XformCache, to_local: np.ndarray):
+    """A Mesh's points in the space ``to_local`` maps the world to (row vectors), and its
+    triangles (``None`` unless every face is one)."""
     mesh = UsdGeom.Mesh(prim)
     pts = np.asarray(mesh.GetPointsAttr().Get() or [], dtype=float).reshape(-1, 3)
     counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
@@ -44,7 +46,7 @@ def _mesh_world(prim: Usd.Prim, cache: UsdGeom.XformCache, to_local: np.ndarray)
     return world, tri
 
 
-def _girth_dbh(points: np.ndarray, tri: np.ndarray, z: np.ndarray) -> np.ndarray:
+def girth_dbh(points: np.ndarray, tri: np.ndarray, z: np.ndarray) -> np.ndarray:
     """Girth-tape diameters of the mesh at heights ``z``: hull perimeter of the section / pi."""
     import trimesh
     from scipy.spatial import ConvexHull
@@ -72,7 +74,7 @@ def _leaf_unit_area(proto: Usd.Prim) -> float:
     total = 0.0
     for p in Usd.PrimRange(proto, Usd.TraverseInstanceProxies()):
         if p.IsA(UsdGeom.Mesh):
-            v, tri = _mesh_world(p, cache, inv)
+            v, tri = mesh_world(p, cache, inv)
             if tri is not None and len(tri):
                 total += one_sided_area(v, tri)
     return total
@@ -96,7 +98,7 @@ def _footprints(instancer: Usd.Prim) -> dict[str, float]:
             if not rendered(p):
                 it.PruneChildren()
             elif p.IsA(UsdGeom.Mesh):
-                xy.append(_mesh_world(p, cache, inv)[0][:, :2])
+                xy.append(mesh_world(p, cache, inv)[0][:, :2])
             elif p.IsA(UsdGeom.PointInstancer):
                 it.PruneChildren()
                 pi = UsdGeom.PointInstancer(p)
@@ -112,7 +114,7 @@ def _footprints(instancer: Usd.Prim) -> dict[str, float]:
                     own = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(lp), float))
                     pts = np.concatenate(
                         [
-                            _mesh_world(m, cache, own)[0]
+                            mesh_world(m, cache, own)[0]
                             for m in Usd.PrimRange(lp)
                             if m.IsA(UsdGeom.Mesh)
                         ]
@@ -138,7 +140,7 @@ def _tree_figures(tree: Usd.Prim, breast: np.ndarray) -> dict:
             it.PruneChildren()
             continue
         if p.IsA(UsdGeom.Mesh) and "/Leaves" not in str(p.GetPath()):
-            v, tri = _mesh_world(p, cache, inv)
+            v, tri = mesh_world(p, cache, inv)
             wood_xy.append(v[:, :2])
             if tri is not None and len(tri):
                 wood_area += 0.5 * float(face_areas(v, tri).sum())  # one-sided: half
@@ -165,7 +167,7 @@ def _tree_figures(tree: Usd.Prim, breast: np.ndarray) -> dict:
     bbox = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"], True)
     r = bbox.ComputeWorldBound(tree).ComputeAlignedRange()
     ext = np.array([list(r.GetMin()), list(r.GetMax())]) @ inv[:3, :3] + inv[3, :3]
-    dbh = _girth_dbh(*trunk, breast) if trunk is not None else np.full(len(breast), np.nan)
+    dbh = girth_dbh(*trunk, breast) if trunk is not None else np.full(len(breast), np.nan)
     return {
         "height": float(ext[:, 2].max() - min(ext[:, 2].min(), 0.0)),
         "dbh": dbh,

@@ -47,7 +47,7 @@ class Crown:
 
 def crown_of(proto: Usd.Prim) -> Crown:
     """Measure a composed tree prototype (its base at its origin)."""
-    from usdforest.usd.inventory import _girth_dbh, _mesh_world
+    from usdforest.usd.inventory import girth_dbh, mesh_world
 
     cache = UsdGeom.XformCache()
     inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(proto), dtype=float))
@@ -67,7 +67,7 @@ def crown_of(proto: Usd.Prim) -> Crown:
                 m = np.asarray(cache.GetLocalToWorldTransform(p), dtype=float) @ inv
                 leaves.append(mats[:, 3, :3] @ m[:3, :3] + m[3, :3])
         elif p.IsA(UsdGeom.Mesh):
-            v, tri = _mesh_world(p, cache, inv)
+            v, tri = mesh_world(p, cache, inv)
             if "/Trunk" in str(p.GetPath()) and tri is not None and trunk is None:
                 trunk = (v, tri)
             else:
@@ -78,7 +78,7 @@ def crown_of(proto: Usd.Prim) -> Crown:
     crown = np.concatenate(leaves) if leaves else np.concatenate(wood) if wood else None
     if trunk is None or crown is None or height <= 0:
         raise UsdForestError(f"{proto.GetPath()}: a tree without a trunk or crown cannot sway")
-    dbh = float(_girth_dbh(*trunk, np.array([min(BREAST, 0.5 * height)]))[0])
+    dbh = float(girth_dbh(*trunk, np.array([min(BREAST, 0.5 * height)]))[0])
     base = float(np.percentile(crown[:, 2], 5))
     width = 2 * float(np.percentile(np.hypot(crown[:, 0], crown[:, 1]), 95))
     length = max(height - base, 0.0)
