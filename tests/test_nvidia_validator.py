@@ -61,3 +61,14 @@ def test_a_forest_on_a_raster_height_field_passes(tmp_path):
     out = tmp_path / "f.usda"
     write_forest(parse_recipe(data, tmp_path, str(tmp_path / "r.toml")), out)
     _check(exe, out)
+
+
+def test_a_windy_leaf_off_forest_passes(tmp_path):
+    """The wind layer's time samples (orientations and orientationsf over the instancer, the
+    root's time codes) and a winter stand's leafless broadleaves pass too."""
+    exe = _validator()
+    base = read_recipe(default_recipe_path().parent / "paper-two-tree-stand.toml")
+    data = dict(base.data, season="winter", wind={"speed": 8.0, "duration": 2.0, "fps": 5.0})
+    out = tmp_path / "f.usda"
+    write_forest(parse_recipe(data, base.base, base.source), out)
+    _check(exe, out)
