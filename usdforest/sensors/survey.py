@@ -370,6 +370,8 @@ def fly(
     )
     # an animated stage (a forest's wind): the lidar and camera see the trees move
     motion = SceneMotion(stage, scene) if caster is not None and animated(stage) else None
+    if motion is not None and not motion.moves:  # a time range, but nothing of it moves
+        motion = None
     returns = echoes = frames = None
     if lidar is not None:
         returns = flight.fly_lidar(
