@@ -333,3 +333,65 @@ def test_a_flights_camera_frames_see_the_trees_at_their_own_times(forests):
         np.testing.assert_allclose(frames.depth[k], shot.result.depth, atol=1e-4)
         depths.append(frames.depth[k])
     assert not np.allclose(depths[0], depths[2], atol=1e-3)
+
+
+def test_leaves_move_with_their_swaying_trees_at_the_velocity_the_scene_gives(forests):
+    """SceneMotion's leaf velocities at the middle of a time code's interval are the finite
+    differences of the leaves' own positions, extracted anew at two times inside that interval
+    (where USD interpolates each tree's tilt): within 1 % of the fastest."""
+    from usdforest.sensors.scene import SceneMotion, extract_scene
+
+    stage, centre, radius = forests["gusty"], np.array([20.0, 20.0, 10.0]), 30.0
+    t, dt = 10.125, 0.05  # the gusty forest has 4 time codes a second: 10.0 to 10.25 here
+    motion = SceneMotion(stage, extract_scene(stage, centre=centre, radius=radius))
+    now, before, after = (
+        extract_scene(stage, centre=centre, radius=radius, time=s).leaves
+        for s in (t, t - dt, t + dt)
+    )
+    expected = (after.centre - before.centre) / (2 * dt)
+    fastest = float(np.abs(expected).max())
+    assert fastest > 1e-3  # the crowns do move
+    got = motion.velocities(t, now.centre, now.tree)
+    np.testing.assert_allclose(got, expected, atol=0.01 * fastest)
+
+
+def test_a_leaf_moving_towards_the_sonar_sounds_as_a_sonar_moving_towards_it():
+    """Only the closing speed sets the Doppler: a leaf moving at 1 m/s towards a still sonar
+    and a sonar moving at 1 m/s towards a still leaf give the same echo. Their delays differ
+    at second order in v/c (2 r (c - v) / c² against 2 r / (c + v)), so the still leaf is
+    placed that much nearer, by r v² / c² (0.03 mm at 3 m)."""
+    from usdforest.sensors.pose import Pose
+    from usdforest.sensors.scene import Leaves
+    from usdforest.sensors.sonar import PRESETS, Targets, echo_from_targets
+
+    cfg, pose = PRESETS["paper"], Pose(0.0, 0.0, 0.0)
+    c = cfg.speed_of_sound
+
+    def leaf(x: float) -> Leaves:
+        return Leaves(
+            np.array([[x, 0.0, 0.0]]), np.array([[-1.0, 0.0, 0.0]]), np.array([0.003]),
+            np.array([0]),
+        )  # fmt: skip
+
+    moving_leaf = echo_from_targets(
+        Targets(leaf(3.0), leaf_velocity=np.array([[-1.0, 0.0, 0.0]])), pose, cfg
+    ).echo
+    nearer = leaf(3.0 * (1 - 1 / c**2))
+    moving_sonar = echo_from_targets(Targets(nearer), pose, cfg, np.array([1.0, 0.0, 0.0])).echo
+    still = echo_from_targets(Targets(leaf(3.0)), pose, cfg).echo
+    peak = np.abs(still).max()
+    assert np.abs(moving_leaf - moving_sonar).max() < 1e-4 * peak
+    assert np.abs(moving_leaf - still).max() > 0.1 * peak  # the Doppler is heard
+
+
+def test_a_hovering_sonar_hears_the_swaying_crowns_doppler(forests):
+    """The leaves' velocities reach the sonar's echoes in wind; in calm air its echoes are the
+    still forest's, bit for bit."""
+    echoes = {
+        k: api.fly(forests[k], path=_hover(0.2), lidar=None, sonar="paper").sonar.echoes
+        for k in ("gusty", "calm", "still")
+    }
+    assert len(echoes["still"]) == 5
+    np.testing.assert_array_equal(echoes["calm"], echoes["still"])
+    peak = np.abs(echoes["still"]).max()
+    assert np.abs(echoes["gusty"] - echoes["still"]).max() > 1e-3 * peak

@@ -502,9 +502,12 @@ def fly_sonar(
     seed: int = 0,
     caster=None,
     progress: Callable[[int, int], None] | None = None,
+    motion: SceneMotion | None = None,
 ) -> FlightEcho:
     """Pulses at ``cfg.pulse_rate`` along ``traj``, Doppler and delays from the platform's
-    velocity; ``progress(done, total)`` after each pulse."""
+    velocity; ``progress(done, total)`` after each pulse. With ``motion`` (a forest in wind)
+    each leaf's own velocity at the pulse's time adds to its Doppler (the leaves stay where
+    the scene has them)."""
     cfg.check()
     times = traj.t[0] + np.arange(0.0, traj.duration + 1e-12, 1.0 / cfg.pulse_rate)
     pos, rot, vel = traj.at(times)
@@ -517,7 +520,12 @@ def fly_sonar(
         fwd = rm[:, 0]
         yaw = math.degrees(math.atan2(fwd[1], fwd[0]))
         pitch = math.degrees(math.asin(max(-1.0, min(1.0, fwd[2]))))
-        e = prepared.echo(Pose(*p, yaw, pitch), cfg, velocity=v)
+        moving = (
+            None
+            if motion is None
+            else lambda lv, t=times[k]: motion.velocities(t, lv.centre, lv.tree)
+        )
+        e = prepared.echo(Pose(*p, yaw, pitch), cfg, velocity=v, leaf_velocity=moving)
         echoes.append(e.echo)
         counts.append(e.leaves_in_range)
         # every pulse has the same classes: those the sonar listens to

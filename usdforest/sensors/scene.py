@@ -695,3 +695,26 @@ class SceneMotion:
             xf[sel] = m[src.row[sel]]
         matrix = src.before @ xf @ src.after
         return replace(self.scene, instances=replace(self.scene.instances, matrix=matrix))
+
+    def velocities(self, seconds: float, points: np.ndarray, tree: np.ndarray) -> np.ndarray:
+        """``(n, 3)`` velocities (m/s) at ``seconds`` of ``points`` (n, 3) that move with the
+        tree instances of ids ``tree`` (n,) (a leaf with its tree; -1 and trees of no instance:
+        still): each instance's transform x -> L x + T is differenced over half a time code on
+        either side, v = L' L^-1 (x - T) + T'."""
+        inst = self.scene.instances
+        out = np.zeros((len(points), 3))
+        if not len(inst) or not len(points):
+            return out
+        h = 0.5 / self._stage.GetTimeCodesPerSecond()
+        before, now, after = (self.at(seconds + s).instances.matrix for s in (-h, 0.0, h))
+        # column form: L = M[:3, :3] transposed, T = M[3, :3]
+        rate = (after[:, :3, :3] - before[:, :3, :3]).transpose(0, 2, 1) / (2 * h)
+        spin = rate @ np.linalg.inv(now[:, :3, :3].transpose(0, 2, 1))
+        drift = (after[:, 3, :3] - before[:, 3, :3]) / (2 * h)
+        index = {int(t): k for k, t in enumerate(inst.tree) if t >= 0}
+        which = np.array([index.get(int(t), -1) for t in np.asarray(tree)], dtype=np.int64)
+        moves = which >= 0
+        k = which[moves]
+        rel = np.asarray(points, dtype=float)[moves] - now[k, 3, :3]
+        out[moves] = np.einsum("nij,nj->ni", spin[k], rel) + drift[k]
+        return out

@@ -434,6 +434,7 @@ class Targets:
     leaves: Leaves
     wood: Cylinders = field(default_factory=lambda: Cylinders.concat([]))
     ground: Facets = field(default_factory=Facets.empty)
+    leaf_velocity: np.ndarray | None = None  # (n, 3) m/s of the leaves, when they move
 
 
 @dataclass(frozen=True, eq=False)
@@ -571,6 +572,7 @@ class _Source:
     amplitudes: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
     modelled: Callable[[np.ndarray], tuple[np.ndarray, Callable]] | None = None
     count: int | None = None  # the reflectors it stands for (wood: cylinders), if not its points
+    velocity: np.ndarray | None = None  # (n, 3) m/s of its reflectors, when they move
 
 
 def _coherent(
@@ -593,6 +595,9 @@ def _coherent(
         v = np.asarray(velocity, dtype=float)
         closing = (d / np.maximum(r_all, 1e-12)[:, None]) @ v
         v2 = float(v @ v)
+    if source.velocity is not None:  # a reflector moving towards the sonar closes the range too
+        u = d / np.maximum(r_all, 1e-12)[:, None]
+        closing = closing - np.einsum("ij,ij->i", u, source.velocity)
     eta = 2 * closing / c
     spectrum = np.zeros(grid.freqs.size, dtype=complex)
     impulse = np.zeros(grid.n_out)  # per second (delta -> fs): the groups' sum (irfft is linear)
@@ -682,6 +687,8 @@ def echo_from_targets(
     leaf_in = near(lv.centre)
     gaussian = cfg.beam == "gaussian"
 
+    moving = targets.leaf_velocity
+
     def leaf_source(k: int, idx: np.ndarray) -> _Source:
         """The coherent sum of the leaves ``idx`` as class ``k``."""
 
@@ -699,6 +706,7 @@ def echo_from_targets(
             lambda sel: leaf_amplitudes(_leaf_subset(lv, idx[sel]), pose, cfg, grid.centres),
             # the kernel's own model: the group's fit through a Gaussian beam
             group_fit_leaves if gaussian and cfg.leaf_model == "group-fit" else None,
+            velocity=None if moving is None else moving[idx],
         )
 
     # one coherent sum per class; the ground vegetation's blades are leaves of their own class
@@ -920,10 +928,22 @@ class SonarScene:
             )
         return Targets(lv, wood, ground)
 
-    def echo(self, pose: Pose, cfg: SonarConfig, velocity: np.ndarray | None = None) -> Echo:
-        """The echo at ``pose``; ``leaves_in_range`` counts leaves before occlusion."""
+    def echo(
+        self,
+        pose: Pose,
+        cfg: SonarConfig,
+        velocity: np.ndarray | None = None,
+        leaf_velocity: Callable[[Leaves], np.ndarray] | None = None,
+    ) -> Echo:
+        """The echo at ``pose`` from a platform moving at ``velocity``; ``leaf_velocity``
+        gives the heard leaves' own velocities (a forest in wind: see
+        :meth:`usdforest.sensors.scene.SceneMotion.velocities`); ``leaves_in_range`` counts
+        leaves before occlusion."""
         near = self._in_range(pose, cfg)
-        e = echo_from_targets(self._unseen_dropped(near, pose, cfg), pose, cfg, velocity)
+        heard = self._unseen_dropped(near, pose, cfg)
+        if leaf_velocity is not None:
+            heard = replace(heard, leaf_velocity=leaf_velocity(heard.leaves))
+        e = echo_from_targets(heard, pose, cfg, velocity)
         return replace(e, leaves_in_range=len(near.leaves))
 
 

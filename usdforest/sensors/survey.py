@@ -369,7 +369,7 @@ def fly(
         else None
     )
     # an animated stage (a forest's wind): the lidar and camera see the trees move
-    motion = SceneMotion(stage, scene) if caster is not None and animated(stage) else None
+    motion = SceneMotion(stage, scene) if animated(stage) else None
     if motion is not None and not motion.moves:  # a time range, but nothing of it moves
         motion = None
     returns = echoes = frames = None
@@ -381,7 +381,7 @@ def fly(
     if sonar is not None:
         echoes = flight.fly_sonar(
             scene, sonar, traj, seed=seed, caster=caster,
-            progress=lambda d, n: tick("sonar pulses", d, n),
+            progress=lambda d, n: tick("sonar pulses", d, n), motion=motion,
         )  # fmt: skip
     if camera is not None:
         colours = CAMERA_MODULE.path_colours(stage, scene.paths)
