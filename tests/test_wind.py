@@ -343,11 +343,17 @@ def test_leaves_move_with_their_swaying_trees_at_the_velocity_the_scene_gives(fo
 
     stage, centre, radius = forests["gusty"], np.array([20.0, 20.0, 10.0]), 30.0
     t, dt = 10.125, 0.05  # the gusty forest has 4 time codes a second: 10.0 to 10.25 here
-    motion = SceneMotion(stage, extract_scene(stage, centre=centre, radius=radius))
+    still = extract_scene(stage, centre=centre, radius=radius)
+    motion = SceneMotion(stage, still)
     now, before, after = (
         extract_scene(stage, centre=centre, radius=radius, time=s).leaves
         for s in (t, t - dt, t + dt)
     )
+    # the still scene's leaves carried to t are those extracted at t
+    carried = motion.leaves(t, still.leaves)
+    np.testing.assert_allclose(carried.centre, now.centre, atol=1e-5)
+    np.testing.assert_allclose(carried.normal, now.normal, atol=1e-5)
+    assert np.abs(carried.centre - still.leaves.centre).max() > 1e-3
     expected = (after.centre - before.centre) / (2 * dt)
     fastest = float(np.abs(expected).max())
     assert fastest > 1e-3  # the crowns do move
@@ -384,9 +390,9 @@ def test_a_leaf_moving_towards_the_sonar_sounds_as_a_sonar_moving_towards_it():
     assert np.abs(moving_leaf - still).max() > 0.1 * peak  # the Doppler is heard
 
 
-def test_a_hovering_sonar_hears_the_swaying_crowns_doppler(forests):
-    """The leaves' velocities reach the sonar's echoes in wind; in calm air its echoes are the
-    still forest's, bit for bit."""
+def test_a_hovering_sonar_hears_the_swaying_crowns(forests):
+    """The leaves' positions and velocities at each pulse's time reach the sonar's echoes in
+    wind; in calm air its echoes are the still forest's, bit for bit."""
     echoes = {
         k: api.fly(forests[k], path=_hover(0.2), lidar=None, sonar="paper").sonar.echoes
         for k in ("gusty", "calm", "still")

@@ -20,6 +20,7 @@ board.
 from __future__ import annotations
 
 import csv
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -494,6 +495,12 @@ class FlightEcho:
     labels: np.ndarray  # (tree, class, energy, range_min, range_max) rows, with their pulse
 
 
+def _leaves_at(motion: SceneMotion, t: float, leaves):
+    """``leaves`` where their trees carry them at ``t``, and their velocities then."""
+    now = motion.leaves(t, leaves)
+    return now, motion.velocities(t, now.centre, now.tree)
+
+
 def fly_sonar(
     scene: Scene,
     cfg: SonarConfig,
@@ -506,8 +513,8 @@ def fly_sonar(
 ) -> FlightEcho:
     """Pulses at ``cfg.pulse_rate`` along ``traj``, Doppler and delays from the platform's
     velocity; ``progress(done, total)`` after each pulse. With ``motion`` (a forest in wind)
-    each leaf's own velocity at the pulse's time adds to its Doppler (the leaves stay where
-    the scene has them)."""
+    the leaves are heard where their trees have carried them at the pulse's time, each with
+    its own velocity in its Doppler."""
     cfg.check()
     times = traj.t[0] + np.arange(0.0, traj.duration + 1e-12, 1.0 / cfg.pulse_rate)
     pos, rot, vel = traj.at(times)
@@ -520,12 +527,8 @@ def fly_sonar(
         fwd = rm[:, 0]
         yaw = math.degrees(math.atan2(fwd[1], fwd[0]))
         pitch = math.degrees(math.asin(max(-1.0, min(1.0, fwd[2]))))
-        moving = (
-            None
-            if motion is None
-            else lambda lv, t=times[k]: motion.velocities(t, lv.centre, lv.tree)
-        )
-        e = prepared.echo(Pose(*p, yaw, pitch), cfg, velocity=v, leaf_velocity=moving)
+        moved = None if motion is None else functools.partial(_leaves_at, motion, times[k])
+        e = prepared.echo(Pose(*p, yaw, pitch), cfg, velocity=v, moved=moved)
         echoes.append(e.echo)
         counts.append(e.leaves_in_range)
         # every pulse has the same classes: those the sonar listens to

@@ -696,6 +696,30 @@ class SceneMotion:
         matrix = src.before @ xf @ src.after
         return replace(self.scene, instances=replace(self.scene.instances, matrix=matrix))
 
+    def _instance_of(self, tree: np.ndarray) -> np.ndarray:
+        """Per tree id, the index of its instance (-1: none, or an id below 0)."""
+        inst = self.scene.instances
+        index = {int(t): k for k, t in enumerate(inst.tree) if t >= 0}
+        return np.array([index.get(int(t), -1) for t in np.asarray(tree)], dtype=np.int64)
+
+    def leaves(self, seconds: float, leaves: Leaves) -> Leaves:
+        """``leaves`` (of this scene, where it was extracted) where their trees have carried
+        them at ``seconds``: centres and normals moved by each tree's transform then against
+        its extracted one (leaves of no instance stay)."""
+        which = self._instance_of(leaves.tree)
+        moves = which >= 0
+        if not moves.any():
+            return leaves
+        was, now = self.scene.instances.matrix, self.at(seconds).instances.matrix
+        k = which[moves]
+        rel = np.linalg.inv(was[k]) @ now[k]  # row vectors: extracted world -> world now
+        centre, normal = leaves.centre.copy(), leaves.normal.copy()
+        c = leaves.centre[moves]
+        centre[moves] = np.einsum("nj,njk->nk", c, rel[:, :3, :3]) + rel[:, 3, :3]
+        n = np.einsum("nj,njk->nk", leaves.normal[moves], rel[:, :3, :3])
+        normal[moves] = n / np.linalg.norm(n, axis=1, keepdims=True)
+        return replace(leaves, centre=centre, normal=normal)
+
     def velocities(self, seconds: float, points: np.ndarray, tree: np.ndarray) -> np.ndarray:
         """``(n, 3)`` velocities (m/s) at ``seconds`` of ``points`` (n, 3) that move with the
         tree instances of ids ``tree`` (n,) (a leaf with its tree; -1 and trees of no instance:
@@ -711,8 +735,7 @@ class SceneMotion:
         rate = (after[:, :3, :3] - before[:, :3, :3]).transpose(0, 2, 1) / (2 * h)
         spin = rate @ np.linalg.inv(now[:, :3, :3].transpose(0, 2, 1))
         drift = (after[:, 3, :3] - before[:, 3, :3]) / (2 * h)
-        index = {int(t): k for k, t in enumerate(inst.tree) if t >= 0}
-        which = np.array([index.get(int(t), -1) for t in np.asarray(tree)], dtype=np.int64)
+        which = self._instance_of(tree)
         moves = which >= 0
         k = which[moves]
         rel = np.asarray(points, dtype=float)[moves] - now[k, 3, :3]

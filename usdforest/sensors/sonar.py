@@ -908,9 +908,10 @@ class SonarScene:
     def _unseen_dropped(self, targets: Targets, pose: Pose, cfg: SonarConfig) -> Targets:
         lv, wood, ground = targets.leaves, targets.wood, targets.ground
         if cfg.occlusion:
-            lv = _leaf_subset(
-                lv, np.flatnonzero(_visible(lv.centre, 1.5 * lv.radius + 1e-3, pose, self.caster))
-            )
+            seen = np.flatnonzero(_visible(lv.centre, 1.5 * lv.radius + 1e-3, pose, self.caster))
+            lv = _leaf_subset(lv, seen)
+            if targets.leaf_velocity is not None:
+                targets = replace(targets, leaf_velocity=targets.leaf_velocity[seen])
             # the line of sight to a centre crosses the cylinder's own wall a / cos(beta) before
             # it: that much is no occluder
             u = wood.centre - pose.position
@@ -926,23 +927,24 @@ class SonarScene:
                     _visible(ground.centre, np.full(len(ground), 0.01), pose, self.caster)
                 )
             )
-        return Targets(lv, wood, ground)
+        return Targets(lv, wood, ground, targets.leaf_velocity)
 
     def echo(
         self,
         pose: Pose,
         cfg: SonarConfig,
         velocity: np.ndarray | None = None,
-        leaf_velocity: Callable[[Leaves], np.ndarray] | None = None,
+        moved: Callable[[Leaves], tuple[Leaves, np.ndarray]] | None = None,
     ) -> Echo:
-        """The echo at ``pose`` from a platform moving at ``velocity``; ``leaf_velocity``
-        gives the heard leaves' own velocities (a forest in wind: see
-        :meth:`usdforest.sensors.scene.SceneMotion.velocities`); ``leaves_in_range`` counts
-        leaves before occlusion."""
+        """The echo at ``pose`` from a platform moving at ``velocity``; ``moved`` gives the
+        leaves in range where they are then and their velocities (a forest in wind: see
+        :class:`usdforest.sensors.scene.SceneMotion`); ``leaves_in_range`` counts leaves
+        before occlusion."""
         near = self._in_range(pose, cfg)
+        if moved is not None:
+            leaves, speed = moved(near.leaves)
+            near = replace(near, leaves=leaves, leaf_velocity=speed)
         heard = self._unseen_dropped(near, pose, cfg)
-        if leaf_velocity is not None:
-            heard = replace(heard, leaf_velocity=leaf_velocity(heard.leaves))
         e = echo_from_targets(heard, pose, cfg, velocity)
         return replace(e, leaves_in_range=len(near.leaves))
 
