@@ -621,6 +621,43 @@ def wind(out: Path, work: Path) -> None:
     frames[0].save(out / "wind.gif", save_all=True, append_images=frames[1:], duration=100, loop=0)
 
 
+def sonar_wind(out: Path, work: Path) -> None:
+    """A hovering sonar (the paper's call, 20 pulses/s for 2 s) at a crown's edge in the
+    default forest, in still air and in a 12 m/s wind: each pulse's echo envelope, pulse by
+    pulse (the wind's leaves move and their echoes change from pulse to pulse)."""
+    import numpy as np
+
+    from usdforest import api
+    from usdforest.sensors.flight import Trajectory
+    from usdforest.sensors.sonar import envelope
+
+    windy = _default_variant(
+        work, "default-wind", wind={"speed": 12.0, "duration": 4.0, "fps": 10.0}
+    )
+    still = _default_variant(work, "default")
+    hover = Trajectory(
+        np.array([0.0, 2.0]), np.array([[20.0, 40.0, 6.0]] * 2), yaw=np.zeros(2),
+        pitch=np.zeros(2), roll=np.zeros(2),
+    )  # fmt: skip
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), dpi=100, sharey=True)
+    for ax, (name, stage) in zip(axes, (("still air", still), ("12 m/s wind", windy)), strict=True):
+        f = api.fly(stage, path=hover, lidar=None, sonar="paper").sonar
+        env = np.array([envelope(e) for e in f.echoes])
+        db = 20 * np.log10(np.maximum(env, 1e-12) / env.max())
+        c = f.config.speed_of_sound
+        reach = env.shape[1] / f.config.sample_rate * c / 2
+        shown = ax.imshow(
+            db, aspect="auto", origin="lower", cmap="magma", vmin=-50, vmax=0,
+            extent=(0.0, reach, f.t[0], f.t[-1] + 1 / f.config.pulse_rate),
+        )  # fmt: skip
+        ax.set_title(f"{name}: each pulse's echo envelope", fontsize=10)
+        ax.set_xlabel("range (m)")
+    axes[0].set_ylabel("pulse time (s)")
+    fig.colorbar(shown, ax=axes, fraction=0.03, label="dB of the loudest echo")
+    fig.savefig(out / "sonar-wind.png", bbox_inches="tight")
+    plt.close(fig)
+
+
 def dead_wood(out: Path, work: Path) -> None:
     """The default forest's dead wood from a walker's eye: a camera 6 m beside its thickest
     log, in colour and by class, with what deadwood.csv says of the pieces in view."""
@@ -817,6 +854,7 @@ def main(out: Path) -> None:
         camera_model(out, work)
         seasons(out, work)
         wind(out, work)
+        sonar_wind(out, work)
         dead_wood(out, work)
         ground_vegetation(out, work)
         terrain(out, work)
