@@ -698,9 +698,14 @@ class SceneMotion:
 
     def _instance_of(self, tree: np.ndarray) -> np.ndarray:
         """Per tree id, the index of its instance (-1: none, or an id below 0)."""
-        inst = self.scene.instances
-        index = {int(t): k for k, t in enumerate(inst.tree) if t >= 0}
-        return np.array([index.get(int(t), -1) for t in np.asarray(tree)], dtype=np.int64)
+        ids = np.asarray(self.scene.instances.tree, dtype=np.int64)
+        known = np.flatnonzero(ids >= 0)
+        known = known[np.argsort(ids[known], kind="stable")]
+        tree = np.asarray(tree, dtype=np.int64)
+        if not len(known):
+            return np.full(len(tree), -1, np.int64)
+        at = np.minimum(np.searchsorted(ids[known], tree), len(known) - 1)
+        return np.where((ids[known][at] == tree) & (tree >= 0), known[at], -1)
 
     def leaves(self, seconds: float, leaves: Leaves) -> Leaves:
         """``leaves`` (of this scene, where it was extracted) where their trees have carried
