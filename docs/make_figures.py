@@ -600,9 +600,10 @@ def wind(out: Path, work: Path) -> None:
     from PIL import Image
 
     from usdforest.sensors import camera
+    from usdforest.sensors.motion import SceneMotion
     from usdforest.sensors.pose import Pose
     from usdforest.sensors.raycast import SceneCaster
-    from usdforest.sensors.scene import SceneMotion, extract_scene
+    from usdforest.sensors.scene import extract_scene
 
     stage = _default_variant(
         work, "default-wind", wind={"speed": 12.0, "duration": 4.0, "fps": 10.0}

@@ -296,7 +296,7 @@ def test_a_flight_sees_each_sweep_where_the_trees_sway_then(forests):
     import dataclasses
 
     from usdforest.sensors.lidar import PRESETS
-    from usdforest.sensors.scene import animated
+    from usdforest.sensors.motion import animated
 
     assert animated(forests["gusty"]) and not animated(forests["still"])
     sensor = dataclasses.replace(PRESETS["vlp-16"], noise=False)
@@ -339,7 +339,8 @@ def test_leaves_move_with_their_swaying_trees_at_the_velocity_the_scene_gives(fo
     """SceneMotion's leaf velocities at the middle of a time code's interval are the finite
     differences of the leaves' own positions, extracted anew at two times inside that interval
     (where USD interpolates each tree's tilt): within 1 % of the fastest."""
-    from usdforest.sensors.scene import SceneMotion, extract_scene
+    from usdforest.sensors.motion import SceneMotion
+    from usdforest.sensors.scene import extract_scene
 
     stage, centre, radius = forests["gusty"], np.array([20.0, 20.0, 10.0]), 30.0
     t, dt = 10.125, 0.05  # the gusty forest has 4 time codes a second: 10.0 to 10.25 here

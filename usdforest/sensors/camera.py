@@ -55,9 +55,10 @@ from usdforest.atomic import atomic_path, save_npz
 from usdforest.errors import UsdForestError
 from usdforest.seeds import stream
 from usdforest.sensors.lidar import CAMERA_ONLY, DISTORTION, DepthCamera
+from usdforest.sensors.motion import SceneMotion
 from usdforest.sensors.pose import Pose
 from usdforest.sensors.raycast import SceneCaster
-from usdforest.sensors.scene import CLASSES, Scene, SceneMotion
+from usdforest.sensors.scene import CLASSES, Scene
 
 PRESETS: dict[str, DepthCamera] = {
     "pinhole-640": DepthCamera(640, 480, 90.0, 200.0, kind="camera"),

@@ -33,9 +33,10 @@ from usdforest.errors import UsdForestError
 from usdforest.paths import require_file
 from usdforest.seeds import stream
 from usdforest.sensors.lidar import SpinningLidar, cast_pulses, observed
+from usdforest.sensors.motion import SceneMotion
 from usdforest.sensors.pose import Pose, rotations
 from usdforest.sensors.raycast import SceneCaster
-from usdforest.sensors.scene import CLASSES, Scene, SceneMotion
+from usdforest.sensors.scene import CLASSES, Scene
 from usdforest.sensors.sonar import SonarConfig, SonarScene
 
 MAX_COORDINATE = 1e8  # stage units: no flight goes further

@@ -146,7 +146,7 @@ class SceneCaster:
 
     def moved(self, scene: Scene) -> SceneCaster:
         """A caster of ``scene``: this one's scene with its tree instances placed anew (the
-        same prototypes and instances; :class:`~usdforest.sensors.scene.SceneMotion`). On
+        same prototypes and instances; :class:`~usdforest.sensors.motion.SceneMotion`). On
         the CPU the prototypes' Embree scenes are shared and only the top level is built
         again; Warp builds its scene again."""
         other = object.__new__(SceneCaster)

@@ -938,7 +938,7 @@ class SonarScene:
     ) -> Echo:
         """The echo at ``pose`` from a platform moving at ``velocity``; ``moved`` gives the
         leaves in range where they are then and their velocities (a forest in wind: see
-        :class:`usdforest.sensors.scene.SceneMotion`); ``leaves_in_range`` counts leaves
+        :class:`usdforest.sensors.motion.SceneMotion`); ``leaves_in_range`` counts leaves
         before occlusion."""
         near = self._in_range(pose, cfg)
         if moved is not None:

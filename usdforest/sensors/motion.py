@@ -1,0 +1,140 @@
+"""Scenes in time: a stage's animation (a forest's wind) read by the sensors.
+
+:func:`animated` says whether a stage has a time range; :class:`SceneMotion` places an
+extracted scene's tree instances (and the leaves they carry) where the stage's time samples
+put them at any time, so a flight's sweeps, frames and pulses each see the forest at their own
+time without extracting it again (:meth:`usdforest.sensors.raycast.SceneCaster.moved` then
+rebuilds only the casting scene's top level).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from usdforest.sensors.scene import stage_time
+from usdforest.sensors.scenetypes import Leaves, Scene
+from usdforest.usd.layers import open_stage
+
+
+def animated(stage_path: str | Path) -> bool:
+    """Whether the stage's root layer gives a time range (start before end): a forest with
+    ``[wind]`` does. Reads the root layer only."""
+    from pxr import Sdf
+
+    layer = Sdf.Layer.FindOrOpen(str(stage_path))
+    return bool(
+        layer is not None
+        and layer.HasStartTimeCode()
+        and layer.HasEndTimeCode()
+        and layer.endTimeCode > layer.startTimeCode
+    )
+
+
+class SceneMotion:
+    """A scene's tree instances at other times of its stage's animation (a forest's wind):
+    ``at(seconds)`` is the scene with every instance placed where the stage's time samples
+    put it then (its prototypes, leaves as reflectors and everything else as extracted).
+
+    Opens the stage once. A stage whose root layer says its animation loops (a forest with
+    ``[wind]``: ``customLayerData`` ``loops``) is read at the time modulo its length, so a
+    flight longer than the wind's ``duration`` sees it go on."""
+
+    def __init__(self, stage_path: str | Path, scene: Scene):
+        from pxr import UsdGeom
+
+        self.scene = scene
+        self._stage = open_stage(Path(stage_path), sound=True, full=True)
+        self._instancers = [
+            UsdGeom.PointInstancer(self._stage.GetPrimAtPath(p))
+            for p in (scene.sources.instancers if scene.sources is not None else ())
+        ]
+        tcps = self._stage.GetTimeCodesPerSecond()
+        start, end = self._stage.GetStartTimeCode(), self._stage.GetEndTimeCode()
+        loops = bool(self._stage.GetRootLayer().customLayerData.get("loops", False))
+        self.period = (end - start) / tcps if loops and end > start else None
+        self.start = start / tcps
+
+    @property
+    def moves(self) -> bool:
+        """Whether any of the scene's instancers has time samples."""
+        return any(
+            pi.GetOrientationsfAttr().GetNumTimeSamples()
+            or pi.GetOrientationsAttr().GetNumTimeSamples()
+            or pi.GetPositionsAttr().GetNumTimeSamples()
+            for pi in self._instancers
+        )
+
+    def at(self, seconds: float) -> Scene:
+        src = self.scene.sources
+        if src is None or not len(src):
+            return self.scene
+        t = float(seconds)
+        if self.period:
+            t = self.start + (t - self.start) % self.period
+        when = stage_time(self._stage, t)
+        rows = [
+            np.asarray(pi.ComputeInstanceTransformsAtTime(when, when), dtype=float).reshape(
+                -1, 4, 4
+            )
+            for pi in self._instancers
+        ]
+        xf = np.empty((len(src), 4, 4))
+        for k, m in enumerate(rows):
+            sel = src.instancer == k
+            xf[sel] = m[src.row[sel]]
+        matrix = src.before @ xf @ src.after
+        return replace(self.scene, instances=replace(self.scene.instances, matrix=matrix))
+
+    def _instance_of(self, tree: np.ndarray) -> np.ndarray:
+        """Per tree id, the index of its instance (-1: none, or an id below 0)."""
+        ids = np.asarray(self.scene.instances.tree, dtype=np.int64)
+        known = np.flatnonzero(ids >= 0)
+        known = known[np.argsort(ids[known], kind="stable")]
+        tree = np.asarray(tree, dtype=np.int64)
+        if not len(known):
+            return np.full(len(tree), -1, np.int64)
+        at = np.minimum(np.searchsorted(ids[known], tree), len(known) - 1)
+        return np.where((ids[known][at] == tree) & (tree >= 0), known[at], -1)
+
+    def leaves(self, seconds: float, leaves: Leaves) -> Leaves:
+        """``leaves`` (of this scene, where it was extracted) where their trees have carried
+        them at ``seconds``: centres and normals moved by each tree's transform then against
+        its extracted one (leaves of no instance stay)."""
+        which = self._instance_of(leaves.tree)
+        moves = which >= 0
+        if not moves.any():
+            return leaves
+        was, now = self.scene.instances.matrix, self.at(seconds).instances.matrix
+        k = which[moves]
+        rel = np.linalg.inv(was[k]) @ now[k]  # row vectors: extracted world -> world now
+        centre, normal = leaves.centre.copy(), leaves.normal.copy()
+        c = leaves.centre[moves]
+        centre[moves] = np.einsum("nj,njk->nk", c, rel[:, :3, :3]) + rel[:, 3, :3]
+        n = np.einsum("nj,njk->nk", leaves.normal[moves], rel[:, :3, :3])
+        normal[moves] = n / np.linalg.norm(n, axis=1, keepdims=True)
+        return replace(leaves, centre=centre, normal=normal)
+
+    def velocities(self, seconds: float, points: np.ndarray, tree: np.ndarray) -> np.ndarray:
+        """``(n, 3)`` velocities (m/s) at ``seconds`` of ``points`` (n, 3) that move with the
+        tree instances of ids ``tree`` (n,) (a leaf with its tree; -1 and trees of no instance:
+        still): each instance's transform x -> L x + T is differenced over half a time code on
+        either side, v = L' L^-1 (x - T) + T'."""
+        inst = self.scene.instances
+        out = np.zeros((len(points), 3))
+        if not len(inst) or not len(points):
+            return out
+        h = 0.5 / self._stage.GetTimeCodesPerSecond()
+        before, now, after = (self.at(seconds + s).instances.matrix for s in (-h, 0.0, h))
+        # column form: L = M[:3, :3] transposed, T = M[3, :3]
+        rate = (after[:, :3, :3] - before[:, :3, :3]).transpose(0, 2, 1) / (2 * h)
+        spin = rate @ np.linalg.inv(now[:, :3, :3].transpose(0, 2, 1))
+        drift = (after[:, 3, :3] - before[:, 3, :3]) / (2 * h)
+        which = self._instance_of(tree)
+        moves = which >= 0
+        k = which[moves]
+        rel = np.asarray(points, dtype=float)[moves] - now[k, 3, :3]
+        out[moves] = np.einsum("nij,nj->ni", spin[k], rel) + drift[k]
+        return out
