@@ -56,6 +56,7 @@ class SceneMotion:
         loops = bool(self._stage.GetRootLayer().customLayerData.get("loops", False))
         self.period = (end - start) / tcps if loops and end > start else None
         self.start = start / tcps
+        self._last: tuple[float, Scene] | None = None  # a pulse asks for its time twice
 
     @property
     def moves(self) -> bool:
@@ -74,6 +75,8 @@ class SceneMotion:
         t = float(seconds)
         if self.period:
             t = self.start + (t - self.start) % self.period
+        if self._last is not None and self._last[0] == t:
+            return self._last[1]
         when = stage_time(self._stage, t)
         rows = [
             np.asarray(pi.ComputeInstanceTransformsAtTime(when, when), dtype=float).reshape(
@@ -86,7 +89,9 @@ class SceneMotion:
             sel = src.instancer == k
             xf[sel] = m[src.row[sel]]
         matrix = src.before @ xf @ src.after
-        return replace(self.scene, instances=replace(self.scene.instances, matrix=matrix))
+        now = replace(self.scene, instances=replace(self.scene.instances, matrix=matrix))
+        self._last = (t, now)
+        return now
 
     def _instance_of(self, tree: np.ndarray) -> np.ndarray:
         """Per tree id, the index of its instance (-1: none, or an id below 0)."""

@@ -148,15 +148,14 @@ def interface_layer(
     if recipe.crs:  # where the stage's origin is on the map
         data["crs"] = recipe.crs
         data["crsOrigin"] = Gf.Vec2d(*(float(v) for v in _stage_origin(build, recipe)))
-    if recipe.wind is not None:  # the wind's last frame is its first: sensors wrap time
-        data["loops"] = True
-    if data:
-        layer.customLayerData = data
-    if recipe.wind is not None:  # time codes are the wind's frames
+    if recipe.wind is not None:  # time codes are the wind's frames; the last is the first
+        data["loops"] = True  # so the sensors wrap time
         layer.startTimeCode = 0
         layer.endTimeCode = recipe.wind.frames
         layer.timeCodesPerSecond = recipe.wind.fps
         layer.framesPerSecond = recipe.wind.fps
+    if data:
+        layer.customLayerData = data
     with Sdf.ChangeBlock():
         forest = prim(layer, "Forest", "Xform")
         forest.kind = "assembly"
@@ -268,6 +267,10 @@ def _write_forest(
     surveys = run_tasks(client, survey_task, [(sq,) for sq in cut], recipe, tick, "sampling sites")
     names = recipe.species_names
     by_species = np.sum([s.by_species for s in surveys], axis=0, dtype=np.int64)
+    if recipe.wind is not None:  # refused before any tree is grown
+        from usdforest.usd.wind import check_samples
+
+        check_samples(int(by_species.sum()), recipe.wind)
     classes = classes_for(recipe, merge_sums(s.sums for s in surveys))
     # a species without trees still has its variants (an empty forest has its prototypes)
     classes = {n: c for n, c in classes.items() if len(c.sizes)}

@@ -73,8 +73,7 @@ def crown_of(proto: Usd.Prim) -> Crown:
             else:
                 wood.append(v)
     bbox = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"], True)
-    r = bbox.ComputeWorldBound(proto).ComputeAlignedRange()
-    height = float((np.array(r.GetMax()) @ inv[:3, :3] + inv[3, :3])[2])
+    height = float(bbox.ComputeUntransformedBound(proto).ComputeAlignedRange().GetMax()[2])
     crown = np.concatenate(leaves) if leaves else np.concatenate(wood) if wood else None
     if trunk is None or crown is None or height <= 0:
         raise UsdForestError(f"{proto.GetPath()}: a tree without a trunk or crown cannot sway")
@@ -112,17 +111,22 @@ def sample_bytes(trees: int, spec: WindSpec) -> int:
     return trees * (spec.frames + 1) * SAMPLE_BYTES
 
 
+def check_samples(trees: int, spec: WindSpec) -> None:
+    """Refuse a wind layer whose samples would pass ``MAX_SAMPLE_BYTES``."""
+    need = sample_bytes(trees, spec)
+    if need > MAX_SAMPLE_BYTES:
+        raise UsdForestError(
+            f"wind: {trees:,} trees x {spec.frames + 1:,} time codes would take "
+            f"{need / 2**30:.1f} GiB of samples (at most {MAX_SAMPLE_BYTES / 2**30:g}); "
+            "lower wind.duration or wind.fps"
+        )
+
+
 def wind_layer(stage: Usd.Stage, spec: WindSpec, seed: int, extent: np.ndarray) -> Sdf.Layer:
     """The wind layer of the forest composed on ``stage`` (its trees at ``/Forest/Trees``,
     static ``extent`` (2, 3) of the instancer)."""
     stems, static = stems_of(stage)
-    need = sample_bytes(len(stems.xy), spec)
-    if need > MAX_SAMPLE_BYTES:
-        raise UsdForestError(
-            f"wind: {len(stems.xy):,} trees x {spec.frames + 1:,} time codes would take "
-            f"{need / 2**30:.1f} GiB of samples (at most {MAX_SAMPLE_BYTES / 2**30:g}); "
-            "lower wind.duration or wind.fps"
-        )
+    check_samples(len(stems.xy), spec)
     top = sway(stems, spec, seed)
     layer = new_layer("Forest", comment="usdforest wind: the trees' sway as time samples")
     # the root layer's rate too: a sublayer of another rate has its time codes rescaled
