@@ -801,6 +801,7 @@ def parse_recipe(
         shrubs = _parse_shrubs(data.get("shrubs"))
         regeneration = _parse_regeneration(data.get("regeneration"))
         wind = _parse_wind(data.get("wind"), tiles)
+        _check_flutter(wind, species)
     except RecipeError as exc:
         raise fail(exc) from None
     recipe = Recipe(
@@ -949,6 +950,9 @@ WIND_RANGES = {  # key: (lowest, highest, whether the lowest itself is refused)
     "gust_length": (0.1, 10_000.0, False),
     "gust_width": (0.1, 10_000.0, False),
     "attenuation": (0.0, 10.0, False),
+    "flutter_angle": (0.0, 45.0, False),
+    "flutter_frequency": (0.0, 60.0, True),
+    "flutter_classes": (1.0, 64.0, False),
 }
 
 
@@ -974,7 +978,34 @@ def _parse_wind(t: Any, tiles: float | None) -> Any:
         values[k] = v
     if values["duration"] * values["fps"] < 1:
         raise RecipeError("wind: duration x fps is under one frame")
+    if values["flutter_classes"] != int(values["flutter_classes"]):
+        raise RecipeError(
+            f"wind.flutter_classes: {values['flutter_classes']:g} is not a whole number"
+        )
+    values["flutter_classes"] = int(values["flutter_classes"])
     return WindSpec(**values)
+
+
+def _check_flutter(wind: Any, species: Mapping[str, Any]) -> None:
+    """Leaves that flutter need four time codes a cycle of their fastest class (a forest of
+    conifers alone, whose shoots do not flutter, needs none)."""
+    from usdforest.grow.sway import FLUTTER_SPREAD
+
+    if wind is None or wind.flutter_angle == 0 or wind.speed == 0:
+        return
+    leafy = sorted(
+        k
+        for k, e in species.items()
+        if e.species.geometry.leaf_on > 0
+        and not Path(e.species.geometry.leaf).stem.startswith("shoot")
+    )
+    fastest = FLUTTER_SPREAD[1] * wind.flutter_frequency
+    if leafy and fastest > wind.fps / 4:
+        raise RecipeError(
+            f"wind.flutter_frequency: the leaves of {leafy[0]} flutter up to {fastest:g} Hz, "
+            f"which needs four time codes a cycle; raise wind.fps to {4 * fastest:g}, lower "
+            "wind.flutter_frequency or set wind.flutter_angle = 0"
+        )
 
 
 def _parse_shrubs(t: Any) -> Any:

@@ -27,7 +27,18 @@ canopy profile, a = ``attenuation``), h the tallest tree.
 
 The animation is periodic over ``duration`` (every gust a whole number of cycles of it), so the
 oscillator's steady state is exact in the frequency domain and the animation loops without a
-seam. Everything here is numpy on arrays of trees; nothing reads or writes USD.
+seam. Leaves flutter (:func:`flutter`): every leaf twists about its midrib and flaps about its
+petiole, each a sine at whole cycles of ``duration``. The stand's leaves fall into
+``flutter_classes`` classes of their own frequencies and phases, each leaf in one (so the
+layer holds one rotation per class and time code, not one per leaf). The twist's amplitude
+is ``flutter_angle`` once the wind keeps leaves in constant motion (3.4 m/s at the canopy
+top, Beaufort force 3), rising in proportion to the speed below it, and constant above it:
+leaf flutter depends only weakly on the wind speed, the branches' buffeting taking over in
+strong wind (Tadrist et al. 2018, J. R. Soc. Interface 15: 20180010); the flap is half the
+twist. The frequencies are spread uniformly over 0.5-1.5 times ``flutter_frequency``. Both
+laws are stated choices, not fits.
+
+Everything here is numpy on arrays of trees; nothing reads or writes USD.
 """
 
 from __future__ import annotations
@@ -36,6 +47,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from usdforest.rotations import quat_multiply
 
 AIR_DENSITY = 1.204  # kg/m³, dry air at 20 °C and sea level
 MODE1 = 1.8750104137**2 / (2 * math.pi)  # (beta1 L)² / 2 pi of a clamped-free beam
@@ -73,6 +86,13 @@ class WindSpec:
         Spacing across the wind of independent gusts (m).
     attenuation
         Exponent of the wind's fall below the canopy top.
+    flutter_angle
+        Peak twist of a leaf about its midrib (degrees) from 3.4 m/s; 0: leaves do not
+        flutter.
+    flutter_frequency
+        Mean frequency of the leaves' flutter (Hz).
+    flutter_classes
+        Classes of leaves that flutter alike (their own frequencies and phases).
     """
 
     speed: float = 5.0
@@ -87,6 +107,9 @@ class WindSpec:
     gust_length: float = 20.0
     gust_width: float = 20.0
     attenuation: float = 2.5
+    flutter_angle: float = 15.0
+    flutter_frequency: float = 4.0
+    flutter_classes: int = 8
 
     @property
     def frames(self) -> int:
@@ -205,6 +228,40 @@ def sway(stems: Stems, spec: WindSpec, seed: int) -> np.ndarray:
         out[:n, i] = world
     out[n] = out[0]
     return out
+
+
+FLUTTER_SPREAD = (0.5, 1.5)  # the classes' frequencies, times flutter_frequency
+FLUTTER_ONSET = 3.4  # m/s: Beaufort 3, "leaves and small twigs in constant motion"
+
+
+def flutter_amplitude(spec: WindSpec) -> float:
+    """Peak twist of a leaf (radians) in ``spec``'s wind."""
+    return math.radians(spec.flutter_angle) * min(spec.speed / FLUTTER_ONSET, 1.0)
+
+
+def flutter_cycles(spec: WindSpec, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(classes, 2)`` whole cycles per ``duration`` of each class's twist and flap, and
+    ``(classes, 2)`` their phases (radians)."""
+    rng = np.random.default_rng([seed, 0xF1A7])
+    lo, hi = FLUTTER_SPREAD
+    k = int(spec.flutter_classes)
+    f = rng.uniform(lo, hi, size=(k, 2)) * spec.flutter_frequency
+    cycles = np.maximum(np.round(f * spec.duration), 1.0)
+    return cycles, rng.uniform(0.0, 2 * math.pi, size=(k, 2))
+
+
+def flutter(spec: WindSpec, seed: int) -> np.ndarray:
+    """``(frames + 1, classes, 4)`` quaternions (x, y, z, w) of each flutter class at the time
+    codes ``0 .. frames``, in a leaf's own frame (x along the midrib from the petiole, z its
+    normal): the twist about x, then the flap about y."""
+    cycles, phase = flutter_cycles(spec, seed)
+    a = flutter_amplitude(spec)
+    t = np.arange(spec.frames + 1) / spec.frames  # in periods: the last is the first
+    angle = np.sin(2 * math.pi * cycles[None] * t[:, None, None] + phase[None])
+    twist, flap = a * angle[..., 0], 0.5 * a * angle[..., 1]
+    qx = np.stack([np.sin(twist / 2), 0 * twist, 0 * twist, np.cos(twist / 2)], axis=-1)
+    qy = np.stack([0 * flap, np.sin(flap / 2), 0 * flap, np.cos(flap / 2)], axis=-1)
+    return quat_multiply(qy, qx)
 
 
 def _take(stems: Stems, i: slice) -> Stems:

@@ -497,9 +497,9 @@ class FlightEcho:
 
 
 def _leaves_at(motion: SceneMotion, t: float, leaves):
-    """``leaves`` where their trees carry them at ``t``, and their velocities then."""
-    now = motion.leaves(t, leaves)
-    return now, motion.velocities(t, now.centre, now.tree)
+    """``leaves`` where they are at ``t`` (carried by their trees, turned by their flutter),
+    and their velocities then."""
+    return motion.leaves(t, leaves), motion.leaf_velocities(t, leaves)
 
 
 def fly_sonar(

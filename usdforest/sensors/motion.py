@@ -9,6 +9,7 @@ rebuilds only the casting scene's top level).
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -57,37 +58,46 @@ class SceneMotion:
         self.period = (end - start) / tcps if loops and end > start else None
         self.start = start / tcps
         self._last: tuple[float, Scene] | None = None  # a pulse asks for its time twice
+        self._last_turns: tuple[float, np.ndarray] | None = None
+        self._shape_centres = np.array(
+            [s.box.mean(axis=0) for s in scene.shapes], dtype=float
+        ).reshape(-1, 3)
 
     @property
     def moves(self) -> bool:
-        """Whether any of the scene's instancers has time samples."""
-        return any(
+        """Whether any of the scene's instancers has time samples, or any of its leaves turns
+        (flutters)."""
+        return bool(self.scene.leaves.turning.any()) or any(
             pi.GetOrientationsfAttr().GetNumTimeSamples()
             or pi.GetOrientationsAttr().GetNumTimeSamples()
             or pi.GetPositionsAttr().GetNumTimeSamples()
             for pi in self._instancers
         )
 
+    def _wrapped(self, seconds: float) -> float:
+        t = float(seconds)
+        return self.start + (t - self.start) % self.period if self.period else t
+
     def at(self, seconds: float) -> Scene:
+        """The scene with its tree instances where the stage puts them at ``seconds``."""
         src = self.scene.sources
         if src is None or not len(src):
             return self.scene
-        t = float(seconds)
-        if self.period:
-            t = self.start + (t - self.start) % self.period
+        t = self._wrapped(seconds)
         if self._last is not None and self._last[0] == t:
             return self._last[1]
+        from pxr import UsdGeom
+
         when = stage_time(self._stage, t)
+        alone = UsdGeom.PointInstancer.ExcludeProtoXform  # ``before`` holds the prototype's
         rows = [
-            np.asarray(pi.ComputeInstanceTransformsAtTime(when, when), dtype=float).reshape(
-                -1, 4, 4
-            )
+            np.asarray(pi.ComputeInstanceTransformsAtTime(when, when, alone), float)
             for pi in self._instancers
         ]
         xf = np.empty((len(src), 4, 4))
         for k, m in enumerate(rows):
             sel = src.instancer == k
-            xf[sel] = m[src.row[sel]]
+            xf[sel] = m.reshape(-1, 4, 4)[src.row[sel]]
         matrix = src.before @ xf @ src.after
         now = replace(self.scene, instances=replace(self.scene.instances, matrix=matrix))
         self._last = (t, now)
@@ -104,39 +114,94 @@ class SceneMotion:
         at = np.minimum(np.searchsorted(ids[known], tree), len(known) - 1)
         return np.where((ids[known][at] == tree) & (tree >= 0), known[at], -1)
 
+    def turns(self, seconds: float) -> np.ndarray:
+        """``(shapes, 4, 4)``: each leaf shape prim's own transform at ``seconds`` (a
+        fluttering leaf's turn; row vectors)."""
+        t = self._wrapped(seconds)
+        if self._last_turns is not None and self._last_turns[0] == t:
+            return self._last_turns[1]
+        from pxr import UsdGeom
+
+        cache = UsdGeom.XformCache(stage_time(self._stage, t))
+        out = np.array(
+            [
+                np.asarray(cache.GetLocalTransformation(self._stage.GetPrimAtPath(p))[0])
+                for p in self.scene.shape_paths
+            ],
+            dtype=float,
+        ).reshape(-1, 4, 4)
+        self._last_turns = (t, out)
+        return out
+
     def leaves(self, seconds: float, leaves: Leaves) -> Leaves:
-        """``leaves`` (of this scene, where it was extracted) where their trees have carried
-        them at ``seconds``: centres and normals moved by each tree's transform then against
-        its extracted one (leaves of no instance stay)."""
+        """``leaves`` (of this scene, where it was extracted) where they are at ``seconds``:
+        moved by each tree's transform then against its extracted one, and a fluttering
+        leaf turned by its shape's turn then (leaves of no instance stay on their tree)."""
         which = self._instance_of(leaves.tree)
-        moves = which >= 0
-        if not moves.any():
+        moves, turning = which >= 0, leaves.turning
+        if not moves.any() and not turning.any():
             return leaves
-        was, now = self.scene.instances.matrix, self.at(seconds).instances.matrix
-        k = which[moves]
-        rel = np.linalg.inv(was[k]) @ now[k]  # row vectors: extracted world -> world now
         centre, normal = leaves.centre.copy(), leaves.normal.copy()
-        c = leaves.centre[moves]
-        centre[moves] = np.einsum("nj,njk->nk", c, rel[:, :3, :3]) + rel[:, 3, :3]
-        n = np.einsum("nj,njk->nk", leaves.normal[moves], rel[:, :3, :3])
-        normal[moves] = n / np.linalg.norm(n, axis=1, keepdims=True)
+        rel = np.zeros((0, 4, 4))
+        if moves.any():
+            was, now = self.scene.instances.matrix, self.at(seconds).instances.matrix
+            k = which[moves]
+            rel = np.linalg.inv(was[k]) @ now[k]  # row vectors: extracted world -> world now
+            c = leaves.centre[moves]
+            centre[moves] = np.einsum("nj,njk->nk", c, rel[:, :3, :3]) + rel[:, 3, :3]
+            # normals by the inverse transpose: a tree's half-float turn is not quite a rotation
+            cof = np.linalg.inv(rel[:, :3, :3]).transpose(0, 2, 1)
+            n = np.einsum("nj,njk->nk", leaves.normal[moves], cof)
+            normal[moves] = n / np.linalg.norm(n, axis=1, keepdims=True)
+        if turning.any():
+            sel = np.flatnonzero(turning)
+            frame = np.asarray(leaves.frame, dtype=float)[sel]
+            carried = moves[sel]
+            if carried.any():  # the leaf's tree moved too
+                at = np.cumsum(moves) - 1  # each moving leaf's row of rel
+                frame[carried] = frame[carried] @ rel[at[sel[carried]]]
+            shape = leaves.shape[sel]
+            a = self.turns(seconds)[shape] @ frame
+            centre[sel] = np.einsum("nj,njk->nk", self._shape_centres[shape], a[:, :3, :3])
+            centre[sel] += a[:, 3, :3]
+            n = np.linalg.inv(a[:, :3, :3]).transpose(0, 2, 1)[:, 2, :]  # (0, 0, 1) M^-T
+            normal[sel] = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         return replace(leaves, centre=centre, normal=normal)
+
+    def _span(self, seconds: float) -> tuple[float, float]:
+        """The times (s) about ``seconds`` to difference a motion over: the time codes on
+        either side (the stage interpolates between its samples, so the motion is theirs
+        there), or half a time code either side at a time code itself."""
+        tcps = self._stage.GetTimeCodesPerSecond()
+        code = float(seconds) * tcps
+        lo = math.floor(code)
+        if code == lo:
+            return (code - 0.5) / tcps, (code + 0.5) / tcps
+        return lo / tcps, (lo + 1) / tcps
+
+    def leaf_velocities(self, seconds: float, leaves: Leaves) -> np.ndarray:
+        """``(n, 3)`` velocities (m/s) at ``seconds`` of ``leaves`` (of this scene, where it
+        was extracted): their centres by :meth:`leaves` at the time codes either side,
+        differenced (their trees' sway and their own flutter)."""
+        before, after = self._span(seconds)
+        moved = [self.leaves(t, leaves).centre for t in (before, after)]
+        return (moved[1] - moved[0]) / (after - before)
 
     def velocities(self, seconds: float, points: np.ndarray, tree: np.ndarray) -> np.ndarray:
         """``(n, 3)`` velocities (m/s) at ``seconds`` of ``points`` (n, 3) that move with the
         tree instances of ids ``tree`` (n,) (a leaf with its tree; -1 and trees of no instance:
-        still): each instance's transform x -> L x + T is differenced over half a time code on
+        still): each instance's transform x -> L x + T is differenced over the time codes on
         either side, v = L' L^-1 (x - T) + T'."""
         inst = self.scene.instances
         out = np.zeros((len(points), 3))
         if not len(inst) or not len(points):
             return out
-        h = 0.5 / self._stage.GetTimeCodesPerSecond()
-        before, now, after = (self.at(seconds + s).instances.matrix for s in (-h, 0.0, h))
+        t0, t1 = self._span(seconds)
+        before, now, after = (self.at(t).instances.matrix for t in (t0, seconds, t1))
         # column form: L = M[:3, :3] transposed, T = M[3, :3]
-        rate = (after[:, :3, :3] - before[:, :3, :3]).transpose(0, 2, 1) / (2 * h)
+        rate = (after[:, :3, :3] - before[:, :3, :3]).transpose(0, 2, 1) / (t1 - t0)
         spin = rate @ np.linalg.inv(now[:, :3, :3].transpose(0, 2, 1))
-        drift = (after[:, 3, :3] - before[:, 3, :3]) / (2 * h)
+        drift = (after[:, 3, :3] - before[:, 3, :3]) / (t1 - t0)
         which = self._instance_of(tree)
         moves = which >= 0
         k = which[moves]

@@ -65,6 +65,7 @@ class _LeafBatch:
     size: float  # leaf extent in its own space
     shape: int  # index among the scene's leaf shapes
     tree: int = -1
+    own: np.ndarray | None = None  # the shape prim's own transform, where it moves in time
 
 
 @dataclass(frozen=True, eq=False)
@@ -167,6 +168,9 @@ def _realise(
         )
         normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
         leaves = Leaves(c, normal, b.unit_area * scale**2, np.full(n, b.tree, np.int64))
+        if b.own is not None:  # a turning leaf: where it is without its turn, and its shape
+            frame = np.linalg.inv(b.own) @ xf
+            leaves = replace(leaves, shape=np.full(n, b.shape, np.int64), frame=frame)
     else:
         leaves = Leaves.concat([])
     if triangles != "copy":
@@ -265,7 +269,9 @@ def _placed_leaves(
         # a patch is stretched: |det M| |M^-T n| / |n|
         stretch = length[blade, 0] / np.maximum(np.linalg.norm(normal[blade], axis=1), 1e-12)
         area[blade] = lv.area[keep][blade] * det * stretch
-    return Leaves(c[keep], n, area, np.full(int(keep.sum()), tree, np.int64), blade)
+    shape = lv.shape[keep] if lv.shape is not None else None
+    frame = lv.frame[keep] @ m if lv.frame is not None else None
+    return Leaves(c[keep], n, area, np.full(int(keep.sum()), tree, np.int64), blade, shape, frame)
 
 
 def stage_frame(stage_path: str | Path) -> np.ndarray:
@@ -344,9 +350,8 @@ def extract_scene(
     time
         Seconds into the stage's animation (its time codes over ``timeCodesPerSecond``):
         instances and prims stand where the stage's time samples put them then, e.g. a
-        forest's trees swaying in its wind layer. Tree prototypes are read as they are
-        (their own geometry is not animated). Omitted: the stage's default values, the
-        still forest.
+        forest's trees swaying and its leaves fluttering in its wind layer. Omitted: the
+        stage's default values, the still forest.
     """
     from pxr import Usd, UsdGeom
 
@@ -370,6 +375,9 @@ def extract_scene(
     shape_of: dict = {}
     shape_keys: list[str] = []
     geometry = ("instance" if instancing else "copy") if leaf_triangles else None
+    # an animated stage's prototypes move in time too (its leaves flutter): kept per time
+    animated = stage.HasAuthoredTimeCodeRange() and not when.IsDefault()
+    store_mode = f"{geometry} at {when.GetValue():.17g}" if animated else str(geometry)
     store_of: list = []  # the stage's prototype store, keyed when the first prototype is met
 
     def store_get() -> PrototypeStore | None:
@@ -408,13 +416,13 @@ def extract_scene(
         key = prim.GetPath()
         if key not in proto_of:
             store = store_get()
-            entry = store.get(str(key), str(geometry)) if store is not None else None
+            entry = store.get(str(key), store_mode) if store is not None else None
             if entry is None:
                 seen = (len(unseen), len(paths), len(shapes))
                 proto = gather(prim, reflectors or store is not None)
                 if store is not None:
                     local = stored(proto, paths, shapes, shape_keys, seen, unseen[seen[0] :])
-                    store.put(str(key), str(geometry), local)
+                    store.put(str(key), store_mode, local)
             else:
                 proto = adopted(entry, pid, add_shape)
                 unseen.extend(entry["unseen"])
@@ -489,7 +497,9 @@ def extract_scene(
     def instances(p, to_root: np.ndarray, top: bool = False) -> _Part:
         """A PointInstancer's instances, in the space of the subtree being gathered."""
         pi = UsdGeom.PointInstancer(p)
-        xf = pi.ComputeInstanceTransformsAtTime(when, when)
+        # without the prototypes' own transforms: ``own`` below applies each once
+        alone = UsdGeom.PointInstancer.ExcludeProtoXform
+        xf = pi.ComputeInstanceTransformsAtTime(when, when, alone)
         idx = pi.GetProtoIndicesAttr().Get(when)
         if xf is None or idx is None or len(idx) == 0:
             return _Part.concat([])
@@ -535,6 +545,9 @@ def extract_scene(
                                 (lo + hi) / 2,
                                 float(np.linalg.norm(hi - lo)),
                                 shape(proto, local),
+                                own=own
+                                if UsdGeom.Xformable(proto).TransformMightBeTimeVarying()
+                                else None,
                             ),
                         ),
                     )
@@ -587,6 +600,7 @@ def extract_scene(
         tick("leaf reflectors", i + 1, len(placed))
     leaves = Leaves.concat([r[0] for r in realised] + placed_leaves)
     tree, leaf_tree = whole.tree, leaves.tree
+    turning = bool(leaves.turning.any())
     # a stage holding one tree that is not instanced: tree id 0
     if (
         not placed
@@ -602,16 +616,17 @@ def extract_scene(
         tree,
         whole.path,
         tuple(paths),
-        Leaves(leaves.centre, leaves.normal, leaves.area, leaf_tree, leaves.blade),
+        replace(leaves, tree=leaf_tree),
         bounds,
         tuple(protos),
         inst,
         tuple(dict.fromkeys(unseen)),
         tuple(shapes)
-        if world_leaves.shape.size or any(len(p.leaf_instances) for p in protos)
+        if world_leaves.shape.size or any(len(p.leaf_instances) for p in protos) or turning
         else (),
         world_leaves,
         _sources(sources),
+        tuple(shape_keys) if turning else (),
     )
 
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from usdforest.sensors.scenetypes import LeafInstances, Leaves, Prototype, Shape
 
-FORMAT = b"usdforest-scene-cache-2"  # bump when what is stored changes
+FORMAT = b"usdforest-scene-cache-3"  # bump when what is stored changes
 KEEP_STAGES = 4  # stage folders kept (0.4 GB for the default forest), least recently used first
 
 
@@ -143,8 +143,11 @@ def stored(
     """A gathered prototype in a form of its own, for the store: its path and shape indices
     turned into its own lists of path names and shapes (those it uses, and those its gathering
     met first: ``before`` is how many unseen prims, paths and shapes there were before it)."""
-    li = proto.leaf_instances
-    used = np.unique(np.concatenate([li.shape, np.arange(before[2], len(shapes))])).astype(np.int64)
+    li, lv = proto.leaf_instances, proto.leaves
+    turning = lv.shape[lv.shape >= 0] if lv.shape is not None else np.zeros(0, np.int64)
+    used = np.unique(np.concatenate([li.shape, turning, np.arange(before[2], len(shapes))])).astype(
+        np.int64
+    )
     ids = np.unique(
         np.concatenate(
             [np.asarray(proto.path, np.int64), np.arange(before[1], len(paths))]
@@ -161,11 +164,15 @@ def stored(
         "cls": proto.cls,
         "path_index": local(proto.path),
         "leaves": (
-            proto.leaves.centre,
-            proto.leaves.normal,
-            proto.leaves.area,
-            proto.leaves.tree,
-            proto.leaves.blade,
+            lv.centre,
+            lv.normal,
+            lv.area,
+            lv.tree,
+            lv.blade,
+            None
+            if lv.shape is None
+            else np.where(lv.shape >= 0, np.searchsorted(used, lv.shape), -1),
+            lv.frame,
         ),
         "box": proto.box,
         "instances": (np.searchsorted(used, li.shape).astype(np.int64), li.matrix, li.tree),
@@ -188,11 +195,14 @@ def adopted(entry: dict, pid: Callable[[str], int], add_shape) -> Prototype:
         dtype=np.int64,
     )
     shape, matrix, tree = entry["instances"]
+    centre, normal, area, trees, blade, turns, frame = entry["leaves"]
+    if turns is not None:
+        turns = np.where(turns >= 0, smap[np.maximum(turns, 0)], -1) if len(smap) else turns
     return Prototype(
         entry["triangles"],
         entry["cls"],
         mapped(entry["path_index"]),
-        Leaves(*entry["leaves"]),
+        Leaves(centre, normal, area, trees, blade, turns, frame),
         entry["box"],
         LeafInstances(smap[shape] if len(shape) else shape, matrix, tree),
     )

@@ -13,16 +13,29 @@ import numpy as np
 @dataclass(frozen=True, eq=False)
 class Leaves:
     """Leaves as reflectors: centre, unit normal, one-sided area (m²), tree id; ``blade``
-    marks the ground vegetation's (``None``: no leaf is)."""
+    marks the ground vegetation's (``None``: no leaf is).
+
+    Leaves that turn in their own frame (a forest's fluttering leaves) also keep ``shape``,
+    the index of their leaf shape among the scene's (-1: the leaf does not turn), and
+    ``frame``, ``(n, 4, 4)`` row-vector transforms from the shape's space to where the leaf
+    is without its turn (so the leaf at another turn ``R``, its shape's own transform, is
+    its shape's centre through ``R @ frame``); ``None`` when no leaf turns."""
 
     centre: np.ndarray
     normal: np.ndarray
     area: np.ndarray
     tree: np.ndarray
     blade: np.ndarray | None = None
+    shape: np.ndarray | None = None
+    frame: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.centre.shape[0])
+
+    @property
+    def turning(self) -> np.ndarray:
+        """``bool[n]``: which leaves turn in their own frame (flutter)."""
+        return self.shape >= 0 if self.shape is not None else np.zeros(len(self), dtype=bool)
 
     @property
     def on_ground(self) -> np.ndarray:
@@ -32,7 +45,11 @@ class Leaves:
     def take(self, sel: np.ndarray) -> Leaves:
         """The leaves ``sel`` (indices or a mask)."""
         blade = self.blade[sel] if self.blade is not None else None
-        return Leaves(self.centre[sel], self.normal[sel], self.area[sel], self.tree[sel], blade)
+        shape = self.shape[sel] if self.shape is not None else None
+        frame = self.frame[sel] if self.frame is not None else None
+        return Leaves(
+            self.centre[sel], self.normal[sel], self.area[sel], self.tree[sel], blade, shape, frame
+        )
 
     @property
     def radius(self) -> np.ndarray:
@@ -48,13 +65,24 @@ class Leaves:
             if any(p.blade is not None for p in parts)
             else None
         )
+        turning = any(p.shape is not None for p in parts)
+        shape = np.concatenate([p._shapes() for p in parts]) if turning else None
+        frame = np.concatenate([p._frames() for p in parts]) if turning else None
         return Leaves(
             *(
                 np.concatenate([getattr(p, f) for p in parts])
                 for f in ("centre", "normal", "area", "tree")
             ),
             blade,
+            shape,
+            frame,
         )
+
+    def _shapes(self) -> np.ndarray:
+        return self.shape if self.shape is not None else np.full(len(self), -1, np.int64)
+
+    def _frames(self) -> np.ndarray:
+        return self.frame if self.frame is not None else np.tile(np.eye(4), (len(self), 1, 1))
 
 
 @dataclass(frozen=True, eq=False)
@@ -176,6 +204,7 @@ class Scene:
     shapes: tuple[Shape, ...] = ()  # leaf shapes of every LeafInstances
     leaf_instances: LeafInstances = field(default_factory=no_leaves)  # in world space
     sources: Sources | None = None  # where its instances come from (to move them in time)
+    shape_paths: tuple[str, ...] = ()  # each leaf shape's prim (to turn it in time)
 
     def instance_spheres(self) -> tuple[np.ndarray, np.ndarray]:
         """World-space bounding spheres (centres ``(n, 3)``, radii ``(n,)``) of the tree

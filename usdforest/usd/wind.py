@@ -1,14 +1,16 @@
 """The wind layer: the forest's trees swaying, as time samples over the static forest.
 
 ``wind.usdc`` (beside the forest's other layers, the strongest of the forest's sublayers when
-the recipe has a ``[wind]`` table) holds only an ``over`` of ``/Forest/Trees``: the
-instancer's ``orientations`` (half floats, what Blender reads) and ``orientationsf`` (floats,
-which pxr-based clients and the sensors read before them) at every time code, each tree tilted
+the recipe has a ``[wind]`` table) holds overs of ``/Forest/Trees``: the instancer's
+``orientations`` (half floats, what Blender reads) and ``orientationsf`` (floats, which
+pxr-based clients and the sensors read before them) at every time code, each tree tilted
 about its base by its own sway (:mod:`usdforest.grow.sway`); the trees' first natural
-frequencies (``usdforest:swayFrequency``, Hz, one per instance); and the instancer's extent
-grown by the largest sway. Time codes are frames (``timeCodesPerSecond`` = ``fps`` on the
-forest's root layer); the last repeats the first, so the animation loops. Muting the layer
-leaves the static forest exactly as it was built: nothing else differs.
+frequencies (``usdforest:swayFrequency``, Hz, one per instance); the instancer's extent grown
+by the largest sway and leaf; and the leaves' flutter (:mod:`usdforest.usd.flutter`: a
+rotation per flutter class and time code, and each leaf's class). Time codes are frames
+(``timeCodesPerSecond`` = ``fps`` on the forest's root layer); the last repeats the first, so
+the animation loops. Muting the layer leaves the static forest exactly as it was built:
+nothing else differs.
 
 Each tree's sizes are measured on its composed prototype, as a user would: the height from
 its bounds, the DBH with a girth tape at 1.3 m (:mod:`usdforest.usd.inventory`'s), the
@@ -27,6 +29,7 @@ from pxr import Sdf, Usd, UsdGeom, Vt
 from usdforest.errors import UsdForestError
 from usdforest.grow.sway import Stems, WindSpec, natural_frequency, sway, tilts
 from usdforest.rotations import quat_multiply
+from usdforest.usd.flutter import author_flutter
 from usdforest.usd.layers import T, attr, extents, new_layer, prim, rendered
 
 BREAST = 1.3  # m
@@ -106,6 +109,12 @@ def stems_of(stage: Usd.Stage, path: str = "/Forest/Trees") -> tuple[Stems, np.n
     return Stems(pos[:, :2], h * s, d * s, a * s**2, c * s), q
 
 
+def _largest_scale(stage: Usd.Stage, path: str = "/Forest/Trees") -> float:
+    """The largest scale of the tree instancer's instances (1 when it has none authored)."""
+    scales = UsdGeom.PointInstancer(stage.GetPrimAtPath(path)).GetScalesAttr().Get()
+    return float(np.abs(np.asarray(scales, dtype=float)).max()) if scales else 1.0
+
+
 def sample_bytes(trees: int, spec: WindSpec) -> int:
     """What the layer's orientation samples take (bytes)."""
     return trees * (spec.frames + 1) * SAMPLE_BYTES
@@ -147,15 +156,25 @@ def wind_layer(stage: Usd.Stage, spec: WindSpec, seed: int, extent: np.ndarray) 
             T.FloatArray,
             Vt.FloatArray.FromNumpy(freq.astype(np.float32)),
         ).SetInfo("documentation", "each tree's first natural frequency (Hz)")
+        # a leaf turns about its petiole: the trees reach farther by their largest leaf
+        _, leaf = author_flutter(layer, stage, spec, seed)
+        scale = _largest_scale(stage) if leaf else 0.0
         reach = float(np.linalg.norm(top, axis=-1).max()) if top.size else 0.0
-        grown = np.asarray(extent, dtype=float) + np.array([[-reach, -reach, 0], [reach, reach, 0]])
+        reach += leaf * scale
+        up = leaf * scale
+        grown = np.asarray(extent, dtype=float) + np.array(
+            [[-reach, -reach, 0], [reach, reach, up]]
+        )
         attr(trees, "extent", T.Float3Array, extents(grown))
         if not np.any(top):  # still air: nothing moves, no samples (nor their interpolation)
             return layer
         half = attr(trees, "orientations", T.QuathArray)
+        # unit quaternions: USD scales an instance by |q|^2 and slerps as if |q| were 1, so a
+        # half float's (|q| 1 +- 1e-3) would make a swaying tree breathe between samples
+        unit = static / np.linalg.norm(static, axis=1, keepdims=True)
         for k in range(spec.frames + 1):
             # Vt's quaternion arrays hold (x, y, z, w) as numpy does here
-            q = quat_multiply(tilts(top[k], stems.height), static)
+            q = quat_multiply(tilts(top[k], stems.height), unit)
             layer.SetTimeSample(full.path, float(k), Vt.QuatfArray.FromNumpy(q.astype(np.float32)))
             layer.SetTimeSample(half.path, float(k), Vt.QuathArray.FromNumpy(q.astype(np.float16)))
     return layer

@@ -1,0 +1,219 @@
+"""Leaf flutter: a windy forest's leaves twisting and flapping about their petioles, stored as
+a few shared rotations, read on the composed stage and by the sensors."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from pxr import Sdf, Usd, UsdGeom
+from stands import build_text
+
+from usdforest.errors import RecipeError
+from usdforest.usd.validate import validate
+
+# a beech beside a pine (whose shoots do not flutter); the wind at 10 m/s
+STAND = """
+seed = 3
+[region]
+bounds = [0.0, 0.0, 20.0, 20.0]
+[[sites]]
+x = 6.0
+y = 10.0
+species = "beech"
+dbh = 0.25
+height = 18.0
+[[sites]]
+x = 14.0
+y = 10.0
+species = "pine"
+dbh = 0.25
+height = 18.0
+[species.beech]
+preset = "european-beech"
+[species.pine]
+preset = "scots-pine"
+"""
+SPEED, DURATION, FPS, CLASSES, ANGLE, FREQUENCY = 10.0, 2.0, 24.0, 6, 20.0, 3.0
+WIND = (
+    f"[wind]\nspeed = {SPEED}\nduration = {DURATION}\nfps = {FPS}\nflutter_classes = {CLASSES}\n"
+    f"flutter_angle = {ANGLE}\nflutter_frequency = {FREQUENCY}\n"
+)
+BEECH = "/Forest/Trees/Prototypes/Beech_0/Leaves"
+PINE = "/Forest/Trees/Prototypes/Pine_0/Leaves"
+
+
+@pytest.fixture(scope="module")
+def stands(tmp_path_factory):
+    root = tmp_path_factory.mktemp("flutter")
+    return {
+        "still": build_text(root, "still", STAND),
+        "windy": build_text(root, "windy", STAND + WIND),
+    }
+
+
+def _leaf_rows(stage: Usd.Stage, path: str, time) -> np.ndarray:
+    """Each leaf's composed transform in its tree's space, its prototype's own transform
+    (the flutter) included, as USD computes it."""
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath(path))
+    return np.asarray(pi.ComputeInstanceTransformsAtTime(time, time), dtype=float)
+
+
+def _twist_and_flap(rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The angles of R = Ry(flap) Rx(twist) (column vectors) from row-vector 3x3 ``rel``."""
+    r = np.swapaxes(rel, -1, -2)
+    return np.arctan2(-r[..., 1, 2], r[..., 1, 1]), np.arctan2(-r[..., 2, 0], r[..., 0, 0])
+
+
+def test_leaves_flutter_about_their_petioles_as_pure_tones(stands):
+    """Every beech leaf turns in its own frame about its petiole (its origin stays), by a
+    twist about its midrib and half as much flap, each a sine at whole cycles of the loop
+    with the amplitude flutter_angle (the wind is past 3.4 m/s, Beaufort 3, where the model
+    stops growing it); the leaves fall into the classes."""
+    stage = Usd.Stage.Open(str(stands["windy"]))
+    rest = _leaf_rows(stage, BEECH, Usd.TimeCode.Default())
+    frames = int(DURATION * FPS)
+    rows = np.array([_leaf_rows(stage, BEECH, float(f)) for f in range(frames + 1)])
+    # the petiole stays where it was; the leaf turns about it, a rotation in its own frame
+    np.testing.assert_allclose(
+        rows[:, :, 3, :3], np.broadcast_to(rest[:, 3, :3], rows[:, :, 3, :3].shape), atol=1e-5
+    )
+    rel = rows[..., :3, :3] @ np.linalg.inv(rest[:, :3, :3])[None]
+    np.testing.assert_allclose(
+        rel @ np.swapaxes(rel, -1, -2), np.broadcast_to(np.eye(3), rel.shape), atol=2e-5
+    )
+    twist, flap = _twist_and_flap(rel)
+    np.testing.assert_allclose(twist[0], twist[-1], atol=1e-6)  # the loop closes
+    # one tone per leaf: the classes' distinct series
+    series = np.unique(np.round(twist[:-1].T, 4), axis=0)
+    assert len(series) == CLASSES
+    amplitude = math.radians(ANGLE) * min(SPEED / 3.4, 1.0)
+    for k, angle in enumerate((twist, flap)):
+        spectrum = np.abs(np.fft.rfft(angle[:-1], axis=0)) * 2 / frames  # (bins, leaves)
+        peak = spectrum.argmax(axis=0)
+        assert spectrum.max(axis=0) == pytest.approx(amplitude / (1 + k), rel=1e-3)
+        # everything at one frequency: the sine's
+        share = spectrum.max(axis=0) ** 2 / (spectrum**2).sum(axis=0)
+        assert share.min() > 0.999
+        hz = peak / DURATION
+        assert hz.min() >= 0.5 * FREQUENCY - 0.5 / DURATION
+        assert hz.max() <= 1.5 * FREQUENCY + 0.5 / DURATION
+    counts = np.bincount(
+        np.unique(np.round(twist[:-1].T, 4), axis=0, return_inverse=True)[1].ravel()
+    )
+    assert counts.min() > 0.6 * len(rest) / CLASSES
+
+
+def test_flutter_is_a_few_shared_rotations_and_leaves_the_still_forest_as_it_was(stands):
+    stage = Usd.Stage.Open(str(stands["windy"]))
+    layer = Sdf.Layer.FindOrOpen(str(stands["windy"].parent / "windy_assets" / "wind.usdc"))
+    samples = {}
+
+    def count(path: Sdf.Path) -> None:
+        spec = layer.GetObjectAtPath(path)
+        if isinstance(spec, Sdf.AttributeSpec) and layer.GetNumTimeSamplesForPath(path):
+            samples[str(path)] = layer.GetNumTimeSamplesForPath(path)
+
+    layer.Traverse(Sdf.Path.absoluteRootPath, count)
+    flutter = {p: n for p, n in samples.items() if "Flutter" in p}
+    # one rotation per class and time code; no leaf has samples of its own
+    assert len(flutter) == CLASSES
+    assert set(flutter.values()) == {int(DURATION * FPS) + 1}
+    assert set(samples) - set(flutter) == {
+        "/Forest/Trees.orientations",
+        "/Forest/Trees.orientationsf",
+    }
+    # the pine's shoots do not flutter: its instancer is untouched
+    assert not layer.GetPrimAtPath(PINE)
+    # muted, or at the default time, the leaves are the still forest's
+    still = Usd.Stage.Open(str(stands["still"]))
+    for time in (Usd.TimeCode.Default(),):
+        got, want = _leaf_rows(stage, BEECH, time), _leaf_rows(still, BEECH, time)
+        key = np.lexsort(np.round(got[:, 3, :3], 6).T)
+        ref = np.lexsort(np.round(want[:, 3, :3], 6).T)
+        np.testing.assert_allclose(got[key], want[ref], atol=1e-6)
+    assert validate(stands["windy"]) == []
+
+
+def test_a_scene_at_a_time_holds_its_leaves_turned_and_motion_turns_them_there(stands):
+    """The sensors' scene at t holds each leaf where USD's composed transforms put it then
+    (the leaf's own turn applied once), and SceneMotion moves a scene extracted at another
+    time to t exactly, with velocities the central differences of scenes at t +- 1 ms."""
+    from usdforest.sensors.motion import SceneMotion
+    from usdforest.sensors.scene import extract_scene
+
+    path = stands["windy"]
+    stage = Usd.Stage.Open(str(path))
+    t = 0.7
+    code = t * FPS
+    scene = extract_scene(path, time=t, cache=False)
+    beech = scene.leaves.take(np.flatnonzero(scene.leaves.turning))
+    assert len(beech) == len(_leaf_rows(stage, BEECH, code))
+    # independently: the leaf shape's box centre through USD's transforms, then the tree's
+    mesh = next(
+        p
+        for p in Usd.PrimRange(stage.GetPrimAtPath(BEECH + "/Prototypes/Leaf"))
+        if p.IsA(UsdGeom.Mesh)
+    )
+    pts = np.asarray(UsdGeom.Mesh(mesh).GetPointsAttr().Get(), dtype=float)
+    centre = (pts.min(axis=0) + pts.max(axis=0)) / 2
+    rows = _leaf_rows(stage, BEECH, code)
+    trees = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+    tree = np.asarray(trees.ComputeInstanceTransformsAtTime(code, code), dtype=float)[0]
+    want = np.append(centre, 1.0) @ rows @ tree
+    got = beech.centre
+    key = np.lexsort(np.round(got, 5).T)
+    ref = np.lexsort(np.round(want[:, :3], 5).T)
+    np.testing.assert_allclose(got[key], want[ref, :3], atol=1e-6)
+    # moved from another time's scene
+    early = extract_scene(path, time=0.1, cache=False)
+    motion = SceneMotion(path, early)
+    moved = motion.leaves(t, early.leaves)
+    np.testing.assert_allclose(moved.centre, scene.leaves.centre, atol=1e-6)
+    np.testing.assert_allclose(moved.normal, scene.leaves.normal, atol=1e-6)
+    speed = motion.leaf_velocities(t, early.leaves)
+    # the stage interpolates between its time codes: the velocity is the chord between the
+    # two about t (here 16 and 17), as extracted scenes give it
+    ends = [extract_scene(path, time=c / FPS, cache=False).leaves.centre for c in (16, 17)]
+    np.testing.assert_allclose(speed, (ends[1] - ends[0]) * FPS, atol=1e-6)
+    assert np.linalg.norm(speed[early.leaves.turning], axis=1).max() > 0.1
+    # against the motion at t itself (+- 1 ms): the chord of a turn of up to 0.2 rad a
+    # time code is off its tangent by a few per cent
+    h = 1e-3
+    after, before = (extract_scene(path, time=t + s, cache=False).leaves.centre for s in (h, -h))
+    fd = (after - before) / (2 * h)
+    err = np.linalg.norm(speed - fd, axis=1).max()
+    assert err < 0.04 * np.linalg.norm(fd, axis=1).max()
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        ("flutter_classes = 2.5", r"wind\.flutter_classes: 2\.5 is not a whole number"),
+        ("flutter_angle = 50", r"wind\.flutter_angle: 50 is outside 0 to 45"),
+        ("fps = 10", r"wind\.flutter_frequency: the leaves of beech flutter up to 4\.5 Hz"),
+    ],
+)
+def test_the_recipe_checks_the_flutter(tmp_path, extra, message):
+    from tomllib import loads
+
+    from usdforest.recipe import parse_recipe
+
+    table = {**loads(WIND)["wind"], **loads(extra)}
+    text = STAND + "[wind]\n" + "".join(f"{k} = {v}\n" for k, v in table.items())
+    with pytest.raises(RecipeError, match=message):
+        parse_recipe(loads(text), tmp_path, "f.toml")
+
+
+def test_conifers_alone_or_leafless_broadleaves_need_no_frames_for_flutter(tmp_path):
+    from tomllib import loads
+
+    from usdforest.recipe import parse_recipe
+
+    pines = STAND.replace('species = "beech"', 'species = "pine"').replace(
+        '[species.beech]\npreset = "european-beech"\n', ""
+    )
+    assert parse_recipe(loads(pines + "[wind]\nfps = 5\n"), tmp_path, "p.toml").wind.fps == 5
+    winter = parse_recipe(loads(STAND + "[wind]\nfps = 5\n"), tmp_path, "w.toml", season="winter")
+    assert winter.wind.fps == 5
