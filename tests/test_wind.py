@@ -402,3 +402,64 @@ def test_a_hovering_sonar_hears_the_swaying_crowns(forests):
     np.testing.assert_array_equal(echoes["calm"], echoes["still"])
     peak = np.abs(echoes["still"]).max()
     assert np.abs(echoes["gusty"] - echoes["still"]).max() > 1e-3 * peak
+
+
+def test_the_wood_sways_with_its_tree_and_the_sonar_hears_it_there(forests):
+    """The sonar's wood in wind: the pieces fitted on the still scene and carried to t are
+    those fitted on the scene extracted at t, they move at the velocity their tree's motion
+    gives them, and a pulse at t (leaves, wood and what hides them, all moved) is the pulse
+    of the scene extracted at t when the reflectors' velocities are left out."""
+    import functools
+
+    from usdforest.sensors.flight import _leaves_at, _wood_at
+    from usdforest.sensors.motion import SceneMotion
+    from usdforest.sensors.pose import Pose
+    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.sonar import SonarConfig, SonarScene
+    from usdforest.sensors.wood import scene_cylinders
+
+    stage, centre, radius = forests["gusty"], np.array([20.0, 20.0, 10.0]), 30.0
+    t = 10.125  # between the time codes 40 and 41 (4 a second)
+    still = extract_scene(stage, centre=centre, radius=radius)
+    now = extract_scene(stage, centre=centre, radius=radius, time=t)
+    motion = SceneMotion(stage, still)
+    wood = scene_cylinders(still, 0.05)
+    carried, fitted = motion.cylinders(t, wood), scene_cylinders(now, 0.05)
+    assert len(carried) == len(fitted) and np.array_equal(carried.tree, fitted.tree)
+    np.testing.assert_allclose(carried.centre, fitted.centre, atol=1e-4)
+    np.testing.assert_allclose(np.abs(np.sum(carried.axis * fitted.axis, axis=1)), 1, atol=1e-5)
+    assert np.abs(carried.centre - wood.centre).max() > 1e-3
+    # the velocity of the wood: its tree's transform differenced over the time codes about t
+    a, b = (motion.cylinders(s, wood).centre for s in (10.0, 10.25))
+    chord = (b - a) / 0.25
+    speed = motion.velocities(t, carried.centre, carried.tree)
+    np.testing.assert_allclose(speed, chord, atol=0.01 * np.abs(chord).max())
+    # a pulse at t with everything moved, velocities left out, against the scene at t
+    cfg = SonarConfig(occlusion=True, max_range=8.0)
+    pose = Pose(14.0, 20.0, 6.0, 0.0, 10.0)
+
+    def still_leaves(leaves):
+        moved, _ = _leaves_at(motion, t, leaves)
+        return moved, None
+
+    def still_wood(pieces):
+        moved, _ = _wood_at(motion, t, pieces)
+        return moved, None
+
+    prepared = SonarScene(still, cfg)
+    heard = prepared.echo(
+        pose, cfg, moved=still_leaves, wood_moved=still_wood,
+        caster=prepared.caster.moved(motion.at(t)), reach=motion.reach(t),
+    )  # fmt: skip
+    want = SonarScene(now, cfg).echo(pose, cfg)
+    assert heard.reflectors == want.reflectors
+    assert heard.reflectors["trunk"] + heard.reflectors["branch"] > 10
+    peak = np.abs(want.echo).max()
+    np.testing.assert_allclose(heard.echo, want.echo, atol=1e-3 * peak)
+    # and with their velocities, the wood's echo carries its Doppler: it differs
+    moving = prepared.echo(
+        pose, cfg, moved=functools.partial(_leaves_at, motion, t),
+        wood_moved=functools.partial(_wood_at, motion, t),
+        caster=prepared.caster.moved(motion.at(t)), reach=motion.reach(t),
+    )  # fmt: skip
+    assert np.abs(moving.parts["branch"] - heard.parts["branch"]).max() > 0

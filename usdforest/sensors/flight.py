@@ -502,6 +502,11 @@ def _leaves_at(motion: SceneMotion, t: float, leaves):
     return motion.leaves(t, leaves), motion.leaf_velocities(t, leaves)
 
 
+def _wood_at(motion: SceneMotion, t: float, wood):
+    """``wood`` where its trees carry it at ``t``, and the velocity field of its points."""
+    return motion.cylinders(t, wood), functools.partial(motion.velocities, t)
+
+
 def fly_sonar(
     scene: Scene,
     cfg: SonarConfig,
@@ -514,8 +519,9 @@ def fly_sonar(
 ) -> FlightEcho:
     """Pulses at ``cfg.pulse_rate`` along ``traj``, Doppler and delays from the platform's
     velocity; ``progress(done, total)`` after each pulse. With ``motion`` (a forest in wind)
-    the leaves are heard where their trees have carried them at the pulse's time, each with
-    its own velocity in its Doppler."""
+    the leaves and the wood are heard where the wind has carried them at the pulse's time,
+    each reflector with its own velocity in its Doppler, and with ``cfg.occlusion`` hidden
+    by the forest as it stands then."""
     cfg.check()
     times = traj.t[0] + np.arange(0.0, traj.duration + 1e-12, 1.0 / cfg.pulse_rate)
     pos, rot, vel = traj.at(times)
@@ -528,8 +534,16 @@ def fly_sonar(
         fwd = rm[:, 0]
         yaw = math.degrees(math.atan2(fwd[1], fwd[0]))
         pitch = math.degrees(math.asin(max(-1.0, min(1.0, fwd[2]))))
-        moved = None if motion is None else functools.partial(_leaves_at, motion, times[k])
-        e = prepared.echo(Pose(*p, yaw, pitch), cfg, velocity=v, moved=moved)
+        moving: dict = {}
+        if motion is not None:
+            moving = {
+                "moved": functools.partial(_leaves_at, motion, times[k]),
+                "wood_moved": functools.partial(_wood_at, motion, times[k]),
+                # what hides a reflector stands where the wind has moved it too
+                "caster": prepared.caster.moved(motion.at(times[k])) if cfg.occlusion else None,
+                "reach": motion.reach(times[k]),
+            }
+        e = prepared.echo(Pose(*p, yaw, pitch), cfg, velocity=v, **moving)
         echoes.append(e.echo)
         counts.append(e.leaves_in_range)
         # every pulse has the same classes: those the sonar listens to

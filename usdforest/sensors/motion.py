@@ -9,6 +9,7 @@ rebuilds only the casting scene's top level).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -17,6 +18,7 @@ import numpy as np
 
 from usdforest.sensors.scene import stage_time
 from usdforest.sensors.scenetypes import Leaves, Scene
+from usdforest.sensors.wood import Cylinders
 from usdforest.usd.layers import open_stage
 
 
@@ -186,6 +188,50 @@ class SceneMotion:
         before, after = self._span(seconds)
         moved = [self.leaves(t, leaves).centre for t in (before, after)]
         return (moved[1] - moved[0]) / (after - before)
+
+    def reach(self, seconds: float) -> float:
+        """The farthest (m) any point of the scene's tree instances may be at ``seconds`` from
+        where it was extracted: each instance's bounding sphere through its transform then
+        against its extracted one, plus twice the largest leaf that turns."""
+        inst = self.scene.instances
+        far = 0.0
+        if len(inst) and self.scene.sources is not None:
+            was, now = inst.matrix, self.at(seconds).instances.matrix
+            rel = np.linalg.inv(was) @ now
+            centre, radius = self.scene.instance_spheres()
+            shift = np.einsum("nj,njk->nk", centre, rel[:, :3, :3] - np.eye(3)) + rel[:, 3, :3]
+            bend = np.linalg.norm(rel[:, :3, :3] - np.eye(3), ord=2, axis=(1, 2))
+            far = float((np.linalg.norm(shift, axis=1) + radius * bend).max())
+        return far + 2 * self._leaf_size
+
+    @functools.cached_property
+    def _leaf_size(self) -> float:
+        """The largest turning leaf's reach from its petiole (m, in the world)."""
+        lv = self.scene.leaves
+        turning = lv.turning
+        if not turning.any():
+            return 0.0
+        corner = np.array([np.abs(s.box).max(axis=0) for s in self.scene.shapes])
+        size = np.linalg.norm(corner, axis=1)[lv.shape[turning]]
+        scale = np.linalg.norm(np.asarray(lv.frame)[turning, :3, :3], axis=2).max(axis=1)
+        return float((size * scale).max())
+
+    def cylinders(self, seconds: float, wood: Cylinders) -> Cylinders:
+        """``wood`` (of this scene, where it was extracted) where its trees have carried it at
+        ``seconds``: each piece's centre and axis moved by its tree's transform then against
+        its extracted one (pieces of no instance stay)."""
+        which = self._instance_of(wood.tree)
+        moves = which >= 0
+        if not moves.any():
+            return wood
+        was, now = self.scene.instances.matrix, self.at(seconds).instances.matrix
+        k = which[moves]
+        rel = np.linalg.inv(was[k]) @ now[k]
+        centre, axis = wood.centre.copy(), wood.axis.copy()
+        centre[moves] = np.einsum("nj,njk->nk", wood.centre[moves], rel[:, :3, :3]) + rel[:, 3, :3]
+        a = np.einsum("nj,njk->nk", wood.axis[moves], rel[:, :3, :3])
+        axis[moves] = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
+        return replace(wood, centre=centre, axis=axis)
 
     def velocities(self, seconds: float, points: np.ndarray, tree: np.ndarray) -> np.ndarray:
         """``(n, 3)`` velocities (m/s) at ``seconds`` of ``points`` (n, 3) that move with the

@@ -435,6 +435,8 @@ class Targets:
     wood: Cylinders = field(default_factory=lambda: Cylinders.concat([]))
     ground: Facets = field(default_factory=Facets.empty)
     leaf_velocity: np.ndarray | None = None  # (n, 3) m/s of the leaves, when they move
+    # the velocity (m/s, (n, 3)) of points (n, 3) on the wood of trees (n,), when it moves
+    wood_velocity: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -720,6 +722,11 @@ def echo_from_targets(
             wk = w.take(np.flatnonzero(w.cls == k))
             if len(wk):
                 points = wood_points(wk, pose.position)
+                moving_wood = (
+                    None
+                    if targets.wood_velocity is None
+                    else targets.wood_velocity(points.position, points.tree)
+                )
                 sources.append(
                     _Source(
                         k,
@@ -727,6 +734,7 @@ def echo_from_targets(
                         points.position,
                         lambda sel, p=points: wood_amplitudes(p.take(sel), pose, cfg, grid.centres),
                         count=len(wk),
+                        velocity=moving_wood,
                     )
                 )
     if cfg.ground and len(ground):
@@ -890,9 +898,13 @@ class SonarScene:
             for points in (self.scene.leaves.centre, self.wood.centre)
         )
 
-    def _in_range(self, pose: Pose, cfg: SonarConfig) -> Targets:
+    def _in_range(self, pose: Pose, cfg: SonarConfig, reach: float = 0.0) -> Targets:
+        """Leaves and wood within ``cfg.max_range`` plus ``reach`` (how far the wind may have
+        moved them), and the ground within range."""
+
         def near(index) -> np.ndarray:
-            found = index.query_ball_point(pose.position, cfg.max_range, return_sorted=True)
+            r = cfg.max_range + reach
+            found = index.query_ball_point(pose.position, r, return_sorted=True)
             return np.asarray(found, dtype=np.int64)
 
         ground = (
@@ -905,10 +917,13 @@ class SonarScene:
             _leaf_subset(self.scene.leaves, near(leaves)), self.wood.take(near(wood)), ground
         )
 
-    def _unseen_dropped(self, targets: Targets, pose: Pose, cfg: SonarConfig) -> Targets:
+    def _unseen_dropped(
+        self, targets: Targets, pose: Pose, cfg: SonarConfig, caster=None
+    ) -> Targets:
         lv, wood, ground = targets.leaves, targets.wood, targets.ground
         if cfg.occlusion:
-            seen = np.flatnonzero(_visible(lv.centre, 1.5 * lv.radius + 1e-3, pose, self.caster))
+            caster = caster if caster is not None else self.caster
+            seen = np.flatnonzero(_visible(lv.centre, 1.5 * lv.radius + 1e-3, pose, caster))
             lv = _leaf_subset(lv, seen)
             if targets.leaf_velocity is not None:
                 targets = replace(targets, leaf_velocity=targets.leaf_velocity[seen])
@@ -919,15 +934,13 @@ class SonarScene:
             cos_b = np.sqrt(np.clip(1 - np.sum(u * wood.axis, axis=1) ** 2, 1e-6, 1))
             wood = wood.take(
                 np.flatnonzero(
-                    _visible(wood.centre, 1.05 * wood.radius / cos_b + 0.01, pose, self.caster)
+                    _visible(wood.centre, 1.05 * wood.radius / cos_b + 0.01, pose, caster)
                 )
             )
             ground = ground.take(
-                np.flatnonzero(
-                    _visible(ground.centre, np.full(len(ground), 0.01), pose, self.caster)
-                )
+                np.flatnonzero(_visible(ground.centre, np.full(len(ground), 0.01), pose, caster))
             )
-        return Targets(lv, wood, ground, targets.leaf_velocity)
+        return replace(targets, leaves=lv, wood=wood, ground=ground)
 
     def echo(
         self,
@@ -935,16 +948,27 @@ class SonarScene:
         cfg: SonarConfig,
         velocity: np.ndarray | None = None,
         moved: Callable[[Leaves], tuple[Leaves, np.ndarray]] | None = None,
+        *,
+        wood_moved: Callable[[Cylinders], tuple[Cylinders, Callable]] | None = None,
+        caster=None,
+        reach: float = 0.0,
     ) -> Echo:
-        """The echo at ``pose`` from a platform moving at ``velocity``; ``moved`` gives the
-        leaves in range where they are then and their velocities (a forest in wind: see
-        :class:`usdforest.sensors.motion.SceneMotion`); ``leaves_in_range`` counts leaves
-        before occlusion."""
-        near = self._in_range(pose, cfg)
+        """The echo at ``pose`` from a platform moving at ``velocity``. In a forest in wind
+        (see :class:`usdforest.sensors.motion.SceneMotion`) ``moved`` gives the leaves in
+        range where they are then and their velocities, ``wood_moved`` the wood pieces in
+        range where they are then and their velocity field (points, tree ids -> m/s), and
+        ``caster`` the scene as it stands then, for ``occlusion``; ``reach`` (m) is the
+        farthest they may have moved (reflectors are looked for that much beyond the range,
+        then kept within it where they are). ``leaves_in_range`` counts leaves before
+        occlusion."""
+        near = self._in_range(pose, cfg, reach)
         if moved is not None:
             leaves, speed = moved(near.leaves)
             near = replace(near, leaves=leaves, leaf_velocity=speed)
-        heard = self._unseen_dropped(near, pose, cfg)
+        if wood_moved is not None and len(near.wood):
+            wood, field_of = wood_moved(near.wood)
+            near = replace(near, wood=wood, wood_velocity=field_of)
+        heard = self._unseen_dropped(near, pose, cfg, caster)
         e = echo_from_targets(heard, pose, cfg, velocity)
         return replace(e, leaves_in_range=len(near.leaves))
 
