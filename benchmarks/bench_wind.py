@@ -1,9 +1,11 @@
 """What a minute of wind costs a user: ``usdforest build`` of the default recipe as it is and
 with ``[wind]`` (60 s at 30 frames/s, the other keys their defaults), and a ``usdforest fly``
 of each (a VLP-16 as its preset and a 640 x 480 camera at 2 frames/s, 10 m at 5 m/s, 2 m up:
-in wind every sweep and frame sees the trees at its own time), as whole processes,
-alternating, best of two each, in one run; and the size of the wind layer. Targets (issue
-41): the windy build within 2x of the still one, the windy flight within 1.3x.
+in wind every sweep and frame sees the trees at its own time) and of the paper's sonar (2 m
+at 5 m/s: in wind every pulse hears the leaves and wood where they are then, with their
+velocities), as whole processes, alternating, best of two each, in one run; and the size of
+the wind layer. Targets (issue 41): the windy build within 2x of the still one, the windy
+flight within 1.3x; the sonar's cost in wind is reported.
 
 Usage: ``python benchmarks/bench_wind.py`` (``make bench`` runs it). Prints a Markdown table;
 memory is each process's own peak resident set.
@@ -22,6 +24,7 @@ from bench_floor import DEFAULT, _run
 TARGET = 2.0
 FLY_TARGET = 1.3
 FLY = ["--line", "45,50,2:55,50,2", "--speed", "5", "--camera", "pinhole-640"]
+SONAR = ["--line", "45,50,2:47,50,2", "--speed", "5", "--lidar", "none", "--sonar", "paper"]
 WIND = {"duration": 60.0, "fps": 30.0}
 
 
@@ -42,6 +45,7 @@ def main() -> None:
                 steps = {
                     "build": ["build", stage, "-p", str(recipe), "--force"],
                     "fly": ["fly", stage, *FLY, "-o", str(work / f"f{k}"), "--force"],
+                    "sonar fly": ["fly", stage, *SONAR, "-o", str(work / f"s{k}"), "--force"],
                 }
                 for step, args in steps.items():
                     s, mib = _run(args)
@@ -49,19 +53,39 @@ def main() -> None:
                     best[(step, name)] = (min(old[0], s), max(old[1], mib))
         layer = (work / "v1_assets" / "wind.usdc").stat().st_size
         trees = (work / "v1_assets" / "trees.csv").read_text().count("\n") - 1
+        leaves, classes = _flutter(work / "v1_assets" / "wind.usdc")
     print("| default forest | still | one minute of wind (30 frames/s) | ratio: time | memory "
           "| target |")  # fmt: skip
     print("| --- | --- | --- | --- | --- | --- |")
-    for step, target in (("build", TARGET), ("fly", FLY_TARGET)):
+    for step, target in (("build", TARGET), ("fly", FLY_TARGET), ("sonar fly", "-")):
         (ts, ms), (tw, mw) = best[(step, "still")], best[(step, "one minute of wind")]
         print(
             f"| {step} | {ts:.1f} s, {ms:,.0f} MiB | {tw:.1f} s, {mw:,.0f} MiB | "
-            f"{tw / ts:.2f}x | {mw / ms:.2f}x | {target}x |"
+            f"{tw / ts:.2f}x | {mw / ms:.2f}x | {target}{'x' if target != '-' else ''} |"
         )
     print(
         f"\nwind.usdc: {layer / 2**20:.1f} MiB for {trees} trees x 1,801 time codes "
-        f"({layer / trees / 1801:.1f} B a tree a time code)"
+        f"({layer / trees / 1801:.1f} B a tree a time code), with the flutter of {leaves:,} "
+        f"leaves in {classes} classes"
     )
+
+
+def _flutter(path: Path) -> tuple[int, int]:
+    """Leaves whose class the wind layer sets, and its flutter classes."""
+    from pxr import Sdf
+
+    layer = Sdf.Layer.FindOrOpen(str(path))
+    leaves, classes = 0, 0
+
+    def visit(p: Sdf.Path) -> None:
+        nonlocal leaves, classes
+        if p.IsPropertyPath() and p.name == "protoIndices":
+            leaves += len(layer.GetAttributeAtPath(p).default)
+        elif p.IsPrimPath() and p.name.startswith("_class_Flutter_"):
+            classes += 1
+
+    layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+    return leaves, classes
 
 
 if __name__ == "__main__":

@@ -606,7 +606,7 @@ def wind(out: Path, work: Path) -> None:
     from usdforest.sensors.scene import extract_scene
 
     stage = _default_variant(
-        work, "default-wind", wind={"speed": 12.0, "duration": 4.0, "fps": 10.0}
+        work, "default-wind", wind={"speed": 12.0, "duration": 4.0, "fps": 24.0}
     )
     pose = Pose(-12.0, 40.0, 8.0, yaw=0, pitch=12)
     cam = camera.PRESETS["pinhole-640"]
@@ -633,7 +633,7 @@ def sonar_wind(out: Path, work: Path) -> None:
     from usdforest.sensors.sonar import envelope
 
     windy = _default_variant(
-        work, "default-wind", wind={"speed": 12.0, "duration": 4.0, "fps": 10.0}
+        work, "default-wind", wind={"speed": 12.0, "duration": 4.0, "fps": 24.0}
     )
     still = _default_variant(work, "default")
     hover = Trajectory(
@@ -835,34 +835,38 @@ def landscape(out: Path, work: Path) -> None:
     save_figure(fig, out / "landscape-tiles.png")
 
 
-def main(out: Path) -> None:
+FIGURES = (
+    "paper_stages", "paper_views", "profile_trees", "ipp_levels", "stands", "stand_pattern",
+    "canopy_gaps", "crowns", "leaves", "gallery", "allometric", "sensors", "forest_sensors",
+    "camera_model", "seasons", "wind", "sonar_wind", "dead_wood", "ground_vegetation",
+    "terrain", "landscape",
+)  # fmt: skip
+
+
+def main(out: Path, only: tuple[str, ...] = ()) -> None:
+    """Draw every figure into ``out`` (``only``: those named, e.g. ``wind sonar_wind``)."""
+    unknown = sorted(set(only) - set(FIGURES))
+    if unknown:
+        raise SystemExit(f"make_figures: no figure {unknown[0]!r}; one of {', '.join(FIGURES)}")
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        paper_stages(out, work)
-        paper_views(out, work)
-        profile_trees(out, work)
-        ipp_levels(out)
-        stands(out, work)
-        stand_pattern(out, work)
-        canopy_gaps(out, work / "forest.usda")
-        crowns(out, work)
-        leaves(out, work)
-        gallery(out, work)
-        allometric(out, work)
-        sensors(out, work)
-        forest_sensors(out, work)
-        camera_model(out, work)
-        seasons(out, work)
-        wind(out, work)
-        sonar_wind(out, work)
-        dead_wood(out, work)
-        ground_vegetation(out, work)
-        terrain(out, work)
-        landscape(out, work)
+        for name in FIGURES:
+            if only and name not in only:
+                continue
+            draw = globals()[name]
+            if name == "ipp_levels":
+                draw(out)
+            elif name == "canopy_gaps":
+                draw(out, work / "forest.usda")
+            else:
+                draw(out, work)
     for p in sorted([*out.glob("*.png"), *out.glob("*.gif")]):
         print(f"wrote {p}")
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else ROOT / "docs" / "figures")
+    main(
+        Path(sys.argv[1]) if len(sys.argv) > 1 else ROOT / "docs" / "figures",
+        tuple(sys.argv[2:]),
+    )
