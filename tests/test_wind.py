@@ -290,30 +290,49 @@ def _hover(seconds: float):
 
 
 def test_a_flight_sees_each_sweep_where_the_trees_sway_then(forests):
-    """A hovering VLP-16 flown through the gusty forest: each sweep's returns are a scan of
-    the stage at the sweep's middle (the trees moved between sweeps, by the wind layer's
-    samples, and the flight reads them); in calm air every sweep is the still forest's."""
+    """A hovering VLP-16 flown through the gusty forest: the sweep rolls, each slice of its
+    azimuths a scan of the stage at the slice's middle (the trees moved between slices, by
+    the wind layer's samples, and the flight reads them); in calm air every sweep is the
+    still forest's."""
     import dataclasses
 
+    from scipy.spatial import cKDTree
+
+    from usdforest.sensors.flight import ROLLING_SLICES
     from usdforest.sensors.lidar import PRESETS
     from usdforest.sensors.motion import animated
 
     assert animated(forests["gusty"]) and not animated(forests["still"])
     sensor = dataclasses.replace(PRESETS["vlp-16"], noise=False)
-    flown = api.fly(forests["gusty"], path=_hover(0.25), lidar=sensor, lidar_rate=10.0).lidar
-    sweep = np.floor(flown.gps_time * 10.0 + 1e-9).astype(int)
+    rate = 10.0
+    flown = api.fly(forests["gusty"], path=_hover(0.25), lidar=sensor, lidar_rate=rate).lidar
+    sweep = np.floor(flown.gps_time * rate + 1e-9).astype(int)
     assert sorted(set(sweep)) == [0, 1, 2]
-    seen = []
-    for k in (0, 2):
-        scanned = api.scan(
-            forests["gusty"], "lidar", (20.0, 20.0, 12.0), settings=sensor, time=k / 10 + 0.05
-        ).result
-        mine = np.sort(np.round(flown.points[sweep == k], 4), axis=0)
-        np.testing.assert_allclose(mine, np.sort(np.round(scanned.points, 4), axis=0), atol=2e-4)
-        seen.append(mine)
-    assert seen[0].shape != seen[1].shape or not np.allclose(seen[0], seen[1], atol=1e-3)
-    calm = api.fly(forests["calm"], path=_hover(0.25), lidar=sensor, lidar_rate=10.0).lidar
-    still = api.fly(forests["still"], path=_hover(0.25), lidar=sensor, lidar_rate=10.0).lidar
+    # each return's slice of the sweep, by its azimuth (the sweep turns through 360 degrees)
+    slot = np.minimum(flown.azimuth % 360.0 / 360.0 * ROLLING_SLICES, ROLLING_SLICES - 1)
+    slot = slot.astype(int)
+    off_middle = []
+    # the two slices of sweeps 0 and 2 with the most returns (the pines are east and west)
+    busiest = [
+        (k, j)
+        for k in (0, 2)
+        for j in np.argsort(np.bincount(slot[sweep == k], minlength=ROLLING_SLICES))[-2:]
+    ]
+    for k, j in busiest:
+        mine = flown.points[(sweep == k) & (slot == j)]
+        assert len(mine) > 100
+        at = min((k + (j + 0.5) / ROLLING_SLICES) / rate, 0.25)  # the flight's end: 0.25 s
+        scanned = api.scan(forests["gusty"], "lidar", (20.0, 20.0, 12.0), settings=sensor, time=at)
+        gap, _ = cKDTree(scanned.result.points).query(mine)
+        assert gap.max() < 1e-5  # the slice's returns are the scan's at the slice's time
+        middle = api.scan(
+            forests["gusty"], "lidar", (20.0, 20.0, 12.0), settings=sensor, time=(k + 0.5) / rate
+        )
+        off_middle.append(cKDTree(middle.result.points).query(mine)[0].max())
+    # the sweep's middle is not the slice's time: the trees moved in between
+    assert max(off_middle) > 1e-4
+    calm = api.fly(forests["calm"], path=_hover(0.25), lidar=sensor, lidar_rate=rate).lidar
+    still = api.fly(forests["still"], path=_hover(0.25), lidar=sensor, lidar_rate=rate).lidar
     np.testing.assert_array_equal(calm.points, still.points)
 
 

@@ -23,7 +23,7 @@ import csv
 import functools
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +36,7 @@ from usdforest.sensors.lidar import SpinningLidar, cast_pulses, observed
 from usdforest.sensors.motion import SceneMotion
 from usdforest.sensors.pose import Pose, rotations
 from usdforest.sensors.raycast import SceneCaster
+from usdforest.sensors.returns import Echoes
 from usdforest.sensors.scene import CLASSES, Scene
 from usdforest.sensors.sonar import SonarConfig, SonarScene
 
@@ -212,8 +213,10 @@ def fly_lidar(
 ) -> FlightReturns:
     """Sweeps at ``rate`` Hz along ``traj`` (returns as the sensor's ``returns`` mode says;
     each pulse its own time and pose); ``progress(done, total)`` after each sweep. With
-    ``motion`` (an animated stage: a forest's wind) each sweep sees the trees where they
-    stand at its middle (the trajectory's times are the stage's seconds)."""
+    ``motion`` (an animated stage: a forest's wind) the sweep rolls: each of its
+    ``ROLLING_SLICES`` slices of azimuth sees the trees where they stand at the slice's middle
+    (the trajectory's times are the stage's seconds; on a CUDA device, which builds its
+    scene again for each, the sweep's middle)."""
     sensor.check()
     check_lidar_rate(rate)
     caster = caster or SceneCaster(scene)
@@ -228,9 +231,10 @@ def fly_lidar(
         times = np.minimum(t0 + (az % 360.0) / 360.0 / rate, traj.t[-1])
         pos, rot, _ = traj.at(times)
         dirs = np.einsum("nij,nj->ni", rot, local)
-        if motion is not None:
-            caster = static.moved(motion.at(t0 + 0.5 / rate))
-        e = cast_pulses(caster, pos, dirs, sensor)
+        if motion is None:
+            e = cast_pulses(caster, pos, dirs, sensor)
+        else:
+            e = _rolling_cast(static, motion, (t0, rate, traj.t[-1]), az, pos, dirs, sensor)
         rng_, intensity = observed(e, sensor, stream(seed, "flight-lidar", k))
         i = e.pulse
         parts.append(
@@ -275,6 +279,38 @@ def fly_lidar(
         height=cat[0][:, 2] - ground_height(scene, cat[0][:, :2]),
         system=sensor.model or "OTHER",
     )
+
+
+ROLLING_SLICES = 16  # a sweep's slices of azimuth, each at its own time (6.25 ms at 10 Hz)
+
+
+def _rolling_cast(
+    static: SceneCaster,
+    motion: SceneMotion,
+    sweep: tuple[float, float, float],
+    az: np.ndarray,
+    pos: np.ndarray,
+    dirs: np.ndarray,
+    sensor: SpinningLidar,
+) -> Echoes:
+    """The returns of a sweep (its start, rate and the flight's end, where its pulses' times
+    stop) whose pulses fire at azimuths ``az`` from ``pos`` along ``dirs``, each slice of
+    azimuth cast at the scene as it stands at the slice's middle (ordered by pulse then range,
+    as one cast's)."""
+    t0, rate, end = sweep
+    slices = ROLLING_SLICES if static.device == "cpu" else 1
+    slot = np.minimum((az % 360.0) / 360.0 * slices, slices - 1).astype(np.int64)
+    parts = []
+    for j in range(slices):
+        sel = np.flatnonzero(slot == j)
+        if sel.size:
+            caster = static.moved(motion.at(min(t0 + (j + 0.5) / (slices * rate), end)))
+            e = cast_pulses(caster, pos[sel], dirs[sel], sensor)
+            parts.append(replace(e, pulse=sel[e.pulse]))
+    names = [f.name for f in fields(Echoes)]
+    merged = {n: np.concatenate([getattr(p, n) for p in parts]) for n in names}
+    order = np.argsort(merged["pulse"], kind="stable")
+    return Echoes(**{n: v[order] for n, v in merged.items()})
 
 
 def scan_angles(dirs: np.ndarray, forward: np.ndarray) -> np.ndarray:
