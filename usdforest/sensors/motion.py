@@ -135,39 +135,48 @@ class SceneMotion:
         self._last_turns = (t, out)
         return out
 
-    def leaves(self, seconds: float, leaves: Leaves) -> Leaves:
+    def _carried(self, seconds: float, tree: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For things of tree ids ``tree``: the instance each moves with (-1: none), and per
+        instance the row-vector transform from where it was extracted to where it is at
+        ``seconds``."""
+        which = self._instance_of(tree)
+        if not (which >= 0).any():
+            return which, np.zeros((0, 4, 4))
+        was, now = self.scene.instances.matrix, self.at(seconds).instances.matrix
+        return which, np.linalg.inv(was) @ now
+
+    def leaves(self, seconds: float, leaves: Leaves, *, normals: bool = True) -> Leaves:
         """``leaves`` (of this scene, where it was extracted) where they are at ``seconds``:
         moved by each tree's transform then against its extracted one, and a fluttering
-        leaf turned by its shape's turn then (leaves of no instance stay on their tree)."""
-        which = self._instance_of(leaves.tree)
-        moves, turning = which >= 0, leaves.turning
+        leaf turned by its shape's turn then (leaves of no instance stay on their tree);
+        without ``normals`` their normals are left as they were."""
+        k, rel = self._carried(seconds, leaves.tree)
+        moves, turning = k >= 0, leaves.turning
         if not moves.any() and not turning.any():
             return leaves
         centre, normal = leaves.centre.copy(), leaves.normal.copy()
-        rel = np.zeros((0, 4, 4))
         if moves.any():
-            was, now = self.scene.instances.matrix, self.at(seconds).instances.matrix
-            k = which[moves]
-            rel = np.linalg.inv(was[k]) @ now[k]  # row vectors: extracted world -> world now
-            c = leaves.centre[moves]
-            centre[moves] = np.einsum("nj,njk->nk", c, rel[:, :3, :3]) + rel[:, 3, :3]
-            # normals by the inverse transpose: a tree's half-float turn is not quite a rotation
-            cof = np.linalg.inv(rel[:, :3, :3]).transpose(0, 2, 1)
-            n = np.einsum("nj,njk->nk", leaves.normal[moves], cof)
-            normal[moves] = n / np.linalg.norm(n, axis=1, keepdims=True)
+            r = rel[k[moves]]
+            centre[moves] = np.einsum("nj,njk->nk", leaves.centre[moves], r[:, :3, :3])
+            centre[moves] += r[:, 3, :3]
+            if normals:
+                # by the inverse transpose: a tree's half-float turn is not quite a rotation
+                cof = np.linalg.inv(rel[:, :3, :3]).transpose(0, 2, 1)
+                n = np.einsum("nj,njk->nk", leaves.normal[moves], cof[k[moves]])
+                normal[moves] = n / np.linalg.norm(n, axis=1, keepdims=True)
         if turning.any():
             sel = np.flatnonzero(turning)
             frame = np.asarray(leaves.frame, dtype=float)[sel]
             carried = moves[sel]
             if carried.any():  # the leaf's tree moved too
-                at = np.cumsum(moves) - 1  # each moving leaf's row of rel
-                frame[carried] = frame[carried] @ rel[at[sel[carried]]]
+                frame[carried] = frame[carried] @ rel[k[sel[carried]]]
             shape = leaves.shape[sel]
             a = self.turns(seconds)[shape] @ frame
             centre[sel] = np.einsum("nj,njk->nk", self._shape_centres[shape], a[:, :3, :3])
             centre[sel] += a[:, 3, :3]
-            n = np.linalg.inv(a[:, :3, :3]).transpose(0, 2, 1)[:, 2, :]  # (0, 0, 1) M^-T
-            normal[sel] = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+            if normals:
+                n = np.linalg.inv(a[:, :3, :3]).transpose(0, 2, 1)[:, 2, :]  # (0, 0, 1) M^-T
+                normal[sel] = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         return replace(leaves, centre=centre, normal=normal)
 
     def _span(self, seconds: float) -> tuple[float, float]:
@@ -186,7 +195,7 @@ class SceneMotion:
         was extracted): their centres by :meth:`leaves` at the time codes either side,
         differenced (their trees' sway and their own flutter)."""
         before, after = self._span(seconds)
-        moved = [self.leaves(t, leaves).centre for t in (before, after)]
+        moved = [self.leaves(t, leaves, normals=False).centre for t in (before, after)]
         return (moved[1] - moved[0]) / (after - before)
 
     def reach(self, seconds: float) -> float:
@@ -220,16 +229,14 @@ class SceneMotion:
         """``wood`` (of this scene, where it was extracted) where its trees have carried it at
         ``seconds``: each piece's centre and axis moved by its tree's transform then against
         its extracted one (pieces of no instance stay)."""
-        which = self._instance_of(wood.tree)
+        which, rel = self._carried(seconds, wood.tree)
         moves = which >= 0
         if not moves.any():
             return wood
-        was, now = self.scene.instances.matrix, self.at(seconds).instances.matrix
-        k = which[moves]
-        rel = np.linalg.inv(was[k]) @ now[k]
+        r = rel[which[moves]]
         centre, axis = wood.centre.copy(), wood.axis.copy()
-        centre[moves] = np.einsum("nj,njk->nk", wood.centre[moves], rel[:, :3, :3]) + rel[:, 3, :3]
-        a = np.einsum("nj,njk->nk", wood.axis[moves], rel[:, :3, :3])
+        centre[moves] = np.einsum("nj,njk->nk", wood.centre[moves], r[:, :3, :3]) + r[:, 3, :3]
+        a = np.einsum("nj,njk->nk", wood.axis[moves], r[:, :3, :3])
         axis[moves] = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
         return replace(wood, centre=centre, axis=axis)
 

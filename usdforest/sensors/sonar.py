@@ -970,7 +970,8 @@ class SonarScene:
             near = replace(near, wood=wood, wood_velocity=field_of)
         heard = self._unseen_dropped(near, pose, cfg, caster)
         e = echo_from_targets(heard, pose, cfg, velocity)
-        return replace(e, leaves_in_range=len(near.leaves))
+        within = np.linalg.norm(near.leaves.centre - pose.position, axis=1) <= cfg.max_range
+        return replace(e, leaves_in_range=int(within.sum()))
 
 
 def sonar_scan(scene: Scene, pose: Pose, cfg: SonarConfig, caster=None, *, seed: int = 0) -> Echo:
