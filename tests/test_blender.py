@@ -148,3 +148,53 @@ def test_blender_plays_the_wind_layers_sway(tmp_path):
         np.testing.assert_allclose(b, s, atol=2e-3)
         moved = max(moved, float(np.abs(s - np.eye(3)).max()))
     assert moved > 5e-3  # the trees did sway between the frames
+
+
+def test_blender_plays_the_leaves_flutter(tmp_path):
+    """Blender imports the flutter classes (a leaf prototype per class, each turned by its
+    class's samples) and places every leaf of a class as pxr composes it at each frame, its
+    class's turn included (within 2 mm at the leaves' tips and middles, the tree's half-float
+    orientation Blender reads), and not without it."""
+    import tomllib
+
+    from pxr import UsdGeom
+    from scipy.spatial import cKDTree
+
+    from usdforest.usd.forest import write_forest as build
+
+    text = (
+        'seed = 5\n[region]\nbounds = [0.0, 0.0, 20.0, 20.0]\n[[sites]]\nx = 10.0\ny = 10.0\n'
+        'species = "beech"\ndbh = 0.08\nheight = 7.0\n[species.beech]\n'
+        'preset = "european-beech"\n[wind]\nspeed = 8.0\nduration = 1\nfps = 24\n'
+    )  # fmt: skip
+    stage = tmp_path / "flutter.usda"
+    build(parse_recipe(tomllib.loads(text), tmp_path, "flutter.toml"), stage, thumbnail=False)
+    name = "Leaf_flutter1"
+    run = subprocess.run(
+        [_blender_python(), str(PROBE.with_name("blender_flutter_probe.py")), str(stage), name,
+         "0", "5"],
+        capture_output=True, text=True, check=False, timeout=600,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-2000:]
+    seen = json.loads(run.stdout.strip().splitlines()[-1])
+    usd = Usd.Stage.Open(str(stage))
+    leaves = UsdGeom.PointInstancer(usd.GetPrimAtPath("/Forest/Trees/Prototypes/Beech_0/Leaves"))
+    trees = UsdGeom.PointInstancer(usd.GetPrimAtPath("/Forest/Trees"))
+    targets = [t.name for t in leaves.GetPrototypesRel().GetTargets()]
+    mine = np.asarray(leaves.GetProtoIndicesAttr().Get()) == targets.index(name)
+    points = np.array([[1.0, 0.0, 0.0, 1.0], [0.5, 0.3, 0.0, 1.0]])  # tip, a middle (leaf frame)
+
+    def marks(rows: np.ndarray) -> np.ndarray:
+        return np.einsum("pj,njk->npk", points, rows)[..., :3].reshape(len(rows), -1)
+
+    for f in (0, 5):
+        blender = np.transpose(np.array(seen[str(f)]), (0, 2, 1))  # row vectors
+        assert len(blender) == int(mine.sum()) > 100
+        tree = np.asarray(trees.ComputeInstanceTransformsAtTime(f, f))[0]
+        gaps = {}
+        for turn in (UsdGeom.PointInstancer.IncludeProtoXform,
+                     UsdGeom.PointInstancer.ExcludeProtoXform):  # fmt: skip
+            rows = np.asarray(leaves.ComputeInstanceTransformsAtTime(f, f, turn))[mine] @ tree
+            gaps[turn] = cKDTree(marks(rows)).query(marks(blender))[0]
+        assert gaps[UsdGeom.PointInstancer.IncludeProtoXform].max() < 2e-3
+        assert np.median(gaps[UsdGeom.PointInstancer.ExcludeProtoXform]) > 3e-3

@@ -63,12 +63,16 @@ def test_a_forest_on_a_raster_height_field_passes(tmp_path):
     _check(exe, out)
 
 
-def test_a_windy_leaf_off_forest_passes(tmp_path):
+@pytest.mark.parametrize("season", ["winter", "summer"])
+def test_a_windy_forest_passes(tmp_path, season):
     """The wind layer's time samples (orientations and orientationsf over the instancer, the
-    root's time codes) and a winter stand's leafless broadleaves pass too."""
+    root's time codes) pass, over a winter stand's leafless broadleaves and over a summer's
+    fluttering leaves (the flutter classes, their sibling leaf prototypes and each leaf's
+    class)."""
     exe = _validator()
     base = read_recipe(default_recipe_path().parent / "paper-two-tree-stand.toml")
-    data = dict(base.data, season="winter", wind={"speed": 8.0, "duration": 2.0, "fps": 5.0})
+    wind = {"speed": 8.0, "duration": 1.0, "fps": 24.0}
+    data = dict(base.data, season=season, wind=wind)
     out = tmp_path / "f.usda"
     write_forest(parse_recipe(data, base.base, base.source), out)
     _check(exe, out)
