@@ -18,6 +18,22 @@ preset = "silver-birch"
 preset = "norway-spruce"
 """
 
+# a beech and a pine 8 m apart on a 20 m square (the seasons' and the flutter's stand)
+BEECH_AND_PINE = """
+[[sites]]
+x = 6.0
+y = 10.0
+species = "beech"
+dbh = 0.25
+height = 18.0
+[[sites]]
+x = 14.0
+y = 10.0
+species = "pine"
+dbh = 0.25
+height = 18.0
+"""
+
 
 def allometric_stand(seed: int, size: float, sites: list[str], extra: str = "") -> str:
     """A recipe of ``sites`` (TOML inline tables) on a ``size`` m square, the four species

@@ -8,28 +8,17 @@ import math
 import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdGeom
-from stands import build_text
+from stands import BEECH_AND_PINE, build_text
 
 from usdforest.errors import RecipeError
 from usdforest.usd.validate import validate
 
 # a beech beside a pine (whose shoots do not flutter); the wind at 10 m/s
-STAND = """
+STAND = f"""
 seed = 3
 [region]
 bounds = [0.0, 0.0, 20.0, 20.0]
-[[sites]]
-x = 6.0
-y = 10.0
-species = "beech"
-dbh = 0.25
-height = 18.0
-[[sites]]
-x = 14.0
-y = 10.0
-species = "pine"
-dbh = 0.25
-height = 18.0
+{BEECH_AND_PINE}
 [species.beech]
 preset = "european-beech"
 [species.pine]

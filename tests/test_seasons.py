@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 from pxr import Usd, UsdGeom, UsdShade
-from stands import build_text
+from stands import BEECH_AND_PINE, build_text
 
 from usdforest import api
 from usdforest.errors import RecipeError
@@ -20,25 +20,11 @@ from usdforest.recipe import parse_recipe
 from usdforest.sensors.scene import CLASS_ID
 from usdforest.usd.inventory import stand_figures
 
-SITES = """
-[[sites]]
-x = 6.0
-y = 10.0
-species = "beech"
-dbh = 0.25
-height = 18.0
-[[sites]]
-x = 14.0
-y = 10.0
-species = "pine"
-dbh = 0.25
-height = 18.0
-"""
 MIXED = f"""
 seed = 3
 [region]
 bounds = [0.0, 0.0, 20.0, 20.0]
-{SITES}
+{BEECH_AND_PINE}
 [species.pine]
 preset = "scots-pine"
 [species.beech]
