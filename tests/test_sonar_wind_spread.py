@@ -33,8 +33,7 @@ import numpy as np
 import pytest
 from stands import build_text
 
-from usdforest.sensors.flight import _leaves_at
-from usdforest.sensors.motion import SceneMotion
+from usdforest.sensors.motion import SceneMotion, leaves_at
 from usdforest.sensors.pose import Pose
 from usdforest.sensors.scene import Leaves, extract_scene
 from usdforest.sensors.sonar import SonarConfig, SonarScene, echo_from_leaves, leaf_amplitudes
@@ -162,16 +161,16 @@ def _predicted(leaves: Leaves, velocity: np.ndarray, pose: Pose) -> tuple[float,
 
 
 def _recorded(motion: SceneMotion, t: float, seen: list, leaves: Leaves):
-    """A flight's leaves at ``t`` (:func:`usdforest.sensors.flight._leaves_at`), kept in
+    """A flight's leaves at ``t`` (:func:`usdforest.sensors.motion.leaves_at`), kept in
     ``seen`` for the prediction."""
-    now, velocity = _leaves_at(motion, t, leaves)
+    now, velocity = leaves_at(motion, t, leaves)
     seen.append((now, velocity))
     return now, velocity
 
 
 def _stilled(motion: SceneMotion, t: float, leaves: Leaves):
     """The same leaves where the wind has carried them at ``t``, heard still."""
-    now, velocity = _leaves_at(motion, t, leaves)
+    now, velocity = leaves_at(motion, t, leaves)
     return now, np.zeros_like(velocity)
 
 

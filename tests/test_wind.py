@@ -298,9 +298,8 @@ def test_a_flight_sees_each_sweep_where_the_trees_sway_then(forests):
 
     from scipy.spatial import cKDTree
 
-    from usdforest.sensors.flight import ROLLING_SLICES
     from usdforest.sensors.lidar import PRESETS
-    from usdforest.sensors.motion import animated
+    from usdforest.sensors.motion import ROLLING_SLICES, animated
 
     assert animated(forests["gusty"]) and not animated(forests["still"])
     sensor = dataclasses.replace(PRESETS["vlp-16"], noise=False)
@@ -430,8 +429,7 @@ def test_the_wood_sways_with_its_tree_and_the_sonar_hears_it_there(forests):
     of the scene extracted at t when the reflectors' velocities are left out."""
     import functools
 
-    from usdforest.sensors.flight import _leaves_at, _wood_at
-    from usdforest.sensors.motion import SceneMotion
+    from usdforest.sensors.motion import SceneMotion, leaves_at, wood_at
     from usdforest.sensors.pose import Pose
     from usdforest.sensors.scene import extract_scene
     from usdforest.sensors.sonar import SonarConfig, SonarScene
@@ -458,11 +456,11 @@ def test_the_wood_sways_with_its_tree_and_the_sonar_hears_it_there(forests):
     pose = Pose(14.0, 20.0, 6.0, 0.0, 10.0)
 
     def still_leaves(leaves):
-        moved, _ = _leaves_at(motion, t, leaves)
+        moved, _ = leaves_at(motion, t, leaves)
         return moved, None
 
     def still_wood(pieces):
-        moved, _ = _wood_at(motion, t, pieces)
+        moved, _ = wood_at(motion, t, pieces)
         return moved, None
 
     prepared = SonarScene(still, cfg)
@@ -477,8 +475,8 @@ def test_the_wood_sways_with_its_tree_and_the_sonar_hears_it_there(forests):
     np.testing.assert_allclose(heard.echo, want.echo, atol=1e-3 * peak)
     # and with their velocities, the wood's echo carries its Doppler: it differs
     moving = prepared.echo(
-        pose, cfg, moved=functools.partial(_leaves_at, motion, t),
-        wood_moved=functools.partial(_wood_at, motion, t),
+        pose, cfg, moved=functools.partial(leaves_at, motion, t),
+        wood_moved=functools.partial(wood_at, motion, t),
         caster=prepared.caster.moved(motion.at(t)), reach=motion.reach(t),
     )  # fmt: skip
     assert np.abs(moving.parts["branch"] - heard.parts["branch"]).max() > 0

@@ -23,7 +23,7 @@ import csv
 import functools
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -33,10 +33,9 @@ from usdforest.errors import UsdForestError
 from usdforest.paths import require_file
 from usdforest.seeds import stream
 from usdforest.sensors.lidar import SpinningLidar, cast_pulses, observed
-from usdforest.sensors.motion import SceneMotion
+from usdforest.sensors.motion import SceneMotion, leaves_at, rolling_cast, wood_at
 from usdforest.sensors.pose import Pose, rotations
 from usdforest.sensors.raycast import SceneCaster
-from usdforest.sensors.returns import Echoes
 from usdforest.sensors.scene import CLASSES, Scene
 from usdforest.sensors.sonar import SonarConfig, SonarScene
 
@@ -213,10 +212,9 @@ def fly_lidar(
 ) -> FlightReturns:
     """Sweeps at ``rate`` Hz along ``traj`` (returns as the sensor's ``returns`` mode says;
     each pulse its own time and pose); ``progress(done, total)`` after each sweep. With
-    ``motion`` (an animated stage: a forest's wind) the sweep rolls: each of its
-    ``ROLLING_SLICES`` slices of azimuth sees the trees where they stand at the slice's middle
-    (the trajectory's times are the stage's seconds; on a CUDA device, which builds its
-    scene again for each, the sweep's middle)."""
+    ``motion`` (an animated stage: a forest's wind) the sweep rolls
+    (:func:`usdforest.sensors.motion.rolling_cast`: each slice of azimuth sees the trees
+    where they stand at its middle; the trajectory's times are the stage's seconds)."""
     sensor.check()
     check_lidar_rate(rate)
     caster = caster or SceneCaster(scene)
@@ -234,7 +232,7 @@ def fly_lidar(
         if motion is None:
             e = cast_pulses(caster, pos, dirs, sensor)
         else:
-            e = _rolling_cast(static, motion, (t0, rate, traj.t[-1]), az, pos, dirs, sensor)
+            e = rolling_cast(static, motion, (t0, rate, traj.t[-1]), az, pos, dirs, sensor)
         rng_, intensity = observed(e, sensor, stream(seed, "flight-lidar", k))
         i = e.pulse
         parts.append(
@@ -279,38 +277,6 @@ def fly_lidar(
         height=cat[0][:, 2] - ground_height(scene, cat[0][:, :2]),
         system=sensor.model or "OTHER",
     )
-
-
-ROLLING_SLICES = 16  # a sweep's slices of azimuth, each at its own time (6.25 ms at 10 Hz)
-
-
-def _rolling_cast(
-    static: SceneCaster,
-    motion: SceneMotion,
-    sweep: tuple[float, float, float],
-    az: np.ndarray,
-    pos: np.ndarray,
-    dirs: np.ndarray,
-    sensor: SpinningLidar,
-) -> Echoes:
-    """The returns of a sweep (its start, rate and the flight's end, where its pulses' times
-    stop) whose pulses fire at azimuths ``az`` from ``pos`` along ``dirs``, each slice of
-    azimuth cast at the scene as it stands at the slice's middle (ordered by pulse then range,
-    as one cast's)."""
-    t0, rate, end = sweep
-    slices = ROLLING_SLICES if static.device == "cpu" else 1
-    slot = np.minimum((az % 360.0) / 360.0 * slices, slices - 1).astype(np.int64)
-    parts = []
-    for j in range(slices):
-        sel = np.flatnonzero(slot == j)
-        if sel.size:
-            caster = static.moved(motion.at(min(t0 + (j + 0.5) / (slices * rate), end)))
-            e = cast_pulses(caster, pos[sel], dirs[sel], sensor)
-            parts.append(replace(e, pulse=sel[e.pulse]))
-    names = [f.name for f in fields(Echoes)]
-    merged = {n: np.concatenate([getattr(p, n) for p in parts]) for n in names}
-    order = np.argsort(merged["pulse"], kind="stable")
-    return Echoes(**{n: v[order] for n, v in merged.items()})
 
 
 def scan_angles(dirs: np.ndarray, forward: np.ndarray) -> np.ndarray:
@@ -532,17 +498,6 @@ class FlightEcho:
     labels: np.ndarray  # (tree, class, energy, range_min, range_max) rows, with their pulse
 
 
-def _leaves_at(motion: SceneMotion, t: float, leaves):
-    """``leaves`` where they are at ``t`` (carried by their trees, turned by their flutter),
-    and their velocities then."""
-    return motion.leaves(t, leaves), motion.leaf_velocities(t, leaves)
-
-
-def _wood_at(motion: SceneMotion, t: float, wood):
-    """``wood`` where its trees carry it at ``t``, and the velocity field of its points."""
-    return motion.cylinders(t, wood), functools.partial(motion.velocities, t)
-
-
 def fly_sonar(
     scene: Scene,
     cfg: SonarConfig,
@@ -573,8 +528,8 @@ def fly_sonar(
         moving: dict = {}
         if motion is not None:
             moving = {
-                "moved": functools.partial(_leaves_at, motion, times[k]),
-                "wood_moved": functools.partial(_wood_at, motion, times[k]),
+                "moved": functools.partial(leaves_at, motion, times[k]),
+                "wood_moved": functools.partial(wood_at, motion, times[k]),
                 # what hides a reflector stands where the wind has moved it too
                 "caster": prepared.caster.moved(motion.at(times[k])) if cfg.occlusion else None,
                 "reach": motion.reach(times[k]),

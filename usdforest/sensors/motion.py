@@ -11,11 +11,14 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
 
+from usdforest.sensors.lidar import SpinningLidar, cast_pulses
+from usdforest.sensors.raycast import SceneCaster
+from usdforest.sensors.returns import Echoes
 from usdforest.sensors.scene import stage_time
 from usdforest.sensors.scenetypes import Leaves, Scene
 from usdforest.sensors.wood import Cylinders
@@ -261,3 +264,47 @@ class SceneMotion:
         rel = np.asarray(points, dtype=float)[moves] - now[k, 3, :3]
         out[moves] = np.einsum("nij,nj->ni", spin[k], rel) + drift[k]
         return out
+
+
+def leaves_at(motion: SceneMotion, t: float, leaves):
+    """``leaves`` where they are at ``t`` (carried by their trees, turned by their flutter),
+    and their velocities then."""
+    return motion.leaves(t, leaves), motion.leaf_velocities(t, leaves)
+
+
+def wood_at(motion: SceneMotion, t: float, wood):
+    """``wood`` where its trees carry it at ``t``, and the velocity field of its points."""
+    return motion.cylinders(t, wood), functools.partial(motion.velocities, t)
+
+
+ROLLING_SLICES = 16  # a sweep's slices of azimuth, each at its own time (6.25 ms at 10 Hz)
+
+
+def rolling_cast(
+    static: SceneCaster,
+    motion: SceneMotion,
+    sweep: tuple[float, float, float],
+    az: np.ndarray,
+    pos: np.ndarray,
+    dirs: np.ndarray,
+    sensor: SpinningLidar,
+) -> Echoes:
+    """The returns of a lidar sweep (its start, rate and the flight's end, where its pulses'
+    times stop) whose pulses fire at azimuths ``az`` from ``pos`` along ``dirs``: each of its
+    ``ROLLING_SLICES`` slices of azimuth cast at the scene as it stands at the slice's middle
+    (on a CUDA device, which builds its scene again each time, the sweep's middle), ordered
+    by pulse then range as one cast's."""
+    t0, rate, end = sweep
+    slices = ROLLING_SLICES if static.device == "cpu" else 1
+    slot = np.minimum((az % 360.0) / 360.0 * slices, slices - 1).astype(np.int64)
+    parts = []
+    for j in range(slices):
+        sel = np.flatnonzero(slot == j)
+        if sel.size:
+            caster = static.moved(motion.at(min(t0 + (j + 0.5) / (slices * rate), end)))
+            e = cast_pulses(caster, pos[sel], dirs[sel], sensor)
+            parts.append(replace(e, pulse=sel[e.pulse]))
+    names = [f.name for f in fields(Echoes)]
+    merged = {n: np.concatenate([getattr(p, n) for p in parts]) for n in names}
+    order = np.argsort(merged["pulse"], kind="stable")
+    return Echoes(**{n: v[order] for n, v in merged.items()})
