@@ -138,15 +138,18 @@ class SceneMotion:
         self._last_turns = (t, out)
         return out
 
+    def _relative(self, seconds: float) -> np.ndarray:
+        """Per tree instance, the row-vector transform from where it was extracted to where
+        it is at ``seconds``."""
+        return np.linalg.inv(self.scene.instances.matrix) @ self.at(seconds).instances.matrix
+
     def _carried(self, seconds: float, tree: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For things of tree ids ``tree``: the instance each moves with (-1: none), and per
-        instance the row-vector transform from where it was extracted to where it is at
-        ``seconds``."""
+        """For things of tree ids ``tree``: the instance each moves with (-1: none), and
+        :meth:`_relative` at ``seconds``."""
         which = self._instance_of(tree)
         if not (which >= 0).any():
             return which, np.zeros((0, 4, 4))
-        was, now = self.scene.instances.matrix, self.at(seconds).instances.matrix
-        return which, np.linalg.inv(was) @ now
+        return which, self._relative(seconds)
 
     def leaves(self, seconds: float, leaves: Leaves, *, normals: bool = True) -> Leaves:
         """``leaves`` (of this scene, where it was extracted) where they are at ``seconds``:
@@ -208,8 +211,7 @@ class SceneMotion:
         inst = self.scene.instances
         far = 0.0
         if len(inst) and self.scene.sources is not None:
-            was, now = inst.matrix, self.at(seconds).instances.matrix
-            rel = np.linalg.inv(was) @ now
+            rel = self._relative(seconds)
             centre, radius = self.scene.instance_spheres()
             shift = np.einsum("nj,njk->nk", centre, rel[:, :3, :3] - np.eye(3)) + rel[:, 3, :3]
             bend = np.linalg.norm(rel[:, :3, :3] - np.eye(3), ord=2, axis=(1, 2))
