@@ -989,15 +989,14 @@ def _parse_wind(t: Any, tiles: float | None) -> Any:
 def _check_flutter(wind: Any, species: Mapping[str, Any]) -> None:
     """Leaves that flutter need four time codes a cycle of their fastest class (a forest of
     conifers alone, whose shoots do not flutter, needs none)."""
-    from usdforest.grow.sway import FLUTTER_SPREAD
+    from usdforest.grow.sway import FLUTTER_SPREAD, template_flutters
 
     if wind is None or wind.flutter_angle == 0 or wind.speed == 0:
         return
     leafy = sorted(
         k
         for k, e in species.items()
-        if e.species.geometry.leaf_on > 0
-        and not Path(e.species.geometry.leaf).stem.startswith("shoot")
+        if e.species.geometry.leaf_on > 0 and template_flutters(Path(e.species.geometry.leaf).stem)
     )
     fastest = FLUTTER_SPREAD[1] * wind.flutter_frequency
     if leafy and fastest > wind.fps / 4:

@@ -234,6 +234,13 @@ FLUTTER_SPREAD = (0.5, 1.5)  # the classes' frequencies, times flutter_frequency
 FLUTTER_ONSET = 3.4  # m/s: Beaufort 3, "leaves and small twigs in constant motion"
 
 
+def template_flutters(name: str) -> bool:
+    """Whether leaves of the leaf template ``name`` flutter: a leaf does; a conifer's shoot (a
+    template named ``shoot_*``, as the conifer presets' are) has no petiole to turn on and
+    moves only with its tree."""
+    return not name.startswith("shoot")
+
+
 def flutter_amplitude(spec: WindSpec) -> float:
     """Peak twist of a leaf (radians) in ``spec``'s wind."""
     return math.radians(spec.flutter_angle) * min(spec.speed / FLUTTER_ONSET, 1.0)

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
-from usdforest.grow.sway import WindSpec, flutter, flutter_amplitude
+from usdforest.grow.sway import WindSpec, flutter, flutter_amplitude, template_flutters
 from usdforest.usd.layers import T, attr, class_labels, extents, ints, prim
 
 FLUTTER_OP = "xformOp:orient:flutter"
@@ -52,11 +52,10 @@ def leaf_instancers(stage: Usd.Stage, trees: str = "/Forest/Trees") -> list[Usd.
 
 
 def flutters(leaf: Usd.Prim) -> bool:
-    """Whether a leaf prototype flutters: a leaf does, a conifer's shoot (a template named
-    ``shoot_*``, as the conifer presets' are) has no petiole to turn on and moves only with
-    its tree."""
+    """Whether a leaf prototype flutters, by its template's name
+    (:func:`usdforest.grow.sway.template_flutters`)."""
     name = leaf.GetCustomDataByKey("usdforest:name")
-    return not (isinstance(name, str) and name.startswith("shoot"))
+    return not isinstance(name, str) or template_flutters(name)
 
 
 def _leaf_reach(pi: UsdGeom.PointInstancer) -> float:
