@@ -50,12 +50,42 @@ def world_mesh(prim: Usd.Prim) -> trimesh.Trimesh:
 
 def wood_prims(stage: Usd.Stage, root: str = "/Tree") -> dict[int, Usd.Prim]:
     """Wood prims by their index (``B_0007`` -> 7; the trunk under the index no branch has)."""
-    branches = stage.GetPrimAtPath(f"{root}/Branches")
-    out = {int(p.GetName()[2:]): p for p in branches.GetChildren()} if branches else {}
+    out = {int(p.GetName()[2:]): p for p in wood_list(stage, root) if p.GetName() != "Trunk"}
     parents = {p.GetAttribute("usdforest:parent").Get() for p in out.values()}
     trunk_index = next(iter(parents - set(out) - {-1}), -1)
     out[trunk_index] = stage.GetPrimAtPath(f"{root}/Trunk")
     return out
+
+
+def wood_list(stage: Usd.Stage, root: str = "/Tree") -> list[Usd.Prim]:
+    """The trunk and every branch prim, on the tree or in its limbs' groups."""
+    tree = stage.GetPrimAtPath(root)
+    return [
+        p
+        for p in Usd.PrimRange(tree)
+        if p.GetAttribute("usdforest:order").HasAuthoredValue()
+    ]
+
+
+def leaf_instancers(stage: Usd.Stage, root: str = "/Tree") -> list[UsdGeom.PointInstancer]:
+    """The tree's leaf instancers: its own and each limb's (``Leaves``)."""
+    return [
+        UsdGeom.PointInstancer(p)
+        for p in Usd.PrimRange(stage.GetPrimAtPath(root))
+        if p.IsA(UsdGeom.PointInstancer) and p.GetName() == "Leaves"
+    ]
+
+
+def leaf_positions(stage: Usd.Stage, root: str = "/Tree") -> np.ndarray:
+    """Every leaf's position in the tree's space, instancer by instancer."""
+    cache = UsdGeom.XformCache(T0)
+    tree = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(stage.GetPrimAtPath(root))))
+    out = []
+    for pi in leaf_instancers(stage, root):
+        m = np.asarray(cache.GetLocalToWorldTransform(pi.GetPrim()), dtype=float) @ tree
+        pos = np.asarray(pi.GetPositionsAttr().Get() or [], dtype=float).reshape(-1, 3)
+        out.append(pos @ m[:3, :3] + m[3, :3])
+    return np.concatenate(out) if out else np.zeros((0, 3))
 
 
 def base_point(prim: Usd.Prim) -> np.ndarray:

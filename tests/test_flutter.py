@@ -28,9 +28,11 @@ SPEED, DURATION, FPS, CLASSES, ANGLE, FREQUENCY = 10.0, 2.0, 24.0, 6, 20.0, 3.0
 WIND = (
     f"[wind]\nspeed = {SPEED}\nduration = {DURATION}\nfps = {FPS}\nflutter_classes = {CLASSES}\n"
     f"flutter_angle = {ANGLE}\nflutter_frequency = {FREQUENCY}\n"
+    # the leaves alone: the sensors' motion carries each limb at rest on its tree
+    "branch_sway = false\n"
 )
-BEECH = "/Forest/Trees/Prototypes/Beech_0/Leaves"
-PINE = "/Forest/Trees/Prototypes/Pine_0/Leaves"
+BEECH = "/Forest/Trees/Prototypes/Beech_0"
+PINE = "/Forest/Trees/Prototypes/Pine_0"
 
 
 @pytest.fixture(scope="module")
@@ -42,11 +44,26 @@ def stands(tmp_path_factory):
     }
 
 
-def _leaf_rows(stage: Usd.Stage, path: str, time) -> np.ndarray:
+def _leaf_instancers(stage: Usd.Stage, tree: str) -> list[UsdGeom.PointInstancer]:
+    """The tree's leaf instancers: its own and each limb's."""
+    return [
+        UsdGeom.PointInstancer(p)
+        for p in Usd.PrimRange(stage.GetPrimAtPath(tree))
+        if p.IsA(UsdGeom.PointInstancer) and p.GetName() == "Leaves"
+    ]
+
+
+def _leaf_rows(stage: Usd.Stage, tree: str, time) -> np.ndarray:
     """Each leaf's composed transform in its tree's space, its prototype's own transform
-    (the flutter) included, as USD computes it."""
-    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath(path))
-    return np.asarray(pi.ComputeInstanceTransformsAtTime(time, time), dtype=float)
+    (the flutter) included, as USD computes it, instancer by instancer."""
+    cache = UsdGeom.XformCache(time)
+    inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(stage.GetPrimAtPath(tree))))
+    out = []
+    for pi in _leaf_instancers(stage, tree):
+        to_tree = np.asarray(cache.GetLocalToWorldTransform(pi.GetPrim()), dtype=float) @ inv
+        rows = np.asarray(pi.ComputeInstanceTransformsAtTime(time, time), dtype=float)
+        out.append(rows.reshape(-1, 4, 4) @ to_tree)
+    return np.concatenate(out)
 
 
 def _twist_and_flap(rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -113,8 +130,9 @@ def test_flutter_is_a_few_shared_rotations_and_leaves_the_still_forest_as_it_was
         "/Forest/Trees.orientations",
         "/Forest/Trees.orientationsf",
     }
-    # the pine's shoots do not flutter: its instancer is untouched
-    assert not layer.GetPrimAtPath(PINE)
+    # the pine's shoots do not flutter: its instancers are untouched
+    pines = _leaf_instancers(Usd.Stage.Open(str(stands["still"])), PINE)
+    assert len(pines) > 10 and not any(layer.GetPrimAtPath(p.GetPath()) for p in pines)
     # muted, or at the default time, the leaves are the still forest's
     still = Usd.Stage.Open(str(stands["still"]))
     for time in (Usd.TimeCode.Default(),):
@@ -142,7 +160,7 @@ def test_a_scene_at_a_time_holds_its_leaves_turned_and_motion_turns_them_there(s
     # independently: the leaf shape's box centre through USD's transforms, then the tree's
     mesh = next(
         p
-        for p in Usd.PrimRange(stage.GetPrimAtPath(BEECH + "/Prototypes/Leaf"))
+        for p in Usd.PrimRange(stage.GetPrimAtPath(BEECH + "/Leaves/Prototypes/Leaf"))
         if p.IsA(UsdGeom.Mesh)
     )
     pts = np.asarray(UsdGeom.Mesh(mesh).GetPointsAttr().Get(), dtype=float)
@@ -190,7 +208,9 @@ def test_the_recipe_checks_the_flutter(tmp_path, extra, message):
     from usdforest.recipe import parse_recipe
 
     table = {**loads(WIND)["wind"], **loads(extra)}
-    text = STAND + "[wind]\n" + "".join(f"{k} = {v}\n" for k, v in table.items())
+    text = STAND + "[wind]\n" + "".join(
+        f"{k} = {str(v).lower() if isinstance(v, bool) else v}\n" for k, v in table.items()
+    )
     with pytest.raises(RecipeError, match=message):
         parse_recipe(loads(text), tmp_path, "f.toml")
 

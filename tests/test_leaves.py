@@ -180,9 +180,13 @@ def _composed_leaves(stage_path):
         n /= np.linalg.norm(n, axis=1, keepdims=True)
         z = np.array(pi.GetPositionsAttr().Get())[:, 2]
         layers = [spec.layer.identifier for spec in mesh.GetPrimStack()]
-        out[prim.GetParent().GetName().lower()] = (
-            np.degrees(np.arccos(np.abs(n[:, 2]))),
-            z,
+        # a tree's own leaves and each of its limbs', in its tree's space (a limb's group
+        # has no transform of its own)
+        tree = str(prim.GetPath()).split("/Prototypes/")[1].split("/")[0].lower()
+        incl, heights, _ = out.get(tree, (np.zeros(0), np.zeros(0), None))
+        out[tree] = (
+            np.concatenate([incl, np.degrees(np.arccos(np.abs(n[:, 2])))]),
+            np.concatenate([heights, z]),
             layers,
         )
     return out

@@ -38,13 +38,16 @@ def test_paper_branch_counts_from_composed_usd(built, k, branches):
     assert info["branches_by_order"]["0"] == 1
     assert info["branches_by_order"]["1"] == branches
     stage = Usd.Stage.Open(str(path))
-    orders = [
-        p.GetAttribute("usdforest:order").Get()
-        for p in stage.GetPrimAtPath("/Tree/Branches").GetChildren()
+    # the wood prims, on the tree or in its limbs' groups
+    wood = [
+        p
+        for p in Usd.PrimRange(stage.GetPrimAtPath("/Tree/Branches"))
+        if p.GetAttribute("usdforest:order").HasAuthoredValue()
     ]
+    orders = [p.GetAttribute("usdforest:order").Get() for p in wood]
     axes = {
         p.GetAttribute("usdforest:axis").Get()
-        for p in stage.GetPrimAtPath("/Tree/Branches").GetChildren()
+        for p in wood
         if p.GetAttribute("usdforest:order").Get() == 1
     }
     assert len(axes) == branches and orders.count(1) >= branches
@@ -72,12 +75,12 @@ def test_structure_model_hierarchy_and_materials(built, name):
     assert data["lsystem"]["leaves"] == b.placement.n_leaves
     assert list(tree.GetAttribute("semantics:labels:species").Get()) == [name]
     g = b.grown.species.geometry
-    wood = [
-        stage.GetPrimAtPath("/Tree/Trunk"),
-        *stage.GetPrimAtPath("/Tree/Branches").GetChildren(),
+    wood = measure.wood_list(stage)
+    protos = [
+        stage.GetPrimAtPath(t)
+        for leaves in measure.leaf_instancers(stage)
+        for t in leaves.GetPrototypesRel().GetTargets()
     ]
-    leaves = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Tree/Leaves"))
-    protos = [stage.GetPrimAtPath(t) for t in leaves.GetPrototypesRel().GetTargets()]
     for parts, color, base in ((wood, g.bark_color, "bark"), (protos, g.leaf_color, "leaf_grass")):
         for part in parts:
             assert_tree_look(part, color, base)
@@ -110,16 +113,12 @@ def test_tree_colours_reach_inside_instances(tmp_path):
     out = tmp_path / "red.usda"
     b = write_tree(sp, out, seed=2)
     stage = Usd.Stage.Open(str(out))
-    wood = [
-        stage.GetPrimAtPath("/Tree/Trunk"),
-        *stage.GetPrimAtPath("/Tree/Branches").GetChildren(),
-    ]
-    for w in wood:
+    for w in measure.wood_list(stage):
         assert w.IsInstance()
         assert_tree_look(w, (0.9, 0.1, 0.2), "bark")
-    leaves = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Tree/Leaves"))
-    for t in leaves.GetPrototypesRel().GetTargets():
-        assert_tree_look(stage.GetPrimAtPath(t), (0.1, 0.2, 0.9), "leaf_grass")
+    for leaves in measure.leaf_instancers(stage):
+        for t in leaves.GetPrototypesRel().GetTargets():
+            assert_tree_look(stage.GetPrimAtPath(t), (0.1, 0.2, 0.9), "leaf_grass")
     used = {b.placement.templates[i] for i in np.unique(b.placement.template)}
     assert len(stage.GetPrototypes()) == len(used)
     # the look classes are abstract: no reader traverses them as geometry
@@ -129,22 +128,30 @@ def test_tree_colours_reach_inside_instances(tmp_path):
 
 @pytest.mark.parametrize("name", TREES)
 def test_leaf_instancer_arrays(built, name):
+    """The tree's leaf instancers (its own and each limb's) hold every leaf once."""
     path, b = built[name]
     stage = Usd.Stage.Open(str(path))
-    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Tree/Leaves"))
     n = b.placement.n_leaves
-    assert len(pi.GetPositionsAttr().Get()) == n
-    ids = np.asarray(pi.GetIdsAttr().Get())
-    assert ids.dtype == np.int64 and np.array_equal(ids, np.arange(n))
-    q = np.array([[x.GetReal(), *x.GetImaginary()] for x in pi.GetOrientationsAttr().Get()])
-    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=2e-3)
-    assert pi.GetOrientationsAttr().GetTypeName() == "quath[]"
+    instancers = measure.leaf_instancers(stage)
+    assert sum(len(pi.GetPositionsAttr().Get()) for pi in instancers) == n
+    assert len(instancers) > 1  # the limbs carry their own leaves
+    for pi in instancers:
+        count = len(pi.GetPositionsAttr().Get())
+        ids = np.asarray(pi.GetIdsAttr().Get())
+        assert ids.dtype == np.int64 and np.array_equal(ids, np.arange(count))
+        assert pi.GetOrientationsAttr().GetTypeName() == "quath[]"
+        q = np.array([[x.GetReal(), *x.GetImaginary()] for x in pi.GetOrientationsAttr().Get()])
+        np.testing.assert_allclose(np.linalg.norm(q.reshape(-1, 4), axis=1), 1.0, atol=2e-3)
+        # pxr bounds each instance by its prototype's box turned with it: the authored
+        # extent, exact (test_extents_are_exact_on_the_composed_geometry), lies inside that
+        if count:
+            authored = np.array(pi.GetExtentAttr().Get())
+            computed = np.array(
+                pi.ComputeExtentAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
+            )
+            assert np.all(authored[0] >= computed[0] - 1e-4)
+            assert np.all(authored[1] <= computed[1] + 1e-4)
     assert stage_info(path)["leaves"] == n
-    # pxr bounds each instance by its prototype's box turned with it: the authored extent,
-    # exact (test_extents_are_exact_on_the_composed_geometry), lies inside that
-    authored = np.array(pi.GetExtentAttr().Get())
-    computed = np.array(pi.ComputeExtentAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default()))
-    assert np.all(authored[0] >= computed[0] - 1e-4) and np.all(authored[1] <= computed[1] + 1e-4)
 
 
 @pytest.mark.parametrize("name", TREES)
@@ -160,9 +167,9 @@ def test_extents_are_exact_on_the_composed_geometry(built, name):
     tris = measure.composed_triangles(stage).reshape(-1, 3)
     tol = 1e-5 * (1 + np.abs(tris).max())
     np.testing.assert_allclose(hint[2:4], [tris.min(axis=0), tris.max(axis=0)], atol=tol)
-    leaves = stage.GetPrimAtPath("/Tree/Leaves")
-    if leaves:
-        pi = UsdGeom.PointInstancer(leaves)
+    for pi in measure.leaf_instancers(stage):
+        if not pi.GetPositionsAttr().Get():
+            continue
         mats = np.asarray(pi.ComputeInstanceTransformsAtTime(*[Usd.TimeCode.Default()] * 2))
         idx = np.asarray(pi.GetProtoIndicesAttr().Get())
         pts = []
@@ -195,8 +202,7 @@ def test_joints_measured_on_the_composed_stage(built, name):
             assert r <= prims[parent].GetAttribute("usdforest:radius").Get() + 1e-6
     # leaves: attachment points within 2 cm of the composed wood surface
     wood = trimesh.util.concatenate([measure.world_mesh(p) for p in prims.values()])
-    leaves = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Tree/Leaves"))
-    pos = np.asarray(leaves.GetPositionsAttr().Get(), dtype=np.float64)
+    pos = measure.leaf_positions(stage)
     sample = pos[np.random.default_rng(0).choice(len(pos), min(len(pos), 400), replace=False)]
     _, dist, _ = trimesh.proximity.closest_point(wood, sample)
     assert np.quantile(dist, 0.99) <= 0.02 and dist.max() <= 0.05, dist.max()
@@ -311,7 +317,9 @@ def test_paper_presets_show_the_bend_of_the_curved_cad_branches(tmp_path, k):
     stage = Usd.Stage.Open(str(out))
     cache = UsdGeom.XformCache()
     ratios, branches = [], 0
-    for p in stage.GetPrimAtPath("/Tree/Branches").GetChildren():
+    for p in measure.wood_list(stage):
+        if p.GetName() == "Trunk":
+            continue
         branches += 1
         template = p.GetAttribute("usdforest:template").Get()
         if "curved" not in template:

@@ -967,7 +967,7 @@ def _parse_wind(t: Any, tiles: float | None) -> Any:
         raise RecipeError("wind: expected a table, e.g. [wind] speed = 5")
     if tiles is not None:
         raise RecipeError("wind: a tiled forest cannot be animated yet; remove [tiles] or [wind]")
-    check_keys(t, set(WIND_RANGES), "wind")
+    check_keys(t, {*WIND_RANGES, "branch_sway"}, "wind")
     d = WindSpec()
     values = {}
     for k, (lo, hi, open_lo) in WIND_RANGES.items():
@@ -983,7 +983,10 @@ def _parse_wind(t: Any, tiles: float | None) -> Any:
             f"wind.flutter_classes: {values['flutter_classes']:g} is not a whole number"
         )
     values["flutter_classes"] = int(values["flutter_classes"])
-    return WindSpec(**values)
+    branch_sway = t.get("branch_sway", d.branch_sway)
+    if not isinstance(branch_sway, bool):
+        raise RecipeError(f"wind.branch_sway: expected true or false, got {branch_sway!r}")
+    return WindSpec(**values, branch_sway=branch_sway)
 
 
 def _check_flutter(wind: Any, species: Mapping[str, Any]) -> None:

@@ -97,9 +97,10 @@ def proxy_points(p: Placement) -> np.ndarray:
 
 def leaf_clusters(p: Placement, k: int = CLUSTER) -> dict[str, np.ndarray]:
     """Every ``k``-th leaf, scaled by sqrt(k): the same leaf area from k times fewer
-    instances."""
+    instances (``leaf``: which leaf each cluster is)."""
     sel = np.arange(0, p.n_leaves, k)
     return {
+        "leaf": sel,
         "position": p.leaf_position[sel],
         "orient": p.leaf_orient[sel],
         "scale": p.leaf_scale[sel] * math.sqrt(k),

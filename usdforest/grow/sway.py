@@ -27,7 +27,11 @@ canopy profile, a = ``attenuation``), h the tallest tree.
 
 The animation is periodic over ``duration`` (every gust a whole number of cycles of it), so the
 oscillator's steady state is exact in the frequency domain and the animation loops without a
-seam. Leaves flutter (:func:`flutter`): every leaf twists about its midrib and flaps about its
+seam. Each first-order branch (a limb, with all that grows on it) sways too
+(:func:`bough_sway`): it is a cantilever of its own base diameter and length, with its own
+natural frequency by the same law, buffeted by the gusts at its height through its own
+damped oscillator; its share of the crown's drag is its share of the crown's leaves. Leaves
+flutter (:func:`flutter`): every leaf twists about its midrib and flaps about its
 petiole, each a sine at whole cycles of ``duration``. The stand's leaves fall into
 ``flutter_classes`` classes of their own frequencies and phases, each leaf in one (so the
 layer holds one rotation per class and time code, not one per leaf). The twist's amplitude
@@ -93,6 +97,9 @@ class WindSpec:
         Mean frequency of the leaves' flutter (Hz).
     flutter_classes
         Classes of leaves that flutter alike (their own frequencies and phases).
+    branch_sway
+        Whether each first-order branch sways on its own about its base (:func:`bough_sway`)
+        besides being carried by its stem.
     """
 
     speed: float = 5.0
@@ -110,6 +117,7 @@ class WindSpec:
     flutter_angle: float = 15.0
     flutter_frequency: float = 4.0
     flutter_classes: int = 8
+    branch_sway: bool = True
 
     @property
     def frames(self) -> int:
@@ -222,10 +230,72 @@ def sway(stems: Stems, spec: WindSpec, seed: int) -> np.ndarray:
         )  # (frames, trees, 2) in the wind's frame
         static = drag_force(_take(stems, i), wind, spec) * gain[i, None]
         spectrum = np.fft.rfft(static, axis=0)
-        h = w0[i] ** 2 / (w0[i] ** 2 - w[:, None] ** 2 + 2j * spec.damping * w0[i] * w[:, None])
+        h = oscillator(w, w0[i], spec.damping).T
         x = np.fft.irfft(spectrum * h[..., None], n, axis=0)
         world = x[..., :1] * along + x[..., 1:] * across
         out[:n, i] = world
+    out[n] = out[0]
+    return out
+
+
+# the rms of the drag's fluctuation, per direction across a limb, over g times the mean drag:
+# 2 g along the wind, 0.8 g across it (linearised drag, as for the stems), shared between the
+# two directions across the limb, since a tree prototype's limbs face every way
+BUFFET = math.sqrt((2.0**2 + CROSS_GUST**2) / 2)
+
+
+@dataclass(frozen=True)
+class Boughs:
+    """The limbs of one tree prototype that sway: per limb the height of its middle z (m),
+    its base diameter d (m), its length L (m) and its drag area A (m²)."""
+
+    height: np.ndarray
+    diameter: np.ndarray
+    length: np.ndarray
+    area: np.ndarray
+
+
+def bough_wind(boughs: Boughs, top: float, spec: WindSpec) -> np.ndarray:
+    """Mean wind (m/s) at each limb's middle, the canopy profile below the stand's ``top``."""
+    rel = np.minimum(boughs.height / max(top, 1e-9), 1.0)
+    return spec.speed * np.exp(spec.attenuation * (rel - 1.0))
+
+
+def bough_deflection(boughs: Boughs, top: float, spec: WindSpec) -> np.ndarray:
+    """Each limb's tip deflection (m) under its mean drag spread evenly along it:
+    F L³ / (8 E I), F = 1/2 rho_air Cd A U², I = pi d⁴ / 64."""
+    force = 0.5 * AIR_DENSITY * spec.drag * boughs.area * bough_wind(boughs, top, spec) ** 2
+    inertia = math.pi * np.maximum(boughs.diameter, 1e-6) ** 4 / 64
+    return force * boughs.length**3 / (8 * spec.wood_modulus * inertia)
+
+
+def oscillator(w: np.ndarray, w0: np.ndarray, zeta: float) -> np.ndarray:
+    """``(..., frequencies)`` response of damped oscillators of natural angular frequencies
+    ``w0`` (...) to a forcing at angular frequencies ``w``, 1 at rest."""
+    w0 = np.asarray(w0)[..., None]
+    return w0**2 / (w0**2 - w**2 + 2j * zeta * w0 * w)
+
+
+def bough_sway(boughs: Boughs, top: float, spec: WindSpec, seed: int) -> np.ndarray:
+    """``(frames + 1, limbs, 2)`` tip displacements (m) of each limb along two directions
+    across it (about its mean position), at the time codes ``0 .. frames``.
+
+    Each direction is the response of the limb's damped oscillator (natural frequency
+    :func:`natural_frequency` of its base diameter and length, damping ``damping``) to
+    unit-variance gusts of von Kármán's spectrum of their own (:func:`gust_spectra`), times
+    ``BUFFET`` g times the tip's mean deflection (:func:`bough_deflection`)."""
+    n = spec.frames
+    k = len(boughs.length)
+    out = np.zeros((n + 1, k, 2))
+    if k == 0 or spec.speed == 0 or spec.gustiness == 0:
+        return out
+    coeffs = gust_spectra(spec, k, seed)  # (limbs, 2, n // 2 + 1)
+    w = 2 * math.pi * np.fft.rfftfreq(n, 1.0 / spec.fps)
+    w0 = 2 * math.pi * natural_frequency(boughs.diameter, boughs.length, spec)
+    h = oscillator(w, w0, spec.damping)  # (limbs, n // 2 + 1)
+    sigma = BUFFET * spec.gustiness * bough_deflection(boughs, top, spec)
+    x = np.fft.irfft(coeffs * h[:, None, :], n, axis=-1) * sigma[:, None, None]
+    out[:n] = np.moveaxis(x, -1, 0)
     out[n] = out[0]
     return out
 

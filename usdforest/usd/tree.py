@@ -5,8 +5,12 @@
     /Tree                     Xform, kind component, extentsHint, assetInfo, customData
       /Looks/Bark, /Looks/Leaf  UsdPreviewSurface materials (the proxy level's meshes)
       /Trunk                  Xform -> trunk template (instanceable, kind subcomponent)
-      /Branches/B_0000 ...    Xform -> branch or twig template; usdforest:order, length, ...
-      /Leaves                 PointInstancer; /Leaves/Prototypes/Leaf -> leaf template
+      /Branches/B_0000 ...    Xform -> the trunk's later runs (usdforest:order, length, ...)
+      /Branches/Limb_0012     Xform: one first-order branch with all that grows on it
+        /B_0012 ...           Xform -> branch or twig template
+        /Leaves               PointInstancer of its leaves
+      /Leaves                 PointInstancer; /Leaves/Prototypes/Leaf -> leaf template (the
+                              leaves on no limb: the leader's)
     /_class_Bark, /_class_Leaf  classes that give a template's own material the tree's colour
 
 Each wood prim and leaf prototype references its look class before its template. The class
@@ -14,6 +18,12 @@ overrides the template's ``Looks/<Bark|Leaf>/PreviewSurface`` colour and the mes
 colour *inside* the instance, so every reader sees the tree's own colours, including those
 (Blender's importer) that take materials from instance prototypes and ignore bindings above
 them. The instances of one template in one tree still share one prototype.
+
+Each limb (:mod:`usdforest.grow.limbs`) is a group holding its wood and its own leaf
+instancer, every piece still placed in the tree's frame (the group has no transform of its
+own), so that one transform on the group moves a limb whole: the wind layer's branch sway
+(:mod:`usdforest.usd.limbsway`). The group carries where the limb starts and ends
+(``usdforest:base``, ``usdforest:tip``), its base radius and the length of its axis.
 """
 
 from __future__ import annotations
@@ -34,6 +44,7 @@ from usdforest.errors import UsdForestError
 from usdforest.grow.architecture import TreeSize
 from usdforest.grow.bounds import EMPTY, EMPTY_EXTENT, Bounds, instances_bounds
 from usdforest.grow.colliders import Capsules, tree_capsules
+from usdforest.grow.limbs import Limbs, leaf_axes, limbs_of
 from usdforest.grow.placement import Placement, place
 from usdforest.grow.proxy import Levels, levels
 from usdforest.grow.seasons import keep_leaves
@@ -124,6 +135,12 @@ class TreeBuild:
         if self.summer_leaf_area is not None:
             return self.summer_leaf_area
         return placed_leaf_area(self.placement, self.templates)
+
+    @property
+    def limbs(self) -> Limbs:
+        """Its first-order branches and what grows on each."""
+        p = self.placement
+        return limbs_of(p, leaf_axes(self.grown.skeleton.axis, p.leaf_segment))
 
     def used_templates(self) -> dict[str, TemplateInfo]:
         """The templates the placed wood and leaves reference, by name."""
@@ -451,18 +468,22 @@ def tree_layer(
         _look_class(layer, BARK_CLASS, "Bark", g.bark_color)
         _look_class(layer, LEAF_CLASS, "Leaf", g.leaf_color)
 
-        # wood prim i is /Tree/Trunk for the trunk's first run, else /Tree/Branches/B_<i>;
-        # usdforest:parent holds that index of the prim a branch grows from
+        # wood prim i is /Tree/Trunk for the trunk's first run, else /Tree/Branches/B_<i>, or
+        # /Tree/Branches/Limb_<j>/B_<i> on limb j; usdforest:parent holds that index of the
+        # prim a branch grows from
         trunk = p.trunk
+        limbs = build.limbs
         branches = prim(root, "Branches", "Xform")
         _purpose(branches, "render")
+        groups = [_limb(branches, limbs, k) for k in range(len(limbs))]
         for i in range(p.n_wood):
             if i == trunk:
                 spec = prim(root, "Trunk", "Xform")
                 _purpose(spec, "render")
                 semantic_label(spec, "trunk")
             else:
-                spec = prim(branches, f"B_{i:04d}", "Xform")
+                holder = groups[limbs.wood[i]] if limbs.wood[i] >= 0 else branches
+                spec = prim(holder, f"B_{i:04d}", "Xform")
                 semantic_label(spec, "branch")
             _reference(spec, template_assets[p.templates[p.template[i]]], BARK_CLASS)
             spec.SetInfo("instanceable", True)
@@ -477,19 +498,49 @@ def tree_layer(
 
         if build.colliders is not None:
             add_colliders(root, build.colliders)
-        _author_leaves(
-            root,
-            "Leaves",
-            (p.leaf_position, p.leaf_orient, p.leaf_scale, p.leaf_proto),
-            p.leaf_templates,
-            template_assets,
-            build.bounds["leaves"].extent,
-        )
+        leaf_arrays = (p.leaf_position, p.leaf_orient, p.leaf_scale, p.leaf_proto)
+        for k, holder in [(-1, root), *enumerate(groups)]:
+            sel = np.flatnonzero(limbs.leaves == k)
+            if k >= 0 and not sel.size:
+                continue
+            _author_leaves(
+                holder,
+                "Leaves",
+                tuple(a[sel] for a in leaf_arrays),
+                p.leaf_templates,
+                template_assets,
+                _stored_extent(tuple(a[sel] for a in leaf_arrays), p.leaf_templates, build),
+            )
         _author_lod(root, build, template_assets, bark, leaf_mat)
     return layer
 
 
 LOD_LEVELS = ("full", "medium", "proxy")
+
+
+def _limb(branches: Sdf.PrimSpec, limbs: Limbs, k: int) -> Sdf.PrimSpec:
+    """The group of limb ``k``: no transform of its own, where it starts and ends."""
+    spec = prim(branches, limb_name(int(limbs.first[k])), "Xform")
+    attr(spec, "usdforest:base", T.Point3f, Gf.Vec3f(*map(float, limbs.base[k])))
+    attr(spec, "usdforest:tip", T.Point3f, Gf.Vec3f(*map(float, limbs.tip[k])))
+    attr(spec, "usdforest:radius", T.Float, float(limbs.radius[k]))
+    attr(spec, "usdforest:length", T.Float, float(limbs.length[k]))
+    return spec
+
+
+def limb_name(first: int) -> str:
+    """The prim name of the limb whose first wood prim is ``first``."""
+    return f"Limb_{first:04d}"
+
+
+def _stored_extent(
+    arrays: tuple[np.ndarray, ...], templates: tuple[str, ...], build: TreeBuild
+) -> np.ndarray:
+    """The exact extent of leaf-like instances (as :func:`instances_bounds_as_stored`)."""
+    position, orient, scale, proto = arrays
+    return instances_bounds_as_stored(
+        position, orient, scale, proto, templates, build.templates
+    ).extent
 
 
 def _author_leaves(
@@ -575,16 +626,26 @@ def _author_lod(
 
     medium = variants["medium"]
     if p.n_leaves:
-        prim(medium, "Leaves", "", Sdf.SpecifierOver).active = False
         c = lv.clusters
-        _author_leaves(
-            medium,
-            "LeafClusters",
-            (c["position"], c["orient"], c["scale"], c["proto"]),
-            p.leaf_templates,
-            template_assets,
-            build.bounds["clusters"].extent,
-        )
+        arrays = (c["position"], c["orient"], c["scale"], c["proto"])
+        limbs = build.limbs
+        over = Sdf.SpecifierOver
+        branches = prim(medium, "Branches", "", over) if len(limbs) else None
+        for k in range(-1, len(limbs)):
+            sel = np.flatnonzero(limbs.leaves[c["leaf"]] == k)
+            if k >= 0 and not np.any(limbs.leaves == k):
+                continue
+            holder = medium if k < 0 else prim(branches, limb_name(int(limbs.first[k])), "", over)
+            prim(holder, "Leaves", "", over).active = False
+            part = tuple(a[sel] for a in arrays)
+            _author_leaves(
+                holder,
+                "LeafClusters",
+                part,
+                p.leaf_templates,
+                template_assets,
+                _stored_extent(part, p.leaf_templates, build),
+            )
 
     proxy = variants["proxy"]
     for name in ("Trunk", "Branches", "Leaves"):

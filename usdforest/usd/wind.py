@@ -6,8 +6,10 @@ the recipe has a ``[wind]`` table) holds overs of ``/Forest/Trees``: the instanc
 pxr-based clients and the sensors read before them) at every time code, each tree tilted
 about its base by its own sway (:mod:`usdforest.grow.sway`); the trees' first natural
 frequencies (``usdforest:swayFrequency``, Hz, one per instance); the instancer's extent grown
-by the largest sway and leaf; and the leaves' flutter (:mod:`usdforest.usd.flutter`: a
-rotation per flutter class and time code, and each leaf's class). Time codes are frames
+by the largest sway, limb and leaf; each limb's own sway (:mod:`usdforest.usd.limbsway`: a
+turn per limb of each prototype and time code); and the leaves' flutter
+(:mod:`usdforest.usd.flutter`: a rotation per flutter class and time code, and each leaf's
+class). Time codes are frames
 (``timeCodesPerSecond`` = ``fps`` on the forest's root layer); the last repeats the first, so
 the animation loops. Muting the layer leaves the static forest exactly as it was built:
 nothing else differs.
@@ -30,6 +32,7 @@ from usdforest.errors import UsdForestError
 from usdforest.grow.sway import Stems, WindSpec, natural_frequency, sway, tilts
 from usdforest.rotations import quat_multiply
 from usdforest.usd.flutter import author_flutter
+from usdforest.usd.limbsway import author_limb_sway
 from usdforest.usd.layers import T, attr, extents, new_layer, prim, rendered
 
 BREAST = 1.3  # m
@@ -87,13 +90,20 @@ def crown_of(proto: Usd.Prim) -> Crown:
     return Crown(height, dbh, math.pi / 4 * width * length, float(crown[:, 2].mean()))
 
 
-def stems_of(stage: Usd.Stage, path: str = "/Forest/Trees") -> tuple[Stems, np.ndarray]:
-    """The swaying trees of the instancer at ``path``: their :class:`Stems` and static
-    orientations ``(n, 4)`` (x, y, z, w)."""
+def crowns_of(stage: Usd.Stage, path: str = "/Forest/Trees") -> list[Crown]:
+    """The :class:`Crown` of each prototype of the tree instancer at ``path``."""
     pi = UsdGeom.PointInstancer(stage.GetPrimAtPath(path))
     if not pi:
         raise UsdForestError(f"{path}: no tree instancer to animate")
-    crowns = [crown_of(stage.GetPrimAtPath(t)) for t in pi.GetPrototypesRel().GetTargets()]
+    return [crown_of(stage.GetPrimAtPath(t)) for t in pi.GetPrototypesRel().GetTargets()]
+
+
+def stems_of(
+    stage: Usd.Stage, crowns: list[Crown], path: str = "/Forest/Trees"
+) -> tuple[Stems, np.ndarray]:
+    """The swaying trees of the instancer at ``path`` whose prototypes' crowns are
+    ``crowns``: their :class:`Stems` and static orientations ``(n, 4)`` (x, y, z, w)."""
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath(path))
     table = np.array([[c.height, c.dbh, c.area, c.centre] for c in crowns]).reshape(-1, 4)
     idx = np.asarray(pi.GetProtoIndicesAttr().Get() or [], dtype=np.int64)
     pos = np.asarray(pi.GetPositionsAttr().Get() or [], dtype=float).reshape(-1, 3)
@@ -134,7 +144,8 @@ def check_samples(trees: int, spec: WindSpec) -> None:
 def wind_layer(stage: Usd.Stage, spec: WindSpec, seed: int, extent: np.ndarray) -> Sdf.Layer:
     """The wind layer of the forest composed on ``stage`` (its trees at ``/Forest/Trees``,
     static ``extent`` (2, 3) of the instancer)."""
-    stems, static = stems_of(stage)
+    crowns = crowns_of(stage)
+    stems, static = stems_of(stage, crowns)
     check_samples(len(stems.xy), spec)
     top = sway(stems, spec, seed)
     layer = new_layer("Forest", comment="usdforest wind: the trees' sway as time samples")
@@ -158,10 +169,14 @@ def wind_layer(stage: Usd.Stage, spec: WindSpec, seed: int, extent: np.ndarray) 
         ).SetInfo("documentation", "each tree's first natural frequency (Hz)")
         # a leaf turns about its petiole: the trees reach farther by their largest leaf
         _, leaf = author_flutter(layer, stage, spec, seed)
-        scale = _largest_scale(stage) if leaf else 0.0
+        tallest = float(stems.height.max()) if len(stems.height) else 1.0
+        areas = [c.area for c in crowns]
+        _, limb = author_limb_sway(layer, stage, spec, seed, areas, tallest)
+        # a limb turns about its base, a leaf about its petiole: the trees reach farther
+        scale = _largest_scale(stage) if leaf or limb else 0.0
         reach = float(np.linalg.norm(top, axis=-1).max()) if top.size else 0.0
-        reach += leaf * scale
-        up = leaf * scale
+        reach += (leaf + limb) * scale
+        up = (leaf + limb) * scale
         grown = np.asarray(extent, dtype=float) + np.array(
             [[-reach, -reach, 0], [reach, reach, up]]
         )
