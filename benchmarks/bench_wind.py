@@ -4,8 +4,9 @@ of each (a VLP-16 as its preset and a 640 x 480 camera at 2 frames/s, 10 m at 5 
 in wind every sweep and frame sees the trees at its own time) and of the paper's sonar (2 m
 at 5 m/s: in wind every pulse hears the leaves and wood where they are then, with their
 velocities), as whole processes, alternating, best of two each, in one run; and the size of
-the wind layer. Targets (issue 41): the windy build within 2x of the still one, the windy
-flight within 1.3x; the sonar's cost in wind is reported.
+the wind layer and what its limbs do (their natural frequencies and how far their tips sway,
+from the model on the built forest). Targets (issue 41): the windy build within 2x of the
+still one, the windy flight within 1.3x; the sonar's cost in wind is reported.
 
 Usage: ``python benchmarks/bench_wind.py`` (``make bench`` runs it). Prints a Markdown table;
 memory is each process's own peak resident set.
@@ -54,6 +55,7 @@ def main() -> None:
         layer = (work / "v1_assets" / "wind.usdc").stat().st_size
         trees = (work / "v1_assets" / "trees.csv").read_text().count("\n") - 1
         leaves, classes = _flutter(work / "v1_assets" / "wind.usdc")
+        limbs = _limbs(work / "v1.usda", recipes["one minute of wind"])
     print("| default forest | still | one minute of wind (30 frames/s) | ratio: time | memory "
           "| target |")  # fmt: skip
     print("| --- | --- | --- | --- | --- | --- |")
@@ -67,6 +69,39 @@ def main() -> None:
         f"\nwind.usdc: {layer / 2**20:.1f} MiB for {trees} trees x 1,801 time codes "
         f"({layer / trees / 1801:.1f} B a tree a time code), with the flutter of {leaves:,} "
         f"leaves in {classes} classes"
+    )
+    print(limbs)
+
+
+def _limbs(stage_path: Path, recipe_path: Path) -> str:
+    """A line on the limbs of the built forest's tree assets: how many sway, their natural
+    frequencies and their tips' sway (rms about their mean) in its wind."""
+    import numpy as np
+    from pxr import Usd
+
+    from usdforest.grow.sway import natural_frequency
+    from usdforest.recipe import read_recipe
+    from usdforest.usd.limbsway import boughs_of, limb_sways
+    from usdforest.usd.wind import crowns_of, stems_of
+
+    recipe = read_recipe(recipe_path)
+    wind = recipe.wind
+    stage = Usd.Stage.Open(str(stage_path))
+    crowns = crowns_of(stage)
+    stems, _ = stems_of(stage, crowns)
+    areas = [c.area for c in crowns]
+    f, rms = [], []
+    for limbs, tips in limb_sways(stage, wind, recipe.seed, areas, float(stems.height.max())):
+        b = boughs_of(limbs, 1.0)
+        f.append(natural_frequency(b.diameter, b.length, wind))
+        rms.append(np.sqrt((tips[:-1] ** 2).sum(axis=-1).mean(axis=0)))
+    f, rms = np.concatenate(f), np.concatenate(rms) * 100
+    q = np.percentile
+    return (
+        f"limbs: {len(f):,} in the {len(crowns)} tree assets sway at {wind.speed:g} m/s; "
+        f"natural frequencies {q(f, 5):.2f}-{q(f, 95):.2f} Hz (5th-95th percentile, median "
+        f"{q(f, 50):.2f}); their tips sway {q(rms, 50):.2f} cm rms (median), {q(rms, 95):.2f} cm "
+        f"(95th percentile), {rms.max():.1f} cm at most"
     )
 
 

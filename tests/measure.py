@@ -60,11 +60,7 @@ def wood_prims(stage: Usd.Stage, root: str = "/Tree") -> dict[int, Usd.Prim]:
 def wood_list(stage: Usd.Stage, root: str = "/Tree") -> list[Usd.Prim]:
     """The trunk and every branch prim, on the tree or in its limbs' groups."""
     tree = stage.GetPrimAtPath(root)
-    return [
-        p
-        for p in Usd.PrimRange(tree)
-        if p.GetAttribute("usdforest:order").HasAuthoredValue()
-    ]
+    return [p for p in Usd.PrimRange(tree) if p.GetAttribute("usdforest:order").HasAuthoredValue()]
 
 
 def leaf_instancers(stage: Usd.Stage, root: str = "/Tree") -> list[UsdGeom.PointInstancer]:

@@ -115,11 +115,13 @@ def test_blender_plays_the_wind_layers_sway(tmp_path):
             for x in (10.0, 30.0)
         )
         + '[species.pine]\npreset = "scots-pine"\n[wind]\nspeed = 15.0\nduration = 4\nfps = 5\n'
+        + "branch_sway = false\n"  # the stems' tilt alone (a limb's turn: the next test)
     )
     stage = tmp_path / "windy.usda"
     build(parse_recipe(tomllib.loads(text), tmp_path, "windy.toml"), stage, thumbnail=False)
     run = subprocess.run(
-        [_blender_python(), str(PROBE.with_name("blender_sway_probe.py")), str(stage), "0", "7"],
+        [_blender_python(), str(PROBE.with_name("blender_sway_probe.py")), str(stage), "B_0001",
+         "0", "7"],
         capture_output=True, text=True, check=False, timeout=600,
     )  # fmt: skip
     assert run.returncode == 0, run.stderr[-2000:]
@@ -148,6 +150,63 @@ def test_blender_plays_the_wind_layers_sway(tmp_path):
         np.testing.assert_allclose(b, s, atol=2e-3)
         moved = max(moved, float(np.abs(s - np.eye(3)).max()))
     assert moved > 5e-3  # the trees did sway between the frames
+
+
+def test_blender_plays_each_limbs_own_sway(tmp_path):
+    """Blender imports each limb's turn about its base (a pivot, a frame along the limb and
+    two half-float angles per frame) and places the wood on a swaying limb as pxr composes
+    it: within 2 mm at its base and 1 m along it, where the limb's turn moves them more."""
+    import tomllib
+
+    from pxr import UsdGeom
+
+    from usdforest.usd.forest import write_forest as build
+
+    text = (
+        'seed = 5\n[region]\nbounds = [0.0, 0.0, 20.0, 20.0]\n[[sites]]\nx = 10.0\ny = 10.0\n'
+        'species = "beech"\ndbh = 0.2\nheight = 16.0\n[species.beech]\n'
+        'preset = "european-beech"\n[wind]\nspeed = 20.0\nduration = 2\nfps = 24\n'
+        "flutter_angle = 0\n"
+    )  # fmt: skip
+    stage = tmp_path / "limbs.usda"
+    build(parse_recipe(tomllib.loads(text), tmp_path, "limbs.toml"), stage, thumbnail=False)
+    usd = Usd.Stage.Open(str(stage))
+    trees = UsdGeom.PointInstancer(usd.GetPrimAtPath("/Forest/Trees"))
+    proto = usd.GetPrimAtPath(trees.GetPrototypesRel().GetTargets()[0])
+    marks = np.array([[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 1.0, 1.0]])  # a prim's base, 1 m up
+
+    def placed(prim: Usd.Prim, f: int, limb: bool = True) -> np.ndarray:
+        """The prim's marks in the world at frame ``f`` as pxr composes them (without its
+        limb's turn: ``limb`` false)."""
+        cache = UsdGeom.XformCache(f)
+        inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(proto)))
+        m = np.asarray(cache.GetLocalToWorldTransform(prim)) @ inv
+        if not limb:
+            m = m @ np.linalg.inv(np.asarray(cache.GetLocalTransformation(prim.GetParent())[0]))
+        tree = np.asarray(trees.ComputeInstanceTransformsAtTime(f, f))[0]
+        return (marks @ m @ tree)[:, :3]
+
+    # the wood prim its limb's turn moves most between the frames, tip of a long limb
+    wood = [
+        p
+        for p in Usd.PrimRange(proto)
+        if p.GetName().startswith("B_") and p.GetParent().GetName().startswith("Limb_")
+    ]
+    moved = [float(np.abs(placed(p, 9) - placed(p, 9, limb=False)).max()) for p in wood]
+    prim = wood[int(np.argmax(moved))]
+    assert max(moved) > 0.02
+    run = subprocess.run(
+        [_blender_python(), str(PROBE.with_name("blender_sway_probe.py")), str(stage),
+         prim.GetName(), "0", "9"],
+        capture_output=True, text=True, check=False, timeout=600,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-2000:]
+    seen = json.loads(run.stdout.strip().splitlines()[-1])
+    for f in (0, 9):
+        (mat,) = seen["frames"][str(f)]
+        blender = (marks @ np.asarray(mat).T)[:, :3]  # Blender's column vectors, as rows
+        assert np.abs(blender - placed(prim, f)).max() < 2e-3
+    assert np.abs(blender - placed(prim, 9, limb=False)).max() > 1e-2
 
 
 def test_blender_plays_the_leaves_flutter(tmp_path):

@@ -208,8 +208,12 @@ def test_the_recipe_checks_the_flutter(tmp_path, extra, message):
     from usdforest.recipe import parse_recipe
 
     table = {**loads(WIND)["wind"], **loads(extra)}
-    text = STAND + "[wind]\n" + "".join(
-        f"{k} = {str(v).lower() if isinstance(v, bool) else v}\n" for k, v in table.items()
+    text = (
+        STAND
+        + "[wind]\n"
+        + "".join(
+            f"{k} = {str(v).lower() if isinstance(v, bool) else v}\n" for k, v in table.items()
+        )
     )
     with pytest.raises(RecipeError, match=message):
         parse_recipe(loads(text), tmp_path, "f.toml")

@@ -19,6 +19,7 @@ with the layer muted, every limb is where the asset put it.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -122,6 +123,26 @@ def limb_frames(limbs: TreeLimbs) -> np.ndarray:
     return quat_from_matrix(frames_from_directions(d, np.zeros(len(d))))
 
 
+def limb_sways(
+    stage: Usd.Stage,
+    spec: WindSpec,
+    seed: int,
+    areas: list[float],
+    top: float,
+    trees: str = "/Forest/Trees",
+) -> Iterator[tuple[TreeLimbs, np.ndarray]]:
+    """Per prototype of the tree instancer at ``trees`` on ``stage`` that has limbs: its
+    :class:`TreeLimbs` and their tips' moves ``(frames + 1, k, 2)`` (m) across their axes
+    (:func:`usdforest.grow.sway.bough_sway`); ``areas`` are the prototypes' crown silhouettes
+    (m²), ``top`` the stand's tallest tree (m)."""
+    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath(trees))
+    for k, target in enumerate(pi.GetPrototypesRel().GetTargets()):
+        limbs = tree_limbs(stage.GetPrimAtPath(target))
+        if limbs.paths:
+            stream = int(np.random.default_rng([seed, 0xB0, k]).integers(2**62))
+            yield limbs, bough_sway(boughs_of(limbs, areas[k]), top, spec, stream)
+
+
 def author_limb_sway(
     layer: Sdf.Layer,
     stage: Usd.Stage,
@@ -129,23 +150,15 @@ def author_limb_sway(
     seed: int,
     areas: list[float],
     top: float,
-    trees: str = "/Forest/Trees",
 ) -> tuple[int, float]:
     """Author the sway of every limb of the tree prototypes composed on ``stage`` into
-    ``layer`` (the wind layer); ``areas`` are the prototypes' crown silhouettes (m²), ``top``
-    the stand's tallest tree (m). Returns how many limbs sway and the farthest a limb's tip
-    moves (m, in its prototype's space)."""
+    ``layer`` (the wind layer; see :func:`limb_sways` for the arguments). Returns how many
+    limbs sway and the farthest a limb's tip moves (m, in its prototype's space)."""
     if not spec.branch_sway or spec.speed == 0:
         return 0, 0.0
-    pi = UsdGeom.PointInstancer(stage.GetPrimAtPath(trees))
     swaying, farthest = 0, 0.0
     with Sdf.ChangeBlock():
-        for k, target in enumerate(pi.GetPrototypesRel().GetTargets()):
-            limbs = tree_limbs(stage.GetPrimAtPath(target))
-            if not limbs.paths:
-                continue
-            stream = int(np.random.default_rng([seed, 0xB0, k]).integers(2**62))
-            tips = bough_sway(boughs_of(limbs, areas[k]), top, spec, stream)
+        for limbs, tips in limb_sways(stage, spec, seed, areas, top):
             if not np.any(tips):
                 continue
             farthest = max(farthest, float(np.linalg.norm(tips, axis=-1).max()))
@@ -162,4 +175,3 @@ def author_limb_sway(
                     layer.SetTimeSample(op.path, float(f), Gf.Vec3h(float(a), float(b), 0.0))
             swaying += len(limbs.paths)
     return swaying, farthest
-

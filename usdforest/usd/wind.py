@@ -32,8 +32,8 @@ from usdforest.errors import UsdForestError
 from usdforest.grow.sway import Stems, WindSpec, natural_frequency, sway, tilts
 from usdforest.rotations import quat_multiply
 from usdforest.usd.flutter import author_flutter
-from usdforest.usd.limbsway import author_limb_sway
 from usdforest.usd.layers import T, attr, extents, new_layer, prim, rendered
+from usdforest.usd.limbsway import author_limb_sway
 
 BREAST = 1.3  # m
 MAX_SAMPLE_BYTES = 4 * 2**30  # the layer's orientation samples, at most
