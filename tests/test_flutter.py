@@ -28,7 +28,7 @@ SPEED, DURATION, FPS, CLASSES, ANGLE, FREQUENCY = 10.0, 2.0, 24.0, 6, 20.0, 3.0
 WIND = (
     f"[wind]\nspeed = {SPEED}\nduration = {DURATION}\nfps = {FPS}\nflutter_classes = {CLASSES}\n"
     f"flutter_angle = {ANGLE}\nflutter_frequency = {FREQUENCY}\n"
-    # the leaves alone: the sensors' motion carries each limb at rest on its tree
+    # the leaves' own turns alone (the limbs' sway: test_limbsway)
     "branch_sway = false\n"
 )
 BEECH = "/Forest/Trees/Prototypes/Beech_0"
@@ -53,14 +53,17 @@ def _leaf_instancers(stage: Usd.Stage, tree: str) -> list[UsdGeom.PointInstancer
     ]
 
 
-def _leaf_rows(stage: Usd.Stage, tree: str, time) -> np.ndarray:
+def _leaf_rows(stage: Usd.Stage, tree: str, time, limbs: bool = True) -> np.ndarray:
     """Each leaf's composed transform in its tree's space, its prototype's own transform
-    (the flutter) included, as USD computes it, instancer by instancer."""
+    (the flutter) included, as USD computes it, instancer by instancer (without ``limbs``:
+    in its instancer's space, its limb's sway left out)."""
     cache = UsdGeom.XformCache(time)
     inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(stage.GetPrimAtPath(tree))))
     out = []
     for pi in _leaf_instancers(stage, tree):
         to_tree = np.asarray(cache.GetLocalToWorldTransform(pi.GetPrim()), dtype=float) @ inv
+        if not limbs:
+            to_tree = np.eye(4)
         rows = np.asarray(pi.ComputeInstanceTransformsAtTime(time, time), dtype=float)
         out.append(rows.reshape(-1, 4, 4) @ to_tree)
     return np.concatenate(out)
@@ -78,9 +81,9 @@ def test_leaves_flutter_about_their_petioles_as_pure_tones(stands):
     with the amplitude flutter_angle (the wind is past 3.4 m/s, Beaufort 3, where the model
     stops growing it); the leaves fall into the classes."""
     stage = Usd.Stage.Open(str(stands["windy"]))
-    rest = _leaf_rows(stage, BEECH, Usd.TimeCode.Default())
+    rest = _leaf_rows(stage, BEECH, Usd.TimeCode.Default(), limbs=False)
     frames = int(DURATION * FPS)
-    rows = np.array([_leaf_rows(stage, BEECH, float(f)) for f in range(frames + 1)])
+    rows = np.array([_leaf_rows(stage, BEECH, float(f), limbs=False) for f in range(frames + 1)])
     # the petiole stays where it was; the leaf turns about it, a rotation in its own frame
     np.testing.assert_allclose(
         rows[:, :, 3, :3], np.broadcast_to(rest[:, 3, :3], rows[:, :, 3, :3].shape), atol=1e-5
@@ -126,7 +129,8 @@ def test_flutter_is_a_few_shared_rotations_and_leaves_the_still_forest_as_it_was
     # one rotation per class and time code; no leaf has samples of its own
     assert len(flutter) == CLASSES
     assert set(flutter.values()) == {int(DURATION * FPS) + 1}
-    assert set(samples) - set(flutter) == {
+    limbs = {p for p in samples if p.endswith(".xformOp:rotateXYZ:sway")}  # test_limbsway
+    assert set(samples) - set(flutter) - limbs == {
         "/Forest/Trees.orientations",
         "/Forest/Trees.orientationsf",
     }

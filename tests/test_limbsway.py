@@ -27,7 +27,11 @@ preset = "european-beech"
 preset = "scots-pine"
 """
 SPEED, GUSTINESS, DURATION, FPS = 10.0, 0.3, 60.0, 24.0
-WIND = f"[wind]\nspeed = {SPEED}\ngustiness = {GUSTINESS}\nduration = {DURATION}\nfps = {FPS}\n"
+# the leaves do not flutter: a flight's rays meet them at rest on their limbs
+WIND = (
+    f"[wind]\nspeed = {SPEED}\ngustiness = {GUSTINESS}\nduration = {DURATION}\nfps = {FPS}\n"
+    "flutter_angle = 0\n"
+)
 # the defaults of [wind]
 E, RHO_WOOD, RHO_AIR, DRAG, ZETA, ATTENUATION, GUST_LENGTH = (
     8.0e9,
@@ -230,6 +234,49 @@ def _walk(layer: Sdf.Layer) -> list[Sdf.Path]:
     out = []
     layer.Traverse(Sdf.Path.absoluteRootPath, lambda p: out.append(p) if p.IsPrimPath() else None)
     return out
+
+
+def test_the_sensors_see_each_limb_where_it_sways(stands):
+    """The sensors' scene holds each swaying limb as an instance of its own on its tree: the
+    still scene moved to t (SceneMotion) holds every leaf and wood piece where the scene read
+    at t holds them, rays cast at it meet what rays cast at the scene read at t meet, and the
+    limbs' own turns move the leaves by centimetres beyond their trees' sway (the same gusts
+    with ``branch_sway = false``)."""
+    from usdforest.sensors.motion import SceneMotion
+    from usdforest.sensors.raycast import SceneCaster
+    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.wood import scene_cylinders
+
+    t = 1.52  # between the time codes 36 and 37
+    moved = {}
+    for name in ("windy", "stiff"):
+        still = extract_scene(stands[name], cache=False)
+        motion = SceneMotion(stands[name], still)
+        moved[name] = motion.leaves(t, still.leaves)
+        if name == "stiff":
+            assert still.sources.part is None
+            continue
+        limbs = sum(len(_limbs(Usd.Stage.Open(str(stands[name])), p)) for p in PROTOS)
+        assert int((still.sources.part >= 0).sum()) == limbs
+        now = extract_scene(stands[name], time=t, cache=False)
+        np.testing.assert_allclose(moved[name].centre, now.leaves.centre, atol=1e-5)
+        np.testing.assert_allclose(moved[name].normal, now.leaves.normal, atol=1e-5)
+        wood = motion.cylinders(t, scene_cylinders(still, 0.5))
+        want = scene_cylinders(now, 0.5)
+        np.testing.assert_allclose(wood.centre, want.centre, atol=1e-4)
+        # a fan of rays from 12 m up over the stand, down through both crowns
+        rng = np.random.default_rng(0)
+        d = np.column_stack([rng.uniform(-0.6, 0.6, (4000, 2)), -np.ones(4000)])
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        o = np.tile([10.0, 10.0, 24.0], (4000, 1))
+        hit = SceneCaster(still).moved(motion.at(t)).first_hit(o, d)
+        ref = SceneCaster(now).first_hit(o, d)
+        assert hit.hit.sum() > 1000
+        np.testing.assert_array_equal(hit.hit, ref.hit)
+        np.testing.assert_allclose(hit.t[hit.hit], ref.t[ref.hit], atol=1e-4)
+        np.testing.assert_array_equal(hit.cls, ref.cls)
+    gap = np.linalg.norm(moved["windy"].centre - moved["stiff"].centre, axis=1)
+    assert np.percentile(gap, 99) > 0.01
 
 
 def test_branch_sway_must_be_a_boolean(tmp_path):

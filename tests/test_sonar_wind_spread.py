@@ -179,7 +179,8 @@ def _fastest(motion: SceneMotion, leaves: Leaves) -> np.ndarray:
     grid = np.arange(0.25, 20.0, 0.5)
     speed = [
         np.linalg.norm(
-            motion.velocities(t, motion.leaves(t, leaves).centre, leaves.tree), axis=1
+            motion.velocities(t, motion.leaves(t, leaves).centre, leaves.tree, leaves.carrier),
+            axis=1,
         ).mean()
         for t in grid
     ]
@@ -269,9 +270,11 @@ def test_the_echo_moves_by_the_leaves_mean_doppler(pulses):
     """Each pulse's centroid moves by f0 E_w[2 v_r / c], the shift of the leaves'
     energy-weighted mean closing speed: crowns swaying towards the sonar raise its pitch.
     The shifts span hundreds of Hz from pulse to pulse; the measured ones follow them to
-    within a few tens (speckle again: the slope's standard error is about 0.01)."""
+    within a few tens (speckle again: the slope's standard error is about 0.01). A speckled
+    spectrum's centroid scatters by a share of its width, about a fifth here (0.17 with
+    the limbs swaying, whose Doppler more than doubles the spectrum's width; 0.20 without)."""
     moved = pulses.centre_wind - pulses.centre_still
     assert pulses.shift.std() > 200.0
     slope = np.sum(moved * pulses.shift) / np.sum(pulses.shift**2)
     assert slope == pytest.approx(1.0, abs=0.05)
-    assert np.std(moved - pulses.shift) < 0.1 * pulses.shift.std()
+    assert np.std(moved - pulses.shift) < 0.25 * math.sqrt(pulses.spread.mean())

@@ -61,12 +61,7 @@ def forests(tmp_path_factory):
         "still": _build(root, "still", None),
         "steady8": _build(root, "steady8", "speed = 8.0\ngustiness = 0.0\nduration = 2\nfps = 5"),
         "steady4": _build(root, "steady4", "speed = 4.0\ngustiness = 0.0\nduration = 2\nfps = 5"),
-        # the flights read each limb at rest on its swaying tree: so do these
-        "gusty": _build(
-            root,
-            "gusty",
-            "speed = 8.0\ngustiness = 0.05\nduration = 400\nfps = 4\nbranch_sway = false",
-        ),
+        "gusty": _build(root, "gusty", "speed = 8.0\ngustiness = 0.05\nduration = 400\nfps = 4"),
         "calm": _build(root, "calm", "speed = 0.0\nduration = 2\nfps = 5"),
     }
 
@@ -381,7 +376,7 @@ def test_leaves_move_with_their_swaying_trees_at_the_velocity_the_scene_gives(fo
     expected = (after.centre - before.centre) / (2 * dt)
     fastest = float(np.abs(expected).max())
     assert fastest > 1e-3  # the crowns do move
-    got = motion.velocities(t, now.centre, now.tree)
+    got = motion.velocities(t, now.centre, now.tree, now.carrier)
     np.testing.assert_allclose(got, expected, atol=0.01 * fastest)
 
 
@@ -454,7 +449,7 @@ def test_the_wood_sways_with_its_tree_and_the_sonar_hears_it_there(forests):
     # the velocity of the wood: its tree's transform differenced over the time codes about t
     a, b = (motion.cylinders(s, wood).centre for s in (10.0, 10.25))
     chord = (b - a) / 0.25
-    speed = motion.velocities(t, carried.centre, carried.tree)
+    speed = motion.velocities(t, carried.centre, carried.tree, carried.carrier)
     np.testing.assert_allclose(speed, chord, atol=0.01 * np.abs(chord).max())
     # a pulse at t with everything moved, velocities left out, against the scene at t
     cfg = SonarConfig(occlusion=True, max_range=8.0)

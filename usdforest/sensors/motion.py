@@ -19,8 +19,8 @@ import numpy as np
 from usdforest.sensors.lidar import SpinningLidar, cast_pulses
 from usdforest.sensors.raycast import SceneCaster
 from usdforest.sensors.returns import Echoes
-from usdforest.sensors.scene import stage_time
 from usdforest.sensors.scenetypes import Leaves, Scene
+from usdforest.sensors.stageframe import stage_time
 from usdforest.sensors.wood import Cylinders
 from usdforest.usd.layers import open_stage
 
@@ -70,13 +70,20 @@ class SceneMotion:
 
     @property
     def moves(self) -> bool:
-        """Whether any of the scene's instancers has time samples, or any of its leaves turns
-        (flutters)."""
-        return bool(self.scene.leaves.turning.any()) or any(
-            pi.GetOrientationsfAttr().GetNumTimeSamples()
-            or pi.GetOrientationsAttr().GetNumTimeSamples()
-            or pi.GetPositionsAttr().GetNumTimeSamples()
-            for pi in self._instancers
+        """Whether any of the scene's instancers has time samples, any of its leaves turns
+        (flutters) or any of its instances is a part of a tree that moves on its own (a
+        limb that sways)."""
+        src = self.scene.sources
+        parted = src is not None and src.part is not None and bool((src.part >= 0).any())
+        return (
+            parted
+            or bool(self.scene.leaves.turning.any())
+            or any(
+                pi.GetOrientationsfAttr().GetNumTimeSamples()
+                or pi.GetOrientationsAttr().GetNumTimeSamples()
+                or pi.GetPositionsAttr().GetNumTimeSamples()
+                for pi in self._instancers
+            )
         )
 
     def _wrapped(self, seconds: float) -> float:
@@ -104,20 +111,42 @@ class SceneMotion:
             sel = src.instancer == k
             xf[sel] = m.reshape(-1, 4, 4)[src.row[sel]]
         matrix = src.before @ xf @ src.after
+        if src.part is not None and (src.part >= 0).any():
+            sel = np.flatnonzero(src.part >= 0)
+            matrix[sel] = self._parts_at(when)[src.part[sel]] @ matrix[sel]
         now = replace(self.scene, instances=replace(self.scene.instances, matrix=matrix))
         self._last = (t, now)
         return now
 
-    def _instance_of(self, tree: np.ndarray) -> np.ndarray:
-        """Per tree id, the index of its instance (-1: none, or an id below 0)."""
+    def _parts_at(self, when) -> np.ndarray:
+        """``(parts, 4, 4)``: each moving part's transform (row vectors) from its own space to
+        its prototype's at the time code ``when`` (a limb's turn about its base)."""
+        from pxr import UsdGeom
+
+        cache = UsdGeom.XformCache(when)
+        get = self._stage.GetPrimAtPath
+        out = [
+            np.asarray(cache.GetLocalToWorldTransform(get(part)), dtype=float)
+            @ np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(get(proto)), dtype=float))
+            for part, proto in self.scene.sources.parts
+        ]
+        return np.array(out, dtype=float).reshape(-1, 4, 4)
+
+    def _instance_of(self, tree: np.ndarray, carrier: np.ndarray | None = None) -> np.ndarray:
+        """Per tree id, the index of its instance (-1: none, or an id below 0); where
+        ``carrier`` names the instance (not -1), that one (a tree placed as several)."""
         ids = np.asarray(self.scene.instances.tree, dtype=np.int64)
         known = np.flatnonzero(ids >= 0)
         known = known[np.argsort(ids[known], kind="stable")]
         tree = np.asarray(tree, dtype=np.int64)
         if not len(known):
-            return np.full(len(tree), -1, np.int64)
-        at = np.minimum(np.searchsorted(ids[known], tree), len(known) - 1)
-        return np.where((ids[known][at] == tree) & (tree >= 0), known[at], -1)
+            out = np.full(len(tree), -1, np.int64)
+        else:
+            at = np.minimum(np.searchsorted(ids[known], tree), len(known) - 1)
+            out = np.where((ids[known][at] == tree) & (tree >= 0), known[at], -1)
+        if carrier is not None:
+            out = np.where(np.asarray(carrier) >= 0, carrier, out)
+        return out
 
     def turns(self, seconds: float) -> np.ndarray:
         """``(shapes, 4, 4)``: each leaf shape prim's own transform at ``seconds`` (a
@@ -143,10 +172,13 @@ class SceneMotion:
         it is at ``seconds``."""
         return np.linalg.inv(self.scene.instances.matrix) @ self.at(seconds).instances.matrix
 
-    def _carried(self, seconds: float, tree: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For things of tree ids ``tree``: the instance each moves with (-1: none), and
-        :meth:`_relative` at ``seconds``."""
-        which = self._instance_of(tree)
+    def _carried(
+        self, seconds: float, tree: np.ndarray, carrier: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """For things of tree ids ``tree`` (placed by the instances ``carrier``, where
+        known): the instance each moves with (-1: none), and :meth:`_relative` at
+        ``seconds``."""
+        which = self._instance_of(tree, carrier)
         if not (which >= 0).any():
             return which, np.zeros((0, 4, 4))
         return which, self._relative(seconds)
@@ -156,7 +188,7 @@ class SceneMotion:
         moved by each tree's transform then against its extracted one, and a fluttering
         leaf turned by its shape's turn then (leaves of no instance stay on their tree);
         without ``normals`` their normals are left as they were."""
-        k, rel = self._carried(seconds, leaves.tree)
+        k, rel = self._carried(seconds, leaves.tree, leaves.carrier)
         moves, turning = k >= 0, leaves.turning
         if not moves.any() and not turning.any():
             return leaves
@@ -234,7 +266,7 @@ class SceneMotion:
         """``wood`` (of this scene, where it was extracted) where its trees have carried it at
         ``seconds``: each piece's centre and axis moved by its tree's transform then against
         its extracted one (pieces of no instance stay)."""
-        which, rel = self._carried(seconds, wood.tree)
+        which, rel = self._carried(seconds, wood.tree, wood.carrier)
         moves = which >= 0
         if not moves.any():
             return wood
@@ -245,11 +277,18 @@ class SceneMotion:
         axis[moves] = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
         return replace(wood, centre=centre, axis=axis)
 
-    def velocities(self, seconds: float, points: np.ndarray, tree: np.ndarray) -> np.ndarray:
+    def velocities(
+        self,
+        seconds: float,
+        points: np.ndarray,
+        tree: np.ndarray,
+        carrier: np.ndarray | None = None,
+    ) -> np.ndarray:
         """``(n, 3)`` velocities (m/s) at ``seconds`` of ``points`` (n, 3) that move with the
         tree instances of ids ``tree`` (n,) (a leaf with its tree; -1 and trees of no instance:
-        still): each instance's transform x -> L x + T is differenced over the time codes on
-        either side, v = L' L^-1 (x - T) + T'."""
+        still), or with the instances ``carrier`` (n,) where given and not -1 (a limb's):
+        each instance's transform x -> L x + T is differenced over the time codes on either
+        side, v = L' L^-1 (x - T) + T'."""
         inst = self.scene.instances
         out = np.zeros((len(points), 3))
         if not len(inst) or not len(points):
@@ -260,7 +299,7 @@ class SceneMotion:
         rate = (after[:, :3, :3] - before[:, :3, :3]).transpose(0, 2, 1) / (t1 - t0)
         spin = rate @ np.linalg.inv(now[:, :3, :3].transpose(0, 2, 1))
         drift = (after[:, 3, :3] - before[:, 3, :3]) / (t1 - t0)
-        which = self._instance_of(tree)
+        which = self._instance_of(tree, carrier)
         moves = which >= 0
         k = which[moves]
         rel = np.asarray(points, dtype=float)[moves] - now[k, 3, :3]

@@ -34,6 +34,7 @@ from usdforest.sensors.scenetypes import (
     Sources,
     no_leaves,
 )
+from usdforest.sensors.stageframe import moved_boxes, stage_frame, stage_time
 from usdforest.usd.layers import class_labels, mesh_triangles, open_stage, rendered
 
 CLASSES = ("unknown", "trunk", "branch", "leaf", "ground", "dead_wood", "ground_vegetation")
@@ -193,18 +194,6 @@ def _realise(
     return leaves, part, no_leaves()
 
 
-def moved_boxes(
-    lo: np.ndarray, hi: np.ndarray, matrix: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Axis-aligned boxes of boxes ``lo``/``hi`` (n, 3) moved by row-vector 4x4 transforms
-    ``matrix`` (n, 4, 4): the centre moved, the half extents through the absolute linear
-    part (the exact box of each moved box)."""
-    rot = matrix[:, :3, :3]
-    c = np.einsum("nj,njk->nk", (lo + hi) / 2, rot) + matrix[:, 3, :3]
-    h = np.einsum("nj,njk->nk", (hi - lo) / 2, np.abs(rot))
-    return c - h, c + h
-
-
 def leaf_boxes(li: LeafInstances, shapes: tuple[Shape, ...]) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned boxes ``(lowers, uppers)``, each ``(n, 3)``, of leaf instances in their
     owner's space: each shape's box moved by its instance's transform."""
@@ -274,42 +263,6 @@ def _placed_leaves(
     return Leaves(c[keep], n, area, np.full(int(keep.sum()), tree, np.int64), blade, shape, frame)
 
 
-def stage_frame(stage_path: str | Path) -> np.ndarray:
-    """The row-vector 4x4 from a stage's own units and axes to the sensors' frame (metres, Z
-    up): ``metersPerUnit`` and ``upAxis`` as its root layer authors them (a Y-up stage is
-    turned +90 degrees about X, so its +Y becomes +Z and its +Z becomes -Y); unauthored
-    metadata is taken as usdforest writes it, metres and Z up, not USD's fallbacks."""
-    from pxr import Sdf
-
-    m = np.eye(4)
-    try:
-        layer = Sdf.Layer.FindOrOpen(str(stage_path))
-    except Exception:  # not USD: opening the stage names the problem
-        return m
-    if layer is None:
-        return m
-    root = layer.pseudoRoot
-    if root.HasInfo("metersPerUnit"):
-        m[:3, :3] *= float(root.GetInfo("metersPerUnit"))
-    if root.HasInfo("upAxis") and str(root.GetInfo("upAxis")).upper() == "Y":
-        m = m @ np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
-    return m
-
-
-def to_frame(points: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """``points (..., 3)`` in a stage's own units and axes, in the sensors' frame."""
-    return np.asarray(points, dtype=float) @ frame[:3, :3] + frame[3, :3]
-
-
-def stage_time(stage, seconds: float | None):
-    """The ``Usd.TimeCode`` of ``seconds`` into ``stage``'s animation (``None``: default)."""
-    from pxr import Usd
-
-    if seconds is None:
-        return Usd.TimeCode.Default()
-    return Usd.TimeCode(float(seconds) * stage.GetTimeCodesPerSecond())
-
-
 def extract_scene(
     stage_path: str | Path,
     *,
@@ -370,7 +323,8 @@ def extract_scene(
     unseen: list[str] = []
     placed: list[tuple[int, np.ndarray, int]] = []
     # per placed instance: its instancer's path, its row there, the transforms around the row
-    sources: list[tuple[str, int, np.ndarray, np.ndarray]] = []
+    # and the moving part it places (-1: the whole prototype)
+    sources: list[tuple[str, int, np.ndarray, np.ndarray, int]] = []
     shapes: list[Shape] = []
     shape_of: dict = {}
     shape_keys: list[str] = []
@@ -379,6 +333,12 @@ def extract_scene(
     animated = stage.HasAuthoredTimeCodeRange() and not when.IsDefault()
     store_mode = f"{geometry} at {when.GetValue():.17g}" if animated else str(geometry)
     store_of: list = []  # the stage's prototype store, keyed when the first prototype is met
+    # an animated stage's tree prototypes may have parts that move on their own (limbs that
+    # sway): each part is an instance of its own, its tree's prototype gathered without it
+    parted = stage.HasAuthoredTimeCodeRange()
+    parts_of: dict = {}
+    part_rows: list[tuple[str, str]] = []  # (part prim, its prototype's prim)
+    pruned: set = set()  # the parts' prims, which their prototypes' subtrees leave out
 
     def store_get() -> PrototypeStore | None:
         if not store_of:
@@ -410,19 +370,21 @@ def extract_scene(
             kept,
         )
 
-    def prototype(prim) -> int:
-        """Index of the (tree) prototype ``prim``, gathered once (or read from the store),
-        its leaves as instances."""
+    def prototype(prim, counted: bool = True) -> int:
+        """Index of the (tree) prototype ``prim`` (or a part of one: not ``counted``),
+        gathered once (or read from the store), its leaves as instances."""
         key = prim.GetPath()
         if key not in proto_of:
             store = store_get()
-            entry = store.get(str(key), store_mode) if store is not None else None
+            moving = len(parts_of.get(key, ()))
+            mode = f"{store_mode} without {moving} parts" if moving else store_mode
+            entry = store.get(str(key), mode) if store is not None else None
             if entry is None:
                 seen = (len(unseen), len(paths), len(shapes))
                 proto = gather(prim, reflectors or store is not None)
                 if store is not None:
                     local = stored(proto, paths, shapes, shape_keys, seen, unseen[seen[0] :])
-                    store.put(str(key), store_mode, local)
+                    store.put(str(key), mode, local)
             else:
                 proto = adopted(entry, pid, add_shape)
                 unseen.extend(entry["unseen"])
@@ -430,9 +392,39 @@ def extract_scene(
                 proto = replace(proto, leaves=Leaves.concat([]))
             proto_of[key] = len(protos)
             protos.append(proto)
-            gathered[0] += 1
-            tick("tree prototypes", gathered[0], gathered[1])
+            if counted:
+                gathered[0] += 1
+                tick("tree prototypes", gathered[0], gathered[1])
         return proto_of[key]
+
+    def parts(proto) -> list[tuple[int, int, np.ndarray]]:
+        """The parts of the tree prototype ``proto`` whose transforms have time samples (its
+        limbs that sway), each one's prototype, its row in ``part_rows`` and its transform
+        into ``proto``'s space now (row vectors); leaf instancers' own turns are not
+        parts (:class:`_LeafBatch` ``own``)."""
+        key = proto.GetPath()
+        if key in parts_of:
+            return parts_of[key]
+        found = []
+        if parted:
+            it = iter(Usd.PrimRange(proto))
+            next(it)  # ``proto`` itself moves with its instance
+            for q in it:
+                if q.IsA(UsdGeom.PointInstancer) or not rendered(q):
+                    it.PruneChildren()
+                elif UsdGeom.Xformable(q) and UsdGeom.Xformable(q).TransformMightBeTimeVarying():
+                    it.PruneChildren()
+                    found.append(q)
+        parts_of[key] = found  # read by ``prototype(proto)``'s store key
+        pruned.update(q.GetPath() for q in found)
+        inv = np.linalg.inv(_m(cache.GetLocalToWorldTransform(proto)))
+        out = []
+        for q in found:
+            part_rows.append((str(q.GetPath()), str(key)))
+            rel = _m(cache.GetLocalToWorldTransform(q)) @ inv
+            out.append((prototype(q, counted=False), len(part_rows) - 1, rel))
+        parts_of[key] = out
+        return out
 
     def add_shape(key: str, s: Shape) -> int:
         if key not in shape_of:
@@ -462,8 +454,13 @@ def extract_scene(
         parts = []
         it = iter(Usd.PrimRange(prim, Usd.TraverseInstanceProxies()))
         for p in it:
-            if not rendered(p) or (
-                p.IsA(UsdGeom.Imageable) and UsdGeom.Imageable(p).ComputeVisibility() == "invisible"
+            if (
+                not rendered(p)
+                or (p != prim and p.GetPath() in pruned)  # a part that moves on its own
+                or (
+                    p.IsA(UsdGeom.Imageable)
+                    and UsdGeom.Imageable(p).ComputeVisibility() == "invisible"
+                )
             ):
                 it.PruneChildren()
                 continue
@@ -564,10 +561,16 @@ def extract_scene(
                 if sel.size == 0:
                     continue
             if top and instancing and _instanced(stage, target):
+                moving = parts(proto)  # before the prototype: it is gathered without them
                 k_proto = prototype(proto)
                 for i in sel:
-                    placed.append((k_proto, own @ xf[i] @ to_root, int(ids[i]) if is_tree else -1))
-                    sources.append((str(p.GetPath()), int(i), own, to_root))
+                    m = own @ xf[i] @ to_root
+                    tree_id = int(ids[i]) if is_tree else -1
+                    placed.append((k_proto, m, tree_id))
+                    sources.append((str(p.GetPath()), int(i), own, to_root, -1))
+                    for k_part, row, rel in moving:
+                        placed.append((k_part, rel @ m, tree_id))
+                        sources.append((str(p.GetPath()), int(i), own, to_root, row))
                 continue
             local = subtree(proto)
             for i in sel:
@@ -596,7 +599,10 @@ def extract_scene(
     )
     placed_leaves = []
     for i, (k, m, t) in enumerate(placed if reflectors else []):
-        placed_leaves.append(_placed_leaves(protos[k], m, t, centre, radius))
+        lv = _placed_leaves(protos[k], m, t, centre, radius)
+        if part_rows:  # a tree is placed as more than one instance: say which placed each
+            lv = replace(lv, carrier=np.full(len(lv), i, np.int64))
+        placed_leaves.append(lv)
         tick("leaf reflectors", i + 1, len(placed))
     leaves = Leaves.concat([r[0] for r in realised] + placed_leaves)
     tree, leaf_tree = whole.tree, leaves.tree
@@ -625,18 +631,6 @@ def extract_scene(
         if world_leaves.shape.size or any(len(p.leaf_instances) for p in protos) or turning
         else (),
         world_leaves,
-        _sources(sources),
+        Sources.of(sources, part_rows),
         tuple(shape_keys) if turning else (),
-    )
-
-
-def _sources(sources: list[tuple[str, int, np.ndarray, np.ndarray]]) -> Sources:
-    names = tuple(dict.fromkeys(s[0] for s in sources))
-    index = {n: k for k, n in enumerate(names)}
-    return Sources(
-        names,
-        np.array([index[s[0]] for s in sources], dtype=np.int64),
-        np.array([s[1] for s in sources], dtype=np.int64),
-        np.array([s[2] for s in sources]).reshape(-1, 4, 4),
-        np.array([s[3] for s in sources]).reshape(-1, 4, 4),
     )

@@ -19,7 +19,11 @@ class Leaves:
     the index of their leaf shape among the scene's (-1: the leaf does not turn), and
     ``frame``, ``(n, 4, 4)`` row-vector transforms from the shape's space to where the leaf
     is without its turn (so the leaf at another turn ``R``, its shape's own transform, is
-    its shape's centre through ``R @ frame``); ``None`` when no leaf turns."""
+    its shape's centre through ``R @ frame``); ``None`` when no leaf turns.
+
+    ``carrier`` is the index of the scene's instance that placed each leaf (-1: none), where
+    a tree is placed as more than one instance (its limbs that sway on their own); ``None``:
+    each leaf moves with the one instance of its tree id."""
 
     centre: np.ndarray
     normal: np.ndarray
@@ -28,6 +32,7 @@ class Leaves:
     blade: np.ndarray | None = None
     shape: np.ndarray | None = None
     frame: np.ndarray | None = None
+    carrier: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.centre.shape[0])
@@ -47,8 +52,16 @@ class Leaves:
         blade = self.blade[sel] if self.blade is not None else None
         shape = self.shape[sel] if self.shape is not None else None
         frame = self.frame[sel] if self.frame is not None else None
+        carrier = self.carrier[sel] if self.carrier is not None else None
         return Leaves(
-            self.centre[sel], self.normal[sel], self.area[sel], self.tree[sel], blade, shape, frame
+            self.centre[sel],
+            self.normal[sel],
+            self.area[sel],
+            self.tree[sel],
+            blade,
+            shape,
+            frame,
+            carrier,
         )
 
     @property
@@ -68,6 +81,11 @@ class Leaves:
         turning = any(p.shape is not None for p in parts)
         shape = np.concatenate([p._shapes() for p in parts]) if turning else None
         frame = np.concatenate([p._frames() for p in parts]) if turning else None
+        carrier = (
+            np.concatenate([p._carriers() for p in parts])
+            if any(p.carrier is not None for p in parts)
+            else None
+        )
         return Leaves(
             *(
                 np.concatenate([getattr(p, f) for p in parts])
@@ -76,7 +94,11 @@ class Leaves:
             blade,
             shape,
             frame,
+            carrier,
         )
+
+    def _carriers(self) -> np.ndarray:
+        return self.carrier if self.carrier is not None else np.full(len(self), -1, np.int64)
 
     def _shapes(self) -> np.ndarray:
         return self.shape if self.shape is not None else np.full(len(self), -1, np.int64)
@@ -177,6 +199,28 @@ class Sources:
     row: np.ndarray
     before: np.ndarray
     after: np.ndarray
+    # a part of a prototype that moves on its own (a limb that sways): its prim and its
+    # prototype's (``parts``), and per instance the part it places (-1: a whole prototype),
+    # its matrix then ``part's transform in its prototype @ before @ row @ after``
+    parts: tuple[tuple[str, str], ...] = ()
+    part: np.ndarray | None = None
+
+    @staticmethod
+    def of(
+        rows: list[tuple[str, int, np.ndarray, np.ndarray, int]], parts: list[tuple[str, str]]
+    ) -> Sources:
+        """From one ``(instancer, row, before, after, part)`` per instance and the parts."""
+        names = tuple(dict.fromkeys(r[0] for r in rows))
+        index = {n: k for k, n in enumerate(names)}
+        return Sources(
+            names,
+            np.array([index[r[0]] for r in rows], dtype=np.int64),
+            np.array([r[1] for r in rows], dtype=np.int64),
+            np.array([r[2] for r in rows]).reshape(-1, 4, 4),
+            np.array([r[3] for r in rows]).reshape(-1, 4, 4),
+            tuple(parts),
+            np.array([r[4] for r in rows], dtype=np.int64) if parts else None,
+        )
 
     def __len__(self) -> int:
         return int(self.row.shape[0])

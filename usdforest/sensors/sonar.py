@@ -311,6 +311,7 @@ class WoodPoints:
     specular: np.ndarray
     cls: np.ndarray
     tree: np.ndarray
+    carrier: np.ndarray  # the scene instance that placed its cylinder (-1: by its tree id)
 
     def take(self, sel: np.ndarray) -> WoodPoints:
         return WoodPoints(*(getattr(self, f.name)[sel] for f in fields(self)))
@@ -343,6 +344,7 @@ def wood_points(cyl: Cylinders, position: np.ndarray) -> WoodPoints:
         np.concatenate([np.zeros(n + int(last.sum())), weight[hit]]),
         np.concatenate([cyl.cls, cyl.cls[last], cyl.cls[hit]]),
         np.concatenate([cyl.tree, cyl.tree[last], cyl.tree[hit]]),
+        np.concatenate([cyl.carrier, cyl.carrier[last], cyl.carrier[hit]]),
     )
 
 
@@ -435,8 +437,9 @@ class Targets:
     wood: Cylinders = field(default_factory=lambda: Cylinders.concat([]))
     ground: Facets = field(default_factory=Facets.empty)
     leaf_velocity: np.ndarray | None = None  # (n, 3) m/s of the leaves, when they move
-    # the velocity (m/s, (n, 3)) of points (n, 3) on the wood of trees (n,), when it moves
-    wood_velocity: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+    # the velocity (m/s, (n, 3)) of points (n, 3) on the wood of trees (n,) placed by scene
+    # instances (n,: -1 by the tree id), when it moves
+    wood_velocity: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -726,7 +729,7 @@ def echo_from_targets(
                 moving_wood = (
                     None
                     if targets.wood_velocity is None
-                    else targets.wood_velocity(points.position, points.tree)
+                    else targets.wood_velocity(points.position, points.tree, points.carrier)
                 )
                 sources.append(
                     _Source(

@@ -23,7 +23,8 @@ from usdforest.sensors import camera, flight, lidar, sonar
 from usdforest.sensors.checks import check_not_inside_wood, pose_warnings, unseen_warning
 from usdforest.sensors.motion import SceneMotion, animated
 from usdforest.sensors.pose import Pose, parse_pose
-from usdforest.sensors.scene import extract_scene, stage_frame, to_frame
+from usdforest.sensors.scene import extract_scene
+from usdforest.sensors.stageframe import stage_frame, to_frame
 
 SENSORS = {
     "lidar": (lidar.PRESETS, "vlp-16"),

@@ -34,9 +34,10 @@ MAX_MISFIT = 0.15  # a slice's rms distance from its circle, as a share of the r
 @dataclass(frozen=True, eq=False)
 class Cylinders:
     """Finite cylinders: centre (n, 3), unit axis (n, 3), length, radius (n,) in metres,
-    class (trunk, branch or dead wood), tree id (-1: none) and ``joined`` (n,): this piece
+    class (trunk, branch or dead wood), tree id (-1: none), ``joined`` (n,): this piece
     continues the one before it in the arrays (one wood prim's chain of pieces, each
-    starting where the one before it ends; default none)."""
+    starting where the one before it ends; default none) and ``carrier`` (n,): the index of
+    the scene's instance that placed it (-1, the default: none, or found by its tree id)."""
 
     centre: np.ndarray
     axis: np.ndarray
@@ -45,10 +46,13 @@ class Cylinders:
     cls: np.ndarray
     tree: np.ndarray
     joined: np.ndarray | None = None
+    carrier: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.joined is None:
             object.__setattr__(self, "joined", np.zeros(len(self.radius), bool))
+        if self.carrier is None:
+            object.__setattr__(self, "carrier", np.full(len(self.radius), -1, np.int64))
 
     def __len__(self) -> int:
         return int(self.centre.shape[0])
@@ -58,7 +62,7 @@ class Cylinders:
         the one before it is taken too."""
         sel = np.flatnonzero(sel) if np.asarray(sel).dtype == bool else np.asarray(sel, np.int64)
         joined = self.joined[sel] & np.r_[False, np.diff(sel) == 1]
-        return Cylinders(*(getattr(self, f)[sel] for f in _FIELDS[:-1]), joined)
+        return Cylinders(*(getattr(self, f)[sel] for f in _FIELDS[:6]), joined, self.carrier[sel])
 
     @staticmethod
     def concat(parts: list[Cylinders]) -> Cylinders:
@@ -71,12 +75,16 @@ class Cylinders:
                 np.zeros(0, np.uint8),
                 np.zeros(0, np.int64),
                 np.zeros(0, bool),
+                np.zeros(0, np.int64),
             )
         return Cylinders(*(np.concatenate([getattr(p, f) for p in parts]) for f in _FIELDS))
 
-    def placed(self, m: np.ndarray, tree: np.ndarray) -> Cylinders:
+    def placed(
+        self, m: np.ndarray, tree: np.ndarray, carrier: np.ndarray | None = None
+    ) -> Cylinders:
         """Copies placed by row-vector 4x4 transforms ``m (n, 4, 4)``, one per tree id in
-        ``tree (n,)`` (a uniform scale assumed for the radius)."""
+        ``tree (n,)`` and, where given, scene instance in ``carrier (n,)`` (a uniform scale
+        assumed for the radius)."""
         rot = m[:, :3, :3]
         axis = np.einsum("cj,njk->nck", self.axis, rot)
         stretch = np.linalg.norm(axis, axis=2)
@@ -90,10 +98,11 @@ class Cylinders:
             np.tile(self.cls, n),
             np.repeat(np.asarray(tree, np.int64), c),
             np.tile(self.joined, n),
+            None if carrier is None else np.repeat(np.asarray(carrier, np.int64), c),
         )
 
 
-_FIELDS = ("centre", "axis", "length", "radius", "cls", "tree", "joined")
+_FIELDS = ("centre", "axis", "length", "radius", "cls", "tree", "joined", "carrier")
 
 
 def fit_cylinders(
@@ -341,5 +350,5 @@ def scene_cylinders(scene: Scene, segment: float) -> Cylinders:
         local = fit_cylinders(
             proto.triangles, proto.cls, proto.path, np.full(len(proto.cls), -1), segment
         )
-        parts.append(local.placed(inst.matrix[which], inst.tree[which]))
+        parts.append(local.placed(inst.matrix[which], inst.tree[which], which))
     return Cylinders.concat(parts)
