@@ -1,7 +1,7 @@
 """Open a forest whose leaves flutter in Blender (the ``bpy`` module) and report, at each frame
 asked for, the world matrix of every instance of the mesh under the leaf prototype named on
-the command line (one flutter class's, e.g. ``Leaf_flutter1``) in the evaluated depsgraph, as
-JSON.
+the command line (one flutter class's, e.g. ``Leaf_flutter1``, in every leaf instancer) in
+the evaluated depsgraph, as JSON.
 
 Run with a Python that has ``bpy``: ``python blender_flutter_probe.py STAGE PROTOTYPE FRAME
 [FRAME ...]``. Reads only the stage, not usdforest.
@@ -30,7 +30,8 @@ def main() -> None:
             if inst.is_instance
             and inst.object.type == "MESH"
             and inst.object.parent is not None
-            and inst.object.parent.name == name
+            # each leaf instancer's prototype of that name: Blender numbers them, name.001...
+            and inst.object.parent.name.split(".")[0] == name
         ]
     print(json.dumps(out))
 

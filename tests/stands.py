@@ -35,6 +35,14 @@ height = 18.0
 """
 
 
+def beech_and_pine(seed: int) -> str:
+    """The recipe of :data:`BEECH_AND_PINE` on its 20 m square, with the two presets."""
+    return (
+        f"seed = {seed}\n[region]\nbounds = [0.0, 0.0, 20.0, 20.0]\n{BEECH_AND_PINE}\n"
+        '[species.beech]\npreset = "european-beech"\n[species.pine]\npreset = "scots-pine"\n'
+    )
+
+
 def allometric_stand(seed: int, size: float, sites: list[str], extra: str = "") -> str:
     """A recipe of ``sites`` (TOML inline tables) on a ``size`` m square, the four species
     and ``extra`` (more tables)."""

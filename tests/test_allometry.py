@@ -202,12 +202,13 @@ def _crown_offsets(forest: Path) -> tuple[np.ndarray, np.ndarray]:
     idx = np.asarray(pi.GetProtoIndicesAttr().Get())
     centre = []
     for target in pi.GetPrototypesRel().GetTargets():
-        leaves = next(
-            p
+        # the tree's own leaves and each limb's (a limb's group has no transform of its own)
+        positions = [
+            np.asarray(UsdGeom.PointInstancer(p).GetPositionsAttr().Get(), dtype=float)
             for p in Usd.PrimRange(stage.GetPrimAtPath(target), Usd.TraverseInstanceProxies())
             if p.IsA(UsdGeom.PointInstancer) and p.GetName() == "Leaves"
-        )
-        centre.append(np.asarray(UsdGeom.PointInstancer(leaves).GetPositionsAttr().Get()).mean(0))
+        ]
+        centre.append(np.concatenate([x.reshape(-1, 3) for x in positions]).mean(0))
     return mats, np.einsum("nj,njk->nk", np.asarray(centre)[idx], mats[:, :3, :3])[:, :2]
 
 

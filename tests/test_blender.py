@@ -28,6 +28,28 @@ def _blender_python() -> str:
     return optional_tool("USDFOREST_BLENDER_PYTHON", "Blender's bpy", ".venv-blender", "bpy")
 
 
+def _played(probe: str, stage: Path, *args: str) -> dict:
+    """The JSON report of the probe script ``probe`` run on ``stage`` in Blender."""
+    run = subprocess.run(
+        [_blender_python(), str(PROBE.with_name(probe)), str(stage), *args],
+        capture_output=True, text=True, check=False, timeout=600,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-2000:]
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def _built(tmp_path: Path, name: str, text: str) -> Path:
+    """``tmp_path/name.usda``, the forest of the recipe ``text``."""
+    import tomllib
+
+    from usdforest.usd.forest import write_forest
+
+    stage = tmp_path / f"{name}.usda"
+    recipe = parse_recipe(tomllib.loads(text), tmp_path, f"{name}.toml")
+    write_forest(recipe, stage, thumbnail=False)
+    return stage
+
+
 def _open_in_blender(stage: Path, *render: Path) -> dict:
     py = _blender_python()
     run = subprocess.run(
@@ -104,9 +126,6 @@ def test_blender_keeps_a_lone_trees_colours(tmp_path):
 def test_blender_plays_the_wind_layers_sway(tmp_path):
     """Blender imports the wind layer's frames and tilts each tree as pxr composes it (from the
     half-float orientations, the ones Blender reads: within 2e-3 of the stage's rotation)."""
-    import tomllib
-
-    from usdforest.usd.forest import write_forest as build
 
     text = (
         "seed = 5\n[region]\nbounds = [0.0, 0.0, 40.0, 40.0]\n"
@@ -117,15 +136,8 @@ def test_blender_plays_the_wind_layers_sway(tmp_path):
         + '[species.pine]\npreset = "scots-pine"\n[wind]\nspeed = 15.0\nduration = 4\nfps = 5\n'
         + "branch_sway = false\n"  # the stems' tilt alone (a limb's turn: the next test)
     )
-    stage = tmp_path / "windy.usda"
-    build(parse_recipe(tomllib.loads(text), tmp_path, "windy.toml"), stage, thumbnail=False)
-    run = subprocess.run(
-        [_blender_python(), str(PROBE.with_name("blender_sway_probe.py")), str(stage), "B_0001",
-         "0", "7"],
-        capture_output=True, text=True, check=False, timeout=600,
-    )  # fmt: skip
-    assert run.returncode == 0, run.stderr[-2000:]
-    seen = json.loads(run.stdout.strip().splitlines()[-1])
+    stage = _built(tmp_path, "windy", text)
+    seen = _played("blender_sway_probe.py", stage, "B_0001", "0", "7")
     assert (seen["frame_start"], seen["frame_end"]) == (0, 20)
     from pxr import UsdGeom
 
@@ -156,11 +168,8 @@ def test_blender_plays_each_limbs_own_sway(tmp_path):
     """Blender imports each limb's turn about its base (a pivot, a frame along the limb and
     two half-float angles per frame) and places the wood on a swaying limb as pxr composes
     it: within 2 mm at its base and 1 m along it, where the limb's turn moves them more."""
-    import tomllib
 
     from pxr import UsdGeom
-
-    from usdforest.usd.forest import write_forest as build
 
     text = (
         'seed = 5\n[region]\nbounds = [0.0, 0.0, 20.0, 20.0]\n[[sites]]\nx = 10.0\ny = 10.0\n'
@@ -168,8 +177,7 @@ def test_blender_plays_each_limbs_own_sway(tmp_path):
         'preset = "european-beech"\n[wind]\nspeed = 20.0\nduration = 2\nfps = 24\n'
         "flutter_angle = 0\n"
     )  # fmt: skip
-    stage = tmp_path / "limbs.usda"
-    build(parse_recipe(tomllib.loads(text), tmp_path, "limbs.toml"), stage, thumbnail=False)
+    stage = _built(tmp_path, "limbs", text)
     usd = Usd.Stage.Open(str(stage))
     trees = UsdGeom.PointInstancer(usd.GetPrimAtPath("/Forest/Trees"))
     proto = usd.GetPrimAtPath(trees.GetPrototypesRel().GetTargets()[0])
@@ -195,13 +203,7 @@ def test_blender_plays_each_limbs_own_sway(tmp_path):
     moved = [float(np.abs(placed(p, 9) - placed(p, 9, limb=False)).max()) for p in wood]
     prim = wood[int(np.argmax(moved))]
     assert max(moved) > 0.02
-    run = subprocess.run(
-        [_blender_python(), str(PROBE.with_name("blender_sway_probe.py")), str(stage),
-         prim.GetName(), "0", "9"],
-        capture_output=True, text=True, check=False, timeout=600,
-    )  # fmt: skip
-    assert run.returncode == 0, run.stderr[-2000:]
-    seen = json.loads(run.stdout.strip().splitlines()[-1])
+    seen = _played("blender_sway_probe.py", stage, prim.GetName(), "0", "9")
     for f in (0, 9):
         (mat,) = seen["frames"][str(f)]
         blender = (marks @ np.asarray(mat).T)[:, :3]  # Blender's column vectors, as rows
@@ -214,46 +216,51 @@ def test_blender_plays_the_leaves_flutter(tmp_path):
     class's samples) and places every leaf of a class as pxr composes it at each frame, its
     class's turn included (within 2 mm at the leaves' tips and middles, the tree's half-float
     orientation Blender reads), and not without it."""
-    import tomllib
 
     from pxr import UsdGeom
     from scipy.spatial import cKDTree
-
-    from usdforest.usd.forest import write_forest as build
 
     text = (
         'seed = 5\n[region]\nbounds = [0.0, 0.0, 20.0, 20.0]\n[[sites]]\nx = 10.0\ny = 10.0\n'
         'species = "beech"\ndbh = 0.08\nheight = 7.0\n[species.beech]\n'
         'preset = "european-beech"\n[wind]\nspeed = 8.0\nduration = 1\nfps = 24\n'
     )  # fmt: skip
-    stage = tmp_path / "flutter.usda"
-    build(parse_recipe(tomllib.loads(text), tmp_path, "flutter.toml"), stage, thumbnail=False)
+    stage = _built(tmp_path, "flutter", text)
     name = "Leaf_flutter1"
-    run = subprocess.run(
-        [_blender_python(), str(PROBE.with_name("blender_flutter_probe.py")), str(stage), name,
-         "0", "5"],
-        capture_output=True, text=True, check=False, timeout=600,
-    )  # fmt: skip
-    assert run.returncode == 0, run.stderr[-2000:]
-    seen = json.loads(run.stdout.strip().splitlines()[-1])
+    seen = _played("blender_flutter_probe.py", stage, name, "0", "5")
     usd = Usd.Stage.Open(str(stage))
-    leaves = UsdGeom.PointInstancer(usd.GetPrimAtPath("/Forest/Trees/Prototypes/Beech_0/Leaves"))
+    proto = usd.GetPrimAtPath("/Forest/Trees/Prototypes/Beech_0")
+    # the tree's own leaf instancer and each limb's
+    instancers = [
+        UsdGeom.PointInstancer(p)
+        for p in Usd.PrimRange(proto)
+        if p.IsA(UsdGeom.PointInstancer) and p.GetName() == "Leaves"
+    ]
     trees = UsdGeom.PointInstancer(usd.GetPrimAtPath("/Forest/Trees"))
-    targets = [t.name for t in leaves.GetPrototypesRel().GetTargets()]
-    mine = np.asarray(leaves.GetProtoIndicesAttr().Get()) == targets.index(name)
     points = np.array([[1.0, 0.0, 0.0, 1.0], [0.5, 0.3, 0.0, 1.0]])  # tip, a middle (leaf frame)
 
     def marks(rows: np.ndarray) -> np.ndarray:
         return np.einsum("pj,njk->npk", points, rows)[..., :3].reshape(len(rows), -1)
 
+    def composed(f: int, turn) -> np.ndarray:
+        """The class's leaves in the world at frame ``f`` as pxr composes them."""
+        cache = UsdGeom.XformCache(f)
+        inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(proto)))
+        tree = np.asarray(trees.ComputeInstanceTransformsAtTime(f, f))[0]
+        out = []
+        for pi in instancers:
+            targets = [t.name for t in pi.GetPrototypesRel().GetTargets()]
+            mine = np.asarray(pi.GetProtoIndicesAttr().Get()) == targets.index(name)
+            place = np.asarray(cache.GetLocalToWorldTransform(pi.GetPrim())) @ inv @ tree
+            out.append(np.asarray(pi.ComputeInstanceTransformsAtTime(f, f, turn))[mine] @ place)
+        return np.concatenate(out)
+
     for f in (0, 5):
         blender = np.transpose(np.array(seen[str(f)]), (0, 2, 1))  # row vectors
-        assert len(blender) == int(mine.sum()) > 100
-        tree = np.asarray(trees.ComputeInstanceTransformsAtTime(f, f))[0]
+        assert len(blender) == len(composed(f, UsdGeom.PointInstancer.IncludeProtoXform)) > 100
         gaps = {}
         for turn in (UsdGeom.PointInstancer.IncludeProtoXform,
                      UsdGeom.PointInstancer.ExcludeProtoXform):  # fmt: skip
-            rows = np.asarray(leaves.ComputeInstanceTransformsAtTime(f, f, turn))[mine] @ tree
-            gaps[turn] = cKDTree(marks(rows)).query(marks(blender))[0]
+            gaps[turn] = cKDTree(marks(composed(f, turn))).query(marks(blender))[0]
         assert gaps[UsdGeom.PointInstancer.IncludeProtoXform].max() < 2e-3
         assert np.median(gaps[UsdGeom.PointInstancer.ExcludeProtoXform]) > 3e-3

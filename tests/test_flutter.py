@@ -8,22 +8,13 @@ import math
 import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdGeom
-from stands import BEECH_AND_PINE, build_text
+from stands import beech_and_pine, build_text
 
 from usdforest.errors import RecipeError
 from usdforest.usd.validate import validate
 
 # a beech beside a pine (whose shoots do not flutter); the wind at 10 m/s
-STAND = f"""
-seed = 3
-[region]
-bounds = [0.0, 0.0, 20.0, 20.0]
-{BEECH_AND_PINE}
-[species.beech]
-preset = "european-beech"
-[species.pine]
-preset = "scots-pine"
-"""
+STAND = beech_and_pine(3)
 SPEED, DURATION, FPS, CLASSES, ANGLE, FREQUENCY = 10.0, 2.0, 24.0, 6, 20.0, 3.0
 WIND = (
     f"[wind]\nspeed = {SPEED}\nduration = {DURATION}\nfps = {FPS}\nflutter_classes = {CLASSES}\n"

@@ -9,23 +9,14 @@ import math
 import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdGeom
-from stands import BEECH_AND_PINE, build_text
+from stands import beech_and_pine, build_text
 
 from usdforest.errors import RecipeError
 from usdforest.grow.species import get_species
 from usdforest.usd.validate import validate
 from usdforest.usd.wind import crown_of
 
-STAND = f"""
-seed = 4
-[region]
-bounds = [0.0, 0.0, 20.0, 20.0]
-{BEECH_AND_PINE}
-[species.beech]
-preset = "european-beech"
-[species.pine]
-preset = "scots-pine"
-"""
+STAND = beech_and_pine(4)
 SPEED, GUSTINESS, DURATION, FPS = 10.0, 0.3, 60.0, 24.0
 # the leaves do not flutter: a flight's rays meet them at rest on their limbs
 WIND = (
