@@ -155,6 +155,59 @@ def instances_bounds(
     return Bounds.union([inner, _transformed(hulls, proto, rows, translate, np.flatnonzero(keep))])
 
 
+def grouped_extents(
+    hulls: Sequence[np.ndarray],
+    proto: np.ndarray,
+    rows: np.ndarray,
+    translate: np.ndarray,
+    group: np.ndarray,
+    groups: int,
+) -> np.ndarray:
+    """``(groups, 2, 3)`` extents of the instances of each group (``group[i]`` in
+    ``0 .. groups - 1``; -1: none), every hull vertex transformed as
+    :func:`instances_bounds` transforms it (an empty group: :data:`EMPTY_EXTENT`). No
+    footprints: one pass for all groups, however many. As there, only the instances that can
+    reach their group's boundary are transformed: one whose anchor lies deeper than its
+    reach inside the box of its group's anchors cannot move that group's extent."""
+    lo = np.full((groups, 3), np.inf)
+    hi = np.full((groups, 3), -np.inf)
+    proto, group = np.asarray(proto), np.asarray(group)
+    if len(proto) == 0:
+        lo[:], hi[:] = EMPTY_EXTENT
+        return np.stack([lo, hi], axis=1)
+    centre = np.array([h.mean(axis=0) if len(h) else np.zeros(3) for h in hulls])
+    radius = np.array(
+        [
+            np.linalg.norm(h - c, axis=1).max() if len(h) else 0.0
+            for h, c in zip(hulls, centre, strict=True)
+        ]
+    )
+    anchor = np.einsum("nj,njk->nk", centre[proto], rows) + translate
+    norm = np.sqrt(np.einsum("nij,nij->n", rows, rows))
+    size = np.abs(centre[proto]).max(axis=1) + radius[proto]
+    room = 8 * np.finfo(float).eps * (size * norm + np.abs(translate).max(axis=1))
+    reach = (norm * radius[proto] * (1 + 1e-9) + room)[:, None]
+    mine = group >= 0
+    a_lo, a_hi = lo.copy(), hi.copy()
+    np.minimum.at(a_lo, group[mine], anchor[mine])
+    np.maximum.at(a_hi, group[mine], anchor[mine])
+    g = np.maximum(group, 0)
+    edge = ((anchor - reach < a_lo[g]) | (anchor + reach > a_hi[g])).any(axis=1)
+    for k, hull in enumerate(hulls):
+        sel = np.flatnonzero((proto == k) & mine & edge)
+        if len(sel) == 0 or len(hull) == 0:
+            continue
+        step = max(1, CHUNK // len(hull))
+        for start in range(0, len(sel), step):
+            i = sel[start : start + step]
+            pts = np.matmul(hull, rows[i]) + translate[i, None, :]
+            np.minimum.at(lo, group[i], pts.min(axis=1))
+            np.maximum.at(hi, group[i], pts.max(axis=1))
+    empty = ~np.isfinite(lo[:, 0])
+    lo[empty], hi[empty] = EMPTY_EXTENT
+    return np.stack([lo, hi], axis=1)
+
+
 def _transformed(
     hulls: Sequence[np.ndarray],
     proto: np.ndarray,

@@ -42,7 +42,13 @@ from usdforest.atomic import output_lock, publish, refuse_overwrite, staging_fol
 from usdforest.cad.library import template_dir, template_path
 from usdforest.errors import UsdForestError
 from usdforest.grow.architecture import TreeSize
-from usdforest.grow.bounds import EMPTY, EMPTY_EXTENT, Bounds, instances_bounds
+from usdforest.grow.bounds import (
+    EMPTY,
+    EMPTY_EXTENT,
+    Bounds,
+    grouped_extents,
+    instances_bounds,
+)
 from usdforest.grow.colliders import Capsules, tree_capsules
 from usdforest.grow.limbs import Limbs, leaf_axes, limbs_of
 from usdforest.grow.placement import Placement, place
@@ -499,18 +505,15 @@ def tree_layer(
         if build.colliders is not None:
             add_colliders(root, build.colliders)
         leaf_arrays = (p.leaf_position, p.leaf_orient, p.leaf_scale, p.leaf_proto)
+        boxes = _limb_extents(
+            leaf_arrays, p.leaf_templates, build.templates, limbs.leaves, len(limbs)
+        )
         for k, holder in [(-1, root), *enumerate(groups)]:
             sel = np.flatnonzero(limbs.leaves == k)
             if k >= 0 and not sel.size:
                 continue
-            _author_leaves(
-                holder,
-                "Leaves",
-                tuple(a[sel] for a in leaf_arrays),
-                p.leaf_templates,
-                template_assets,
-                _stored_extent(tuple(a[sel] for a in leaf_arrays), p.leaf_templates, build),
-            )
+            part = tuple(a[sel] for a in leaf_arrays)
+            _author_leaves(holder, "Leaves", part, p.leaf_templates, template_assets, boxes[k + 1])
         _author_lod(root, build, template_assets, bark, leaf_mat)
     return layer
 
@@ -533,14 +536,22 @@ def limb_name(first: int) -> str:
     return f"Limb_{first:04d}"
 
 
-def _stored_extent(
-    arrays: tuple[np.ndarray, ...], templates: tuple[str, ...], build: TreeBuild
+def _limb_extents(
+    arrays: tuple[np.ndarray, ...],
+    templates: tuple[str, ...],
+    infos: Mapping[str, TemplateInfo],
+    limb: np.ndarray,
+    limbs: int,
 ) -> np.ndarray:
-    """The exact extent of leaf-like instances (as :func:`instances_bounds_as_stored`)."""
+    """``(limbs + 1, 2, 3)``: the exact extent of leaf-like instances (from their values
+    as stored, as :func:`instances_bounds_as_stored`) on no limb (row 0) and on each limb
+    (``limb`` of each instance, -1: none)."""
     position, orient, scale, proto = arrays
-    return instances_bounds_as_stored(
-        position, orient, scale, proto, templates, build.templates
-    ).extent
+    rows = gf_rotation_rows(orient.astype(np.float16).astype(np.float64))
+    rows *= scale.astype(np.float32).astype(np.float64)[:, :, None]
+    pos = position.astype(np.float32).astype(np.float64)
+    hulls = [infos[t].hull for t in templates]
+    return grouped_extents(hulls, proto, rows, pos, np.asarray(limb) + 1, limbs + 1)
 
 
 def _author_leaves(
@@ -631,20 +642,17 @@ def _author_lod(
         limbs = build.limbs
         over = Sdf.SpecifierOver
         branches = prim(medium, "Branches", "", over) if len(limbs) else None
+        on = limbs.leaves[c["leaf"]]
+        boxes = _limb_extents(arrays, p.leaf_templates, build.templates, on, len(limbs))
         for k in range(-1, len(limbs)):
-            sel = np.flatnonzero(limbs.leaves[c["leaf"]] == k)
+            sel = np.flatnonzero(on == k)
             if k >= 0 and not np.any(limbs.leaves == k):
                 continue
             holder = medium if k < 0 else prim(branches, limb_name(int(limbs.first[k])), "", over)
             prim(holder, "Leaves", "", over).active = False
             part = tuple(a[sel] for a in arrays)
             _author_leaves(
-                holder,
-                "LeafClusters",
-                part,
-                p.leaf_templates,
-                template_assets,
-                _stored_extent(part, p.leaf_templates, build),
+                holder, "LeafClusters", part, p.leaf_templates, template_assets, boxes[k + 1]
             )
 
     proxy = variants["proxy"]
