@@ -956,6 +956,9 @@ WIND_RANGES = {  # key: (lowest, highest, whether the lowest itself is refused)
 }
 
 
+WIND_FLAGS = {"branch_sway"}  # true or false
+
+
 def _parse_wind(t: Any, tiles: float | None) -> Any:
     """``[wind]``: the trees sway in gusts, written as a layer of time samples (see
     :mod:`usdforest.grow.sway`); absent: a still forest."""
@@ -967,7 +970,7 @@ def _parse_wind(t: Any, tiles: float | None) -> Any:
         raise RecipeError("wind: expected a table, e.g. [wind] speed = 5")
     if tiles is not None:
         raise RecipeError("wind: a tiled forest cannot be animated yet; remove [tiles] or [wind]")
-    check_keys(t, {*WIND_RANGES, "branch_sway"}, "wind")
+    check_keys(t, set(WIND_RANGES) | WIND_FLAGS, "wind")
     d = WindSpec()
     values = {}
     for k, (lo, hi, open_lo) in WIND_RANGES.items():
