@@ -81,7 +81,7 @@ def _limbs(stage_path: Path, recipe_path: Path) -> str:
 
     from usdforest.grow.sway import natural_frequency
     from usdforest.recipe import read_recipe
-    from usdforest.usd.limbsway import boughs_of, limb_sways
+    from usdforest.usd.limbsway import MIN_SWAY, boughs_of, limb_sways, sway_rms
     from usdforest.usd.wind import crowns_of, stems_of
 
     recipe = read_recipe(recipe_path)
@@ -94,11 +94,13 @@ def _limbs(stage_path: Path, recipe_path: Path) -> str:
     for limbs, tips in limb_sways(stage, wind, recipe.seed, areas, float(stems.height.max())):
         b = boughs_of(limbs, 1.0)
         f.append(natural_frequency(b.diameter, b.length, wind))
-        rms.append(np.sqrt((tips[:-1] ** 2).sum(axis=-1).mean(axis=0)))
+        rms.append(sway_rms(tips))
     f, rms = np.concatenate(f), np.concatenate(rms) * 100
     q = np.percentile
     return (
-        f"limbs: {len(f):,} in the {len(crowns)} tree assets sway at {wind.speed:g} m/s; "
+        f"limbs: {len(f):,} in the {len(crowns)} tree assets at {wind.speed:g} m/s, "
+        f"{int((rms >= MIN_SWAY * 100).sum()):,} of them swaying at least "
+        f"{MIN_SWAY * 1000:g} mm rms (the others rigid); "
         f"natural frequencies {q(f, 5):.2f}-{q(f, 95):.2f} Hz (5th-95th percentile, median "
         f"{q(f, 50):.2f}); their tips sway {q(rms, 50):.2f} cm rms (median), {q(rms, 95):.2f} cm "
         f"(95th percentile), {rms.max():.1f} cm at most"

@@ -12,8 +12,10 @@ instancer the wind layer authors, as an over:
   moves as :func:`usdforest.grow.sway.bough_sway` says; zero by default;
 * ``xformOpOrder``: pivot, frame, sway, the frame's inverse, the pivot's inverse.
 
-So the layer holds one angle pair per limb of each prototype and time code: the trees of one
-prototype sway their limbs alike (their stems sway each on its own). At the default time, or
+A limb whose tip would sway less than ``MIN_SWAY`` (5 mm rms) stays rigid on its tree: it gets
+no samples (at 5 m/s most of the default forest's limbs). So the layer holds one angle pair
+per swaying limb of each prototype and time code: the trees of one prototype sway their limbs
+alike (their stems sway each on its own). At the default time, or
 with the layer muted, every limb is where the asset put it.
 """
 
@@ -30,6 +32,9 @@ from usdforest.grow.sway import Boughs, WindSpec, bough_sway
 from usdforest.rotations import quat_from_matrix
 from usdforest.usd.layers import T, attr, class_labels
 
+# a limb whose tip sways less than this (m, rms) stays rigid on its tree: no samples, and the
+# sensors keep it in its tree's prototype (under a lidar's few centimetres of range noise)
+MIN_SWAY = 0.005
 PIVOT_OP = "xformOp:translate:pivot"
 FRAME_OP = "xformOp:orient:limb"
 SWAY_OP = "xformOp:rotateXYZ:sway"
@@ -151,20 +156,23 @@ def author_limb_sway(
     areas: list[float],
     top: float,
 ) -> tuple[int, float]:
-    """Author the sway of every limb of the tree prototypes composed on ``stage`` into
-    ``layer`` (the wind layer; see :func:`limb_sways` for the arguments). Returns how many
-    limbs sway and the farthest a limb's tip moves (m, in its prototype's space)."""
+    """Author the sway of the limbs of the tree prototypes composed on ``stage`` whose tips
+    sway at least ``MIN_SWAY`` (rms) into ``layer`` (the wind layer; see :func:`limb_sways`
+    for the arguments). Returns how many limbs sway and the farthest a limb's tip moves (m,
+    in its prototype's space)."""
     if not spec.branch_sway or spec.speed == 0:
         return 0, 0.0
     swaying, farthest = 0, 0.0
     with Sdf.ChangeBlock():
         for limbs, tips in limb_sways(stage, spec, seed, areas, top):
-            if not np.any(tips):
+            keep = sway_rms(tips) >= MIN_SWAY
+            if not keep.any():
                 continue
-            farthest = max(farthest, float(np.linalg.norm(tips, axis=-1).max()))
+            farthest = max(farthest, float(np.linalg.norm(tips[:, keep], axis=-1).max()))
             degrees = np.degrees(sway_angles(limbs, tips)).astype(np.float16)
             frames = limb_frames(limbs)
-            for j, path in enumerate(limbs.paths):
+            for j in np.flatnonzero(keep):
+                path = limbs.paths[j]
                 over = Sdf.CreatePrimInLayer(layer, path)
                 attr(over, PIVOT_OP, T.Float3, Gf.Vec3f(*map(float, limbs.base[j])))
                 x, y, z, w = (float(v) for v in frames[j])
@@ -173,5 +181,10 @@ def author_limb_sway(
                 attr(over, "xformOpOrder", T.TokenArray, Vt.TokenArray(ORDER), uniform=True)
                 for f, (a, b) in enumerate(degrees[:, j]):
                     layer.SetTimeSample(op.path, float(f), Gf.Vec3h(float(a), float(b), 0.0))
-            swaying += len(limbs.paths)
+            swaying += int(keep.sum())
     return swaying, farthest
+
+
+def sway_rms(tips: np.ndarray) -> np.ndarray:
+    """``(k,)`` each limb's tip sway (m, rms over the loop) of :func:`limb_sways`' ``tips``."""
+    return np.sqrt((tips[:-1] ** 2).sum(axis=-1).mean(axis=0))

@@ -28,6 +28,7 @@ own), so that one transform on the group moves a limb whole: the wind layer's br
 
 from __future__ import annotations
 
+import functools
 import math
 import shutil
 from collections.abc import Mapping
@@ -142,7 +143,7 @@ class TreeBuild:
             return self.summer_leaf_area
         return placed_leaf_area(self.placement, self.templates)
 
-    @property
+    @functools.cached_property
     def limbs(self) -> Limbs:
         """Its first-order branches and what grows on each."""
         p = self.placement
