@@ -15,8 +15,8 @@ instancer the wind layer authors, as an over:
 A limb whose tip would sway less than ``MIN_SWAY`` (5 mm rms) stays rigid on its tree: it gets
 no samples (at 5 m/s most of the default forest's limbs). So the layer holds one angle pair
 per swaying limb of each prototype and time code: the trees of one prototype sway their limbs
-alike (their stems sway each on its own). At the default time, or
-with the layer muted, every limb is where the asset put it.
+alike (their stems sway each on its own). At the default time, or with the layer muted, every
+limb is where the asset put it.
 """
 
 from __future__ import annotations
