@@ -286,12 +286,16 @@ def leaves(out: Path, work: Path) -> None:
             if p.GetCustomDataByKey("usdforest:species") == name
             and p.GetChild("Leaves").IsValid()
         )  # fmt: skip
-        pi = UsdGeom.PointInstancer(tree.GetChild("Leaves"))
+        # the tree's own leaves and each limb's (a limb's group has no transform of its own)
+        pis = [UsdGeom.PointInstancer(p) for p in Usd.PrimRange(tree)
+               if p.IsA(UsdGeom.PointInstancer) and p.GetName() == "Leaves"]  # fmt: skip
         quat = np.array([(q.imaginary[0], q.imaginary[1], q.imaginary[2], q.real)
-                         for q in pi.GetOrientationsAttr().Get()], dtype=float)  # fmt: skip
+                         for pi in pis for q in pi.GetOrientationsAttr().Get()],
+                        dtype=float)  # fmt: skip
         normal = matrix_from_quat(quat)[:, :, 2]
         incl = np.degrees(np.arccos(np.clip(np.abs(normal[:, 2]), 0.0, 1.0)))
-        z = np.array(pi.GetPositionsAttr().Get())[:, 2]
+        z = np.concatenate([np.array(pi.GetPositionsAttr().Get(), float).reshape(-1, 3)[:, 2]
+                            for pi in pis])  # fmt: skip
         rel = (z - z.min()) / np.ptp(z)
         ax = axes[1, col]
         bins = np.arange(0, 91, 5)
