@@ -63,15 +63,17 @@ def _limbs(stage: Usd.Stage, proto: str) -> list[Usd.Prim]:
     ]
 
 
-def test_a_limb_holds_the_wood_that_grows_from_it_and_its_leaves(tmp_path):
+@pytest.mark.parametrize("grouped", [True, False])
+def test_a_limb_holds_the_wood_that_grows_from_it_and_its_leaves(tmp_path, grouped):
     """Every wood prim in a limb's group traces its ``usdforest:parent`` back to the limb's
     first prim, a first-order one off the trunk; none outside a limb does; the wood and
-    leaves compose where the grown tree put them, as before the grouping."""
+    leaves compose where the grown tree put them, grouped or not (a tree written without
+    ``limbs`` has no group)."""
     from usdforest.usd.tree import build_tree, write_tree
 
     beech = get_species("european-beech")
     out = tmp_path / "beech.usda"
-    write_tree(beech, out, seed=2)
+    write_tree(beech, out, seed=2, limbs=grouped)
     p = build_tree(beech, seed=2).placement
     stage = Usd.Stage.Open(str(out))
     cache = UsdGeom.XformCache()
@@ -93,12 +95,12 @@ def test_a_limb_holds_the_wood_that_grows_from_it_and_its_leaves(tmp_path):
         first = j
         while p.order[first] == 1 and p.parent[first] >= 0 and p.order[p.parent[first]] == 1:
             first = int(p.parent[first])
-        if p.order[i] == 0:
+        if p.order[i] == 0 or not grouped:
             assert limb == -1
         else:
             assert limb == first and p.order[p.parent[first]] == 0
     limbs = {holder[i] for i in holder} - {-1}
-    assert len(limbs) == len(set(p.axis[p.order == 1]))
+    assert len(limbs) == (len(set(p.axis[p.order == 1])) if grouped else 0)
     # every leaf, wherever its instancer now is, where the placement put it
     positions = []
     for prim in Usd.PrimRange(stage.GetPrimAtPath("/Tree")):
@@ -110,6 +112,7 @@ def test_a_limb_holds_the_wood_that_grows_from_it_and_its_leaves(tmp_path):
             positions.append((rows @ to_tree)[:, 3, :3])
     got = np.concatenate(positions)
     assert len(got) == p.n_leaves > 1000
+    assert (len(positions) > 20) == grouped  # the tree's own instancer, and each limb's
     order = np.lexsort(got.T)
     want = p.leaf_position.astype(np.float32).astype(float)
     np.testing.assert_allclose(got[order], want[np.lexsort(want.T)], atol=1e-5)
@@ -202,8 +205,9 @@ def test_each_limb_sways_about_its_base_as_its_cantilever_in_the_gusts(stands):
 
 
 def test_limbs_rest_without_the_wind_and_with_branch_sway_off(stands):
-    """At the default time, with the wind layer muted and with ``branch_sway = false``, every
-    limb stands where the asset put it; the still forest's limbs carry no transform."""
+    """At the default time and with the wind layer muted, every limb stands where the asset
+    put it; a still forest, and one whose wind keeps ``branch_sway = false``, groups no limb
+    (nothing would move it)."""
     windy = Usd.Stage.Open(str(stands["windy"]))
     for limb in _limbs(windy, PROTOS[0]):
         m = np.asarray(UsdGeom.Xformable(limb).GetLocalTransformation(), dtype=float)
@@ -223,9 +227,13 @@ def test_limbs_rest_without_the_wind_and_with_branch_sway_off(stands):
     muted.MuteLayer(layer.identifier)
     stiff = Usd.Stage.Open(str(stands["stiff"]))
     still = Usd.Stage.Open(str(stands["still"]))
-    for stage in (muted, stiff, still):
-        for limb in _limbs(stage, PROTOS[0]):
-            assert not UsdGeom.Xformable(limb).GetOrderedXformOps()
+    limbs = _limbs(muted, PROTOS[0])
+    assert len(limbs) > 20
+    for limb in limbs:
+        assert not UsdGeom.Xformable(limb).GetOrderedXformOps()
+    for stage in (stiff, still):
+        for proto in PROTOS:
+            assert _limbs(stage, proto) == []
     stiff_layer = Sdf.Layer.FindOrOpen(str(stands["stiff"].parent / "stiff_assets" / "wind.usdc"))
     assert not any(
         "xformOp:rotateXYZ:sway" in stiff_layer.GetPrimAtPath(x).attributes
@@ -252,11 +260,15 @@ def test_the_sensors_see_each_limb_where_it_sways(stands):
     from usdforest.sensors.wood import scene_cylinders
 
     t = 1.52  # between the time codes 36 and 37
-    moved = {}
+    moved, at_rest = {}, {}
     for name in ("windy", "stiff"):
         still = extract_scene(stands[name], cache=False)
         motion = SceneMotion(stands[name], still)
-        moved[name] = motion.leaves(t, still.leaves)
+        # the two forests hold their leaves in different instancers: match them at rest
+        rest = np.round(still.leaves.centre, 5)
+        order = np.lexsort(rest.T)
+        moved[name] = motion.leaves(t, still.leaves).centre[order]
+        at_rest[name] = still.leaves.centre[order]
         if name == "stiff":
             assert still.sources.part is None
             continue
@@ -269,8 +281,9 @@ def test_the_sensors_see_each_limb_where_it_sways(stands):
         ]
         assert int((still.sources.part >= 0).sum()) == len(swaying) > 40
         now = extract_scene(stands[name], time=t, cache=False)
-        np.testing.assert_allclose(moved[name].centre, now.leaves.centre, atol=1e-5)
-        np.testing.assert_allclose(moved[name].normal, now.leaves.normal, atol=1e-5)
+        moved_leaves = motion.leaves(t, still.leaves)
+        np.testing.assert_allclose(moved_leaves.centre, now.leaves.centre, atol=1e-5)
+        np.testing.assert_allclose(moved_leaves.normal, now.leaves.normal, atol=1e-5)
         wood = motion.cylinders(t, scene_cylinders(still, 0.5))
         want = scene_cylinders(now, 0.5)
         np.testing.assert_allclose(wood.centre, want.centre, atol=1e-4)
@@ -285,7 +298,8 @@ def test_the_sensors_see_each_limb_where_it_sways(stands):
         np.testing.assert_array_equal(hit.hit, ref.hit)
         np.testing.assert_allclose(hit.t[hit.hit], ref.t[ref.hit], atol=1e-4)
         np.testing.assert_array_equal(hit.cls, ref.cls)
-    gap = np.linalg.norm(moved["windy"].centre - moved["stiff"].centre, axis=1)
+    np.testing.assert_allclose(at_rest["windy"], at_rest["stiff"], atol=1e-4)
+    gap = np.linalg.norm(moved["windy"] - moved["stiff"], axis=1)
     assert np.percentile(gap, 99) > 0.01
 
 

@@ -49,6 +49,22 @@ class Limbs:
     def __len__(self) -> int:
         return len(self.first)
 
+    def only(self, keep: np.ndarray | bool) -> Limbs:
+        """These limbs with only those ``keep`` selects (a boolean per limb, or one for
+        all): the wood and leaves of the others are then on no limb."""
+        keep = np.broadcast_to(np.asarray(keep, dtype=bool), (len(self),))
+        index = np.full(len(self) + 1, -1, dtype=np.int64)  # the last row: on no limb
+        index[:-1][keep] = np.arange(int(keep.sum()))
+        return Limbs(
+            self.first[keep],
+            index[self.wood],
+            index[self.leaves],
+            self.base[keep],
+            self.tip[keep],
+            self.radius[keep],
+            self.length[keep],
+        )
+
 
 def limbs_of(p: Placement, leaf_axis: np.ndarray) -> Limbs:
     """The limbs of ``p``; ``leaf_axis`` ``(m,)`` is the skeleton axis each leaf grows on

@@ -319,12 +319,15 @@ def _write_forest(
         (staged / "trees").mkdir(parents=True)
         (staged / "templates").mkdir()
         tree_assets = []
+        # only a wind that sways branches needs each limb grouped (see usd.tree)
+        w = recipe.wind
+        sways = w is not None and w.branch_sway and w.speed > 0
         for k, key in enumerate(prototypes):
             tick("writing trees", k, len(prototypes))
             tb = trees[key]
             refs = copy_templates(tb, staged / "templates", "../templates/")
             stem = f"{re.sub(r'[^A-Za-z0-9_.-]', '_', key[0])}_{key[1]}"
-            layer = tree_layer(tb, refs, asset_name=stem, identifier=f"./{stem}.usdc")
+            layer = tree_layer(tb, refs, asset_name=stem, identifier=f"./{stem}.usdc", limbs=sways)
             save_layer(layer, staged / "trees" / f"{stem}.usdc")
             tree_assets.append(f"./trees/{stem}.usdc")
         tick("writing trees", len(prototypes), len(prototypes))

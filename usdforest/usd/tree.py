@@ -5,12 +5,13 @@
     /Tree                     Xform, kind component, extentsHint, assetInfo, customData
       /Looks/Bark, /Looks/Leaf  UsdPreviewSurface materials (the proxy level's meshes)
       /Trunk                  Xform -> trunk template (instanceable, kind subcomponent)
-      /Branches/B_0000 ...    Xform -> the trunk's later runs (usdforest:order, length, ...)
-      /Branches/Limb_0012     Xform: one first-order branch with all that grows on it
+      /Branches/B_0000 ...    Xform -> branch or twig template (usdforest:order, length, ...)
+      /Branches/Limb_0012     only in a forest whose wind sways branches: one first-order
+                              branch with all that grows on it
         /B_0012 ...           Xform -> branch or twig template
         /Leaves               PointInstancer of its leaves
       /Leaves                 PointInstancer; /Leaves/Prototypes/Leaf -> leaf template (the
-                              leaves on no limb: the leader's)
+                              leaves on no limb group)
     /_class_Bark, /_class_Leaf  classes that give a template's own material the tree's colour
 
 Each wood prim and leaf prototype references its look class before its template. The class
@@ -19,11 +20,15 @@ colour *inside* the instance, so every reader sees the tree's own colours, inclu
 (Blender's importer) that take materials from instance prototypes and ignore bindings above
 them. The instances of one template in one tree still share one prototype.
 
-Each limb (:mod:`usdforest.grow.limbs`) is a group holding its wood and its own leaf
-instancer, every piece still placed in the tree's frame (the group has no transform of its
-own), so that one transform on the group moves a limb whole: the wind layer's branch sway
+Where a forest's wind sways branches (:mod:`usdforest.usd.forest` asks for it), each limb
+(:mod:`usdforest.grow.limbs`) is a group holding its wood and its own leaf instancer, every
+piece still placed in the tree's frame (the group has no transform of its own), so that one
+transform on the group moves a limb whole: the wind layer's branch sway
 (:mod:`usdforest.usd.limbsway`). The group carries where the limb starts and ends
-(``usdforest:base``, ``usdforest:tip``), its base radius and the length of its axis.
+(``usdforest:base``, ``usdforest:tip``), its base radius and the length of its axis. Any
+other tree keeps its branches and leaves ungrouped: a group per limb costs a leaf instancer
+per limb in each level of detail (the still default forest took 1.20x as long to write, and
+Blender imports every instancer's prototypes).
 """
 
 from __future__ import annotations
@@ -427,11 +432,14 @@ def tree_layer(
     *,
     asset_name: str,
     identifier: str,
+    limbs: np.ndarray | bool = False,
 ) -> Sdf.Layer:
     """Author the tree asset layer.
 
     ``template_assets`` maps each template name to the asset path the layer references it by
-    (relative to where the layer is saved).
+    (relative to where the layer is saved). ``limbs`` says which of ``build.limbs`` to group
+    under ``Branches/Limb_<i>`` (a boolean per limb, or one for all): those a wind layer
+    sways. A limb not grouped stays, as a still tree's do, in ``Branches`` and ``Leaves``.
     """
     sp = build.grown.species
     g = sp.geometry
@@ -479,7 +487,7 @@ def tree_layer(
         # /Tree/Branches/Limb_<j>/B_<i> on limb j; usdforest:parent holds that index of the
         # prim a branch grows from
         trunk = p.trunk
-        limbs = build.limbs
+        limbs = build.limbs.only(limbs)
         branches = prim(root, "Branches", "Xform")
         _purpose(branches, "render")
         groups = [_limb(branches, limbs, k) for k in range(len(limbs))]
@@ -515,7 +523,7 @@ def tree_layer(
                 continue
             part = tuple(a[sel] for a in leaf_arrays)
             _author_leaves(holder, "Leaves", part, p.leaf_templates, template_assets, boxes[k + 1])
-        _author_lod(root, build, template_assets, bark, leaf_mat)
+        _author_lod(root, build, limbs, template_assets, bark, leaf_mat)
     return layer
 
 
@@ -604,6 +612,7 @@ def _mesh(parent: Sdf.PrimSpec, name: str, v: np.ndarray, tri: np.ndarray, mater
 def _author_lod(
     root: Sdf.PrimSpec,
     build: TreeBuild,
+    limbs: Limbs,
     template_assets: Mapping[str, str],
     bark: Sdf.Path,
     leaf_mat: Sdf.Path,
@@ -640,7 +649,6 @@ def _author_lod(
     if p.n_leaves:
         c = lv.clusters
         arrays = (c["position"], c["orient"], c["scale"], c["proto"])
-        limbs = build.limbs
         over = Sdf.SpecifierOver
         branches = prim(medium, "Branches", "", over) if len(limbs) else None
         on = limbs.leaves[c["leaf"]]
@@ -717,11 +725,14 @@ def write_tree(
     force: bool = False,
     template_base: Path | None = None,
     colliders: str = "trunk",
+    limbs: bool = False,
 ) -> TreeBuild:
     """Build one tree and write ``out`` plus ``<stem>_assets/templates/`` beside it.
 
     Everything is written into a temporary folder next to ``out`` and moved into place at the
     end, so a failed build leaves nothing behind. Refuses to overwrite without ``force``.
+    With ``limbs``, each first-order branch is grouped under ``Branches/Limb_<i>`` with all
+    that grows on it, so that one transform (a layer of the user's own) moves it whole.
     """
     out = Path(out)
     if out.suffix not in (".usda", ".usdc", ".usd"):
@@ -729,7 +740,9 @@ def write_tree(
     assets = out.parent / f"{out.stem}_assets"
     with output_lock(out):
         refuse_overwrite(out, assets, force=force)
-        return _write_tree(species, seed, variant, out, assets, template_base, colliders, force)
+        return _write_tree(
+            species, seed, variant, out, assets, template_base, colliders, force, limbs
+        )
 
 
 def _write_tree(
@@ -741,6 +754,7 @@ def _write_tree(
     template_base: Path | None,
     colliders: str,
     force: bool,
+    limbs: bool,
 ) -> TreeBuild:
     build = build_tree(species, seed, variant, template_base=template_base, colliders=colliders)
     with staging_folder(out) as tmp:
@@ -748,14 +762,18 @@ def _write_tree(
             refs = copy_templates(
                 build, tmp / "assets" / "templates", f"./{assets.name}/templates/"
             )
-            layer = tree_layer(build, refs, asset_name=out.stem, identifier=f"./{out.name}")
+            layer = tree_layer(
+                build, refs, asset_name=out.stem, identifier=f"./{out.name}", limbs=limbs
+            )
             save_layer(layer, tmp / out.name)
         else:
             # the heavy arrays go into a crate file inside the assets folder (self-contained:
             # its templates beside it); OUT.usda is a thin interface that references it
             refs = copy_templates(build, tmp / "assets" / "templates", "./templates/")
             # the asset is OUT.usda, one folder up from the payload (paths are the layer's own)
-            layer = tree_layer(build, refs, asset_name=out.stem, identifier=f"../{out.name}")
+            layer = tree_layer(
+                build, refs, asset_name=out.stem, identifier=f"../{out.name}", limbs=limbs
+            )
             save_layer(layer, tmp / "assets" / TREE_PAYLOAD)
             save_layer(
                 interface_tree_layer(build, f"./{assets.name}/{TREE_PAYLOAD}", out),
