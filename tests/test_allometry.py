@@ -375,6 +375,10 @@ def test_a_stem_map_csv_builds_and_bad_ones_exit_2(tmp_path):
     write_forest(read_recipe(tmp_path / "r.toml"), out, thumbnail=False)
     f = stand_figures(out)
     assert sorted(np.round(f["per_tree"]["dbh"], 2)) == [0.1, 0.2]
+    # the species the map does not plant grow one prototype each, not an inventory's 64
+    assets = sorted(p.stem for p in (tmp_path / "f_assets" / "trees").iterdir())
+    assert [a for a in assets if not a.startswith("pine_")] == ["beech_0", "birch_0", "spruce_0"]
+    assert 1 <= sum(a.startswith("pine_") for a in assets) <= 2
     # a bad one beside it (the forest's pipeline.toml still reads stems.csv)
     (tmp_path / "bad.csv").write_text("x,y,dbh\n3,4,0.2\n")
     (tmp_path / "bad.toml").write_text(text.replace('"stems.csv"', '"bad.csv"'))

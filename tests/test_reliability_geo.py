@@ -212,8 +212,8 @@ def test_a_disk_that_fills_during_a_build_leaves_the_previous_forest(tmp_path):
 
 
 def test_an_empty_forest_of_allometric_species_builds(tmp_path):
-    """No site at all: each allometric species still grows its variants (before, the build
-    stopped with an internal error)."""
+    """No site at all: each allometric species still grows a prototype (before, the build
+    stopped with an internal error), one, since no tree stands for it."""
     (tmp_path / "r.toml").write_text(
         'seed = 1\n[region]\nbounds = [0, 0, 10, 10]\n[intensity]\nkind = "constant"\n'
         'value = 0\n[species.pine]\npreset = "scots-pine"\n'
@@ -224,6 +224,7 @@ def test_an_empty_forest_of_allometric_species_builds(tmp_path):
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["trees"] == 0
     assert validate(tmp_path / "f.usda") == []
+    assert [p.name for p in (tmp_path / "f_assets" / "trees").iterdir()] == ["pine_0.usdc"]
 
 
 def test_a_crs_is_metres_by_its_unit_not_its_spelling():

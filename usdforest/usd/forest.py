@@ -272,9 +272,14 @@ def _write_forest(
 
         check_samples(int(by_species.sum()), recipe.wind)
     classes = classes_for(recipe, merge_sums(s.sums for s in surveys))
-    # a species without trees still has its variants (an empty forest has its prototypes)
     classes = {n: c for n, c in classes.items() if len(c.sizes)}
-    counts = {n: len(classes[n].sizes) if n in classes else recipe.variants[n] for n in names}
+    # a species no tree is of still has a prototype (an empty forest has its prototypes), one:
+    # an inventory's unplanted species would otherwise grow 64 trees nobody stands on
+    planted = dict(zip(names, (int(c) for c in by_species), strict=True))
+    counts = {
+        n: len(classes[n].sizes) if n in classes else recipe.variants[n] if planted[n] else 1
+        for n in names
+    }
     prototypes = [(n, v) for n in names for v in range(counts[n])]
     proto_of = {p: i for i, p in enumerate(prototypes)}
     lookup = np.array(
