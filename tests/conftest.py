@@ -48,6 +48,26 @@ def every_written_recipe_loads_back(tmp_path_factory):
     assert not bad, "written recipes that do not load back:\n" + "\n".join(bad)
 
 
+@pytest.fixture(scope="session")
+def shipped(tmp_path_factory):
+    """``shipped(name)``: the shipped recipe ``name`` built once a session (with its
+    thumbnail), as ``(forest.usda, ForestBuild)``. Several test files read the default forest
+    and the 1 ha stand; each build takes a minute or more. Tests only read it."""
+    from usdforest.recipe import default_recipe_path, read_recipe
+    from usdforest.usd.forest import write_forest
+
+    built = {}
+
+    def build(name: str):
+        if name not in built:
+            out = tmp_path_factory.mktemp(f"shipped-{name}") / "forest.usda"
+            recipe = read_recipe(default_recipe_path().parent / f"{name}.toml")
+            built[name] = (out, write_forest(recipe, out))
+        return built[name]
+
+    return build
+
+
 @pytest.fixture
 def runner() -> CliRunner:
     return CliRunner()

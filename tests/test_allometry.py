@@ -311,13 +311,11 @@ preset = "scots-pine"
     assert offset[i, 0] > 0.1  # the x = 12 tree leans to +x, away
 
 
-def test_the_shipped_1ha_stand_has_published_stand_figures(tmp_path):
+def test_the_shipped_1ha_stand_has_published_stand_figures(shipped):
     # Asner, Scurlock & Hicke 2003: one-sided LAI 3-9 in temperate forests; Majasalmi et al.
     # 2013: branch area 0.15-0.18 of leaf area (wood with stems here: at most 0.4); a
     # 33-year Scots pine stand has DBH and height CVs of 0.26 and 0.23 (Forests 14:1779)
-    out = tmp_path / "stand.usda"
-    # (validated like every allometric forest by the inventory test: 64 s here)
-    write_forest(read_recipe(PIPELINES / "stand-1ha.toml"), out, thumbnail=False)
+    out, _ = shipped("stand-1ha")  # (validated by test_forest's shipped recipes' test)
     f = stand_figures(out)
     assert 3.0 <= f["leaf_area_index"] <= 9.0
     assert f["wood_to_leaf_area"] <= 0.4

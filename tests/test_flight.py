@@ -224,14 +224,15 @@ def test_bad_paths_are_refused(tmp_path, text, fragment):
         read_path(p)
 
 
-def test_a_short_flight_through_the_default_forest_writes_every_output(tmp_path, runner):
+def test_a_short_flight_through_the_default_forest_writes_every_output(
+    tmp_path, runner, shipped
+):
     """The embedded default forest, 4 m at 4 m/s and 2 m up with all three sensors: a LAS
     that laspy reads with one point per return, sonar pulses whose class echoes add up, a
     WAV, an echogram, camera frames and a contact sheet."""
     import laspy
 
-    forest = tmp_path / "forest.usda"
-    write_forest(read_recipe(default_recipe_path()), forest, thumbnail=False)
+    forest, _ = shipped("default")
     cfg = tmp_path / "sensors.toml"
     cfg.write_text("[sonar]\npulse_rate = 4.0\nbands = 16\n[camera]\nwidth = 64\nheight = 48\n")
     out = tmp_path / "run"

@@ -14,6 +14,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom
 
 from usdforest.cli import app
 from usdforest.recipe import default_recipe_path, read_recipe
+from usdforest.sites.sampling import sample_sites
 from usdforest.usd.forest import write_forest
 from usdforest.usd.layers import class_labels, open_stage
 from usdforest.usd.stats import stage_info
@@ -23,11 +24,9 @@ PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
 SPECIES = {"scots-pine", "norway-spruce", "european-beech", "silver-birch"}
 
 
-@pytest.fixture(scope="module")
-def default_forest(tmp_path_factory):
-    out = tmp_path_factory.mktemp("forest") / "forest.usda"
-    build = write_forest(read_recipe(default_recipe_path()), out)
-    return out, build
+@pytest.fixture
+def default_forest(shipped):
+    return shipped("default")
 
 
 def _understorey_leaves(stage: Usd.Stage) -> int:
@@ -248,8 +247,12 @@ def test_layered_into_a_simulation_stage_under_a_translated_prim(default_forest,
 
 def test_same_seed_same_bytes_and_pipeline_rebuild(default_forest, tmp_path):
     out, _ = default_forest
-    again = write_forest(read_recipe(default_recipe_path()), tmp_path / "a" / "forest.usda")
-    files = sorted(p.relative_to(out.parent) for p in out.parent.rglob("*") if p.is_file())
+    write_forest(read_recipe(default_recipe_path()), tmp_path / "a" / "forest.usda")
+    # every file the build writes (other tests read the shipped forest: none writes beside it)
+    files = sorted(
+        p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*") if p.is_file()
+    )
+    assert len(files) > 30
     for rel in files:
         assert (out.parent / rel).read_bytes() == (tmp_path / "a" / rel).read_bytes(), rel
     # the resolved recipe rebuilds the same forest
@@ -259,10 +262,10 @@ def test_same_seed_same_bytes_and_pipeline_rebuild(default_forest, tmp_path):
         assert (out.parent / "forest_assets" / name).read_bytes() == (
             tmp_path / "b" / "forest_assets" / name
         ).read_bytes()
-    other = write_forest(read_recipe(default_recipe_path(), seed=2), tmp_path / "c" / "f.usda")
-    assert len(other.sites) != len(again.sites) or not np.array_equal(
-        other.sites.xy, again.sites.xy
-    )
+    # another seed, other sites
+    ours = sample_sites(read_recipe(default_recipe_path()))
+    other = sample_sites(read_recipe(default_recipe_path(), seed=2))
+    assert len(other) != len(ours) or not np.array_equal(other.xy, ours.xy)
 
 
 def test_build_cli_refuses_overwrite_and_reports(tmp_path, runner):
@@ -290,9 +293,8 @@ def test_build_cli_refuses_overwrite_and_reports(tmp_path, runner):
         if p.stem not in ("templates", "stress-1m", "stand-1km2", "landscape-4km2")
     ),
 )
-def test_every_shipped_recipe_builds_clean(tmp_path, name):
-    out = tmp_path / f"{name}.usda"
-    b = write_forest(read_recipe(PIPELINES / f"{name}.toml"), out)
+def test_every_shipped_recipe_builds_clean(shipped, name):
+    out, b = shipped(name)
     assert b.n_trees > 0
     assert validate(out) == []
 

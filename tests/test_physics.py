@@ -120,12 +120,11 @@ def test_newton_stops_a_ball_at_a_trunk_of_a_built_forest(tmp_path):
     assert len(_capsules(stage)) == len(placed) == alone["colliders"] >= 2
 
 
-def test_default_forest_stands_on_a_labelled_ground_collider(tmp_path):
-    out = tmp_path / "f.usda"
+def test_default_forest_stands_on_a_labelled_ground_collider(shipped):
     recipe = read_recipe(default_recipe_path())
     g = recipe.ground
     assert (g["kind"], g["margin"], g["color"]) == ("plane", 5.0, (0.36, 0.3, 0.22))
-    write_forest(recipe, out, thumbnail=False)
+    out, _ = shipped("default")
     stage = Usd.Stage.Open(str(out))
     mesh = stage.GetPrimAtPath("/Forest/Ground/Mesh")
     assert mesh.IsA(UsdGeom.Mesh) and mesh.HasAPI(UsdPhysics.CollisionAPI)

@@ -58,11 +58,9 @@ def test_views_differ_and_top_view_is_round(pine):
     assert 0.7 < np.ptp(xs) / max(np.ptp(ys), 1) < 1.4
 
 
-@pytest.fixture(scope="module")
-def default_forest(tmp_path_factory):
-    out = tmp_path_factory.mktemp("df") / "f.usda"
-    write_forest(read_recipe(default_recipe_path()), out, thumbnail=False)
-    return out
+@pytest.fixture
+def default_forest(shipped):
+    return shipped("default")[0]
 
 
 def test_forest_render_has_ground_and_trees(default_forest):
