@@ -28,15 +28,24 @@ def _world_points(prim: Usd.Prim) -> np.ndarray:
 
 
 def _triangles(prim: Usd.Prim) -> np.ndarray:
+    """``(t, 3)`` vertex indices: each face fanned from its first vertex."""
     mesh = UsdGeom.Mesh(prim)
-    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get())
-    idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get())
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    tris = [
-        np.stack([idx[s] * np.ones(c - 2, int), idx[s + 1 : s + c - 1], idx[s + 2 : s + c]], 1)
-        for s, c in zip(starts, counts, strict=True)
-    ]
-    return np.concatenate(tris) if tris else np.zeros((0, 3), int)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
+    idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    fans = np.maximum(counts - 2, 0)
+    face = np.repeat(np.arange(len(counts)), fans)
+    # k-th triangle of its face: vertices 0, k + 1, k + 2 of the face
+    k = np.arange(int(fans.sum())) - np.repeat(np.cumsum(fans) - fans, fans)
+    s = starts[face]
+    return np.stack([idx[s], idx[s + k + 1], idx[s + k + 2]], axis=1)
+
+
+def placed(local: np.ndarray, mats: np.ndarray) -> np.ndarray:
+    """``(n, p, 3)``: the points ``local`` ``(p, 3)`` moved by each of the row-vector
+    transforms ``mats`` ``(n, 4, 4)`` (one matrix product, not a loop)."""
+    turned = np.tensordot(local, mats[:, :3, :3], axes=([1], [1]))  # (p, n, 3)
+    return turned.transpose(1, 0, 2) + mats[:, None, 3, :3]
 
 
 def world_mesh(prim: Usd.Prim) -> trimesh.Trimesh:
@@ -154,32 +163,65 @@ def silhouette_area(tris: np.ndarray, axes: tuple[int, int], cell: float = 0.05)
     return float(len(cells) * cell * cell)
 
 
+def _composed_pieces(stage: Usd.Stage, chunk: int | None = None, corners: bool = False):
+    """World-space triangles ``(m, 3, 3)`` of every Mesh in the stage, piece by piece:
+    PointInstancers expanded through ``ComputeInstanceTransformsAtTime``, ``chunk``
+    instances at a time (all at once with None; ``corners``: see
+    :func:`instanced_triangles`)."""
+    it = iter(Usd.PrimRange(stage.GetPseudoRoot(), Usd.TraverseInstanceProxies()))
+    for p in it:
+        if p.IsA(UsdGeom.PointInstancer):
+            it.PruneChildren()
+            here = np.asarray(UsdGeom.Xformable(p).ComputeLocalToWorldTransform(T0))
+            yield from instanced_triangles(UsdGeom.PointInstancer(p), here, chunk, corners)
+        elif p.IsA(UsdGeom.Mesh) and renders(p):
+            yield _world_points(p)[_triangles(p)]
+
+
+def instanced_triangles(
+    pi: UsdGeom.PointInstancer,
+    here: np.ndarray,
+    chunk: int | None = None,
+    corners: bool = False,
+):
+    """The triangles ``(m, 3, 3)`` of the instancer's instances, placed by their transforms
+    times ``here`` (the instancer's own to world: the identity for its own space), ``chunk``
+    instances at a time (all of a prototype's at once with None); with ``corners``, only
+    their distinct corners ``(n, c, 3)`` (what a bounding box needs)."""
+    protos = pi.GetPrototypesRel().GetTargets()
+    idx = np.asarray(pi.GetProtoIndicesAttr().Get())
+    mats = np.asarray(pi.ComputeInstanceTransformsAtTime(T0, T0))
+    for k, path in enumerate(protos):
+        local = triangles_under(pi.GetPrim().GetStage().GetPrimAtPath(path)).reshape(-1, 3)
+        if corners:
+            local = np.unique(local, axis=0)
+        full = mats[idx == k] @ here  # (n, 4, 4) row-vector transforms
+        step = chunk or max(len(full), 1)
+        for a in range(0, len(full), step):
+            moved = placed(local, full[a : a + step])
+            yield moved if corners else moved.reshape(-1, 3, 3)
+
+
 def composed_triangles(stage: Usd.Stage) -> np.ndarray:
-    """``(n, 3, 3)`` world-space triangles of every Mesh in the stage, PointInstancers (nested
-    ones included) expanded through ``ComputeInstanceTransformsAtTime``."""
-    out: list[np.ndarray] = []
-
-    def visit(prim: Usd.Prim, xf: np.ndarray) -> None:
-        it = iter(Usd.PrimRange(prim, Usd.TraverseInstanceProxies()))
-        for p in it:
-            if p.IsA(UsdGeom.PointInstancer):
-                it.PruneChildren()
-                pi = UsdGeom.PointInstancer(p)
-                protos = pi.GetPrototypesRel().GetTargets()
-                idx = np.asarray(pi.GetProtoIndicesAttr().Get())
-                mats = np.asarray(pi.ComputeInstanceTransformsAtTime(T0, T0))
-                here = np.asarray(UsdGeom.Xformable(p).ComputeLocalToWorldTransform(T0)) @ xf
-                for k, path in enumerate(protos):
-                    local = triangles_under(p.GetStage().GetPrimAtPath(path))
-                    full = mats[idx == k] @ here  # (n, 4, 4) row-vector transforms
-                    tris = np.einsum("tvj,njk->ntvk", local, full[:, :3, :3])
-                    out.append((tris + full[:, None, None, 3, :3]).reshape(-1, 3, 3))
-            elif p.IsA(UsdGeom.Mesh) and renders(p):
-                pts = _world_points(p) @ xf[:3, :3] + xf[3, :3]
-                out.append(pts[_triangles(p)])
-
-    visit(stage.GetPseudoRoot(), np.eye(4))
+    """``(n, 3, 3)`` world-space triangles of every Mesh in the stage, PointInstancers
+    expanded through ``ComputeInstanceTransformsAtTime``."""
+    out = list(_composed_pieces(stage))
     return np.concatenate(out) if out else np.zeros((0, 3, 3))
+
+
+def composed_bounds(stage: Usd.Stage) -> np.ndarray:
+    """``(2, 3)`` the box of :func:`composed_triangles`, without holding them all."""
+    return bounds_of(_composed_pieces(stage, chunk=256, corners=True))
+
+
+def bounds_of(pieces) -> np.ndarray:
+    """``(2, 3)`` the box of the points of every array in ``pieces`` (each ``(..., 3)``)."""
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for x in pieces:
+        if x.size:
+            axes = tuple(range(x.ndim - 1))
+            lo, hi = np.minimum(lo, x.min(axis=axes)), np.maximum(hi, x.max(axis=axes))
+    return np.stack([lo, hi])
 
 
 def triangles_under(proto: Usd.Prim) -> np.ndarray:

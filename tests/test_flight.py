@@ -224,9 +224,7 @@ def test_bad_paths_are_refused(tmp_path, text, fragment):
         read_path(p)
 
 
-def test_a_short_flight_through_the_default_forest_writes_every_output(
-    tmp_path, runner, shipped
-):
+def test_a_short_flight_through_the_default_forest_writes_every_output(tmp_path, runner, shipped):
     """The embedded default forest, 4 m at 4 m/s and 2 m up with all three sensors: a LAS
     that laspy reads with one point per return, sonar pulses whose class echoes add up, a
     WAV, an echogram, camera frames and a contact sheet."""
