@@ -14,6 +14,9 @@ CHECK_STAMP := $(CHECK)/.installed
 # Blender as a Python module (bpy), to import the forest as a Blender user does
 BLENDER       ?= .venv-blender
 BLENDER_STAMP := $(BLENDER)/.installed
+# pytest processes (pytest-xdist), each running whole test files so that a file's shared
+# forests are built once: `make test TEST_JOBS=1` runs them one after another
+TEST_JOBS ?= 2
 
 .PHONY: forest test lint bench figures templates docs clean
 
@@ -48,7 +51,7 @@ test: $(STAMP) $(PHYS_STAMP) $(CHECK_STAMP) $(BLENDER_STAMP)
 	USDFOREST_PHYSICS_PYTHON=$(abspath $(PHYS))/bin/python \
 	USDFOREST_BLENDER_PYTHON=$(abspath $(BLENDER))/bin/python \
 	USDFOREST_NVIDIA_VALIDATE=$(abspath $(CHECK))/bin/nvidia_usd_validate \
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_JOBS) --dist loadfile
 
 lint: $(STAMP)
 	$(BIN)/ruff check usdforest tests benchmarks templates docs pipelines
