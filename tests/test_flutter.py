@@ -225,3 +225,7 @@ def test_conifers_alone_or_leafless_broadleaves_need_no_frames_for_flutter(tmp_p
     assert parse_recipe(loads(pines + "[wind]\nfps = 5\n"), tmp_path, "p.toml").wind.fps == 5
     winter = parse_recipe(loads(STAND + "[wind]\nfps = 5\n"), tmp_path, "w.toml", season="winter")
     assert winter.wind.fps == 5
+    # a broadleaf the recipe defines but plants nowhere does not flutter either
+    unplanted = STAND.replace('species = "beech"', 'species = "pine"')
+    assert "[species.beech]" in unplanted
+    assert parse_recipe(loads(unplanted + "[wind]\nfps = 5\n"), tmp_path, "u.toml").wind.fps == 5

@@ -801,7 +801,7 @@ def parse_recipe(
         shrubs = _parse_shrubs(data.get("shrubs"))
         regeneration = _parse_regeneration(data.get("regeneration"))
         wind = _parse_wind(data.get("wind"), tiles)
-        _check_flutter(wind, species)
+        _check_flutter(wind, {n: species[n] for n in _planted(mix, sites)})
     except RecipeError as exc:
         raise fail(exc) from None
     recipe = Recipe(
@@ -990,6 +990,15 @@ def _parse_wind(t: Any, tiles: float | None) -> Any:
     if not isinstance(branch_sway, bool):
         raise RecipeError(f"wind.branch_sway: expected true or false, got {branch_sway!r}")
     return WindSpec(**values, branch_sway=branch_sway)
+
+
+def _planted(mix: list[tuple[str, Any]], sites: tuple[dict, ...] | None) -> list[str]:
+    """The species a recipe may plant: an inventory's in its rows (a row without one is of
+    the first, as :func:`usdforest.sites.sampling.sample_sites` plants it), else those the
+    mix does not weigh 0 (an expression's weight may be 0 somewhere only)."""
+    if sites is not None:
+        return sorted({row.get("species") or mix[0][0] for row in sites})
+    return [n for n, w in mix if not (isinstance(w, float) and w == 0)]
 
 
 def _check_flutter(wind: Any, species: Mapping[str, Any]) -> None:
