@@ -143,9 +143,8 @@ def test_forest_sprites_show_every_tree_where_trees_csv_puts_it(default_forest):
     trunk), not on the ground."""
     img, (u0, u1, _, v1), _ = render_stage(default_forest, view="top", size=(400, 400))
     px = (u1 - u0) / 400
-    trees = np.genfromtxt(
-        default_forest.parent / "f_assets" / "trees.csv", delimiter=",", names=True
-    )
+    csv = default_forest.parent / f"{default_forest.stem}_assets" / "trees.csv"
+    trees = np.genfromtxt(csv, delimiter=",", names=True)
     col = np.floor((trees["x"] - u0) / px).astype(int)
     row = np.floor((v1 - trees["y"]) / px).astype(int)
     tree = _not_ground(img, default_forest)

@@ -10,6 +10,7 @@ import sys
 import tomllib
 from pathlib import Path
 
+import measure
 import numpy as np
 import pytest
 import trimesh
@@ -20,6 +21,7 @@ from stands import build_text
 from usdforest import api
 from usdforest.errors import RecipeError, UsdForestError
 from usdforest.recipe import parse_recipe
+from usdforest.usd.stats import stage_info
 from usdforest.usd.validate import validate
 
 # two allometric Scots pines 20 m apart along y = 20; the wind blows from the west (+x)
@@ -144,11 +146,26 @@ def _static_deflection(tree: dict, speed: float) -> float:
 def test_the_wind_layer_composes_over_the_static_forest_and_validates(forests):
     still, windy = forests["still"], forests["gusty"]
     assets, wind_assets = still.parent / "still_assets", windy.parent / "gusty_assets"
-    # every layer but the wind's is the still forest's, byte for byte
+    # the stand's layers are the still forest's, byte for byte; its trees are too in still
+    # air, and in a wind that sways their branches they hold the same geometry with each
+    # limb in a group of its own (test_limbsway)
+    calm_assets = forests["calm"].parent / "calm_assets"
     for name in ("instances.usdc", "colliders.usdc"):
         assert (assets / name).read_bytes() == (wind_assets / name).read_bytes()
-    for tree in (assets / "trees").iterdir():
-        assert tree.read_bytes() == (wind_assets / "trees" / tree.name).read_bytes()
+    trees = sorted((assets / "trees").iterdir())
+    names = sorted(p.name for p in (wind_assets / "trees").iterdir())
+    assert trees and [t.name for t in trees] == names
+    for tree in trees:
+        assert tree.read_bytes() == (calm_assets / "trees" / tree.name).read_bytes()
+        grouped = wind_assets / "trees" / tree.name
+        assert tree.read_bytes() != grouped.read_bytes()
+        a, b = stage_info(tree, full=True), stage_info(grouped, full=True)
+        assert (a["triangles"], a["leaves"]) == (b["triangles"], b["leaves"])
+        np.testing.assert_allclose(
+            measure.composed_bounds(Usd.Stage.Open(str(tree))),
+            measure.composed_bounds(Usd.Stage.Open(str(grouped))),
+            atol=1e-5,
+        )
     layer = Sdf.Layer.FindOrOpen(str(windy))
     assert layer.subLayerPaths[0] == "./gusty_assets/wind.usdc"
     assert (layer.timeCodesPerSecond, layer.startTimeCode, layer.endTimeCode) == (4, 0, 1600)
