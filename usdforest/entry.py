@@ -14,15 +14,19 @@ import sys
 
 
 def main() -> None:
-    from usdforest import signals
-
-    signals.terminate_as_interrupt()
     try:
+        # inside the try: a Ctrl-C while ``signals`` itself loads (it imports typing) is
+        # one line too, not a traceback through this file
+        from usdforest import signals
+
+        signals.terminate_as_interrupt()
         from usdforest.cli import main as cli_main
 
         cli_main()
     except KeyboardInterrupt:
-        line, status = signals.stopped()
+        done = sys.modules.get("usdforest.signals")
+        stopped = getattr(done, "stopped", None)
+        line, status = stopped() if stopped else ("error: interrupted", 130)
         sys.stderr.write(line + "\n")
         sys.exit(status)
 
