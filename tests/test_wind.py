@@ -352,15 +352,29 @@ def test_a_flight_sees_each_sweep_where_the_trees_sway_then(forests):
     np.testing.assert_array_equal(calm.points, still.points)
 
 
-def test_a_flights_camera_frames_see_the_trees_at_their_own_times(forests):
+def test_a_flights_camera_frames_see_the_trees_at_their_own_times(forests, monkeypatch):
+    """Each frame of a flight is the camera's scan at its time; the flight composes the
+    stage once for its scene, its motion and its colours (each a full-detail open)."""
     import dataclasses
 
-    from usdforest.sensors import camera
+    import usdforest.usd.layers
+    from usdforest.sensors import camera, motion, scene, survey
 
+    opened = []
+    real = usdforest.usd.layers.open_stage
+
+    def counted(*args, **kwargs):
+        opened.append(args[0])
+        return real(*args, **kwargs)
+
+    for module in (survey, scene, motion, usdforest.usd.layers):
+        monkeypatch.setattr(module, "open_stage", counted)
     cam = dataclasses.replace(camera.PRESETS["pinhole-640"], width=96, height=72)
     frames = api.fly(
         forests["gusty"], path=_hover(0.25), lidar=None, camera=cam, camera_rate=10.0
     ).camera
+    assert [Path(p) for p in opened] == [forests["gusty"]]
+    monkeypatch.undo()
     assert len(frames.t) == 3
     depths = []
     for k, t in enumerate(frames.t):

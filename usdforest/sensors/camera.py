@@ -48,6 +48,7 @@ import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -59,6 +60,9 @@ from usdforest.sensors.motion import SceneMotion
 from usdforest.sensors.pose import Pose
 from usdforest.sensors.raycast import SceneCaster
 from usdforest.sensors.scene import CLASSES, Scene
+
+if TYPE_CHECKING:
+    from pxr import Usd
 
 PRESETS: dict[str, DepthCamera] = {
     "pinhole-640": DepthCamera(640, 480, 90.0, 200.0, kind="camera"),
@@ -186,12 +190,15 @@ def intrinsics(cam: DepthCamera) -> np.ndarray:
     return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
 
 
-def path_colours(stage_path: str | Path, paths: tuple[str, ...]) -> np.ndarray:
-    """``(len(paths), 3)``: each prim's bound material colour (what the preview draws)."""
+def path_colours(
+    stage_path: str | Path, paths: tuple[str, ...], opened: Usd.Stage | None = None
+) -> np.ndarray:
+    """``(len(paths), 3)``: each prim's bound material colour (what the preview draws);
+    ``opened``: the stage already open (at full detail), read instead of opening it again."""
     from usdforest.usd.layers import open_stage
     from usdforest.view.preview import mesh_color
 
-    stage = open_stage(stage_path, full=True)
+    stage = opened if opened is not None else open_stage(stage_path, full=True)
     out = np.full((len(paths), 3), 0.6)
     for i, p in enumerate(paths):
         prim = stage.GetPrimAtPath(p)

@@ -13,6 +13,7 @@ import functools
 import math
 from dataclasses import fields, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,6 +24,9 @@ from usdforest.sensors.scenetypes import Leaves, Scene
 from usdforest.sensors.stageframe import stage_time
 from usdforest.sensors.wood import Cylinders
 from usdforest.usd.layers import open_stage
+
+if TYPE_CHECKING:
+    from pxr import Usd
 
 
 def animated(stage_path: str | Path) -> bool:
@@ -44,15 +48,18 @@ class SceneMotion:
     ``at(seconds)`` is the scene with every instance placed where the stage's time samples
     put it then (its prototypes, leaves as reflectors and everything else as extracted).
 
-    Opens the stage once. A stage whose root layer says its animation loops (a forest with
+    Opens the stage once (``opened``: reads that one, opened as :func:`extract_scene`
+    opens it, instead). A stage whose root layer says its animation loops (a forest with
     ``[wind]``: ``customLayerData`` ``loops``) is read at the time modulo its length, so a
     flight longer than the wind's ``duration`` sees it go on."""
 
-    def __init__(self, stage_path: str | Path, scene: Scene):
+    def __init__(self, stage_path: str | Path, scene: Scene, opened: Usd.Stage | None = None):
         from pxr import UsdGeom
 
         self.scene = scene
-        self._stage = open_stage(Path(stage_path), sound=True, full=True)
+        self._stage = (
+            opened if opened is not None else open_stage(Path(stage_path), sound=True, full=True)
+        )
         self._instancers = [
             UsdGeom.PointInstancer(self._stage.GetPrimAtPath(p))
             for p in (scene.sources.instancers if scene.sources is not None else ())

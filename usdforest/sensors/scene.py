@@ -19,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -36,6 +37,9 @@ from usdforest.sensors.scenetypes import (
 )
 from usdforest.sensors.stageframe import moved_boxes, stage_frame, stage_time
 from usdforest.usd.layers import class_labels, mesh_triangles, open_stage, rendered
+
+if TYPE_CHECKING:
+    from pxr import Usd
 
 CLASSES = ("unknown", "trunk", "branch", "leaf", "ground", "dead_wood", "ground_vegetation")
 CLASS_ID = {name: i for i, name in enumerate(CLASSES)}
@@ -274,6 +278,7 @@ def extract_scene(
     cache: bool = True,
     progress: Callable[[str, int, int], None] | None = None,
     time: float | None = None,
+    opened: Usd.Stage | None = None,
 ) -> Scene:
     """Triangles and leaf reflectors of a stage, culled to a sphere around ``centre``, in
     metres with Z up whatever the stage's own units and up axis (:func:`stage_frame`).
@@ -305,12 +310,15 @@ def extract_scene(
         instances and prims stand where the stage's time samples put them then, e.g. a
         forest's trees swaying and its leaves fluttering in its wind layer. Omitted: the
         stage's default values, the still forest.
+    opened
+        The stage at ``stage_path`` as :func:`open_stage` (``sound``, ``full``) opened it,
+        to read instead of opening it again (seconds for a forest): a flight shares one.
     """
     from pxr import Usd, UsdGeom
 
     path = Path(stage_path)
     use_store = cache and instancing  # read before ``cache`` names the transform cache
-    stage = open_stage(path, sound=True, full=True)
+    stage = opened if opened is not None else open_stage(path, sound=True, full=True)
     frame = stage_frame(path)
     when = stage_time(stage, time)
     cache = UsdGeom.XformCache(when)

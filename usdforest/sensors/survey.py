@@ -25,6 +25,7 @@ from usdforest.sensors.motion import SceneMotion, animated
 from usdforest.sensors.pose import Pose, parse_pose
 from usdforest.sensors.scene import extract_scene
 from usdforest.sensors.stageframe import stage_frame, to_frame
+from usdforest.usd.layers import open_stage
 
 SENSORS = {
     "lidar": (lidar.PRESETS, "vlp-16"),
@@ -152,6 +153,8 @@ def scan(
     p = dataclasses.replace(p, x=float(x), y=float(y), z=float(z))
     t0 = clock.perf_counter()
     occlusion = sensor == "sonar" and settings.occlusion
+    # a camera reads the stage's colours too: opened once for both
+    opened = open_stage(stage, sound=True, full=True) if sensor == "camera" else None
     scene = extract_scene(
         stage,
         centre=p.position,
@@ -160,6 +163,7 @@ def scan(
         reflectors=sensor == "sonar",
         progress=progress,
         time=at,
+        opened=opened,
     )
     warnings = tuple(
         w for w in [*pose_warnings(scene, p, settings.max_range), unseen_warning(scene)] if w
@@ -172,7 +176,7 @@ def scan(
     if sensor == "lidar":
         result = lidar.scan(scene, settings, p, seed=seed, caster=caster)
     elif sensor == "camera":
-        colours = camera.path_colours(stage, scene.paths)
+        colours = camera.path_colours(stage, scene.paths, opened)
         result = camera.render(scene, settings, p, colours, caster, seed=seed)
     else:
         result = sonar.sonar_scan(scene, p, settings, caster, seed=seed)
@@ -351,6 +355,10 @@ def fly(
     reach = max(c.max_range for c in (lidar, sonar, camera) if c is not None)
     lo, hi = traj.position.min(axis=0), traj.position.max(axis=0)
     casts = lidar is not None or camera is not None
+    moving = animated(stage)
+    # opened once for all that reads it (composing a forest at full detail takes seconds),
+    # where more than the scene's extraction does
+    opened = open_stage(stage, sound=True, full=True) if moving or camera is not None else None
     scene = extract_scene(
         stage,
         centre=(lo + hi) / 2,
@@ -358,6 +366,7 @@ def fly(
         leaf_triangles=casts or bool(sonar is not None and sonar.occlusion),
         reflectors=sonar is not None,
         progress=tick,
+        opened=opened,
     )
     warnings = tuple(w for w in [unseen_warning(scene)] if w)
     for w in warnings:
@@ -371,7 +380,7 @@ def fly(
         else None
     )
     # an animated stage (a forest's wind): the lidar and camera see the trees move
-    motion = SceneMotion(stage, scene) if animated(stage) else None
+    motion = SceneMotion(stage, scene, opened) if moving else None
     if motion is not None and not motion.moves:  # a time range, but nothing of it moves
         motion = None
     returns = echoes = frames = None
@@ -386,7 +395,7 @@ def fly(
             progress=lambda d, n: tick("sonar pulses", d, n), motion=motion,
         )  # fmt: skip
     if camera is not None:
-        colours = CAMERA_MODULE.path_colours(stage, scene.paths)
+        colours = CAMERA_MODULE.path_colours(stage, scene.paths, opened)
         frames = CAMERA_MODULE.fly_camera(
             scene, camera, traj, camera_rate, colours, caster=caster,
             progress=lambda d, n: tick("camera frames", d, n), seed=seed, motion=motion,
