@@ -13,6 +13,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import importlib.util
+import threading
 import weakref
 from collections.abc import Callable
 from pathlib import Path
@@ -249,6 +250,11 @@ class EmbreeCaster:
                 lo, hi = outward32(pts.min(axis=0), pts.max(axis=0))
                 shape_box[k] = np.concatenate([lo, hi])
         keep += [inv, shift, box, leaf_scene, leaf_shape, shape_box]
+        # the address of the shapes' turns the leaves' callbacks read (0: none), set by each
+        # cast to its caster's (casters of one forest at other times share the prototypes)
+        self._turns_cell = np.zeros(1, np.int64)
+        self._casting = threading.Lock()
+        keep.append(self._turns_cell)
         owner_scene = np.zeros(rs.owners, np.int64)
         for g in range(rs.owners):
             w0, w1 = rs.wood_first[g], rs.wood_first[g + 1]
@@ -262,7 +268,7 @@ class EmbreeCaster:
                 block = np.array(
                     [inv.ctypes.data, shift.ctypes.data, leaf_scene.ctypes.data, l0,
                      lib.intersect1, box.ctypes.data, leaf_shape.ctypes.data,
-                     shape_box.ctypes.data, lib.intersect8],
+                     shape_box.ctypes.data, lib.intersect8, self._turns_cell.ctypes.data],
                     dtype=np.int64,
                 )  # fmt: skip
                 keep.append(block)
@@ -300,6 +306,9 @@ class EmbreeCaster:
         """The top scene: the world (identity) and every tree that can be entered."""
         lib, owner_scene, keep = self._lib, self._owner_scene, self._keep
         self._rs = rs
+        self._turns = (
+            None if rs.shape_turn is None else np.ascontiguousarray(rs.shape_turn, np.float32)
+        )
         world = [-1] if owner_scene[0] else []
         inst = np.flatnonzero(rs.inst_ok & (owner_scene[rs.inst_proto + 1] != 0))
         self._entry_inst = np.concatenate([world, inst]).astype(np.int64)
@@ -345,10 +354,12 @@ class EmbreeCaster:
         normal = np.zeros((n, 3), np.float32)
         if len(self._entry_inst) and n:
             out = (t, geom, prim, entry, sub, normal)
-            if 1 < group <= self._kern.WIDTH and n % group == 0:
-                self._kern.cast_packets(self._lib.intersect8, self._top, o, d, t, group, *out)
-            else:
-                self._kern.cast(self._lib.intersect1, self._top, o, d, t, *out)
+            with self._casting:  # the turns' cell is the forest's, shared by its casters
+                self._turns_cell[0] = 0 if self._turns is None else self._turns.ctypes.data
+                if 1 < group <= self._kern.WIDTH and n % group == 0:
+                    self._kern.cast_packets(self._lib.intersect8, self._top, o, d, t, group, *out)
+                else:
+                    self._kern.cast(self._lib.intersect1, self._top, o, d, t, *out)
         leaf, face, instance, out = self._kern.resolve(
             geom, prim, entry, sub, normal, self._entry_owner, self._entry_inst,
             rs.wood_first, rs.leaf_first, rs.shape_first, rs.leaf_shape, rs.inst_inv,

@@ -8,12 +8,15 @@ not depend on a scene.
 
 Layout of a leaf geometry's user block (int64 words), one per owner (the world, a tree
 prototype): ``[inverse, shift, scene, first, rtcIntersect1, boxes, shape, shape_boxes,
-rtcIntersect8]`` - the
+rtcIntersect8, turns]`` - the
 addresses of the leaves' float32 3x3 inverse linear parts (row-major, ``local = inv @ (x -
 shift)``), their float32 shifts, their shapes' Embree scenes (int64 handles), this owner's
 first leaf, the address of ``rtcIntersect1``, the leaves' float32 boxes in the owner's space
 (lower xyz, upper xyz), their shapes (int64 indices), the shapes' float32 boxes in their
-own space, and the address of ``rtcIntersect8``.
+own space, the address of ``rtcIntersect8``, and the address of one int64 that holds the
+address of the shapes' turns (0: none): per shape twelve float32, a row-major 3x3 and a
+shift, which move a ray from the leaf's frame as placed to its shape as it has turned since
+(:mod:`usdforest.sensors.turns`; the caster sets it before each cast).
 """
 
 from __future__ import annotations
@@ -67,6 +70,7 @@ def _stack(size: int, align: int):
 
 
 _scratch = _stack(96, 16)  # one RTCRayHit
+_affine = _stack(48, 16)  # a leaf's inverse with its shape's turn
 _packet = _stack(PACKET_BYTES, 64)  # valid[8] then an RTCRayHit8
 
 
@@ -108,7 +112,7 @@ def _ray(q, qu, ox, oy, oz, dx, dy, dz, tfar):
 def _leaf_bounds(args):
     w = carray(_i64(args), 3)
     prim = carray(_u32(args), 4)[2]
-    user = carray(_i64(w[0]), 9)
+    user = carray(_i64(w[0]), 10)
     box = carray(_f32(user[5] + (user[3] + prim) * 24), 6)
     out = carray(_f32(w[2]), 8)
     out[0], out[1], out[2] = box[0], box[1], box[2]
@@ -117,13 +121,13 @@ def _leaf_bounds(args):
 
 @njit(inline="always")
 def _to_leaf(a, s, rh, n, i, q, m, k):
-    """Ray ``i`` of ``rh`` (width ``n``) moved into a leaf's frame (``a``, ``s``) as ray ``k``
-    of ``q`` (width ``m``), its extent kept."""
+    """Ray ``i`` of ``rh`` (width ``n``) moved into a leaf's frame (``a``, ``s``, then the
+    shift ``a[9:12]``) as ray ``k`` of ``q`` (width ``m``), its extent kept."""
     px, py, pz = rh[i] - s[0], rh[n + i] - s[1], rh[2 * n + i] - s[2]
     dx, dy, dz = rh[4 * n + i], rh[5 * n + i], rh[6 * n + i]
-    q[k] = a[0] * px + a[1] * py + a[2] * pz
-    q[m + k] = a[3] * px + a[4] * py + a[5] * pz
-    q[2 * m + k] = a[6] * px + a[7] * py + a[8] * pz
+    q[k] = a[0] * px + a[1] * py + a[2] * pz + a[9]
+    q[m + k] = a[3] * px + a[4] * py + a[5] * pz + a[10]
+    q[2 * m + k] = a[6] * px + a[7] * py + a[8] * pz + a[11]
     q[3 * m + k] = rh[3 * n + i]
     q[4 * m + k] = a[0] * dx + a[1] * dy + a[2] * dz
     q[5 * m + k] = a[3] * dx + a[4] * dy + a[5] * dz
@@ -185,15 +189,31 @@ def _leaf_intersect(args):
     u = carray(_u32(args), 12)
     n = u[10]
     valid = carray(_i32(w[0]), n)
-    user = carray(_i64(w[1]), 9)
+    user = carray(_i64(w[1]), 10)
     prim = u[4]
     j = user[3] + prim
-    a = carray(_f32(user[0] + j * 36), 9)
+    inv = carray(_f32(user[0] + j * 36), 9)
     s = carray(_f32(user[1] + j * 12), 3)
     shape = carray(_i64(user[2] + j * 8), 1)[0]
+    k_shape = carray(_i64(user[6] + j * 8), 1)[0]
+    # the leaf's inverse, then its shape's turn since it was placed (none: the identity)
+    a = carray(_f32(_affine()), 12)
+    turns = carray(_i64(user[9]), 1)[0]
+    if turns == 0:
+        for c in range(9):
+            a[c] = inv[c]
+        a[9], a[10], a[11] = 0.0, 0.0, 0.0
+    else:
+        e = carray(_f32(turns + k_shape * 48), 12)
+        for r in range(3):
+            for c in range(3):
+                a[3 * r + c] = (
+                    e[3 * r] * inv[c] + e[3 * r + 1] * inv[3 + c] + e[3 * r + 2] * inv[6 + c]
+                )
+        a[9], a[10], a[11] = e[9], e[10], e[11]
     # the shape's own box, tighter than the leaf's box in the owner's space: most rays that
     # enter the latter miss the former, and are spared a call into Embree
-    box = carray(_f32(user[7] + carray(_i64(user[6] + j * 8), 1)[0] * 24), 6)
+    box = carray(_f32(user[7] + k_shape * 24), 6)
     rh = carray(_f32(w[4]), 21 * n)
     rhu = carray(_u32(w[4]), 21 * n)
     ctx = carray(_u32(w[3]), 2)

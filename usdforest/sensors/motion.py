@@ -22,6 +22,7 @@ from usdforest.sensors.raycast import SceneCaster
 from usdforest.sensors.returns import Echoes
 from usdforest.sensors.scenetypes import Leaves, Scene
 from usdforest.sensors.stageframe import stage_time
+from usdforest.sensors.turns import Turns
 from usdforest.sensors.wood import Cylinders
 from usdforest.usd.layers import open_stage
 
@@ -85,6 +86,7 @@ class SceneMotion:
         return (
             parted
             or bool(self.scene.leaves.turning.any())
+            or self.scene.shape_turns is not None
             or any(
                 pi.GetOrientationsfAttr().GetNumTimeSamples()
                 or pi.GetOrientationsAttr().GetNumTimeSamples()
@@ -98,15 +100,28 @@ class SceneMotion:
         return self.start + (t - self.start) % self.period if self.period else t
 
     def at(self, seconds: float) -> Scene:
-        """The scene with its tree instances where the stage puts them at ``seconds``."""
+        """The scene with its tree instances where the stage puts them at ``seconds``, and
+        its leaf shapes turned as they are then (:attr:`Scene.shape_turns`)."""
         src = self.scene.sources
-        if src is None or not len(src):
+        turned = self.scene.shape_turns is not None
+        if (src is None or not len(src)) and not turned:
             return self.scene
         t = self._wrapped(seconds)
         if self._last is not None and self._last[0] == t:
             return self._last[1]
+        now = self.scene
+        if src is not None and len(src):
+            now = replace(now, instances=replace(now.instances, matrix=self._matrices(t)))
+        if turned:
+            now = replace(now, shape_turns=self.turns(t))
+        self._last = (t, now)
+        return now
+
+    def _matrices(self, t: float) -> np.ndarray:
+        """``(instances, 4, 4)``: every tree instance's transform at ``t`` (wrapped)."""
         from pxr import UsdGeom
 
+        src = self.scene.sources
         when = stage_time(self._stage, t)
         alone = UsdGeom.PointInstancer.ExcludeProtoXform  # ``before`` holds the prototype's
         rows = [
@@ -121,9 +136,7 @@ class SceneMotion:
         if src.part is not None and (src.part >= 0).any():
             sel = np.flatnonzero(src.part >= 0)
             matrix[sel] = self._parts_at(when)[src.part[sel]] @ matrix[sel]
-        now = replace(self.scene, instances=replace(self.scene.instances, matrix=matrix))
-        self._last = (t, now)
-        return now
+        return matrix
 
     @functools.cached_property
     def _parts(self) -> tuple[list, np.ndarray]:
@@ -171,18 +184,14 @@ class SceneMotion:
         t = self._wrapped(seconds)
         if self._last_turns is not None and self._last_turns[0] == t:
             return self._last_turns[1]
-        from pxr import UsdGeom
-
-        cache = UsdGeom.XformCache(stage_time(self._stage, t))
-        out = np.array(
-            [
-                np.asarray(cache.GetLocalTransformation(self._stage.GetPrimAtPath(p))[0])
-                for p in self.scene.shape_paths
-            ],
-            dtype=float,
-        ).reshape(-1, 4, 4)
+        out = self._turns.at(stage_time(self._stage, t))
         self._last_turns = (t, out)
         return out
+
+    @functools.cached_property
+    def _turns(self) -> Turns:
+        """The leaf shapes' turns, each shared time-varying op read once a time."""
+        return Turns([self._stage.GetPrimAtPath(p) for p in self.scene.shape_paths])
 
     def _relative(self, seconds: float) -> np.ndarray:
         """Per tree instance, the row-vector transform from where it was extracted to where

@@ -145,10 +145,11 @@ class SceneCaster:
             self._impl = WarpCaster(self._rs, self.device)
 
     def moved(self, scene: Scene) -> SceneCaster:
-        """A caster of ``scene``: this one's scene with its tree instances placed anew (the
-        same prototypes and instances; :class:`~usdforest.sensors.motion.SceneMotion`). On
-        the CPU the prototypes' Embree scenes are shared and only the top level is built
-        again; Warp builds its scene again."""
+        """A caster of ``scene``: this one's scene with its tree instances placed anew and
+        its leaf shapes turned (the same prototypes, instances and leaves;
+        :class:`~usdforest.sensors.motion.SceneMotion`). On the CPU the prototypes' Embree
+        scenes are shared, only the top level is built again and each leaf's callback turns
+        the ray by its shape's turn; Warp builds its scene again, leaves turned."""
         other = object.__new__(SceneCaster)
         other.scene, other.device = scene, self.device
         other._rs = self._rs.moved(scene)
@@ -157,7 +158,9 @@ class SceneCaster:
         else:
             from usdforest.sensors.warpcast import WarpCaster
 
-            other._impl = WarpCaster(other._rs, "cpu" if self.device == "warp-cpu" else self.device)
+            other._impl = WarpCaster(
+                other._rs.turned(), "cpu" if self.device == "warp-cpu" else self.device
+            )
         return other
 
     def first_hit(

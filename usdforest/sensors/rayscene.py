@@ -15,6 +15,7 @@ import numpy as np
 
 from usdforest.sensors.scene import Scene, leaf_boxes
 from usdforest.sensors.stageframe import moved_boxes
+from usdforest.sensors.turns import relative
 
 
 class Hits:
@@ -80,6 +81,11 @@ class RayScene:
     ``shape_first[k] + f``. Tree instances: inverse and forward linear parts (column form),
     shift, prototype, tree id, world boxes and whether each can be entered (an uninvertible
     transform cannot).
+
+    Leaf shapes that turn in time (flutter): ``shape_own``, each shape prim's own transform
+    where the leaves were placed (their boxes hold them at every turn), and ``shape_turn``,
+    per shape the affine from its space then to its space now (``None``: as placed;
+    :func:`usdforest.sensors.turns.relative`), which casters apply in the leaf's frame.
     """
 
     wood: np.ndarray
@@ -106,6 +112,8 @@ class RayScene:
     inst_lo: np.ndarray
     inst_hi: np.ndarray
     inst_ok: np.ndarray
+    shape_own: np.ndarray | None = None
+    shape_turn: np.ndarray | None = None
 
     @property
     def owners(self) -> int:
@@ -130,7 +138,7 @@ class RayScene:
         inv, shift, lo, hi, shape, tree, n_leaf = [], [], [], [], [], [], []
         for *_, li in owners:
             a, b, good = inverse_columns(li.matrix)
-            lo_k, hi_k = leaf_boxes(li, shapes)
+            lo_k, hi_k = leaf_boxes(li, shapes, scene.shape_sweep)
             keep = slice(None) if good.all() else good  # no copies when all are invertible
             inv.append(a[keep])
             shift.append(b[keep])
@@ -158,12 +166,43 @@ class RayScene:
             shape_cls=np.concatenate([s.cls for s in shapes] or [np.zeros(0)]).astype(np.uint8),
             shape_path=np.concatenate([s.path for s in shapes] or [np.zeros(0)]).astype(np.int64),
             **_instance_fields(scene),
+            shape_own=scene.shape_turns,
         )
 
     def moved(self, scene: Scene) -> RayScene:
-        """This ray scene with ``scene``'s instance transforms: the same prototypes and
-        instances, placed anew (a forest swaying in its wind)."""
-        return replace(self, **_instance_fields(scene))
+        """This ray scene with ``scene``'s instance transforms and leaf shapes' turns: the
+        same prototypes and instances, placed anew (a forest swaying in its wind, its leaves
+        fluttering)."""
+        turn = None
+        if self.shape_own is not None and scene.shape_turns is not None:
+            turn = relative(self.shape_own, scene.shape_turns)
+        return replace(self, **_instance_fields(scene), shape_turn=turn)
+
+    def turned(self) -> RayScene:
+        """This ray scene with its leaves' turns (:attr:`shape_turn`) put into the leaves'
+        own transforms and boxes (for a caster that builds its scene again for each time)."""
+        if self.shape_turn is None or not len(self.leaf_shape):
+            return replace(self, shape_turn=None)
+        e = self.shape_turn[self.leaf_shape].astype(float)
+        a, b = e[:, :9].reshape(-1, 3, 3), e[:, 9:]
+        inv = np.einsum("nij,njk->nik", a, self.leaf_inv.astype(float))
+        fwd = np.linalg.inv(inv)  # shape space now -> owner space, column form
+        # local = inv (x - s) + b = inv (x - (s - fwd b))
+        shift = self.leaf_shift - np.einsum("nij,nj->ni", fwd, b)
+        box = np.array([_box(t) for t in self.shape_tri]).reshape(-1, 2, 3)[self.leaf_shape]
+        m = np.zeros((len(inv), 4, 4))
+        m[:, :3, :3] = fwd.transpose(0, 2, 1)
+        m[:, 3, :3] = shift
+        m[:, 3, 3] = 1.0
+        lo, hi = outward32(*moved_boxes(box[:, 0], box[:, 1], m))
+        return replace(
+            self,
+            leaf_inv=inv.astype(np.float32),
+            leaf_shift=shift.astype(np.float32),
+            leaf_lo=lo,
+            leaf_hi=hi,
+            shape_turn=None,
+        )
 
     def hits(self, raw: RawHits, max_range: float) -> Hits:
         """Raw caster output as :class:`Hits`: classes, paths and tree ids looked up; hits
@@ -179,6 +218,12 @@ class RayScene:
             self.leaf_tree, self.inst_tree,
         )  # fmt: skip
         return h
+
+
+def _box(tri: np.ndarray) -> np.ndarray:
+    """``(2, 3)``: the box of triangles ``(t, 3, 3)`` (zeros when none)."""
+    pts = np.asarray(tri, dtype=float).reshape(-1, 3)
+    return np.array([pts.min(axis=0), pts.max(axis=0)]) if len(pts) else np.zeros((2, 3))
 
 
 def _instance_fields(scene: Scene) -> dict[str, np.ndarray]:

@@ -198,12 +198,17 @@ def _realise(
     return leaves, part, no_leaves()
 
 
-def leaf_boxes(li: LeafInstances, shapes: tuple[Shape, ...]) -> tuple[np.ndarray, np.ndarray]:
+def leaf_boxes(
+    li: LeafInstances, shapes: tuple[Shape, ...], boxes: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned boxes ``(lowers, uppers)``, each ``(n, 3)``, of leaf instances in their
-    owner's space: each shape's box moved by its instance's transform."""
+    owner's space: each shape's box (or its box in ``boxes``, ``(shapes, 2, 3)``: over its
+    turns) moved by its instance's transform."""
     if not len(li):
         return np.zeros((0, 3)), np.zeros((0, 3))
-    box = np.array([s.box for s in shapes], dtype=float)[li.shape]  # (n, 2, 3)
+    if boxes is None:
+        boxes = np.array([s.box for s in shapes], dtype=float).reshape(-1, 2, 3)
+    box = np.asarray(boxes, dtype=float)[li.shape]  # (n, 2, 3)
     return moved_boxes(box[:, 0], box[:, 1], li.matrix)
 
 
@@ -614,7 +619,8 @@ def extract_scene(
         tick("leaf reflectors", i + 1, len(placed))
     leaves = Leaves.concat([r[0] for r in realised] + placed_leaves)
     tree, leaf_tree = whole.tree, leaves.tree
-    turning = bool(leaves.turning.any())
+    turns, sweep = _shape_turns(stage, shape_keys, shapes, when)
+    turning = bool(leaves.turning.any()) or turns is not None
     # a stage holding one tree that is not instanced: tree id 0
     if (
         not placed
@@ -641,4 +647,23 @@ def extract_scene(
         world_leaves,
         Sources.of(sources, part_rows),
         tuple(shape_keys) if turning else (),
+        turns,
+        sweep,
     )
+
+
+def _shape_turns(
+    stage, keys: list[str], shapes: list[Shape], when
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Where a leaf shape prim turns in time (flutter): every shape's own transform at the
+    time code ``when`` and its box over all its turns (:class:`usdforest.sensors.turns.
+    Turns`); ``(None, None)`` when none turns."""
+    from usdforest.sensors.turns import Turns
+
+    if not stage.HasAuthoredTimeCodeRange() or not keys:
+        return None, None
+    turns = Turns([stage.GetPrimAtPath(k) for k in keys])
+    if not turns.moving.any():
+        return None, None
+    own = turns.at(when)
+    return own, turns.sweeps(shapes, own)

@@ -249,6 +249,11 @@ class Scene:
     leaf_instances: LeafInstances = field(default_factory=no_leaves)  # in world space
     sources: Sources | None = None  # where its instances come from (to move them in time)
     shape_paths: tuple[str, ...] = ()  # each leaf shape's prim (to turn it in time)
+    # where shapes turn in time: each shape prim's own transform at the scene's time
+    # ``(shapes, 4, 4)`` and its box over every turn, in its space then ``(shapes, 2, 3)``
+    # (:mod:`usdforest.sensors.turns`)
+    shape_turns: np.ndarray | None = None
+    shape_sweep: np.ndarray | None = None
 
     def instance_spheres(self) -> tuple[np.ndarray, np.ndarray]:
         """World-space bounding spheres (centres ``(n, 3)``, radii ``(n,)``) of the tree

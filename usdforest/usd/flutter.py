@@ -26,7 +26,7 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
 from usdforest.grow.sway import WindSpec, flutter, flutter_amplitude, template_flutters
-from usdforest.usd.layers import T, attr, class_labels, extents, ints, prim
+from usdforest.usd.layers import T, attr, class_labels, extents, full_detail, ints, prim
 
 FLUTTER_OP = "xformOp:orient:flutter"
 
@@ -81,63 +81,90 @@ def author_flutter(
 ) -> tuple[int, float]:
     """Author the flutter of the trees composed on ``stage`` into ``layer`` (the wind layer);
     returns how many leaves flutter (none in still air or with ``flutter_angle = 0``) and the
-    farthest a leaf reaches from its petiole, in its tree prototype's space (m)."""
-    instancers = leaf_instancers(stage) if flutter_amplitude(spec) > 0 else []
-    if not instancers:
+    farthest a leaf reaches from its petiole, in its tree prototype's space (m).
+
+    Both levels of detail flutter: the leaf instancers the forest's own selection shows
+    (what clients draw: a tree at ``medium`` has its leaves merged into clusters) and those of
+    every tree at ``full`` detail (what the sensors read: :func:`usdforest.usd.layers.
+    open_stage` ``full``), each once."""
+    if flutter_amplitude(spec) <= 0:
         return 0, 0.0
     k_all = spec.flutter_classes
-    quats = flutter(spec, seed).astype(np.float32)
+    done: set[Sdf.Path] = set()
     leaves, farthest = 0, 0.0
-    with Sdf.ChangeBlock():
-        for n, p in enumerate(instancers):
-            pi = UsdGeom.PointInstancer(p)
-            targets = list(pi.GetPrototypesRel().GetTargets())
-            idx = np.asarray(pi.GetProtoIndicesAttr().Get() or [], dtype=np.int64)
-            if not targets or not len(idx) or p.IsInstanceProxy():
-                continue
-            turns = np.array([flutters(stage.GetPrimAtPath(t)) for t in targets])
-            if not turns[idx].any():
-                continue
-            over = Sdf.CreatePrimInLayer(layer, p.GetPath())
-            listed = list(targets)
-            first_sibling = np.zeros(len(targets), np.int64)
-            for j, t in enumerate(targets):
-                if not turns[j]:
+
+    def author(instancers: list[Usd.Prim]) -> None:
+        nonlocal leaves, farthest
+        with Sdf.ChangeBlock():
+            for p in instancers:
+                if p.GetPath() in done:
                     continue
-                leaf = stage.GetPrimAtPath(t)
-                order = [op.GetOpName() for op in UsdGeom.Xformable(leaf).GetOrderedXformOps()]
-                order = Vt.TokenArray([*order, FLUTTER_OP])
-                own = Sdf.CreatePrimInLayer(layer, t)
-                own.inheritPathList.Prepend(class_path(0))
-                attr(own, "xformOpOrder", T.TokenArray, order, uniform=True)
-                first_sibling[j] = len(listed)
-                for k in range(1, k_all):
-                    sib = Sdf.CreatePrimInLayer(
-                        layer, t.GetParentPath().AppendChild(f"{t.name}_flutter{k}")
-                    )
-                    sib.specifier = Sdf.SpecifierDef
-                    sib.typeName = leaf.GetTypeName()
-                    sib.referenceList.Prepend(Sdf.Reference(primPath=t))
-                    sib.inheritPathList.Prepend(class_path(k))
-                    attr(sib, "xformOpOrder", T.TokenArray, order, uniform=True)
-                    listed.append(sib.path)
-            which = np.random.default_rng([seed, 0xF1A8, n]).integers(0, k_all, len(idx))
-            moving = turns[idx] & (which > 0)
-            new = np.where(moving, first_sibling[idx] + which - 1, idx)
-            rel = Sdf.RelationshipSpec(over, "prototypes")
-            rel.targetPathList.explicitItems = listed
-            attr(over, "protoIndices", T.IntArray, ints(new))
-            reach = _leaf_reach(pi)
-            farthest = max(farthest, reach)
-            box = pi.GetExtentAttr().Get()
-            if box is not None and len(box) == 2:
-                grown = np.asarray(box, dtype=float) + np.array([[-reach] * 3, [reach] * 3])
-                attr(over, "extent", T.Float3Array, extents(grown))
-            leaves += int(turns[idx].sum())
-        for k in range(k_all if leaves else 0):
-            cls = prim(layer, class_path(k).name, specifier=Sdf.SpecifierClass)
-            op = attr(cls, FLUTTER_OP, T.Quatf, Gf.Quatf(1.0, 0.0, 0.0, 0.0))
-            for f, q in enumerate(quats[:, k]):
-                x, y, z, w = (float(v) for v in q)
-                layer.SetTimeSample(op.path, float(f), Gf.Quatf(w, x, y, z))
+                # numbered in the order met, the forest's own selection first
+                n, reach = _author_instancer(layer, stage, p, len(done), k_all, seed)
+                done.add(p.GetPath())
+                leaves += n
+                farthest = max(farthest, reach)
+
+    author(leaf_instancers(stage))
+    with full_detail(stage):
+        author(leaf_instancers(stage))
+    if leaves:
+        quats = flutter(spec, seed).astype(np.float32)
+        with Sdf.ChangeBlock():
+            for k in range(k_all):
+                cls = prim(layer, class_path(k).name, specifier=Sdf.SpecifierClass)
+                op = attr(cls, FLUTTER_OP, T.Quatf, Gf.Quatf(1.0, 0.0, 0.0, 0.0))
+                for f, q in enumerate(quats[:, k]):
+                    x, y, z, w = (float(v) for v in q)
+                    layer.SetTimeSample(op.path, float(f), Gf.Quatf(w, x, y, z))
     return leaves, farthest
+
+
+def _author_instancer(
+    layer: Sdf.Layer, stage: Usd.Stage, p: Usd.Prim, n: int, k_all: int, seed: int
+) -> tuple[int, float]:
+    """The flutter overs of the leaf instancer ``p`` (the ``n``-th met): its leaves that
+    flutter and how far its leaves reach from their petioles (0, 0.0: none flutters)."""
+    pi = UsdGeom.PointInstancer(p)
+    targets = list(pi.GetPrototypesRel().GetTargets())
+    idx = np.asarray(pi.GetProtoIndicesAttr().Get() or [], dtype=np.int64)
+    if not targets or not len(idx) or p.IsInstanceProxy():
+        return 0, 0.0
+    turns = np.array([flutters(stage.GetPrimAtPath(t)) for t in targets])
+    if not turns[idx].any():
+        return 0, 0.0
+    over = Sdf.CreatePrimInLayer(layer, p.GetPath())
+    listed = list(targets)
+    first_sibling = np.zeros(len(targets), np.int64)
+    for j, t in enumerate(targets):
+        if not turns[j]:
+            continue
+        leaf = stage.GetPrimAtPath(t)
+        order = [op.GetOpName() for op in UsdGeom.Xformable(leaf).GetOrderedXformOps()]
+        order = Vt.TokenArray([*order, FLUTTER_OP])
+        own = Sdf.CreatePrimInLayer(layer, t)
+        own.inheritPathList.Prepend(class_path(0))
+        attr(own, "xformOpOrder", T.TokenArray, order, uniform=True)
+        first_sibling[j] = len(listed)
+        for k in range(1, k_all):
+            sib = Sdf.CreatePrimInLayer(
+                layer, t.GetParentPath().AppendChild(f"{t.name}_flutter{k}")
+            )
+            sib.specifier = Sdf.SpecifierDef
+            sib.typeName = leaf.GetTypeName()
+            sib.referenceList.Prepend(Sdf.Reference(primPath=t))
+            sib.inheritPathList.Prepend(class_path(k))
+            attr(sib, "xformOpOrder", T.TokenArray, order, uniform=True)
+            listed.append(sib.path)
+    which = np.random.default_rng([seed, 0xF1A8, n]).integers(0, k_all, len(idx))
+    moving = turns[idx] & (which > 0)
+    new = np.where(moving, first_sibling[idx] + which - 1, idx)
+    rel = Sdf.RelationshipSpec(over, "prototypes")
+    rel.targetPathList.explicitItems = listed
+    attr(over, "protoIndices", T.IntArray, ints(new))
+    reach = _leaf_reach(pi)
+    box = pi.GetExtentAttr().Get()
+    if box is not None and len(box) == 2:
+        grown = np.asarray(box, dtype=float) + np.array([[-reach] * 3, [reach] * 3])
+        attr(over, "extent", T.Float3Array, extents(grown))
+    return int(turns[idx].sum()), reach

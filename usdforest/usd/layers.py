@@ -118,6 +118,22 @@ def select_full_detail(stage: Usd.Stage) -> list[str]:
     return [str(p) for p in switched]
 
 
+@contextmanager
+def full_detail(stage: Usd.Stage) -> Iterator[list[str]]:
+    """Every tree of ``stage`` at full detail inside the block (:func:`select_full_detail`,
+    which it yields), the stage's own selections back after it."""
+    switched = select_full_detail(stage)
+    try:
+        yield switched
+    finally:
+        session = stage.GetSessionLayer()
+        with Sdf.ChangeBlock():
+            for path in switched:
+                spec = session.GetPrimAtPath(path)
+                if spec is not None and LOD_SET in spec.variantSelections:
+                    del spec.variantSelections[LOD_SET]
+
+
 def mesh_triangles(prim: Usd.Prim, to_root: np.ndarray) -> np.ndarray:
     """A Mesh prim's faces, fan-triangulated, as ``float64[m, 3, 3]`` transformed by the
     row-vector 4x4 ``to_root`` (empty when the mesh has no faces)."""

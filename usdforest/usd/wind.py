@@ -152,6 +152,9 @@ def wind_layer(stage: Usd.Stage, spec: WindSpec, seed: int, extent: np.ndarray) 
     # the root layer's rate too: a sublayer of another rate has its time codes rescaled
     layer.timeCodesPerSecond = layer.framesPerSecond = spec.fps
     layer.startTimeCode, layer.endTimeCode = 0, spec.frames
+    # outside the change block: it composes the stage at full detail too, which a change
+    # block would hold back
+    _, leaf = author_flutter(layer, stage, spec, seed)
     with Sdf.ChangeBlock():
         forest = prim(layer, "Forest", specifier=Sdf.SpecifierOver)
         trees = prim(forest, "Trees", specifier=Sdf.SpecifierOver)
@@ -167,8 +170,6 @@ def wind_layer(stage: Usd.Stage, spec: WindSpec, seed: int, extent: np.ndarray) 
             T.FloatArray,
             Vt.FloatArray.FromNumpy(freq.astype(np.float32)),
         ).SetInfo("documentation", "each tree's first natural frequency (Hz)")
-        # a leaf turns about its petiole: the trees reach farther by their largest leaf
-        _, leaf = author_flutter(layer, stage, spec, seed)
         tallest = float(stems.height.max()) if len(stems.height) else 1.0
         areas = [c.area for c in crowns]
         _, limb = author_limb_sway(layer, stage, spec, seed, areas, tallest)
