@@ -139,28 +139,28 @@ class SceneMotion:
         return matrix
 
     @functools.cached_property
-    def _parts(self) -> tuple[list, np.ndarray]:
-        """The moving parts' Xformables and ``(parts, 4, 4)`` transforms from each one's
+    def _parts(self) -> tuple[Turns, np.ndarray]:
+        """The moving parts' own transforms (:class:`~usdforest.sensors.turns.Turns`: each
+        limb's one turning op read alone) and ``(parts, 4, 4)`` transforms from each one's
         parent to its prototype: still, since nothing between them moves (a part is the
         first prim below its prototype whose transform has samples)."""
         from pxr import UsdGeom
 
         cache = UsdGeom.XformCache()
         get = self._stage.GetPrimAtPath
-        xformables, above = [], []
+        prims, above = [], []
         for part, proto in self.scene.sources.parts:
             prim = get(part)
-            xformables.append(UsdGeom.Xformable(prim))
+            prims.append(prim)
             to_proto = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(get(proto))))
             above.append(np.asarray(cache.GetParentToWorldTransform(prim)) @ to_proto)
-        return xformables, np.array(above, dtype=float).reshape(-1, 4, 4)
+        return Turns(prims), np.array(above, dtype=float).reshape(-1, 4, 4)
 
     def _parts_at(self, when) -> np.ndarray:
         """``(parts, 4, 4)``: each moving part's transform (row vectors) from its own space to
         its prototype's at the time code ``when`` (a limb's turn about its base)."""
-        xformables, above = self._parts
-        local = [np.asarray(x.GetLocalTransformation(when), dtype=float) for x in xformables]
-        return np.array(local, dtype=float).reshape(-1, 4, 4) @ above
+        turns, above = self._parts
+        return turns.at(when) @ above
 
     def _instance_of(self, tree: np.ndarray, carrier: np.ndarray | None = None) -> np.ndarray:
         """Per tree id, the index of its instance (-1: none, or an id below 0); where

@@ -56,10 +56,11 @@ class Turns:
                 op = ops[i]
                 key = (_samples_source(op.GetAttr()), str(op.GetOpType()), op.IsInverseOp())
                 rep = op
-                for o in ops[i + 1 :]:  # applied to points first: row vectors multiply left
+                # row vectors: the transform is P_last @ ... @ P_0, each op's matrix P
+                for o in ops[i + 1 :]:
                     self.inner[k] = np.asarray(o.GetOpTransform(still), dtype=float) @ self.inner[k]
                 for o in ops[:i]:
-                    self.outer[k] = self.outer[k] @ np.asarray(o.GetOpTransform(still), dtype=float)
+                    self.outer[k] = np.asarray(o.GetOpTransform(still), dtype=float) @ self.outer[k]
             if key not in keys:
                 keys[key] = len(self._ops)
                 self._ops.append(rep)
