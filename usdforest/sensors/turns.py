@@ -36,6 +36,7 @@ class Turns:
         self.which = np.full(n, -1, np.int64)  # the varying op's index in ``_ops`` (-1: none)
         self._ops: list = []  # per distinct varying op: a representative XformOp, or a prim
         self._series: dict[int, np.ndarray] = {}
+        self._whole: list[bool] = []  # per op in ``_ops``: a prim read whole
         keys: dict = {}
         # an op that does not vary has one value (a default, or a single sample)
         still = Usd.TimeCode.EarliestTime()
@@ -64,6 +65,7 @@ class Turns:
             if key not in keys:
                 keys[key] = len(self._ops)
                 self._ops.append(rep)
+                self._whole.append(len(varying) > 1)
             self.which[k] = keys[key]
 
     @property
@@ -73,9 +75,9 @@ class Turns:
 
     def _op(self, j: int, time) -> np.ndarray:
         rep = self._ops[j]
-        if hasattr(rep, "GetOpTransform"):
-            return np.asarray(rep.GetOpTransform(time), dtype=float)
-        return np.asarray(rep.GetLocalTransformation(time), dtype=float)
+        if self._whole[j]:
+            return np.asarray(rep.GetLocalTransformation(time), dtype=float)
+        return np.asarray(rep.GetOpTransform(time), dtype=float)
 
     def at(self, time) -> np.ndarray:
         """``(n, 4, 4)``: every prim's own transform at the ``Usd.TimeCode`` ``time``."""
