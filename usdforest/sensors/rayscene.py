@@ -13,8 +13,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from usdforest.sensors.scene import Scene, leaf_boxes
-from usdforest.sensors.stageframe import moved_boxes
+from usdforest.sensors.scene import Scene
+from usdforest.sensors.stageframe import leaf_boxes, moved_boxes
 from usdforest.sensors.turns import relative
 
 

@@ -35,7 +35,8 @@ from usdforest.sensors.scenetypes import (
     Sources,
     no_leaves,
 )
-from usdforest.sensors.stageframe import moved_boxes, stage_frame, stage_time
+from usdforest.sensors.stageframe import leaf_boxes, moved_boxes, stage_frame, stage_time
+from usdforest.sensors.turns import shape_turns
 from usdforest.usd.layers import class_labels, mesh_triangles, open_stage, rendered
 
 if TYPE_CHECKING:
@@ -196,20 +197,6 @@ def _realise(
         np.tile(b.path, n),
     )
     return leaves, part, no_leaves()
-
-
-def leaf_boxes(
-    li: LeafInstances, shapes: tuple[Shape, ...], boxes: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Axis-aligned boxes ``(lowers, uppers)``, each ``(n, 3)``, of leaf instances in their
-    owner's space: each shape's box (or its box in ``boxes``, ``(shapes, 2, 3)``: over its
-    turns) moved by its instance's transform."""
-    if not len(li):
-        return np.zeros((0, 3)), np.zeros((0, 3))
-    if boxes is None:
-        boxes = np.array([s.box for s in shapes], dtype=float).reshape(-1, 2, 3)
-    box = np.asarray(boxes, dtype=float)[li.shape]  # (n, 2, 3)
-    return moved_boxes(box[:, 0], box[:, 1], li.matrix)
 
 
 def blade_reflectors(tri: np.ndarray) -> Leaves:
@@ -619,7 +606,7 @@ def extract_scene(
         tick("leaf reflectors", i + 1, len(placed))
     leaves = Leaves.concat([r[0] for r in realised] + placed_leaves)
     tree, leaf_tree = whole.tree, leaves.tree
-    turns, sweep = _shape_turns(stage, shape_keys, shapes, when)
+    turns, sweep = shape_turns(stage, shape_keys, shapes, when)
     turning = bool(leaves.turning.any()) or turns is not None
     # a stage holding one tree that is not instanced: tree id 0
     if (
@@ -650,20 +637,3 @@ def extract_scene(
         turns,
         sweep,
     )
-
-
-def _shape_turns(
-    stage, keys: list[str], shapes: list[Shape], when
-) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Where a leaf shape prim turns in time (flutter): every shape's own transform at the
-    time code ``when`` and its box over all its turns (:class:`usdforest.sensors.turns.
-    Turns`); ``(None, None)`` when none turns."""
-    from usdforest.sensors.turns import Turns
-
-    if not stage.HasAuthoredTimeCodeRange() or not keys:
-        return None, None
-    turns = Turns([stage.GetPrimAtPath(k) for k in keys])
-    if not turns.moving.any():
-        return None, None
-    own = turns.at(when)
-    return own, turns.sweeps(shapes, own)

@@ -4,8 +4,12 @@ Z up), boxes carried through transforms, and seconds as the stage's time codes."
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from usdforest.sensors.scenetypes import LeafInstances, Shape
 
 
 def moved_boxes(
@@ -18,6 +22,20 @@ def moved_boxes(
     c = np.einsum("nj,njk->nk", (lo + hi) / 2, rot) + matrix[:, 3, :3]
     h = np.einsum("nj,njk->nk", (hi - lo) / 2, np.abs(rot))
     return c - h, c + h
+
+
+def leaf_boxes(
+    li: LeafInstances, shapes: tuple[Shape, ...], boxes: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned boxes ``(lowers, uppers)``, each ``(n, 3)``, of leaf instances in their
+    owner's space: each shape's box (or its box in ``boxes``, ``(shapes, 2, 3)``: over its
+    turns) moved by its instance's transform."""
+    if not len(li):
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    if boxes is None:
+        boxes = np.array([s.box for s in shapes], dtype=float).reshape(-1, 2, 3)
+    box = np.asarray(boxes, dtype=float)[li.shape]  # (n, 2, 3)
+    return moved_boxes(box[:, 0], box[:, 1], li.matrix)
 
 
 def stage_frame(stage_path: str | Path) -> np.ndarray:

@@ -129,6 +129,21 @@ class Turns:
         return out
 
 
+def shape_turns(
+    stage: Usd.Stage, keys: list[str], shapes: list, when
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Where leaf shape prims (at ``keys``, their triangles in ``shapes``) turn in time
+    (flutter): every shape's own transform at the time code ``when`` and its box over all
+    its turns (:meth:`Turns.sweeps`); ``(None, None)`` when none turns."""
+    if not stage.HasAuthoredTimeCodeRange() or not keys:
+        return None, None
+    turns = Turns([stage.GetPrimAtPath(k) for k in keys])
+    if not turns.moving.any():
+        return None, None
+    own = turns.at(when)
+    return own, turns.sweeps(shapes, own)
+
+
 def _samples_source(attr) -> tuple[str, str]:
     """Where an attribute's time samples come from: the strongest spec that has any (its
     layer and path), so that prims inheriting one class share it."""
