@@ -6,6 +6,8 @@ from __future__ import annotations
 import tomllib
 from pathlib import Path
 
+import numpy as np
+
 # the four allometric presets, each under a short name the sites use
 SPECIES = """
 [species.pine]
@@ -64,3 +66,15 @@ def build_text(root: Path, name: str, text: str, **overrides) -> Path:
     recipe = parse_recipe(tomllib.loads(text), root, f"{name}.toml", **overrides)
     write_forest(recipe, out, thumbnail=False)
     return out
+
+
+def slice_middles(t: np.ndarray, rate: float, fps: float, start: float, end: float) -> np.ndarray:
+    """The time a rolling lidar sweep casts each pulse fired at ``t`` (s; sweeps of ``rate``
+    Hz from ``start``, the flight ending at ``end``): the middle of the part of its sweep
+    between the two time codes (``fps`` a second, from 0) on either side of it."""
+    t = np.asarray(t, dtype=float)
+    sweep = np.floor((t - start) * rate + 1e-9)
+    t0 = start + sweep / rate
+    t1 = np.minimum(t0 + 1 / rate, end)
+    code = np.floor(t * fps + 1e-9)
+    return (np.maximum(t0, code / fps) + np.minimum(t1, (code + 1) / fps)) / 2

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdGeom
-from stands import beech_and_pine, build_text
+from stands import beech_and_pine, build_text, slice_middles
 
 from usdforest.errors import RecipeError
 from usdforest.usd.validate import validate
@@ -269,7 +269,7 @@ def test_a_flights_lidar_sees_each_leaf_turned_as_it_is_at_its_slice(stands):
     from usdforest import api
     from usdforest.sensors.flight import Trajectory
     from usdforest.sensors.lidar import PRESETS
-    from usdforest.sensors.motion import ROLLING_SLICES, SceneMotion
+    from usdforest.sensors.motion import SceneMotion
     from usdforest.sensors.raycast import SceneCaster
     from usdforest.sensors.scene import extract_scene
 
@@ -281,13 +281,14 @@ def test_a_flights_lidar_sees_each_leaf_turned_as_it_is_at_its_slice(stands):
     )  # fmt: skip
     flown = api.fly(path, path=hover, lidar=sensor, lidar_rate=10.0).lidar
     sweep = np.floor(flown.gps_time * 10.0 + 1e-9).astype(int)
-    slot = np.minimum(flown.azimuth % 360.0 / 360.0 * ROLLING_SLICES, ROLLING_SLICES - 1)
-    slot = slot.astype(int)
+    # each return's slice: the part of its sweep between the stage's time codes about it
+    middle = slice_middles(flown.gps_time, 10.0, FPS, 0.0, 0.2)
+    assert len(np.unique(middle)) >= 6  # 24 frames/s cut each 10 Hz sweep at least twice
     checked = 0
     for k in (0, 1):
-        for j in np.argsort(np.bincount(slot[sweep == k], minlength=ROLLING_SLICES))[-3:]:
-            mine = flown.points[(sweep == k) & (slot == j)]
-            t = (k + (j + 0.5) / ROLLING_SLICES) / 10.0
+        times, count = np.unique(middle[sweep == k], return_counts=True)
+        for t in times[np.argsort(count)[-3:]]:
+            mine = flown.points[middle == t]
             scanned = api.scan(path, "lidar", at, settings=sensor, time=t).result.points
             gap = cKDTree(scanned).query(mine)[0]
             # a ray grazing a leaf's edge may fall either side of it: the two casts turn the

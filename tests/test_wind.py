@@ -16,7 +16,7 @@ import pytest
 import trimesh
 from pxr import Sdf, Usd, UsdGeom
 from scipy.spatial import ConvexHull
-from stands import build_text
+from stands import build_text, slice_middles
 
 from usdforest import api
 from usdforest.errors import RecipeError, UsdForestError
@@ -296,12 +296,12 @@ def test_a_tiled_forest_refuses_wind_and_the_scan_a_time_that_is_no_number(tmp_p
     assert run.stderr.strip().count("\n") == 0 and "--time" in run.stderr
 
 
-def _hover(seconds: float):
-    """A platform hovering at (20, 20, 12), facing +x, for ``seconds``."""
+def _hover(seconds: float, start: float = 0.0):
+    """A platform hovering at (20, 20, 12), facing +x, from ``start`` to ``seconds``."""
     from usdforest.sensors.flight import Trajectory
 
     return Trajectory(
-        np.array([0.0, seconds]), np.array([[20.0, 20.0, 12.0]] * 2), yaw=np.zeros(2),
+        np.array([start, seconds]), np.array([[20.0, 20.0, 12.0]] * 2), yaw=np.zeros(2),
         pitch=np.zeros(2), roll=np.zeros(2),
     )  # fmt: skip
 
@@ -316,35 +316,35 @@ def test_a_flight_sees_each_sweep_where_the_trees_sway_then(forests):
     from scipy.spatial import cKDTree
 
     from usdforest.sensors.lidar import PRESETS
-    from usdforest.sensors.motion import ROLLING_SLICES, animated
+    from usdforest.sensors.motion import animated
 
     assert animated(forests["gusty"]) and not animated(forests["still"])
     sensor = dataclasses.replace(PRESETS["vlp-16"], noise=False)
-    rate = 10.0
-    flown = api.fly(forests["gusty"], path=_hover(0.25), lidar=sensor, lidar_rate=rate).lidar
-    sweep = np.floor(flown.gps_time * rate + 1e-9).astype(int)
+    rate, start, end = 10.0, 0.2, 0.45
+    flown = api.fly(forests["gusty"], path=_hover(end, start), lidar=sensor, lidar_rate=rate)
+    flown = flown.lidar
+    sweep = np.floor((flown.gps_time - start) * rate + 1e-9).astype(int)
     assert sorted(set(sweep)) == [0, 1, 2]
-    # each return's slice of the sweep, by its azimuth (the sweep turns through 360 degrees)
-    slot = np.minimum(flown.azimuth % 360.0 / 360.0 * ROLLING_SLICES, ROLLING_SLICES - 1)
-    slot = slot.astype(int)
+    # each return's slice: the part of its sweep between the stage's time codes (4 a second)
+    # about it; the first sweep (0.2 to 0.3 s) is cut at 0.25 s
+    middle = slice_middles(flown.gps_time, rate, 4.0, start, end)
+    assert len(np.unique(middle[sweep == 0])) == 2
     off_middle = []
-    # the two slices of sweeps 0 and 2 with the most returns (the pines are east and west)
-    busiest = [
-        (k, j)
-        for k in (0, 2)
-        for j in np.argsort(np.bincount(slot[sweep == k], minlength=ROLLING_SLICES))[-2:]
-    ]
-    for k, j in busiest:
-        mine = flown.points[(sweep == k) & (slot == j)]
-        assert len(mine) > 100
-        at = min((k + (j + 0.5) / ROLLING_SLICES) / rate, 0.25)  # the flight's end: 0.25 s
-        scanned = api.scan(forests["gusty"], "lidar", (20.0, 20.0, 12.0), settings=sensor, time=at)
-        gap, _ = cKDTree(scanned.result.points).query(mine)
-        assert gap.max() < 1e-5  # the slice's returns are the scan's at the slice's time
-        middle = api.scan(
-            forests["gusty"], "lidar", (20.0, 20.0, 12.0), settings=sensor, time=(k + 0.5) / rate
-        )
-        off_middle.append(cKDTree(middle.result.points).query(mine)[0].max())
+    for k in (0, 2):
+        times, count = np.unique(middle[sweep == k], return_counts=True)
+        for at in times[np.argsort(count)[-2:]]:
+            mine = flown.points[middle == at]
+            assert len(mine) > 100
+            scanned = api.scan(
+                forests["gusty"], "lidar", (20.0, 20.0, 12.0), settings=sensor, time=at
+            )
+            gap, _ = cKDTree(scanned.result.points).query(mine)
+            assert gap.max() < 1e-5  # the slice's returns are the scan's at the slice's time
+            centre = start + (k + 0.5) / rate
+            middle_scan = api.scan(
+                forests["gusty"], "lidar", (20.0, 20.0, 12.0), settings=sensor, time=centre
+            )
+            off_middle.append(cKDTree(middle_scan.result.points).query(mine)[0].max())
     # the sweep's middle is not the slice's time: the trees moved in between
     assert max(off_middle) > 1e-4
     calm = api.fly(forests["calm"], path=_hover(0.25), lidar=sensor, lidar_rate=rate).lidar

@@ -66,6 +66,7 @@ class SceneMotion:
             for p in (scene.sources.instancers if scene.sources is not None else ())
         ]
         tcps = self._stage.GetTimeCodesPerSecond()
+        self.time_codes_per_second = tcps
         start, end = self._stage.GetStartTimeCode(), self._stage.GetEndTimeCode()
         loops = bool(self._stage.GetRootLayer().customLayerData.get("loops", False))
         self.period = (end - start) / tcps if loops and end > start else None
@@ -344,7 +345,22 @@ def wood_at(motion: SceneMotion, t: float, wood):
     return motion.cylinders(t, wood), functools.partial(motion.velocities, t)
 
 
-ROLLING_SLICES = 16  # a sweep's slices of azimuth, each at its own time (6.25 ms at 10 Hz)
+ROLLING_SLICES = 16  # the most slices a sweep is cut into (6.25 ms each at 10 Hz)
+
+
+def slice_edges(motion: SceneMotion, t0: float, t1: float) -> np.ndarray:
+    """Times (s) cutting ``[t0, t1]`` where the stage's motion changes pace: ``t0``, each of
+    its time codes strictly between and ``t1`` (between two time codes USD interpolates each
+    transform linearly, so within a slice everything moves steadily); ``ROLLING_SLICES + 1``
+    even steps where there would be more slices than that."""
+    tcps = motion.time_codes_per_second
+    lo, hi = (t0 - motion.start) * tcps, (t1 - motion.start) * tcps
+    codes = np.arange(math.floor(lo) + 1, math.ceil(hi))
+    inner = motion.start + codes / tcps
+    inner = inner[(inner > t0 + 1e-9) & (inner < t1 - 1e-9)]
+    if len(inner) >= ROLLING_SLICES:
+        return np.linspace(t0, t1, ROLLING_SLICES + 1)
+    return np.concatenate([[t0], inner, [t1]])
 
 
 def rolling_cast(
@@ -357,18 +373,24 @@ def rolling_cast(
     sensor: SpinningLidar,
 ) -> Echoes:
     """The returns of a lidar sweep (its start, rate and the flight's end, where its pulses'
-    times stop) whose pulses fire at azimuths ``az`` from ``pos`` along ``dirs``: each of its
-    ``ROLLING_SLICES`` slices of azimuth cast at the scene as it stands at the slice's middle
-    (on a CUDA device, which builds its scene again each time, the sweep's middle), ordered
-    by pulse then range as one cast's."""
+    times stop) whose pulses fire at azimuths ``az`` from ``pos`` along ``dirs``: each slice
+    of the sweep between the stage's time codes (:func:`slice_edges`) cast at the scene as it
+    stands at the slice's middle (on a CUDA device, which builds its scene again each time,
+    the sweep's middle), ordered by pulse then range as one cast's.
+
+    A point moving at ``v`` is then off by at most ``v / (2 fps)`` (the half of a slice):
+    8 mm for the default windy forest's fastest leaves (0.5 m/s at 30 frames/s), a quarter
+    of a VLP-16's range accuracy."""
     t0, rate, end = sweep
-    slices = ROLLING_SLICES if static.device == "cpu" else 1
-    slot = np.minimum((az % 360.0) / 360.0 * slices, slices - 1).astype(np.int64)
+    times = np.minimum(t0 + (az % 360.0) / 360.0 / rate, end)
+    last = min(t0 + 1.0 / rate, end)
+    edges = slice_edges(motion, t0, last) if static.device == "cpu" else np.array([t0, last])
+    slot = np.clip(np.searchsorted(edges, times, side="right") - 1, 0, len(edges) - 2)
     parts = []
-    for j in range(slices):
+    for j in range(len(edges) - 1):
         sel = np.flatnonzero(slot == j)
         if sel.size:
-            caster = static.moved(motion.at(min(t0 + (j + 0.5) / (slices * rate), end)))
+            caster = static.moved(motion.at((edges[j] + edges[j + 1]) / 2))
             e = cast_pulses(caster, pos[sel], dirs[sel], sensor)
             parts.append(replace(e, pulse=sel[e.pulse]))
     names = [f.name for f in fields(Echoes)]
