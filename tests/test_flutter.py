@@ -255,6 +255,40 @@ def test_each_leaf_shapes_box_holds_it_at_every_turn_between_the_time_codes(stan
     assert grown > 0.05  # the beech's leaves turn: their boxes grew (the pine's did not)
 
 
+def test_the_shapes_turns_and_sweeps_are_kept_with_the_stages_prototypes(
+    stands, tmp_path, monkeypatch
+):
+    """The leaf shapes' turns and swept boxes (a second for the windy default forest) are kept
+    in the scene cache with the prototypes: a second extraction reads them, equal to those
+    made without the cache, at the default time and at another."""
+    from usdforest.sensors import scene as scene_module
+    from usdforest.sensors.scene import extract_scene
+
+    monkeypatch.setenv("USDFOREST_CACHE", str(tmp_path / "cache"))
+    path = stands["windy"]
+    real = scene_module.shape_turns
+    made = []
+
+    def counted(*args):
+        made.append(args)
+        return real(*args)
+
+    monkeypatch.setattr(scene_module, "shape_turns", counted)
+    for time in (None, 0.3):
+        made.clear()
+        first = extract_scene(path, time=time)
+        assert len(made) == 1
+        again = extract_scene(path, time=time)
+        assert len(made) == 1  # read back, not made again
+        bare = extract_scene(path, time=time, cache=False)
+        assert len(made) == 2
+        for scene in (first, again):
+            np.testing.assert_array_equal(scene.shape_turns, bare.shape_turns)
+            np.testing.assert_array_equal(scene.shape_sweep, bare.shape_sweep)
+    # the two times' turns differ: each time has its own entry
+    assert not np.array_equal(extract_scene(path).shape_turns, bare.shape_turns)
+
+
 def test_a_flights_lidar_sees_each_leaf_turned_as_it_is_at_its_slice(stands):
     """A hovering VLP-16 between the beech and the pine: each slice of its sweeps returns what
     a scan of the stage at the slice's middle returns, the beech's leaves turned by their

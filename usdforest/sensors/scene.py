@@ -16,6 +16,7 @@ tree and fifty per shoot. ``instancing=False`` copies every triangle instead.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -24,7 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from usdforest.sensors.implicit import IMPLICIT, shape_triangles
-from usdforest.sensors.scenecache import PrototypeStore, adopted, stored
+from usdforest.sensors.scenecache import PrototypeStore, adopted, kept, stored
 from usdforest.sensors.scenetypes import (
     Instances,
     LeafInstances,
@@ -606,7 +607,12 @@ def extract_scene(
         tick("leaf reflectors", i + 1, len(placed))
     leaves = Leaves.concat([r[0] for r in realised] + placed_leaves)
     tree, leaf_tree = whole.tree, leaves.tree
-    turns, sweep = shape_turns(stage, shape_keys, shapes, when)
+    # the shapes' turns and sweeps (a second for the windy default forest) are the stage's
+    digest = hashlib.blake2b("\0".join(shape_keys).encode(), digest_size=16).hexdigest()
+    turns, sweep = kept(
+        store_get(), f"shape turns {digest}", repr(when.GetValue()),
+        lambda: {"turns": shape_turns(stage, shape_keys, shapes, when)},
+    )["turns"]  # fmt: skip
     turning = bool(leaves.turning.any()) or turns is not None
     # a stage holding one tree that is not instanced: tree id 0
     if (

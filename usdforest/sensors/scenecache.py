@@ -122,6 +122,19 @@ class PrototypeStore:
             self.writable = False
 
 
+def kept(
+    store: PrototypeStore | None, name: str, mode: str, make: Callable[[], dict[str, Any]]
+) -> dict[str, Any]:
+    """``make()``, read from ``store`` under ``name`` and ``mode`` where an earlier call kept
+    it, and kept there otherwise (``store`` None: made each time)."""
+    entry = store.get(name, mode) if store is not None else None
+    if entry is None:
+        entry = make()
+        if store is not None:
+            store.put(name, mode, entry)
+    return entry
+
+
 def _evict(root: Path) -> None:
     """Keep the ``KEEP_STAGES`` most recently used stage folders."""
     try:
