@@ -607,10 +607,10 @@ def extract_scene(
         tick("leaf reflectors", i + 1, len(placed))
     leaves = Leaves.concat([r[0] for r in realised] + placed_leaves)
     tree, leaf_tree = whole.tree, leaves.tree
-    # the shapes' turns and sweeps (a second for the windy default forest) are the stage's
+    # an animated stage's shape turns and sweeps, kept (a second for the windy default forest)
     digest = hashlib.blake2b("\0".join(shape_keys).encode(), digest_size=16).hexdigest()
     turns, sweep = kept(
-        store_get(), f"shape turns {digest}", repr(when.GetValue()),
+        store_get() if parted else None, f"shape turns {digest}", repr(when.GetValue()),
         lambda: {"turns": shape_turns(stage, shape_keys, shapes, when)},
     )["turns"]  # fmt: skip
     turning = bool(leaves.turning.any()) or turns is not None
