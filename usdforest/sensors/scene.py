@@ -611,8 +611,8 @@ def extract_scene(
     digest = hashlib.blake2b("\0".join(shape_keys).encode(), digest_size=16).hexdigest()
     turns, sweep = kept(
         store_get() if parted else None, f"shape turns {digest}", repr(when.GetValue()),
-        lambda: {"turns": shape_turns(stage, shape_keys, shapes, when)},
-    )["turns"]  # fmt: skip
+        lambda: shape_turns(stage, shape_keys, shapes, when),
+    )  # fmt: skip
     turning = bool(leaves.turning.any()) or turns is not None
     # a stage holding one tree that is not instanced: tree id 0
     if (

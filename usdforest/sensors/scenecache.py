@@ -122,17 +122,16 @@ class PrototypeStore:
             self.writable = False
 
 
-def kept(
-    store: PrototypeStore | None, name: str, mode: str, make: Callable[[], dict[str, Any]]
-) -> dict[str, Any]:
+def kept(store: PrototypeStore | None, name: str, mode: str, make: Callable[[], Any]) -> Any:
     """``make()``, read from ``store`` under ``name`` and ``mode`` where an earlier call kept
     it, and kept there otherwise (``store`` None: made each time)."""
     entry = store.get(name, mode) if store is not None else None
-    if entry is None:
-        entry = make()
-        if store is not None:
-            store.put(name, mode, entry)
-    return entry
+    if entry is not None and "value" in entry:
+        return entry["value"]
+    value = make()
+    if store is not None:
+        store.put(name, mode, {"value": value})
+    return value
 
 
 def _evict(root: Path) -> None:
