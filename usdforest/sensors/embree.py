@@ -249,12 +249,9 @@ class EmbreeCaster:
         box = np.ascontiguousarray(np.concatenate([rs.leaf_lo, rs.leaf_hi], axis=1), np.float32)
         leaf_scene = np.ascontiguousarray(leaf_scene, np.int64)
         leaf_shape = np.ascontiguousarray(rs.leaf_shape, np.int64)
-        shape_box = np.zeros((len(rs.shape_tri), 6), np.float32)
-        for k, tri in enumerate(rs.shape_tri):
-            if len(tri):
-                pts = tri.reshape(-1, 3).astype(np.float64)
-                lo, hi = outward32(pts.min(axis=0), pts.max(axis=0))
-                shape_box[k] = np.concatenate([lo, hi])
+        shape_box = np.ascontiguousarray(
+            np.concatenate(outward32(rs.shape_box[:, 0], rs.shape_box[:, 1]), axis=1), np.float32
+        )
         keep += [inv, shift, box, leaf_scene, leaf_shape, shape_box]
         # the address of the shapes' turns the leaves' callbacks read (0: none), set by each
         # cast to its caster's (casters of one forest at other times share the prototypes)

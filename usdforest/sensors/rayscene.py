@@ -78,9 +78,9 @@ class RayScene:
     path per triangle. Leaves (the invertible ones): column-form inverse and shift, float32
     owner-space boxes, shape and tree id, owner ``g``'s from ``leaf_first[g]``. Shapes:
     ``shape_tri[k]`` with their faces' class and path, face ``f`` of shape ``k`` numbered
-    ``shape_first[k] + f``. Tree instances: inverse and forward linear parts (column form),
-    shift, prototype, tree id, world boxes and whether each can be entered (an uninvertible
-    transform cannot).
+    ``shape_first[k] + f``, and ``shape_box`` (shapes, 2, 3) the box of each (float64).
+    Tree instances: inverse and forward linear parts (column form), shift, prototype, tree
+    id, world boxes and whether each can be entered (an uninvertible transform cannot).
 
     Leaf shapes that turn in time (flutter): ``shape_own``, each shape prim's own transform
     where the leaves were placed (their boxes hold them at every turn), and ``shape_turn``,
@@ -104,6 +104,7 @@ class RayScene:
     shape_first: np.ndarray
     shape_cls: np.ndarray
     shape_path: np.ndarray
+    shape_box: np.ndarray
     inst_inv: np.ndarray
     inst_fwd: np.ndarray
     inst_shift: np.ndarray
@@ -165,6 +166,7 @@ class RayScene:
             shape_first=np.concatenate([[0], np.cumsum([len(t) for t in s_tri])]).astype(np.int64),
             shape_cls=np.concatenate([s.cls for s in shapes] or [np.zeros(0)]).astype(np.uint8),
             shape_path=np.concatenate([s.path for s in shapes] or [np.zeros(0)]).astype(np.int64),
+            shape_box=np.array([s.box for s in shapes], dtype=float).reshape(-1, 2, 3),
             **_instance_fields(scene),
             shape_own=scene.shape_turns,
         )
@@ -189,7 +191,7 @@ class RayScene:
         fwd = np.linalg.inv(inv)  # shape space now -> owner space, column form
         # local = inv (x - s) + b = inv (x - (s - fwd b))
         shift = self.leaf_shift - np.einsum("nij,nj->ni", fwd, b)
-        box = np.array([_box(t) for t in self.shape_tri]).reshape(-1, 2, 3)[self.leaf_shape]
+        box = self.shape_box[self.leaf_shape]
         m = np.zeros((len(inv), 4, 4))
         m[:, :3, :3] = fwd.transpose(0, 2, 1)
         m[:, 3, :3] = shift
@@ -218,12 +220,6 @@ class RayScene:
             self.leaf_tree, self.inst_tree,
         )  # fmt: skip
         return h
-
-
-def _box(tri: np.ndarray) -> np.ndarray:
-    """``(2, 3)``: the box of triangles ``(t, 3, 3)`` (zeros when none)."""
-    pts = np.asarray(tri, dtype=float).reshape(-1, 3)
-    return np.array([pts.min(axis=0), pts.max(axis=0)]) if len(pts) else np.zeros((2, 3))
 
 
 def _instance_fields(scene: Scene) -> dict[str, np.ndarray]:
