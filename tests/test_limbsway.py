@@ -307,3 +307,32 @@ def test_branch_sway_must_be_a_boolean(tmp_path):
     with pytest.raises(RecipeError, match=r"wind\.branch_sway: expected true or false"):
         build_text(tmp_path, "bad", STAND + WIND + 'branch_sway = "yes"\n')
     assert not (tmp_path / "bad.usda").exists()
+
+
+def test_the_swaying_limbs_found_are_kept_with_the_stages_prototypes(stands, tmp_path, monkeypatch):
+    """Finding a prototype's swaying limbs walks its prims (0.8 s in the windy default
+    forest): a second extraction reads them from the scene cache, and places the same parts
+    as an extraction without it."""
+    from usdforest.sensors import scene as scene_module
+    from usdforest.sensors.scene import extract_scene
+
+    monkeypatch.setenv("USDFOREST_CACHE", str(tmp_path / "cache"))
+    real = scene_module.moving_parts
+    walked = []
+
+    def counted(proto):
+        walked.append(proto)
+        return real(proto)
+
+    monkeypatch.setattr(scene_module, "moving_parts", counted)
+    first = extract_scene(stands["windy"])
+    assert len(walked) == 2  # the beech's and the pine's prototypes
+    again = extract_scene(stands["windy"])
+    assert len(walked) == 2  # read back
+    bare = extract_scene(stands["windy"], cache=False)
+    assert len(walked) == 4
+    assert len(bare.sources.parts) > 10
+    for scene in (first, again):
+        assert scene.sources.parts == bare.sources.parts
+        np.testing.assert_array_equal(scene.sources.part, bare.sources.part)
+        np.testing.assert_array_equal(scene.instances.matrix, bare.instances.matrix)

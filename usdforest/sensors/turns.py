@@ -144,6 +144,25 @@ def shape_turns(
     return own, turns.sweeps(shapes, own)
 
 
+def moving_parts(proto: Usd.Prim) -> list[str]:
+    """The paths of the prims below ``proto`` whose transforms have time samples (its limbs
+    that sway), none below another (leaf instancers, which turn their leaves, are not)."""
+    from pxr import Usd, UsdGeom
+
+    from usdforest.usd.layers import rendered
+
+    found = []
+    it = iter(Usd.PrimRange(proto))
+    next(it)  # ``proto`` itself moves with its instance
+    for q in it:
+        if q.IsA(UsdGeom.PointInstancer) or not rendered(q):
+            it.PruneChildren()
+        elif UsdGeom.Xformable(q) and UsdGeom.Xformable(q).TransformMightBeTimeVarying():
+            it.PruneChildren()
+            found.append(str(q.GetPath()))
+    return found
+
+
 def _samples_source(attr) -> tuple[str, str]:
     """Where an attribute's time samples come from: the strongest spec that has any (its
     layer and path), so that prims inheriting one class share it."""
