@@ -185,6 +185,14 @@ BAD_ARGUMENTS = {
         lambda d: usdforest.fly(d / "f.usda", line=LINE, long="no"),
         "long: expected True or False, got 'no'",
     ),
+    "fly-line-text": (
+        lambda d: usdforest.fly(d / "f.usda", line="0,-6,1.5:2,-6,1.5"),
+        "line: expected two points of 3 coordinates, got '0,-6,1.5:2,-6,1.5'",
+    ),
+    "fly-line-word": (
+        lambda d: usdforest.fly(d / "f.usda", line=(("a", 0, 1), (1, 0, 1))),
+        "line: expected two points of 3 coordinates",
+    ),
     "fly-rate-none": (
         lambda d: usdforest.fly(d / "f.usda", line=LINE, lidar_rate=None),
         "lidar_rate: expected a finite number, got None",

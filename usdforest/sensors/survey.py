@@ -215,7 +215,10 @@ def trajectory(
     if path is not None:
         traj = flight.read_path(path)
         return dataclasses.replace(traj, position=to_frame(traj.position, frame))
-    a, b = (np.asarray(end, dtype=float) for end in line)
+    try:
+        a, b = (np.asarray(end, dtype=float) for end in line)
+    except (TypeError, ValueError):  # not two ends, or not numbers (the CLI's text, say)
+        a = b = np.zeros(0)
     if a.shape != (3,) or b.shape != (3,):
         raise UsdForestError(f"line: expected two points of 3 coordinates, got {line!r}")
     return flight.Trajectory.line(to_frame(a, frame), to_frame(b, frame), speed)
