@@ -232,7 +232,8 @@ def fly_lidar(
         if motion is None:
             e = cast_pulses(caster, pos, dirs, sensor)
         else:
-            e = rolling_cast(static, motion, (t0, rate, traj.t[-1]), az, pos, dirs, sensor)
+            last = min(t0 + 1.0 / rate, traj.t[-1])
+            e = rolling_cast(static, motion, (t0, last), times, pos, dirs, sensor)
         rng_, intensity = observed(e, sensor, stream(seed, "flight-lidar", k))
         i = e.pulse
         parts.append(

@@ -248,7 +248,7 @@ class SceneMotion:
         """The times (s) about ``seconds`` to difference a motion over: the time codes on
         either side (the stage interpolates between its samples, so the motion is theirs
         there), or half a time code either side at a time code itself."""
-        tcps = self._stage.GetTimeCodesPerSecond()
+        tcps = self.time_codes_per_second
         code = float(seconds) * tcps
         lo = math.floor(code)
         if code == lo:
@@ -366,24 +366,22 @@ def slice_edges(motion: SceneMotion, t0: float, t1: float) -> np.ndarray:
 def rolling_cast(
     static: SceneCaster,
     motion: SceneMotion,
-    sweep: tuple[float, float, float],
-    az: np.ndarray,
+    sweep: tuple[float, float],
+    times: np.ndarray,
     pos: np.ndarray,
     dirs: np.ndarray,
     sensor: SpinningLidar,
 ) -> Echoes:
-    """The returns of a lidar sweep (its start, rate and the flight's end, where its pulses'
-    times stop) whose pulses fire at azimuths ``az`` from ``pos`` along ``dirs``: each slice
-    of the sweep between the stage's time codes (:func:`slice_edges`) cast at the scene as it
-    stands at the slice's middle (on a CUDA device, which builds its scene again each time,
-    the sweep's middle), ordered by pulse then range as one cast's.
+    """The returns of a lidar sweep (its start and end, where the flight's end cuts it short)
+    whose pulses fire at ``times`` from ``pos`` along ``dirs``: each slice of the sweep
+    between the stage's time codes (:func:`slice_edges`) cast at the scene as it stands at
+    the slice's middle (on a CUDA device, which builds its scene again each time, the sweep's
+    middle), ordered by pulse then range as one cast's.
 
     A point moving at ``v`` is then off by at most ``v / (2 fps)`` (the half of a slice):
     8 mm for the default windy forest's fastest leaves (0.5 m/s at 30 frames/s), a quarter
     of a VLP-16's range accuracy."""
-    t0, rate, end = sweep
-    times = np.minimum(t0 + (az % 360.0) / 360.0 / rate, end)
-    last = min(t0 + 1.0 / rate, end)
+    t0, last = sweep
     edges = slice_edges(motion, t0, last) if static.device == "cpu" else np.array([t0, last])
     slot = np.clip(np.searchsorted(edges, times, side="right") - 1, 0, len(edges) - 2)
     parts = []
