@@ -72,6 +72,15 @@ def _wait_for(p: subprocess.Popen, ready, timeout: float = 60.0) -> bool:
     return False
 
 
+def _holder(lock: Path) -> int | None:
+    """The pid a usdforest writer put in its lock file, or None before it has."""
+    try:
+        text = lock.read_text()
+    except OSError:
+        return None
+    return int(text) if text.endswith("\n") and text.strip().isdigit() else None
+
+
 def _maps(pid: int) -> str:
     try:
         return Path(f"/proc/{pid}/maps").read_text()
@@ -214,11 +223,20 @@ def test_two_builds_into_one_output_one_wins_the_other_is_refused(tmp_path, forc
     writes, is refused in one line (with --force too) and the first's forest is the one
     left; a third, started after, is refused unless forced."""
     first = _usdforest("build", "f.usda", "-p", "quick-mixed", "-q", cwd=tmp_path)
-    assert _wait_for(first, lambda: (tmp_path / ".f.build-lock").exists()), first.communicate()
-    second = _usdforest(
-        "build", "f.usda", "-p", str(TWO_TREES), *(["--force"] if force else []), cwd=tmp_path
-    )
-    _, err2 = second.communicate(timeout=120)
+    lock = tmp_path / ".f.build-lock"
+    # the writer puts its pid in the lock file once it holds the lock; it is then stopped, so
+    # the second starts while the first writes however slowly either runs (on a loaded CI
+    # machine the first once finished before the second had started, and --force then won)
+    assert _wait_for(first, lambda: _holder(lock) == first.pid, 300), first.communicate()
+    first.send_signal(signal.SIGSTOP)
+    try:
+        assert _holder(lock) == first.pid, "the first build ended before it could be stopped"
+        second = _usdforest(
+            "build", "f.usda", "-p", str(TWO_TREES), *(["--force"] if force else []), cwd=tmp_path
+        )
+        _, err2 = second.communicate(timeout=300)
+    finally:
+        first.send_signal(signal.SIGCONT)
     _, err1 = first.communicate(timeout=600)
     assert first.returncode == 0, err1
     assert second.returncode == 2, err2
