@@ -144,6 +144,14 @@ BAD_ARGUMENTS = {
         lambda d: usdforest.build_forest(TWO_TREES, d / "f.usda", scheduler="not a url"),
         "scheduler: ",
     ),
+    "build-untiled-text": (
+        lambda d: usdforest.build_forest(TWO_TREES, d / "f.usda", untiled="yes"),
+        "untiled: expected True or False, got 'yes'",
+    ),
+    "build-untiled-untiled": (
+        lambda d: usdforest.build_forest(TWO_TREES, d / "f.usda", untiled=True),
+        "workers, scheduler and untiled apply to a tiled recipe",
+    ),
     "build-thumbnail-text": (
         lambda d: usdforest.build_forest(TWO_TREES, d / "f.usda", thumbnail="yes"),
         "thumbnail: expected True or False, got 'yes'",

@@ -21,6 +21,7 @@ from stands import build_text, slice_middles
 from usdforest import api
 from usdforest.errors import RecipeError, UsdForestError
 from usdforest.recipe import parse_recipe
+from usdforest.usd.forest import write_forest
 from usdforest.usd.stats import stage_info
 from usdforest.usd.validate import validate
 
@@ -283,9 +284,34 @@ def test_the_recipe_checks_its_wind_table(tmp_path, table, message):
         _recipe(TWO_PINES + f"[wind]\n{table}\n", tmp_path)
 
 
-def test_a_tiled_forest_refuses_wind_and_the_scan_a_time_that_is_no_number(tmp_path, forests):
-    with pytest.raises(RecipeError, match=r"wind: a tiled forest"):
-        _recipe(TWO_PINES + "[tiles]\nsize = 20\n[wind]\n", tmp_path)
+def test_a_tiled_recipe_sways_built_as_one_layer_and_is_refused_in_tiles(tmp_path, forests):
+    """A tiled recipe's wind is written when it is built ``untiled``: the same wind layer, to
+    the byte, as the recipe without its tiles; built in tiles it is refused before anything
+    is written, in one line that says how (CLI and API alike)."""
+    windy = TWO_PINES + "[wind]\nspeed = 8\nduration = 2\nfps = 10\n"
+    tiled = _recipe(windy + "[tiles]\nsize = 20\n", tmp_path)
+    api.build_forest(tiled, tmp_path / "a" / "f.usda", thumbnail=False, untiled=True)
+    write_forest(_recipe(windy, tmp_path), tmp_path / "b" / "f.usda", thumbnail=False)
+    a, b = (tmp_path / x / "f_assets" / "wind.usdc" for x in "ab")
+    assert a.read_bytes() == b.read_bytes()
+    stage = Usd.Stage.Open(str(tmp_path / "a" / "f.usda"))
+    trees = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+    assert len(trees.GetOrientationsfAttr().GetTimeSamples()) == 21
+    assert validate(tmp_path / "a" / "f.usda") == []
+    with pytest.raises(UsdForestError, match=r"wind: a tiled forest sways only as one layer"):
+        api.build_forest(tiled, tmp_path / "c" / "f.usda", thumbnail=False)
+    (tmp_path / "r.toml").write_text(windy + "[tiles]\nsize = 20\n")
+    cmd = [sys.executable, "-m", "usdforest", "build", "d.usda", "-p", "r.toml", "-q"]
+    run = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path)
+    assert run.returncode == 2, run.stderr
+    assert run.stderr.strip().splitlines() == [
+        "error: r.toml: wind: a tiled forest sways only as one layer; build it with --untiled "
+        "(untiled=True in the API), or remove [tiles] or [wind]"
+    ]
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["a", "b", "r.toml"]
+
+
+def test_a_scan_refuses_a_time_that_is_no_number(tmp_path, forests):
     with pytest.raises(UsdForestError, match=r"time: expected a finite number"):
         api.scan(forests["calm"], "lidar", (20.0, 20.0, 12.0), time=float("nan"))
     out = tmp_path / "s.npz"

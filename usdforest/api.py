@@ -76,12 +76,14 @@ def build_forest(
     thumbnail: bool = True,
     workers: int = 1,
     scheduler: str | None = None,
+    untiled: bool = False,
     progress: Callable[[str, int, int], None] | bool | None = None,
 ) -> ForestBuild:
     """Build a forest at ``out`` (a ``.usda`` interface layer and ``<stem>_assets/``) from
     ``recipe`` (a :class:`~usdforest.recipe.Recipe`, or anything :func:`load_recipe` takes),
     with ``seed`` instead of the recipe's. A tiled recipe's tiles are written by ``workers``
-    local processes or on the Dask cluster at ``scheduler``. Returns the trees per species,
+    local processes or on the Dask cluster at ``scheduler``; ``untiled`` writes them as one
+    layer (how a tiled recipe's ``[wind]`` is built). Returns the trees per species,
     prototypes and extent (and an untiled forest's sites; a tiled one's stay in its tiles);
     refuses to overwrite unless ``force``; a failure leaves nothing behind. ``progress``: a
     callable ``(stage, done, total)``, or True for a line on stderr every few seconds
@@ -104,6 +106,7 @@ def build_forest(
         thumbnail=thumbnail,
         workers=workers,
         scheduler=scheduler,
+        untiled=untiled,
         progress=progress,
     )
 

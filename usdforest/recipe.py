@@ -800,7 +800,7 @@ def parse_recipe(
         groundcover = _parse_groundcover(data.get("groundcover"))
         shrubs = _parse_shrubs(data.get("shrubs"))
         regeneration = _parse_regeneration(data.get("regeneration"))
-        wind = _parse_wind(data.get("wind"), tiles)
+        wind = _parse_wind(data.get("wind"))
         _check_flutter(wind, {n: species[n] for n in _planted(mix, sites)})
     except RecipeError as exc:
         raise fail(exc) from None
@@ -959,7 +959,7 @@ WIND_RANGES = {  # key: (lowest, highest, whether the lowest itself is refused)
 WIND_FLAGS = {"branch_sway"}  # true or false
 
 
-def _parse_wind(t: Any, tiles: float | None) -> Any:
+def _parse_wind(t: Any) -> Any:
     """``[wind]``: the trees sway in gusts, written as a layer of time samples (see
     :mod:`usdforest.grow.sway`); absent: a still forest."""
     from usdforest.grow.sway import WindSpec
@@ -968,8 +968,6 @@ def _parse_wind(t: Any, tiles: float | None) -> Any:
         return None
     if not isinstance(t, Mapping):
         raise RecipeError("wind: expected a table, e.g. [wind] speed = 5")
-    if tiles is not None:
-        raise RecipeError("wind: a tiled forest cannot be animated yet; remove [tiles] or [wind]")
     check_keys(t, set(WIND_RANGES) | WIND_FLAGS, "wind")
     d = WindSpec()
     values = {}

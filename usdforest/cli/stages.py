@@ -265,7 +265,9 @@ def build_cmd(
     untiled: Annotated[
         bool,
         typer.Option(
-            "--untiled", help="Write a tiled recipe's trees (the same sites) as one layer."
+            "--untiled",
+            help="Write a tiled recipe's trees (the same sites) as one layer; how a tiled "
+            "recipe's [wind] is built.",
         ),
     ] = False,
 ) -> None:

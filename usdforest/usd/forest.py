@@ -228,7 +228,8 @@ def write_forest(
     end; a failure leaves nothing behind. Refuses to overwrite without ``force``. A tiled
     recipe samples and writes its tiles as tasks on Dask (``workers`` local processes, or the
     cluster at ``scheduler``) when asked, else here: the same bytes either way. ``untiled``
-    writes a tiled recipe's trees (the same sites) as one instancer layer.
+    writes a tiled recipe's trees (the same sites) as one instancer layer: the only way a
+    tiled recipe's ``[wind]`` is written (the wind layer sways one instancer's trees).
     """
     from usdforest import arguments
 
@@ -238,7 +239,13 @@ def write_forest(
     arguments.seed(recipe.seed, "seed")
     arguments.flag(force, "force")
     arguments.flag(thumbnail, "thumbnail")
+    arguments.flag(untiled, "untiled")
     arguments.workers(workers, scheduler, recipe.tiles is not None, untiled)
+    if recipe.wind is not None and recipe.tiles is not None and not untiled:
+        raise UsdForestError(
+            f"{recipe.source}: wind: a tiled forest sways only as one layer; build it with "
+            "--untiled (untiled=True in the API), or remove [tiles] or [wind]"
+        )
     assets = out.parent / f"{out.stem}_assets"
     with output_lock(out):
         refuse_inputs([out], recipe_inputs(recipe), folders=(assets,))
