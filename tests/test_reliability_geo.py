@@ -174,7 +174,7 @@ def test_sigkill_during_a_tiled_dask_build_leaves_the_folder_the_next_build_remo
         p.communicate(timeout=120)
         pytest.skip("the build finished before its tiles could be killed")
     os.killpg(p.pid, signal.SIGKILL)  # the client and its local cluster's processes
-    p.communicate(timeout=60)
+    p.communicate(timeout=300)
     left = snapshot(tmp_path) - {"r.toml"}
     assert left and all(x.startswith(".f.build-") for x in left), left
     r = _run(["build", "f.usda", "-p", "r.toml", "-q", "--no-thumbnail"], tmp_path, timeout=600)
