@@ -116,7 +116,7 @@ HardCoreOverride = Annotated[
     typer.Option(
         "--hard-core",
         min=0.0,
-        help="Matérn II minimum spacing in metres (overrides [forest] hard_core; "
+        help="Matérn II minimum spacing in metres (overrides \\[forest] hard_core; "
         "0 = a pure inhomogeneous Poisson process).",
     ),
 ]

@@ -267,7 +267,7 @@ def build_cmd(
         typer.Option(
             "--untiled",
             help="Write a tiled recipe's trees (the same sites) as one layer; how a tiled "
-            "recipe's [wind] is built.",
+            "recipe's \\[wind] is built.",
         ),
     ] = False,
 ) -> None:
