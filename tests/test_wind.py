@@ -269,6 +269,25 @@ def test_a_lidar_sees_the_trees_move_in_wind_and_stand_still_in_calm_air(forests
     assert np.array_equal(calm[0], _leaf_points(forests["still"], None))
 
 
+def test_a_scan_at_a_time_outside_the_loop_sees_its_time_in_the_loop(forests):
+    """The wind layer loops (its last time code is its first): a scan 400 s (its duration)
+    later or earlier sees the forest as at 3 s, as a flight's pulses do, not the forest
+    that USD holds at its first or last time code."""
+    at = _leaf_points(forests["gusty"], 3.0)
+    for t in (403.0, -397.0, 1203.0):
+        np.testing.assert_array_equal(_leaf_points(forests["gusty"], t), at)
+    assert not np.array_equal(_leaf_points(forests["gusty"], 400.0 - 1e-9), at)
+    # and says so, as a time given to a forest that does not move
+    pose = (20.0, 20.0, 12.0)
+    assert api.scan(forests["gusty"], "lidar", pose, time=403.0).warnings == (
+        "time: 403 s is outside the stage's loop of 400 s from 0 s: scanned at 3 s",
+    )
+    assert api.scan(forests["gusty"], "lidar", pose, time=3.0).warnings == ()
+    assert api.scan(forests["still"], "lidar", pose, time=3.0).warnings == (
+        "time: the stage has no animation (no time codes): scanned as it stands",
+    )
+
+
 @pytest.mark.parametrize(
     ("table", "message"),
     [

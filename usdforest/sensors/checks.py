@@ -73,3 +73,42 @@ def check_not_inside_wood(scene: Scene, pose: Pose) -> None:
         raise UsdForestError(
             f"pose ({pose.x:g}, {pose.y:g}, {pose.z:g}) is inside a trunk; move the sensor out"
         )
+
+
+def time_warning(stage_path, seconds: float | None) -> str | None:
+    """One line when a scan's ``seconds`` is not a time of the stage's animation as asked (the
+    scan still runs): a stage without time codes is scanned as it stands, a looping stage
+    (a forest's wind) at that time wrapped into its loop, another as at its nearest end."""
+    from pxr import Sdf
+
+    from usdforest.sensors.stageframe import looped
+
+    if seconds is None:
+        return None
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(stage_path))
+    except Exception:  # not USD: opening the stage names the problem
+        return None
+    if layer is None:
+        return None
+    tcps = (
+        layer.timeCodesPerSecond
+        if layer.HasTimeCodesPerSecond() or not layer.HasFramesPerSecond()
+        else layer.framesPerSecond
+    )
+    start, end = layer.startTimeCode / tcps, layer.endTimeCode / tcps
+    if not end > start:
+        return "time: the stage has no animation (no time codes): scanned as it stands"
+    if layer.customLayerData.get("loops", False):
+        t = looped(seconds, (start, end - start))
+        if abs(t - seconds) > 1e-9:
+            return (
+                f"time: {seconds:g} s is outside the stage's loop of {end - start:g} s from "
+                f"{start:g} s: scanned at {t:g} s"
+            )
+    elif not start <= seconds <= end:
+        return (
+            f"time: {seconds:g} s is outside the stage's animation ({start:g}-{end:g} s): "
+            f"scanned as at {min(max(seconds, start), end):g} s"
+        )
+    return None

@@ -21,7 +21,7 @@ from usdforest.sensors.lidar import SpinningLidar, cast_pulses
 from usdforest.sensors.raycast import SceneCaster
 from usdforest.sensors.returns import Echoes
 from usdforest.sensors.scenetypes import Leaves, Scene
-from usdforest.sensors.stageframe import stage_time
+from usdforest.sensors.stageframe import looped, stage_loop, stage_time
 from usdforest.sensors.turns import Turns
 from usdforest.sensors.wood import Cylinders
 from usdforest.usd.layers import open_stage
@@ -65,12 +65,9 @@ class SceneMotion:
             UsdGeom.PointInstancer(self._stage.GetPrimAtPath(p))
             for p in (scene.sources.instancers if scene.sources is not None else ())
         ]
-        tcps = self._stage.GetTimeCodesPerSecond()
-        self.time_codes_per_second = tcps
-        start, end = self._stage.GetStartTimeCode(), self._stage.GetEndTimeCode()
-        loops = bool(self._stage.GetRootLayer().customLayerData.get("loops", False))
-        self.period = (end - start) / tcps if loops and end > start else None
-        self.start = start / tcps
+        self.time_codes_per_second = self._stage.GetTimeCodesPerSecond()
+        self._loop = stage_loop(self._stage)
+        self.start, self.period = self._loop
         self._last: tuple[float, Scene] | None = None  # a pulse asks for its time twice
         self._last_turns: tuple[float, np.ndarray] | None = None
         self._shape_centres = np.array(
@@ -97,8 +94,7 @@ class SceneMotion:
         )
 
     def _wrapped(self, seconds: float) -> float:
-        t = float(seconds)
-        return self.start + (t - self.start) % self.period if self.period else t
+        return looped(seconds, self._loop)
 
     def at(self, seconds: float) -> Scene:
         """The scene with its tree instances where the stage puts them at ``seconds``, and

@@ -65,10 +65,29 @@ def to_frame(points: np.ndarray, frame: np.ndarray) -> np.ndarray:
     return np.asarray(points, dtype=float) @ frame[:3, :3] + frame[3, :3]
 
 
+def stage_loop(stage) -> tuple[float, float | None]:
+    """Where ``stage``'s animation starts (s) and, when its root layer says it ``loops`` (a
+    usdforest wind layer's does: its last time code is its first), how long one loop is
+    (s; else None)."""
+    tcps = stage.GetTimeCodesPerSecond()
+    start, end = stage.GetStartTimeCode(), stage.GetEndTimeCode()
+    loops = bool(stage.GetRootLayer().customLayerData.get("loops", False))
+    return start / tcps, ((end - start) / tcps if loops and end > start else None)
+
+
+def looped(seconds: float, loop: tuple[float, float | None]) -> float:
+    """``seconds`` into an animation of ``loop`` (:func:`stage_loop`), wrapped into its first
+    loop when it loops (USD itself holds the ends' values outside the time codes)."""
+    start, period = loop
+    t = float(seconds)
+    return start + (t - start) % period if period else t
+
+
 def stage_time(stage, seconds: float | None):
-    """The ``Usd.TimeCode`` of ``seconds`` into ``stage``'s animation (``None``: default)."""
+    """The ``Usd.TimeCode`` of ``seconds`` into ``stage``'s animation (``None``: default),
+    wrapped into its loop when it loops (:func:`looped`)."""
     from pxr import Usd
 
     if seconds is None:
         return Usd.TimeCode.Default()
-    return Usd.TimeCode(float(seconds) * stage.GetTimeCodesPerSecond())
+    return Usd.TimeCode(looped(seconds, stage_loop(stage)) * stage.GetTimeCodesPerSecond())

@@ -20,7 +20,12 @@ import numpy as np
 from usdforest.config import override
 from usdforest.errors import UsdForestError
 from usdforest.sensors import camera, flight, lidar, sonar
-from usdforest.sensors.checks import check_not_inside_wood, pose_warnings, unseen_warning
+from usdforest.sensors.checks import (
+    check_not_inside_wood,
+    pose_warnings,
+    time_warning,
+    unseen_warning,
+)
 from usdforest.sensors.motion import SceneMotion, animated
 from usdforest.sensors.pose import Pose, parse_pose
 from usdforest.sensors.scene import extract_scene
@@ -166,7 +171,13 @@ def scan(
         opened=opened,
     )
     warnings = tuple(
-        w for w in [*pose_warnings(scene, p, settings.max_range), unseen_warning(scene)] if w
+        w
+        for w in [
+            *pose_warnings(scene, p, settings.max_range),
+            unseen_warning(scene),
+            time_warning(stage, at),
+        ]
+        if w
     )
     check_not_inside_wood(scene, p)
     # a sonar without occlusion casts no rays into the trees: build nothing for them
