@@ -397,6 +397,21 @@ def test_a_flight_sees_each_sweep_where_the_trees_sway_then(forests):
     np.testing.assert_array_equal(calm.points, still.points)
 
 
+def test_a_hover_of_a_tenth_of_a_second_is_one_sweep_wherever_it_starts(forests):
+    """0.1 s from 2.5 s is 0.10000000000000009 s in floats: still one 10 Hz sweep, as from
+    0.5 s (it made a second of pulses all fired at the end, every return twice); a hover
+    truly longer than one sweep makes a second."""
+    import dataclasses
+
+    from usdforest.sensors.lidar import PRESETS
+
+    sensor = dataclasses.replace(PRESETS["vlp-16"], noise=False)
+    one_sweep = sensor.directions().shape[0]
+    for start, end, sweeps in ((0.5, 0.6, 1), (2.5, 2.6, 1), (2.5, 2.61, 2)):
+        flown = api.fly(forests["calm"], path=_hover(end, start), lidar=sensor, lidar_rate=10.0)
+        assert (flown.lidar.sweeps, flown.lidar.n_rays) == (sweeps, sweeps * one_sweep)
+
+
 def test_a_flights_camera_frames_see_the_trees_at_their_own_times(forests, monkeypatch):
     """Each frame of a flight is the camera's scan at its time; the flight composes the
     stage once for its scene, its motion and its colours (each a full-detail open)."""

@@ -199,6 +199,15 @@ class FlightReturns:
         return len(self.range)
 
 
+def sweep_starts(traj: Trajectory, rate: float) -> np.ndarray:
+    """When each of the sweeps at ``rate`` Hz that cover ``traj`` starts (s): one every
+    1 / ``rate`` from its first time, the last starting before its end. A duration a float
+    rounding above a whole number of sweeps (0.1 s from 2.5 s is 0.10000000000000009) makes
+    no extra sweep of pulses all fired at the end."""
+    n = max(1, math.ceil(traj.duration * rate - 1e-6))
+    return traj.t[0] + np.arange(n) / rate
+
+
 def fly_lidar(
     scene: Scene,
     sensor: SpinningLidar,
@@ -223,7 +232,7 @@ def fly_lidar(
     ring = np.unique(el, return_inverse=True)[1].astype(np.uint16)
     azimuth = (az + 180.0) % 360.0 - 180.0
     local = sensor.directions()
-    starts = traj.t[0] + np.arange(0.0, traj.duration, 1.0 / rate)
+    starts = sweep_starts(traj, rate)
     parts = []
     for k, t0 in enumerate(starts):
         times = np.minimum(t0 + (az % 360.0) / 360.0 / rate, traj.t[-1])
@@ -451,7 +460,7 @@ def write_trajectory(
     and the body's acceleration (m/s², gravity left out) and angular rates (degrees/s) about
     its forward, right and down axes, from the path by finite differences."""
     gps0 = gps_times(np.zeros(1), start_time)[0]  # checks start_time before any work
-    times = np.unique(np.append(traj.t[0] + np.arange(0.0, traj.duration, 1.0 / rate), traj.t[-1]))
+    times = np.unique(np.append(sweep_starts(traj, rate), traj.t[-1]))
     pos, rot, vel = traj.at(times)
     if origin is not None:
         pos = pos + np.array([origin[0], origin[1], 0.0])
