@@ -293,7 +293,8 @@ def test_a_scan_at_a_time_outside_the_loop_sees_its_time_in_the_loop(forests):
     [
         ("speed = -1", r"wind\.speed: -1 is outside 0 to 60"),
         ("gustiness = 2", r"wind\.gustiness: 2 is outside 0 to 1"),
-        ("fps = 0", r"wind\.fps: 0 is outside above 0 to 240"),
+        ("fps = 0", r"wind\.fps: 0 must be above 0 and at most 240$"),
+        ("duration = 0", r"wind\.duration: 0 must be above 0 and at most 3600$"),
         ("gusts = 1", r"wind: unknown key 'gusts'"),
         ("speed = 'fast'", r"wind\.speed"),
     ],

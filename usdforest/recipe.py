@@ -974,8 +974,9 @@ def _parse_wind(t: Any) -> Any:
     for k, (lo, hi, open_lo) in WIND_RANGES.items():
         v = _num(t.get(k, getattr(d, k)), f"wind.{k}")
         if not (lo < v if open_lo else lo <= v) or v > hi:
-            bound = f"above {lo:g}" if open_lo else f"{lo:g}"
-            raise RecipeError(f"wind.{k}: {v:.4g} is outside {bound} to {hi:g}")
+            if open_lo:
+                raise RecipeError(f"wind.{k}: {v:.4g} must be above {lo:g} and at most {hi:g}")
+            raise RecipeError(f"wind.{k}: {v:.4g} is outside {lo:g} to {hi:g}")
         values[k] = v
     if values["duration"] * values["fps"] < 1:
         raise RecipeError("wind: duration x fps is under one frame")
