@@ -331,6 +331,41 @@ def test_a_tiled_recipe_sways_built_as_one_layer_and_is_refused_in_tiles(tmp_pat
     assert sorted(x.name for x in tmp_path.iterdir()) == ["a", "b", "r.toml"]
 
 
+def test_a_wind_layer_too_large_for_its_limbs_is_refused_before_anything_is_written(
+    tmp_path, monkeypatch
+):
+    """The limit on the layer's samples counts the limbs' turns as well as the trees' tilts
+    (a pine's 22 swaying limbs took 16 bytes a limb a time code, 15x its tree's 24): two
+    pines whose tilts fit the limit and whose limbs do not are refused once their trees
+    have grown, naming both and the size, and nothing is left."""
+    import re
+
+    from usdforest.usd import wind
+
+    frames = 60 * 30 + 1
+    monkeypatch.setattr(wind, "MAX_SAMPLE_BYTES", 2 * 24 * frames * 4)  # 4x the tilts
+    recipe = _recipe(TWO_PINES + "[wind]\nduration = 60\nfps = 30\n", tmp_path)
+    with pytest.raises(UsdForestError) as caught:
+        write_forest(recipe, tmp_path / "out" / "f.usda", thumbnail=False)
+    message = str(caught.value)
+    got = re.fullmatch(
+        r"wind: 2 trees and up to ([\d,]+) swaying limbs x 1,801 time codes would take "
+        r"([\d.]+) MiB of samples \(at most 0\.3 MiB\); lower wind\.duration or wind\.fps",
+        message,
+    )
+    assert got, message
+    limbs = int(got[1].replace(",", ""))
+    assert limbs > 20  # every first-order branch of the pine asset
+    want = frames * (2 * 24 + limbs * 16) / 2**20
+    assert float(got[2]) == pytest.approx(want, abs=0.05)
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+    # without branch sway no limb is counted: the tilts fit
+    calm = _recipe(TWO_PINES + "[wind]\nduration = 60\nfps = 30\nbranch_sway = false\n",
+                   tmp_path)  # fmt: skip
+    write_forest(calm, tmp_path / "calm" / "f.usda", thumbnail=False)
+    assert (tmp_path / "calm" / "f_assets" / "wind.usdc").is_file()
+
+
 def test_a_scan_refuses_a_time_that_is_no_number(tmp_path, forests):
     with pytest.raises(UsdForestError, match=r"time: expected a finite number"):
         api.scan(forests["calm"], "lidar", (20.0, 20.0, 12.0), time=float("nan"))

@@ -274,9 +274,9 @@ def _write_forest(
     surveys = run_tasks(client, survey_task, [(sq,) for sq in cut], recipe, tick, "sampling sites")
     names = recipe.species_names
     by_species = np.sum([s.by_species for s in surveys], axis=0, dtype=np.int64)
-    if recipe.wind is not None:  # refused before any tree is grown
-        from usdforest.usd.wind import check_samples
+    from usdforest.usd.wind import check_samples
 
+    if recipe.wind is not None:  # refused before any tree is grown
         check_samples(int(by_species.sum()), recipe.wind)
     classes = classes_for(recipe, merge_sums(s.sums for s in surveys))
     classes = {n: c for n, c in classes.items() if len(c.sizes)}
@@ -307,6 +307,11 @@ def _write_forest(
         )
     tick("growing trees", len(prototypes), len(prototypes))
     ordered = [trees[p] for p in prototypes]
+    # only a wind that sways branches needs each limb grouped (see usd.tree)
+    w = recipe.wind
+    sways = w is not None and w.branch_sway and w.speed > 0
+    if sways:  # and its limbs' samples: refused before anything is written
+        check_samples(int(by_species.sum()), w, sum(len(t.limbs) for t in ordered))
     proto_extent = np.stack([t.sized_extent for t in ordered])
     grown = proto_extent[:, 1, 2] - proto_extent[:, 0, 2] if recipe.sites is not None else None
     plan = Plan(classes, lookup, _leans(ordered), first_ids(recipe, surveys), grown)
@@ -331,9 +336,6 @@ def _write_forest(
         (staged / "trees").mkdir(parents=True)
         (staged / "templates").mkdir()
         tree_assets = []
-        # only a wind that sways branches needs each limb grouped (see usd.tree)
-        w = recipe.wind
-        sways = w is not None and w.branch_sway and w.speed > 0
         for k, key in enumerate(prototypes):
             tick("writing trees", k, len(prototypes))
             tb = trees[key]

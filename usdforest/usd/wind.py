@@ -36,8 +36,11 @@ from usdforest.usd.layers import T, attr, extents, new_layer, prim, rendered
 from usdforest.usd.limbsway import author_limb_sway
 
 BREAST = 1.3  # m
-MAX_SAMPLE_BYTES = 4 * 2**30  # the layer's orientation samples, at most
+MAX_SAMPLE_BYTES = 4 * 2**30  # the layer's samples, at most
 SAMPLE_BYTES = 8 + 16  # a tree a frame: quath and quatf
+# a swaying limb a frame: its half3 and its crate entry (measured: a pine's 22 limbs took
+# 16.1 bytes a limb a frame of its wind layer beyond its tree's 24)
+LIMB_SAMPLE_BYTES = 16
 
 
 @dataclass(frozen=True)
@@ -125,19 +128,26 @@ def _largest_scale(stage: Usd.Stage, path: str = "/Forest/Trees") -> float:
     return float(np.abs(np.asarray(scales, dtype=float)).max()) if scales else 1.0
 
 
-def sample_bytes(trees: int, spec: WindSpec) -> int:
-    """What the layer's orientation samples take (bytes)."""
-    return trees * (spec.frames + 1) * SAMPLE_BYTES
+def sample_bytes(trees: int, spec: WindSpec, limbs: int = 0) -> int:
+    """What the layer's samples of ``trees`` orientations and ``limbs`` limbs' turns take
+    (bytes)."""
+    return (spec.frames + 1) * (trees * SAMPLE_BYTES + limbs * LIMB_SAMPLE_BYTES)
 
 
-def check_samples(trees: int, spec: WindSpec) -> None:
-    """Refuse a wind layer whose samples would pass ``MAX_SAMPLE_BYTES``."""
-    need = sample_bytes(trees, spec)
+def _size(n: float) -> str:
+    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.1f} MiB"
+
+
+def check_samples(trees: int, spec: WindSpec, limbs: int = 0) -> None:
+    """Refuse a wind layer whose samples would pass ``MAX_SAMPLE_BYTES``: of ``trees`` (known
+    before any tree grows) and, once they have grown, of ``limbs``, every limb of every tree
+    asset (those that sway are fewer, found as the layer is written)."""
+    need = sample_bytes(trees, spec, limbs)
     if need > MAX_SAMPLE_BYTES:
+        what = f"{trees:,} trees" + (f" and up to {limbs:,} swaying limbs" if limbs else "")
         raise UsdForestError(
-            f"wind: {trees:,} trees x {spec.frames + 1:,} time codes would take "
-            f"{need / 2**30:.1f} GiB of samples (at most {MAX_SAMPLE_BYTES / 2**30:g}); "
-            "lower wind.duration or wind.fps"
+            f"wind: {what} x {spec.frames + 1:,} time codes would take {_size(need)} of "
+            f"samples (at most {_size(MAX_SAMPLE_BYTES)}); lower wind.duration or wind.fps"
         )
 
 
