@@ -366,6 +366,37 @@ def test_a_wind_layer_too_large_for_its_limbs_is_refused_before_anything_is_writ
     assert (tmp_path / "calm" / "f_assets" / "wind.usdc").is_file()
 
 
+def test_build_and_info_say_how_long_the_forest_sways(tmp_path, forests):
+    """``build --json`` reports the wind it wrote (seconds, frames a second, time codes,
+    the layer's bytes) and ``info --json`` any stage's animation, as its root layer gives
+    it; a still forest has none."""
+    import json
+
+    (tmp_path / "r.toml").write_text(TWO_PINES + "[wind]\nspeed = 7\nduration = 2\nfps = 5\n")
+    cmd = [sys.executable, "-m", "usdforest", "build", "f.usda", "-p", "r.toml", "--json", "-q",
+           "--no-thumbnail"]  # fmt: skip
+    run = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, check=True)
+    layer = tmp_path / "f_assets" / "wind.usdc"
+    assert json.loads(run.stdout)["wind"] == {
+        "seconds": 2.0,
+        "fps": 5.0,
+        "time_codes": 11,
+        "speed": 7.0,
+        "layer_bytes": layer.stat().st_size,
+    }
+
+    def info(stage: Path):
+        cmd = [sys.executable, "-m", "usdforest", "info", str(stage), "--json", "-q"]
+        run = subprocess.run(cmd, capture_output=True, text=True, check=True)
+        return json.loads(run.stdout)["animation"]
+
+    root = Sdf.Layer.FindOrOpen(str(tmp_path / "f.usda"))
+    assert (root.startTimeCode, root.endTimeCode, root.timeCodesPerSecond) == (0, 10, 5)
+    want = {"seconds": 2.0, "time_codes": 11, "time_codes_per_second": 5.0, "loops": True}
+    assert info(tmp_path / "f.usda") == want
+    assert info(forests["still"]) is None
+
+
 def test_a_scan_refuses_a_time_that_is_no_number(tmp_path, forests):
     with pytest.raises(UsdForestError, match=r"time: expected a finite number"):
         api.scan(forests["calm"], "lidar", (20.0, 20.0, 12.0), time=float("nan"))

@@ -129,6 +129,14 @@ def _print_pairs(pairs: dict, shown) -> None:
 def _info_value(k: str, v):
     if isinstance(v, list) and k == "layers":
         return "\n".join(v)
+    if k == "animation":
+        if v is None:
+            return "none (a still stage)"
+        loops = ", looping" if v["loops"] else ""
+        return (
+            f"{v['seconds']:g} s, {v['time_codes']:,} time codes at "
+            f"{v['time_codes_per_second']:g} a second{loops}"
+        )
     return f"{v:,}" if isinstance(v, int) else v
 
 
@@ -306,20 +314,45 @@ def build_cmd(
         "prototypes": len(b.prototypes),
         "tiles": b.n_tiles,
         "extent": b.extent.tolist(),
+        "wind": _wind_summary(recipe, b.assets),
         "seconds": round(secs, 3),
     }
     if as_json:
         sys.stdout.write(json.dumps(summary) + "\n")
     elif not quiet:
+        wind = summary["wind"]
         note = _before_interaction(recipe, " ")
         out.print(
             f"{output}: {b.n_trees:,} trees (expected {summary['expected_trees']:,.0f}{note}) of "
             + ", ".join(f"{n} {c:,}" for n, c in summary["trees_by_species"].items())
             + f"; {len(b.prototypes)} tree assets"
             + (f", {b.n_tiles} tiles" if b.n_tiles else "")
-            + f" in {b.assets}/ ({secs:.1f} s)",
+            + f" in {b.assets}/"
+            + (
+                f"; swaying {wind['seconds']:g} s at {wind['fps']:g} frames/s (wind.usdc "
+                f"{wind['layer_bytes'] / 2**20:.1f} MiB)"
+                if wind
+                else ""
+            )
+            + f" ({secs:.1f} s)",
             highlight=False,
         )
+
+
+def _wind_summary(recipe, assets: Path) -> dict | None:
+    """What a build's ``[wind]`` wrote: its seconds, frames a second, time codes and the
+    layer's size (bytes); None for a still forest."""
+    w = recipe.wind
+    if w is None:
+        return None
+    layer = Path(assets) / "wind.usdc"
+    return {
+        "seconds": w.duration,
+        "fps": w.fps,
+        "time_codes": w.frames + 1,
+        "speed": w.speed,
+        "layer_bytes": layer.stat().st_size if layer.is_file() else 0,
+    }
 
 
 @app.command("sample", cls=Command)

@@ -139,5 +139,21 @@ def stage_info(path: str | Path, *, full: bool = False, progress: Progress | Non
         "wood_prims_by_order": {str(k): v for k, v in sorted(by_order.items())},
         "branches_by_order": {str(k): len(v) for k, v in sorted(axes.items())},
         "extent": [list(box.GetMin()), list(box.GetMax())] if not box.IsEmpty() else None,
+        "animation": _animation(stage),
         "layers": sorted(layers),
+    }
+
+
+def _animation(stage: Usd.Stage) -> dict | None:
+    """The stage's time range as its root layer gives it (a forest's wind: seconds, time
+    codes, time codes a second, whether it loops); None for a stage without one."""
+    start, end = stage.GetStartTimeCode(), stage.GetEndTimeCode()
+    if not end > start:
+        return None
+    tcps = stage.GetTimeCodesPerSecond()
+    return {
+        "seconds": (end - start) / tcps,
+        "time_codes": round(end - start) + 1,
+        "time_codes_per_second": tcps,
+        "loops": bool(stage.GetRootLayer().customLayerData.get("loops", False)),
     }
