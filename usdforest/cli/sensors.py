@@ -213,11 +213,17 @@ def fly_cmd(
     ],
     path: Annotated[
         Path | None,
-        typer.Option(help="CSV of poses: t,x,y,z[,yaw,pitch,roll] (s, stage units, deg)."),
+        typer.Option(
+            help="CSV of poses: t,x,y,z[,yaw,pitch,roll] (s, stage units, deg); t is also the "
+            "time in the stage's animation (a forest's wind, wrapped over its loop)."
+        ),
     ] = None,
     line: Annotated[
         str | None,
-        typer.Option(help="x0,y0,z0:x1,y1,z1 in the stage's units, flown at --speed."),
+        typer.Option(
+            help="x0,y0,z0:x1,y1,z1 in the stage's units, flown at --speed from t = 0 (a "
+            "forest's wind from its start; --path starts elsewhere)."
+        ),
     ] = None,
     speed: Annotated[float, typer.Option(help="m/s along --line.")] = 2.0,
     lidar_preset: Annotated[
@@ -251,7 +257,7 @@ def fly_cmd(
         typer.Option(
             help="UTC time of the path's t = 0 (ISO 8601, e.g. 2026-06-21T10:00:00Z): the LAS "
             "and trajectory then carry Adjusted Standard GPS Time; without it, GPS week time "
-            "from 0."
+            "from 0. The wind's time is t, not this."
         ),
     ] = None,
     device: DeviceOption = "cpu",
