@@ -136,8 +136,13 @@ def test_a_lidar_from_above_meets_the_floor_where_the_beech_leaves_were(stands):
 
 
 def test_seasons_and_leaf_fractions_are_checked(tmp_path):
-    with pytest.raises(RecipeError, match=r"season: 'spring' is not one of summer, autumn, winter"):
+    # the caller's season is named as the caller's, not as the recipe's
+    with pytest.raises(
+        RecipeError, match=r"^season: 'spring' is not one of summer, autumn, winter$"
+    ):
         parse_recipe(tomllib.loads(MIXED), tmp_path, "r.toml", season="spring")
+    with pytest.raises(RecipeError, match=r"^r\.toml: season: 'spring' is not one of summer"):
+        parse_recipe(tomllib.loads('season = "spring"\n' + MIXED), tmp_path, "r.toml")
     bad = MIXED.replace(
         '[species.beech]\npreset = "european-beech"\n',
         '[species.beech]\npreset = "european-beech"\ngeometry = { winter_leaf_on = 1.5 }\n',

@@ -684,8 +684,8 @@ def parse_recipe(
     """
     from usdforest.expr import compile_expression
 
-    if season is not None:
-        data = {**data, "season": season}
+    if season is not None:  # the caller's, not the recipe's: named without the recipe
+        data = {**data, "season": _parse_season(season)}
 
     if hard_core is not None:
         forest_t = data.get("forest", {})
