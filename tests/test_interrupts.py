@@ -102,7 +102,7 @@ def _one_line_interrupt(
     nothing or the ``whole`` set of outputs (a signal that lands while the outputs are moved
     into place is held until the last has moved), never a part or a staging folder."""
     p.send_signal(sig)
-    _, err = p.communicate(timeout=300)
+    _, err = p.communicate(timeout=600)
     if p.returncode == 0:  # finished between the check and the signal
         return
     status, line = STOPPED[sig]
@@ -121,7 +121,7 @@ def test_ctrl_c_while_the_modules_load_ends_in_one_line(tmp_path):
     if _wait_for(p, lambda: "numpy" in _maps(p.pid)):
         _one_line_interrupt(p, tmp_path)
     else:
-        p.communicate(timeout=300)
+        p.communicate(timeout=600)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
@@ -132,7 +132,7 @@ def test_ctrl_c_or_sigterm_during_a_build_ends_in_one_line(tmp_path, sig):
     if _wait_for(p, lambda: bool(list(tmp_path.glob(".f.build-*")))):
         _one_line_interrupt(p, tmp_path, sig)
     else:
-        p.communicate(timeout=300)
+        p.communicate(timeout=600)
 
 
 FLIGHT_OUTPUTS = tuple(
@@ -152,7 +152,7 @@ def test_ctrl_c_or_sigterm_during_a_flight_ends_in_one_line(tmp_path, sig):
     if _wait_for(p, lambda: bool(list((tmp_path / "out").glob(".run.build-*")))):
         _one_line_interrupt(p, tmp_path / "out", sig, whole=FLIGHT_OUTPUTS)
     else:
-        p.communicate(timeout=300)
+        p.communicate(timeout=600)
 
 
 @pytest.mark.parametrize("delay", [0.0, 0.01, 0.05, 0.3])
@@ -163,7 +163,7 @@ def test_ctrl_c_at_any_moment_leaves_nothing(tmp_path, delay):
     p = _usdforest("build", "f.usda", "-p", str(TWO_TREES), cwd=tmp_path)
     time.sleep(delay)
     p.send_signal(signal.SIGINT)
-    _, err = p.communicate(timeout=300)
+    _, err = p.communicate(timeout=600)
     if p.returncode == 0:
         return
     assert p.returncode in (130, 1, -signal.SIGINT), err
@@ -234,7 +234,7 @@ def test_two_builds_into_one_output_one_wins_the_other_is_refused(tmp_path, forc
         second = _usdforest(
             "build", "f.usda", "-p", str(TWO_TREES), *(["--force"] if force else []), cwd=tmp_path
         )
-        _, err2 = second.communicate(timeout=300)
+        _, err2 = second.communicate(timeout=600)
     finally:
         first.send_signal(signal.SIGCONT)
     _, err1 = first.communicate(timeout=600)
@@ -248,7 +248,7 @@ def test_two_builds_into_one_output_one_wins_the_other_is_refused(tmp_path, forc
     assert len(ids.Get()) > 100  # quick-mixed's trees, not the two of the refused recipe
     assert sorted(x.name for x in tmp_path.iterdir()) == ["f.usda", "f_assets"]
     third = _usdforest("build", "f.usda", "-p", str(TWO_TREES), cwd=tmp_path)
-    _, err3 = third.communicate(timeout=120)
+    _, err3 = third.communicate(timeout=600)
     assert third.returncode == 2 and "f.usda exists; pass --force" in err3, err3
 
 
@@ -358,6 +358,6 @@ def test_ctrl_c_stops_an_api_flight(tmp_path):
     if _wait_for(p, lambda: "numba" in _maps(p.pid) and "pxr" in _maps(p.pid)):
         time.sleep(1.0)  # into the flight's scene and sweeps (a sleep only moves where)
         p.send_signal(signal.SIGINT)
-    out, err = p.communicate(timeout=120)
+    out, err = p.communicate(timeout=600)
     if p.returncode != 0:  # 0: the flight ended before the signal
         assert (p.returncode, out.strip()) == (7, "stopped"), err

@@ -17,7 +17,7 @@ RUN = [sys.executable, "-m", "usdforest.pipelines.random_forests"]
 
 
 def _run(*args: str, cwd) -> subprocess.CompletedProcess:
-    return subprocess.run([*RUN, *args], cwd=cwd, capture_output=True, text=True, timeout=120)
+    return subprocess.run([*RUN, *args], cwd=cwd, capture_output=True, text=True, timeout=600)
 
 
 @pytest.mark.parametrize(
@@ -68,7 +68,7 @@ def test_an_interrupted_run_keeps_the_index_of_what_it_finished(tmp_path, sig):
         time.sleep(0.01)
     time.sleep(0.3)  # into a later forest's build
     p.send_signal(sig)
-    _, err = p.communicate(timeout=120)
+    _, err = p.communicate(timeout=600)
     assert p.returncode == {signal.SIGINT: 130, signal.SIGTERM: 143}[sig], err
     assert err.strip().splitlines() == [
         {signal.SIGINT: "error: interrupted", signal.SIGTERM: "error: terminated"}[sig]

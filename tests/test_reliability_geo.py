@@ -158,10 +158,10 @@ def test_ctrl_c_during_a_tiled_dask_build_leaves_nothing(tmp_path):
     pytest.importorskip("distributed")
     p = _tiled_build(tmp_path)
     if not _wait_for_tiles(p, tmp_path):
-        p.communicate(timeout=120)
+        p.communicate(timeout=600)
         pytest.skip("the build finished before its tiles could be interrupted")
     p.send_signal(signal.SIGINT)
-    _, err = p.communicate(timeout=180)
+    _, err = p.communicate(timeout=600)
     assert p.returncode == 130, err
     assert err.strip().splitlines()[-1] == "error: interrupted" and "Traceback" not in err, err
     assert snapshot(tmp_path) == {"r.toml"}
@@ -171,10 +171,10 @@ def test_sigkill_during_a_tiled_dask_build_leaves_the_folder_the_next_build_remo
     pytest.importorskip("distributed")
     p = _tiled_build(tmp_path)
     if not _wait_for_tiles(p, tmp_path):
-        p.communicate(timeout=120)
+        p.communicate(timeout=600)
         pytest.skip("the build finished before its tiles could be killed")
     os.killpg(p.pid, signal.SIGKILL)  # the client and its local cluster's processes
-    p.communicate(timeout=300)
+    p.communicate(timeout=600)
     left = snapshot(tmp_path) - {"r.toml"}
     assert left and all(x.startswith(".f.build-") for x in left), left
     r = _run(["build", "f.usda", "-p", "r.toml", "-q", "--no-thumbnail"], tmp_path, timeout=600)
@@ -271,10 +271,10 @@ def test_a_quiet_dask_build_prints_nothing_and_a_stopped_one_one_line(tmp_path, 
     (tmp_path / "f.usda").unlink()
     p = _tiled_build(tmp_path)
     if not _wait_for_tiles(p, tmp_path):
-        p.communicate(timeout=120)
+        p.communicate(timeout=600)
         pytest.skip("the build finished before its tiles could be stopped")
     p.send_signal(sig)
-    _, err = p.communicate(timeout=180)
+    _, err = p.communicate(timeout=600)
     want = {signal.SIGINT: (130, "error: interrupted"), signal.SIGTERM: (143, "error: terminated")}
     assert (p.returncode, [x for x in err.splitlines() if not _progress(x)]) == (
         want[sig][0],
