@@ -355,7 +355,7 @@ def test_ctrl_c_stops_an_api_flight(tmp_path):
         [sys.executable, "-c", script], cwd=tmp_path, stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    if _wait_for(p, lambda: "numba" in _maps(p.pid) and "pxr" in _maps(p.pid)):
+    if _wait_for(p, lambda: "numba" in _maps(p.pid) and "pxr" in _maps(p.pid), 300):
         time.sleep(1.0)  # into the flight's scene and sweeps (a sleep only moves where)
         p.send_signal(signal.SIGINT)
     out, err = p.communicate(timeout=600)

@@ -79,16 +79,9 @@ def time_warning(stage_path, seconds: float | None) -> str | None:
     """One line when a scan's ``seconds`` is not a time of the stage's animation as asked (the
     scan still runs): a stage without time codes is scanned as it stands, a looping stage
     (a forest's wind) at that time wrapped into its loop, another as at its nearest end."""
-    from pxr import Sdf
+    from usdforest.sensors.stageframe import looped, root_layer
 
-    from usdforest.sensors.stageframe import looped
-
-    if seconds is None:
-        return None
-    try:
-        layer = Sdf.Layer.FindOrOpen(str(stage_path))
-    except Exception:  # not USD: opening the stage names the problem
-        return None
+    layer = root_layer(stage_path) if seconds is not None else None
     if layer is None:
         return None
     tcps = (

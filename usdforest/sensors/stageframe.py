@@ -38,18 +38,24 @@ def leaf_boxes(
     return moved_boxes(box[:, 0], box[:, 1], li.matrix)
 
 
+def root_layer(stage_path: str | Path):
+    """The ``Sdf.Layer`` at ``stage_path``, or None when it is no USD layer (opening the stage
+    then names the problem)."""
+    from pxr import Sdf
+
+    try:
+        return Sdf.Layer.FindOrOpen(str(stage_path))
+    except Exception:
+        return None
+
+
 def stage_frame(stage_path: str | Path) -> np.ndarray:
     """The row-vector 4x4 from a stage's own units and axes to the sensors' frame (metres, Z
     up): ``metersPerUnit`` and ``upAxis`` as its root layer authors them (a Y-up stage is
     turned +90 degrees about X, so its +Y becomes +Z and its +Z becomes -Y); unauthored
     metadata is taken as usdforest writes it, metres and Z up, not USD's fallbacks."""
-    from pxr import Sdf
-
     m = np.eye(4)
-    try:
-        layer = Sdf.Layer.FindOrOpen(str(stage_path))
-    except Exception:  # not USD: opening the stage names the problem
-        return m
+    layer = root_layer(stage_path)
     if layer is None:
         return m
     root = layer.pseudoRoot
