@@ -80,19 +80,15 @@ def time_warning(stage_path, seconds: float | None) -> str | None:
     scan still runs): a stage without time codes is scanned as it stands, a looping stage
     (a forest's wind) at that time wrapped into its loop, another as at its nearest end."""
     from usdforest.sensors.stageframe import looped, root_layer
+    from usdforest.usd.layers import time_range
 
     layer = root_layer(stage_path) if seconds is not None else None
     if layer is None:
         return None
-    tcps = (
-        layer.timeCodesPerSecond
-        if layer.HasTimeCodesPerSecond() or not layer.HasFramesPerSecond()
-        else layer.framesPerSecond
-    )
-    start, end = layer.startTimeCode / tcps, layer.endTimeCode / tcps
+    start, end, _, loops = time_range(layer)
     if not end > start:
         return "time: the stage has no animation (no time codes): scanned as it stands"
-    if layer.customLayerData.get("loops", False):
+    if loops:
         t = looped(seconds, (start, end - start))
         if abs(t - seconds) > 1e-9:
             return (

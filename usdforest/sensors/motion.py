@@ -66,8 +66,7 @@ class SceneMotion:
             for p in (scene.sources.instancers if scene.sources is not None else ())
         ]
         self.time_codes_per_second = self._stage.GetTimeCodesPerSecond()
-        self._loop = stage_loop(self._stage)
-        self.start, self.period = self._loop
+        self.start, self.period = stage_loop(self._stage)
         self._last: tuple[float, Scene] | None = None  # a pulse asks for its time twice
         self._last_turns: tuple[float, np.ndarray] | None = None
         self._shape_centres = np.array(
@@ -94,7 +93,7 @@ class SceneMotion:
         )
 
     def _wrapped(self, seconds: float) -> float:
-        return looped(seconds, self._loop)
+        return looped(seconds, (self.start, self.period))
 
     def at(self, seconds: float) -> Scene:
         """The scene with its tree instances where the stage puts them at ``seconds``, and

@@ -72,13 +72,12 @@ def to_frame(points: np.ndarray, frame: np.ndarray) -> np.ndarray:
 
 
 def stage_loop(stage) -> tuple[float, float | None]:
-    """Where ``stage``'s animation starts (s) and, when its root layer says it ``loops`` (a
-    usdforest wind layer's does: its last time code is its first), how long one loop is
-    (s; else None)."""
-    tcps = stage.GetTimeCodesPerSecond()
-    start, end = stage.GetStartTimeCode(), stage.GetEndTimeCode()
-    loops = bool(stage.GetRootLayer().customLayerData.get("loops", False))
-    return start / tcps, ((end - start) / tcps if loops and end > start else None)
+    """Where ``stage``'s animation starts (s) and, when its root layer says it loops
+    (:func:`usdforest.usd.layers.time_range`), how long one loop is (s; else None)."""
+    from usdforest.usd.layers import time_range
+
+    start, end, _, loops = time_range(stage.GetRootLayer())
+    return start, (end - start if loops and end > start else None)
 
 
 def looped(seconds: float, loop: tuple[float, float | None]) -> float:

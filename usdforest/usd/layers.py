@@ -335,3 +335,17 @@ def bind_material(spec: Sdf.PrimSpec, material: Sdf.Path) -> None:
         items.insert(0, "MaterialBindingAPI")
     spec.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=items))
     rel(spec, "material:binding", [material])
+
+
+def time_range(layer: Sdf.Layer) -> tuple[float, float, float, bool]:
+    """The animation ``layer`` (a stage's root layer) gives: its first and last time codes in
+    seconds, its time codes a second (``timeCodesPerSecond``, else ``framesPerSecond``, else
+    24, as USD reads them) and whether it loops (a usdforest wind's last time code is its
+    first: ``customLayerData`` ``loops``)."""
+    tcps = (
+        layer.timeCodesPerSecond
+        if layer.HasTimeCodesPerSecond() or not layer.HasFramesPerSecond()
+        else layer.framesPerSecond
+    )
+    loops = bool(layer.customLayerData.get("loops", False))
+    return layer.startTimeCode / tcps, layer.endTimeCode / tcps, tcps, loops

@@ -10,7 +10,7 @@ import numpy as np
 from pxr import Usd, UsdGeom
 
 from usdforest.progress import Progress
-from usdforest.usd.layers import LOD_SET, class_labels, open_stage, rendered
+from usdforest.usd.layers import LOD_SET, class_labels, open_stage, rendered, time_range
 
 
 @dataclass
@@ -147,13 +147,12 @@ def stage_info(path: str | Path, *, full: bool = False, progress: Progress | Non
 def _animation(stage: Usd.Stage) -> dict | None:
     """The stage's time range as its root layer gives it (a forest's wind: seconds, time
     codes, time codes a second, whether it loops); None for a stage without one."""
-    start, end = stage.GetStartTimeCode(), stage.GetEndTimeCode()
+    start, end, tcps, loops = time_range(stage.GetRootLayer())
     if not end > start:
         return None
-    tcps = stage.GetTimeCodesPerSecond()
     return {
-        "seconds": (end - start) / tcps,
-        "time_codes": round(end - start) + 1,
+        "seconds": end - start,
+        "time_codes": round((end - start) * tcps) + 1,
         "time_codes_per_second": tcps,
-        "loops": bool(stage.GetRootLayer().customLayerData.get("loops", False)),
+        "loops": loops,
     }
