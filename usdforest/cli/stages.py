@@ -342,10 +342,12 @@ def build_cmd(
 def _wind_summary(recipe, assets: Path) -> dict | None:
     """What a build's ``[wind]`` wrote: its seconds, frames a second, time codes and the
     layer's size (bytes); None for a still forest."""
+    from usdforest.usd.forest import WIND
+
     w = recipe.wind
     if w is None:
         return None
-    layer = Path(assets) / "wind.usdc"
+    layer = Path(assets) / WIND
     return {
         "seconds": w.duration,
         "fps": w.fps,

@@ -274,9 +274,9 @@ def _write_forest(
     surveys = run_tasks(client, survey_task, [(sq,) for sq in cut], recipe, tick, "sampling sites")
     names = recipe.species_names
     by_species = np.sum([s.by_species for s in surveys], axis=0, dtype=np.int64)
-    from usdforest.usd.wind import check_samples
-
     if recipe.wind is not None:  # refused before any tree is grown
+        from usdforest.usd.wind import check_samples
+
         check_samples(int(by_species.sum()), recipe.wind)
     classes = classes_for(recipe, merge_sums(s.sums for s in surveys))
     classes = {n: c for n, c in classes.items() if len(c.sizes)}
@@ -311,6 +311,8 @@ def _write_forest(
     w = recipe.wind
     sways = w is not None and w.branch_sway and w.speed > 0
     if sways:  # and its limbs' samples: refused before anything is written
+        from usdforest.usd.wind import check_samples
+
         check_samples(int(by_species.sum()), w, sum(len(t.limbs) for t in ordered))
     proto_extent = np.stack([t.sized_extent for t in ordered])
     grown = proto_extent[:, 1, 2] - proto_extent[:, 0, 2] if recipe.sites is not None else None
