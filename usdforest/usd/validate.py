@@ -70,40 +70,66 @@ def project_findings(stage: Usd.Stage) -> list[Finding]:
     else:  # a host of its own units and up axis: the assets beneath it upright and to scale
         for path, msg in placement_problems(stage):
             err("placement", path, msg)
+    # an instance proxy's own values are its prototype's: each prototype prim is checked once
+    # and its findings repeated at every proxy path (the stand-1ha forest: 739,265 prims, 78
+    # prototypes; 54 s checked prim by prim)
+    seen: dict[str, list[tuple[str, str]]] = {}
     for p in stage.Traverse(Usd.TraverseInstanceProxies()):
         path = str(p.GetPath())
-        if p.IsA(UsdGeom.Mesh):
-            mesh = UsdGeom.Mesh(p)
-            pts = mesh.GetPointsAttr().Get()
-            if not mesh.GetExtentAttr().HasAuthoredValue():
-                err("extent", path, "Mesh has no extent")
-            if pts is not None and len(pts) and not np.all(np.isfinite(np.asarray(pts))):
-                err("finite", path, "points contain NaN or infinity")
-            if pts is not None and len(pts) and mesh.GetExtentAttr().HasAuthoredValue():
-                ext = np.asarray(mesh.GetExtentAttr().Get())
-                a = np.asarray(pts)
-                tol = 1e-4 * max(1.0, float(np.abs(ext).max()))
-                if np.any(a.min(axis=0) < ext[0] - tol) or np.any(a.max(axis=0) > ext[1] + tol):
-                    err("extent", path, "extent does not contain the points")
-        elif p.IsA(UsdGeom.PointInstancer):
-            pi = UsdGeom.PointInstancer(p)
-            if not pi.GetExtentAttr().HasAuthoredValue():
-                err("extent", path, "PointInstancer has no extent")
-            ids = pi.GetIdsAttr().Get()
-            if ids is not None and len(np.unique(np.asarray(ids))) != len(ids):
-                err("ids", path, "PointInstancer ids are not unique")
-            pos = pi.GetPositionsAttr().Get()
-            if pos is not None and len(pos) and not np.all(np.isfinite(np.asarray(pos))):
-                err("finite", path, "positions contain NaN or infinity")
-            q = pi.GetOrientationsAttr().Get()
-            if q is not None and len(q):
-                qa = np.array([[x.GetReal(), *x.GetImaginary()] for x in q], dtype=np.float64)
-                if np.any(np.abs(np.linalg.norm(qa, axis=1) - 1.0) > 1e-2):
-                    err("quaternions", path, "orientations are not unit quaternions")
-            protos = pi.GetPrototypesRel().GetTargets()
-            for t in protos:
+        is_mesh = p.IsA(UsdGeom.Mesh)
+        is_instancer = not is_mesh and p.IsA(UsdGeom.PointInstancer)
+        if not (is_mesh or is_instancer):
+            continue
+        key = str(p.GetPrimInPrototype().GetPath()) if p.IsInstanceProxy() else path
+        own = seen.get(key)
+        if own is None:
+            own = seen[key] = _mesh_problems(p) if is_mesh else _instancer_problems(p)
+        for rule, msg in own:
+            err(rule, path, msg)
+        if is_instancer:
+            for t in UsdGeom.PointInstancer(p).GetPrototypesRel().GetTargets():
                 if not stage.GetPrimAtPath(t):
                     err("prototypes", path, f"prototype {t} does not exist")
+    return out
+
+
+def _mesh_problems(prim: Usd.Prim) -> list[tuple[str, str]]:
+    """``(rule, message)`` for a Mesh's extent and points."""
+    out = []
+    mesh = UsdGeom.Mesh(prim)
+    pts = mesh.GetPointsAttr().Get()
+    has_extent = mesh.GetExtentAttr().HasAuthoredValue()
+    if not has_extent:
+        out.append(("extent", "Mesh has no extent"))
+    if pts is not None and len(pts):
+        a = np.asarray(pts)
+        if not np.all(np.isfinite(a)):
+            out.append(("finite", "points contain NaN or infinity"))
+        if has_extent:
+            ext = np.asarray(mesh.GetExtentAttr().Get())
+            tol = 1e-4 * max(1.0, float(np.abs(ext).max()))
+            if np.any(a.min(axis=0) < ext[0] - tol) or np.any(a.max(axis=0) > ext[1] + tol):
+                out.append(("extent", "extent does not contain the points"))
+    return out
+
+
+def _instancer_problems(prim: Usd.Prim) -> list[tuple[str, str]]:
+    """``(rule, message)`` for a PointInstancer's extent, ids, positions and orientations."""
+    out = []
+    pi = UsdGeom.PointInstancer(prim)
+    if not pi.GetExtentAttr().HasAuthoredValue():
+        out.append(("extent", "PointInstancer has no extent"))
+    ids = pi.GetIdsAttr().Get()
+    if ids is not None and len(np.unique(np.asarray(ids))) != len(ids):
+        out.append(("ids", "PointInstancer ids are not unique"))
+    pos = pi.GetPositionsAttr().Get()
+    if pos is not None and len(pos) and not np.all(np.isfinite(np.asarray(pos))):
+        out.append(("finite", "positions contain NaN or infinity"))
+    q = pi.GetOrientationsAttr().Get()
+    if q is not None and len(q):
+        qa = np.asarray(q, dtype=np.float64).reshape(-1, 4)  # a norm: the real part's place aside
+        if np.any(np.abs(np.linalg.norm(qa, axis=1) - 1.0) > 1e-2):
+            out.append(("quaternions", "orientations are not unit quaternions"))
     return out
 
 
