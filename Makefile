@@ -14,11 +14,13 @@ CHECK_STAMP := $(CHECK)/.installed
 # Blender as a Python module (bpy), to import the forest as a Blender user does
 BLENDER       ?= .venv-blender
 BLENDER_STAMP := $(BLENDER)/.installed
-# pytest processes (pytest-xdist), each running whole test files so that a file's shared
-# forests are built once: `make test TEST_JOBS=1` runs them one after another
+# pytest processes (pytest-xdist), each running whole test files so that a file's own
+# forests are built once (forests several files read are built once a run, tests/forestcache.py):
+# `make test TEST_JOBS=1` runs them one after another
 TEST_JOBS ?= 2
+PYTEST    := $(BIN)/python -m pytest -q -n $(TEST_JOBS) --dist loadfile
 
-.PHONY: forest test lint bench figures templates docs clean
+.PHONY: forest test test-quick test-durations lint bench figures templates docs clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "usdforest needs Python >= 3.11")'
@@ -47,11 +49,24 @@ $(BLENDER_STAMP):
 	-test -x $(BLENDER)/bin/python || $(PYTHON) -m venv $(BLENDER)
 	-$(BLENDER)/bin/python -m pip install --progress-bar on 'bpy>=4.2' && touch $(BLENDER_STAMP)
 
-test: $(STAMP) $(PHYS_STAMP) $(CHECK_STAMP) $(BLENDER_STAMP)
-	USDFOREST_PHYSICS_PYTHON=$(abspath $(PHYS))/bin/python \
+SIDE_ENVS := USDFOREST_PHYSICS_PYTHON=$(abspath $(PHYS))/bin/python \
 	USDFOREST_BLENDER_PYTHON=$(abspath $(BLENDER))/bin/python \
-	USDFOREST_NVIDIA_VALIDATE=$(abspath $(CHECK))/bin/nvidia_usd_validate \
-	$(BIN)/python -m pytest -q -n $(TEST_JOBS) --dist loadfile
+	USDFOREST_NVIDIA_VALIDATE=$(abspath $(CHECK))/bin/nvidia_usd_validate
+
+# the whole suite, with the three side environments (installed the first time)
+test: $(STAMP) $(PHYS_STAMP) $(CHECK_STAMP) $(BLENDER_STAMP)
+	@echo "== the whole test suite (about 15 minutes on 2 cores; make test-quick: about 5)"
+	$(SIDE_ENVS) $(PYTEST)
+
+# the inner loop: no side environments, no shipped forest, no test measured at 8 s or more
+# (tests/durations.json); the tests that need a side environment skip and say so
+test-quick: $(STAMP)
+	$(PYTEST) -m "not heavy"
+
+# the whole suite, then tests/durations.json (what test-quick leaves out, the files' order)
+test-durations: $(STAMP) $(PHYS_STAMP) $(CHECK_STAMP) $(BLENDER_STAMP)
+	$(SIDE_ENVS) $(PYTEST) --durations=50 --junitxml=.pytest-durations.xml
+	$(BIN)/python tests/durations.py .pytest-durations.xml
 
 lint: $(STAMP)
 	$(BIN)/ruff check usdforest tests benchmarks templates docs pipelines

@@ -2,14 +2,33 @@
 
 from __future__ import annotations
 
+import functools
+import json
 from pathlib import Path
 
+import forestcache
 import pytest
+from durations import HEAVY_SECONDS
+from durations import OUT as DURATIONS
 from typer.testing import CliRunner
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 CAD_SAMPLES = SHARED / "cad-samples"
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark ``heavy`` the tests that read a shipped forest or took at least
+    ``durations.HEAVY_SECONDS`` when last measured (``tests/durations.json``), and put the
+    files that took longest first: pytest-xdist hands whole files out in this order, so the
+    longest start at once and the short ones fill in at the end. Every worker collects the
+    same order; a file's tests keep theirs."""
+    measured = json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
+    tests, files = measured.get("tests", {}), measured.get("files", {})
+    for item in items:
+        if "shipped" in item.fixturenames or tests.get(item.nodeid, 0.0) >= HEAVY_SECONDS:
+            item.add_marker(pytest.mark.heavy)
+    items.sort(key=lambda item: -files.get(item.nodeid.split("::")[0], 0.0))
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -40,6 +59,10 @@ def every_written_recipe_loads_back(tmp_path_factory):
     base = tmp_path_factory.getbasetemp()
     bad = []
     found = sorted(base.rglob("*_assets/pipeline.toml"))
+    shared = forestcache.run_folder(base)
+    if shared.is_dir():  # the forests the run's processes share, those whose build finished
+        for done in shared.glob(f"*/{forestcache.DONE}"):
+            found += sorted(done.parent.glob("out/*_assets/pipeline.toml"))
     for path in found:
         try:
             read_recipe(path)
@@ -49,23 +72,33 @@ def every_written_recipe_loads_back(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def shipped(tmp_path_factory):
-    """``shipped(name)``: the shipped recipe ``name`` built once a session (with its
-    thumbnail), as ``(forest.usda, ForestBuild)``. Several test files read the default forest
-    and the 1 ha stand; each build takes a minute or more. Tests only read it."""
-    from usdforest.recipe import default_recipe_path, read_recipe
-    from usdforest.usd.forest import write_forest
+def forest_folder(tmp_path_factory) -> Path:
+    """The folder of the forests this run's pytest processes share (:mod:`forestcache`)."""
+    return forestcache.run_folder(tmp_path_factory.getbasetemp())
 
+
+@pytest.fixture(scope="session")
+def shipped(forest_folder):
+    """``shipped(name)``: the shipped recipe ``name`` built once a run (with its thumbnail)
+    by whichever pytest process asks first, as ``(forest.usda, ForestBuild)``. Several test
+    files read the default forest and the 1 ha stand; each build takes a minute or more.
+    Tests only read it."""
     built = {}
 
     def build(name: str):
         if name not in built:
-            out = tmp_path_factory.mktemp(f"shipped-{name}") / "forest.usda"
-            recipe = read_recipe(default_recipe_path().parent / f"{name}.toml")
-            built[name] = (out, write_forest(recipe, out))
+            built[name] = forestcache.shipped_forest(forest_folder, name)
         return built[name]
 
     return build
+
+
+@pytest.fixture(scope="session")
+def shared_forest(forest_folder):
+    """``shared_forest(name, text, files=None, thumbnail=False, **overrides)``: the forest of
+    the recipe ``text`` built once a run (:func:`forestcache.text_forest`), as
+    ``(<name>.usda, ForestBuild)``, for tests in several files that read the same stand."""
+    return functools.partial(forestcache.text_forest, forest_folder)
 
 
 @pytest.fixture
