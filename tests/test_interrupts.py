@@ -7,6 +7,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -346,7 +347,8 @@ def test_ctrl_c_stops_an_api_flight(tmp_path):
     script = (
         "import sys, usdforest\n"
         "try:\n"
-        "    usdforest.fly('f.usda', line=((0, 0, 2), (8, 0, 2)), speed=0.5, sonar='paper')\n"
+        "    usdforest.fly('f.usda', line=((0, 0, 2), (8, 0, 2)), speed=0.5, sonar='paper',\n"
+        "                  progress=True)\n"
         "except KeyboardInterrupt:\n"
         "    print('stopped', flush=True)\n"
         "    sys.exit(7)\n"
@@ -355,9 +357,21 @@ def test_ctrl_c_stops_an_api_flight(tmp_path):
         [sys.executable, "-c", script], cwd=tmp_path, stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    if _wait_for(p, lambda: "numba" in _maps(p.pid) and "pxr" in _maps(p.pid), 300):
-        time.sleep(1.0)  # into the flight's scene and sweeps (a sleep only moves where)
+    lines: list[str] = []
+    scene = threading.Event()
+
+    def read_stderr() -> None:
+        for line in p.stderr:
+            lines.append(line)
+            if line.startswith("ray-casting scene:"):  # built: the sweeps come next
+                scene.set()
+
+    reader = threading.Thread(target=read_stderr, daemon=True)
+    reader.start()
+    if _wait_for(p, scene.is_set, 300):  # (a hang guard)
         p.send_signal(signal.SIGINT)
-    out, err = p.communicate(timeout=600)
+    p.wait(timeout=600)
+    reader.join(timeout=60)
+    out, err = p.stdout.read(), "".join(lines)
     if p.returncode != 0:  # 0: the flight ended before the signal
         assert (p.returncode, out.strip()) == (7, "stopped"), err

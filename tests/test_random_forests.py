@@ -63,10 +63,16 @@ def test_an_interrupted_run_keeps_the_index_of_what_it_finished(tmp_path, sig):
         preexec_fn=default_sigint,
     )  # fmt: skip
     index = tmp_path / "out" / "forests.csv"
-    deadline = time.monotonic() + 120
-    while p.poll() is None and not index.exists() and time.monotonic() < deadline:
-        time.sleep(0.01)
-    time.sleep(0.3)  # into a later forest's build
+
+    def into_a_later_build() -> bool:
+        """The index lists the first forest, and a later one is being built (its lock or
+        staging folder is beside the forests)."""
+        later = [x for x in (tmp_path / "out").glob(".forest_*.build-*") if "_0000." not in x.name]
+        return index.exists() and bool(later)
+
+    deadline = time.monotonic() + 120  # (a hang guard)
+    while p.poll() is None and not into_a_later_build() and time.monotonic() < deadline:
+        time.sleep(0.005)
     p.send_signal(sig)
     _, err = p.communicate(timeout=600)
     assert p.returncode == {signal.SIGINT: 130, signal.SIGTERM: 143}[sig], err

@@ -162,8 +162,12 @@ def test_two_dask_workers_write_the_same_bytes_as_one(tmp_path):
         assert (one.parent / f).read_bytes() == (three.parent / f).read_bytes(), f
 
 
-def test_an_unreachable_scheduler_is_named(tmp_path, runner):
+def test_an_unreachable_scheduler_is_named(tmp_path, runner, monkeypatch):
+    from usdforest import cluster
     from usdforest.cli import app
+
+    # a closed port is retried until the connect timeout (10 s in a build): 1 s here
+    monkeypatch.setattr(cluster.connect, "__defaults__", (1.0, cluster.WORKER_TIMEOUT))
 
     p = tmp_path / "t.toml"
     p.write_text(default_recipe_path().read_text() + "\n[tiles]\nsize = 50\n", encoding="utf-8")
@@ -172,7 +176,8 @@ def test_an_unreachable_scheduler_is_named(tmp_path, runner):
         app, ["build", str(out), "-p", str(p), "-q", "--scheduler", "tcp://127.0.0.1:9"]
     )
     assert (
-        r.exit_code == 2 and "--scheduler tcp://127.0.0.1:9: no Dask scheduler answered" in r.stderr
+        r.exit_code == 2
+        and "--scheduler tcp://127.0.0.1:9: no Dask scheduler answered within 1 s" in r.stderr
     )
     assert not out.exists() and not (tmp_path / "f_assets").exists()
 
