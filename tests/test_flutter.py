@@ -35,6 +35,14 @@ def stands(tmp_path_factory):
     }
 
 
+@pytest.fixture(scope="module")
+def rest_scene(stands):
+    """The windy stand's sensor scene at its default time, uncached (scenes are frozen)."""
+    from usdforest.sensors.scene import extract_scene
+
+    return extract_scene(stands["windy"], cache=False)
+
+
 def _leaf_instancers(stage: Usd.Stage, tree: str) -> list[UsdGeom.PointInstancer]:
     """The tree's leaf instancers: its own and each limb's."""
     return [
@@ -74,7 +82,17 @@ def test_leaves_flutter_about_their_petioles_as_pure_tones(stands):
     stage = Usd.Stage.Open(str(stands["windy"]))
     rest = _leaf_rows(stage, BEECH, Usd.TimeCode.Default(), limbs=False)
     frames = int(DURATION * FPS)
-    rows = np.array([_leaf_rows(stage, BEECH, float(f), limbs=False) for f in range(frames + 1)])
+    # every frame's rows in one call per instancer (USD's batch of the same computation: the
+    # leaves carry no velocities, so the base time changes nothing; bit for bit
+    # _leaf_rows(stage, BEECH, f, limbs=False), 4x quicker)
+    codes = [Usd.TimeCode(float(f)) for f in range(frames + 1)]
+    rows = np.concatenate(
+        [
+            np.array(pi.ComputeInstanceTransformsAtTimes(codes, codes[0]), dtype=float)
+            for pi in _leaf_instancers(stage, BEECH)
+        ],
+        axis=1,
+    )
     # the petiole stays where it was; the leaf turns about it, a rotation in its own frame
     np.testing.assert_allclose(
         rows[:, :, 3, :3], np.broadcast_to(rest[:, 3, :3], rows[:, :, 3, :3].shape), atol=1e-5
@@ -232,14 +250,13 @@ def test_conifers_alone_or_leafless_broadleaves_need_no_frames_for_flutter(tmp_p
     assert parse_recipe(loads(unplanted + "[wind]\nfps = 5\n"), tmp_path, "u.toml").wind.fps == 5
 
 
-def test_each_leaf_shapes_box_holds_it_at_every_turn_between_the_time_codes(stands):
+def test_each_leaf_shapes_box_holds_it_at_every_turn_between_the_time_codes(stands, rest_scene):
     """The casters' box of a fluttering leaf shape (kept for the whole flight) holds the shape
     as USD turns it at any time, also between two time codes (where the stage slerps)."""
     from usdforest.sensors.motion import SceneMotion
-    from usdforest.sensors.scene import extract_scene
 
     path = stands["windy"]
-    scene = extract_scene(path, cache=False)
+    scene = rest_scene
     assert scene.shape_turns is not None and scene.shape_sweep is not None
     motion = SceneMotion(path, scene)
     times = np.random.default_rng(5).uniform(0, DURATION, 400)
@@ -289,7 +306,7 @@ def test_the_shapes_turns_and_sweeps_are_kept_with_the_stages_prototypes(
     assert not np.array_equal(extract_scene(path).shape_turns, bare.shape_turns)
 
 
-def test_a_flights_lidar_sees_each_leaf_turned_as_it_is_at_its_slice(stands):
+def test_a_flights_lidar_sees_each_leaf_turned_as_it_is_at_its_slice(stands, rest_scene):
     """A hovering VLP-16 between the beech and the pine: each slice of its sweeps returns what
     a scan of the stage at the slice's middle returns, the beech's leaves turned by their
     flutter then (the caster is built once; each leaf's callback turns the ray by its
@@ -321,7 +338,10 @@ def test_a_flights_lidar_sees_each_leaf_turned_as_it_is_at_its_slice(stands):
     checked = 0
     for k in (0, 1):
         times, count = np.unique(middle[sweep == k], return_counts=True)
-        for t in times[np.argsort(count)[-3:]]:
+        # each sweep's two largest slices, over 3000 returns each: with the leaves left at
+        # rest in the flight, 33 % and 73 % of the first sweep's, 76 % and 7 % of the
+        # second's were off by more than 0.1 mm (0.2 % allowed)
+        for t in times[np.argsort(count)[-2:]]:
             mine = flown.points[middle == t]
             scanned = api.scan(path, "lidar", at, settings=sensor, time=t).result.points
             gap = cKDTree(scanned).query(mine)[0]
@@ -332,7 +352,7 @@ def test_a_flights_lidar_sees_each_leaf_turned_as_it_is_at_its_slice(stands):
     assert checked > 3000
     # the leaves' turn is what a caster moved to t adds: without it (the leaves at rest on
     # their swaying trees) the beech's leaf returns are off
-    scene = extract_scene(path, cache=False)
+    scene = rest_scene
     motion = SceneMotion(path, scene)
     base = SceneCaster(scene)
     rng = np.random.default_rng(2)

@@ -4,6 +4,7 @@ the forest at a time."""
 
 from __future__ import annotations
 
+import functools
 import math
 import subprocess
 import sys
@@ -73,6 +74,9 @@ def _instancer(stage: Usd.Stage) -> UsdGeom.PointInstancer:
     return UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
 
 
+# _tops, _measured_pine and _scan read a built stage and give the same answer each time:
+# each is worked out once per stage (and its arrays made read-only) for every test asking
+@functools.cache
 def _tops(path: Path, height: float) -> np.ndarray:
     """``(time codes, trees, 3)``: each stem top's displacement from its base, from the
     composed instance transforms at every time code."""
@@ -83,9 +87,12 @@ def _tops(path: Path, height: float) -> np.ndarray:
         m = np.asarray(pi.ComputeInstanceTransformsAtTime(t, t), dtype=float)
         top = np.array([0.0, 0.0, height, 1.0]) @ m
         out.append(top[:, :3] - m[:, 3, :3])
-    return np.array(out)
+    out = np.array(out)
+    out.setflags(write=False)
+    return out
 
 
+@functools.cache
 def _measured_pine(path: Path) -> dict:
     """The pines measured here on their prototype, times their instance scale: height
     (bounds), DBH (a girth tape at 1.3 m round the trunk mesh, trimesh's section), crown
@@ -254,9 +261,18 @@ def test_gusts_cross_the_stand_with_the_wind(forests):
     assert not np.allclose(downwind, upwind, atol=2e-3)
 
 
-def _leaf_points(path: Path, time: float | None) -> np.ndarray:
+@functools.cache
+def _scan(path: Path, time: float | None):
+    """The noiseless lidar's scan from (20, 20, 12) at ``time``: its sorted points and its
+    warnings."""
     done = api.scan(path, "lidar", (20.0, 20.0, 12.0), settings={"noise": False}, time=time)
-    return np.sort(np.round(np.asarray(done.result.points, dtype=float), 6), axis=0)
+    points = np.sort(np.round(np.asarray(done.result.points, dtype=float), 6), axis=0)
+    points.setflags(write=False)
+    return points, done.warnings
+
+
+def _leaf_points(path: Path, time: float | None) -> np.ndarray:
+    return _scan(path, time)[0]
 
 
 def test_a_lidar_sees_the_trees_move_in_wind_and_stand_still_in_calm_air(forests):
@@ -277,13 +293,12 @@ def test_a_scan_at_a_time_outside_the_loop_sees_its_time_in_the_loop(forests):
     for t in (403.0, -397.0, 1203.0):
         np.testing.assert_array_equal(_leaf_points(forests["gusty"], t), at)
     assert not np.array_equal(_leaf_points(forests["gusty"], 400.0 - 1e-9), at)
-    # and says so, as a time given to a forest that does not move
-    pose = (20.0, 20.0, 12.0)
-    assert api.scan(forests["gusty"], "lidar", pose, time=403.0).warnings == (
+    # and says so, as a time given to a forest that does not move (the scans' own warnings)
+    assert _scan(forests["gusty"], 403.0)[1] == (
         "time: 403 s is outside the stage's loop of 400 s from 0 s: scanned at 3 s",
     )
-    assert api.scan(forests["gusty"], "lidar", pose, time=3.0).warnings == ()
-    assert api.scan(forests["still"], "lidar", pose, time=3.0).warnings == (
+    assert _scan(forests["gusty"], 3.0)[1] == ()
+    assert _scan(forests["still"], 3.0)[1] == (
         "time: the stage has no animation (no time codes): scanned as it stands",
     )
 
@@ -444,6 +459,12 @@ def test_a_flight_sees_each_sweep_where_the_trees_sway_then(forests):
     off_middle = []
     for k in (0, 2):
         times, count = np.unique(middle[sweep == k], return_counts=True)
+        # the scan at the sweep's middle, one for both of its slices
+        centre = start + (k + 0.5) / rate
+        middle_scan = api.scan(
+            forests["gusty"], "lidar", (20.0, 20.0, 12.0), settings=sensor, time=centre
+        )
+        middle_tree = cKDTree(middle_scan.result.points)
         for at in times[np.argsort(count)[-2:]]:
             mine = flown.points[middle == at]
             assert len(mine) > 100
@@ -452,11 +473,7 @@ def test_a_flight_sees_each_sweep_where_the_trees_sway_then(forests):
             )
             gap, _ = cKDTree(scanned.result.points).query(mine)
             assert gap.max() < 1e-5  # the slice's returns are the scan's at the slice's time
-            centre = start + (k + 0.5) / rate
-            middle_scan = api.scan(
-                forests["gusty"], "lidar", (20.0, 20.0, 12.0), settings=sensor, time=centre
-            )
-            off_middle.append(cKDTree(middle_scan.result.points).query(mine)[0].max())
+            off_middle.append(middle_tree.query(mine)[0].max())
     # the sweep's middle is not the slice's time: the trees moved in between
     assert max(off_middle) > 1e-4
     calm = api.fly(forests["calm"], path=_hover(0.25), lidar=sensor, lidar_rate=rate).lidar
