@@ -158,7 +158,9 @@ def _area_sums(a: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """Per zenith angle, the azimuth-mean of ``sum |a . d|`` over area vectors ``a``; then
     the areas by leaf inclination (the normal's angle from the vertical) in ``ANGLE_BINS``,
     and the area-weighted sum of the inclinations (degrees)."""
-    g = np.abs(a @ dirs.reshape(-1, 3).T).sum(axis=0).reshape(dirs.shape[:2]).mean(axis=1)
+    # each distinct direction projected once: at nadir the 24 azimuths are one direction
+    flat, back = np.unique(dirs.reshape(-1, 3) + 0.0, axis=0, return_inverse=True)
+    g = np.abs(a @ flat.T).sum(axis=0)[back.ravel()].reshape(dirs.shape[:2]).mean(axis=1)
     area = np.linalg.norm(a, axis=1)
     angle = np.degrees(np.arccos(np.clip(np.abs(a[:, 2]) / np.maximum(area, 1e-300), 0, 1)))
     bins = np.bincount(
