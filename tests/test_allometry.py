@@ -214,7 +214,9 @@ def _crown_offsets(forest: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def test_crowns_grow_away_from_their_neighbours(tmp_path):
     # on the composed stage: each tree's crown centre (the mean of its composed leaf
-    # positions) sits off its trunk on the side away from its nearest neighbour
+    # positions) sits off its trunk on the side away from its nearest neighbour (8 size
+    # classes a species, not 24: each instance is turned from its own neighbour whatever its
+    # class; with the crowns turned at random the mean cosine is about 0)
     (tmp_path / "r.toml").write_text("""
 seed = 9
 [region]
@@ -224,6 +226,7 @@ kind = "constant"
 value = 0.06
 [forest]
 hard_core = 1.0
+variants = 8
 [species.pine]
 preset = "scots-pine"
 [species.beech]
@@ -247,7 +250,9 @@ preset = "european-beech"
 
 def test_an_understory_is_a_second_entry_of_a_preset_with_its_own_stand(tmp_path):
     # small beeches under large pines: one preset twice, each with its own DBH distribution;
-    # on the composed stage two layers, the understory wholly below the canopy's crowns
+    # on the composed stage two layers, the understory wholly below the canopy's crowns (8 size
+    # classes a species, not 24: each tree's DBH and height are its class's times its own
+    # scale; with the entry's stand table ignored the understory is as large as the canopy)
     (tmp_path / "r.toml").write_text("""
 seed = 4
 [region]
@@ -260,6 +265,7 @@ pine = 0.6
 beech-understory = 0.4
 [forest]
 hard_core = 1.0
+variants = 8
 [species.pine]
 preset = "scots-pine"
 [species.pine.stand]
