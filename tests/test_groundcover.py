@@ -97,23 +97,43 @@ def _shadows(stage: Usd.Stage) -> dict[str, list]:
     return out
 
 
+def _union_area(shadows: list, tiles: int = 6) -> tuple[float, float]:
+    """The area of the union of ``shadows`` inside the region and outside it (their sum: the
+    union's area), joined tile by tile: the region cut into ``tiles`` x ``tiles`` squares,
+    each square's pieces of the shadows joined alone, and the pieces outside the region
+    joined alone. The same area (the tiles and the outside partition the plane), in a third
+    of the time of one union of all (a union's cost grows faster than its pieces')."""
+    geoms = np.array(shadows, dtype=object)
+    step = SIDE / tiles
+    inside = 0.0
+    for i in range(tiles):
+        for j in range(tiles):
+            box = shapely.box(i * step, j * step, (i + 1) * step, (j + 1) * step)
+            parts = shapely.intersection(geoms, box)
+            parts = parts[~shapely.is_empty(parts)]
+            inside += shapely.union_all(parts).area if len(parts) else 0.0
+    rest = shapely.difference(geoms, shapely.box(0.0, 0.0, SIDE, SIDE))
+    rest = rest[~shapely.is_empty(rest)]
+    return inside, (shapely.union_all(rest).area if len(rest) else 0.0)
+
+
 def test_composed_patches_cover_what_the_recipe_asks(forest):
     """The union of every composed patch's shadow, clipped to the region, covers ``cover`` of
     it; ``stats`` reports the same, per form too."""
     stage = Usd.Stage.Open(str(forest))
     shadows = _shadows(stage)
     region = shapely.box(0.0, 0.0, SIDE, SIDE)
-    union = shapely.union_all([s for f in FORMS for s in shadows[f]])
-    measured = shapely.intersection(union, region).area / region.area
+    inside, outside = _union_area([s for f in FORMS for s in shadows[f]])
+    measured = inside / region.area
     assert measured == pytest.approx(COVER, rel=0.02)
     # no patch strays outside its cell: nothing of it falls outside the region
-    assert union.area == pytest.approx(shapely.intersection(union, region).area, rel=1e-6)
+    assert inside + outside == pytest.approx(inside, rel=1e-6)
     figures = stand_figures(forest)
     assert figures["ground_vegetation_cover"] == pytest.approx(measured, rel=0.01)
     for form in FORMS:
-        by_form = shapely.union_all(shadows[form]).area / region.area if shadows[form] else 0
+        share = sum(_union_area(shadows[form])) / region.area if shadows[form] else 0
         assert figures["ground_vegetation_cover_by_form"][form] == pytest.approx(
-            by_form, rel=0.01, abs=1e-9
+            share, rel=0.01, abs=1e-9
         )
     rows = _rows(forest, "groundcover.csv")
     cells = (SIDE / GroundCoverSpec().cell) ** 2

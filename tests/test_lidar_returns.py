@@ -47,6 +47,13 @@ def _share(d: float, rng: float, divergence: float = 3.0) -> float:
     return 0.5 * (1 + math.erf(d / sigma / math.sqrt(2)))
 
 
+def _labels(shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Zero (class, tree, path) labels in the dtypes a scan hands the merge (uint8, int64,
+    int64): the compiled kernel is built once per dtype combination (a numba compile each,
+    tens of seconds when its on-disk cache is cold), so the tests call the one a scan uses."""
+    return np.zeros(shape, np.uint8), np.zeros(shape, np.int64), np.zeros(shape, np.int64)
+
+
 def _pulse(r, k=0):
     mine = r.ray == k
     return r.range[mine], r.intensity[mine].astype(float), r.return_number[mine], r
@@ -97,7 +104,7 @@ def test_dual_mode_reports_the_second_strongest_when_the_strongest_is_last():
     strongest and the last."""
     t = np.array([[5.0, 10.0, 20.0], [5.0, 10.0, 20.0], [7.0, np.inf, np.inf]])
     energy = np.array([[0.1, 0.01, 0.5], [0.01, 0.3, 0.1], [0.2, 0, 0]])
-    labels = tuple(np.zeros((3, 3), dtype=np.int64) for _ in range(3))
+    labels = _labels((3, 3))
     e = merge_echoes(t, energy, labels, separation=1.0, mode="dual")
     assert list(e.pulse) == [0, 0, 1, 1, 2]
     np.testing.assert_allclose(e.range, [5.0, 20.0, 10.0, 20.0, 7.0])
@@ -269,10 +276,10 @@ def test_the_merge_equals_the_numpy_merge(mode, subrays):
     energy += rng.uniform(0, 1, t.shape) * (energy == 0.5)
     energy[~np.isfinite(t)] = 0
     spread = rng.uniform(0, 0.6, t.shape) * (rng.uniform(size=t.shape) < 0.3)
-    labels = (
+    labels = (  # the dtypes a scan passes (:func:`_labels`)
         rng.integers(0, 5, t.shape).astype(np.uint8),
-        rng.integers(-1, 300, t.shape).astype(np.int32),
-        rng.integers(0, 1000, t.shape).astype(np.int32),
+        rng.integers(-1, 300, t.shape).astype(np.int64),
+        rng.integers(0, 1000, t.shape).astype(np.int64),
     )
     got = merge_echoes(t, energy, labels, spread=spread, separation=1.0, mode=mode, max_returns=3)
     want = reference_merge(t, energy, labels, spread, 1.0, mode, 3)
@@ -348,7 +355,7 @@ def test_a_waveform_never_gives_more_echoes_than_hits():
     t[rng.random((n, s)) < 0.2] = np.inf
     energy = np.where(np.isfinite(t), rng.uniform(0.0, 1e-3, (n, s)), 0.0)
     spread = rng.uniform(0.0, 3.0, (n, s)) * (rng.random((n, s)) < 0.5)
-    labels = tuple(np.zeros((n, s), np.int64) for _ in range(3))
+    labels = _labels((n, s))
     e = merge_echoes(t, energy, labels, spread=spread, separation=0.01, mode="all",
                      max_returns=15, pulse_sigma=0.2546)  # fmt: skip
     hits = np.isfinite(t).sum(axis=1)

@@ -173,13 +173,18 @@ def test_forest_sprites_cover_what_expanding_every_tree_covers(default_forest):
     assert (a & b).sum() / (a | b).sum() > 0.85
 
 
-def test_a_sheared_or_squashed_forest_is_not_drawn_as_sprites(default_forest, tmp_path):
+def test_a_sheared_or_squashed_forest_is_not_drawn_as_sprites(two_trees, default_forest, tmp_path):
     """Sprites stand only for trees turned about +Z and scaled uniformly: under a shear (or
-    a scale that differs across x and y) every tree's samples are transformed instead."""
+    a scale that differs across x and y) every tree's samples are transformed instead. The
+    two-tree stand shows it (drawn as sprites itself: the host test below); the default
+    forest is opened once, for what it stamps."""
     from pxr import Gf, UsdGeom
 
     from usdforest.view.preview import stage_cloud
 
+    stamps = []
+    stage_cloud(Usd.Stage.Open(str(two_trees)), spacing=0.2, stamps=stamps)
+    assert len(stamps) == 1  # unwrapped, its trees are sprites
     for name, row in (("shear", (0.8, 1.0, 0.0, 0.0)), ("squash", (0.0, 3.0, 0.0, 0.0))):
         wrap = tmp_path / f"{name}.usda"
         st = Usd.Stage.CreateNew(str(wrap))
@@ -189,10 +194,10 @@ def test_a_sheared_or_squashed_forest_is_not_drawn_as_sprites(default_forest, tm
         m.SetRow(1, Gf.Vec4d(*row))
         x.AddTransformOp().Set(m)
         st.SetDefaultPrim(x.GetPrim())
-        x.GetPrim().GetReferences().AddReference(str(default_forest))
+        x.GetPrim().GetReferences().AddReference(str(two_trees))
         st.GetRootLayer().Save()
         stamps = []
-        cloud = stage_cloud(Usd.Stage.Open(str(wrap)), spacing=1.0, stamps=stamps)
+        cloud = stage_cloud(Usd.Stage.Open(str(wrap)), spacing=0.2, stamps=stamps)
         assert stamps == [] and len(cloud) > 1000, name
     stamps = []
     stage_cloud(Usd.Stage.Open(str(default_forest)), spacing=1.0, stamps=stamps)
