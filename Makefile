@@ -58,7 +58,7 @@ test: $(STAMP) $(PHYS_STAMP) $(CHECK_STAMP) $(BLENDER_STAMP)
 	@echo "== the whole test suite (about 15 minutes on 2 cores; make test-quick: about 5)"
 	$(SIDE_ENVS) $(PYTEST)
 
-# the inner loop: no side environments, no shipped forest, no test measured at 8 s or more
+# the inner loop: no side environments, no shipped forest, no test measured at 5 s or more
 # (tests/durations.json); the tests that need a side environment skip and say so
 test-quick: $(STAMP)
 	$(PYTEST) -m "not heavy"

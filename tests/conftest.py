@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import json
 from pathlib import Path
 
@@ -91,14 +90,6 @@ def shipped(forest_folder):
         return built[name]
 
     return build
-
-
-@pytest.fixture(scope="session")
-def shared_forest(forest_folder):
-    """``shared_forest(name, text, files=None, thumbnail=False, **overrides)``: the forest of
-    the recipe ``text`` built once a run (:func:`forestcache.text_forest`), as
-    ``(<name>.usda, ForestBuild)``, for tests in several files that read the same stand."""
-    return functools.partial(forestcache.text_forest, forest_folder)
 
 
 @pytest.fixture
