@@ -52,16 +52,17 @@ def digest_files(roots: tuple[Path, ...]) -> str:
 
 @functools.cache
 def code_digest() -> str:
-    """The digest of the code that writes a forest (:data:`CODE_ROOTS`, :data:`LIBRARIES`),
-    read once a process."""
+    """The digest of the code that writes a forest (:data:`CODE_ROOTS`, :data:`LIBRARIES` and
+    this module), read once a process."""
     versions = {}
     for name in LIBRARIES:
         try:
             versions[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
             versions[name] = None
+    own = hashlib.sha256(Path(__file__).read_bytes()).hexdigest()  # how this file builds
     return hashlib.sha256(
-        (digest_files(CODE_ROOTS) + json.dumps(versions, sort_keys=True)).encode()
+        (digest_files(CODE_ROOTS) + own + json.dumps(versions, sort_keys=True)).encode()
     ).hexdigest()
 
 
