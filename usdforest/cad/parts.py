@@ -385,8 +385,13 @@ def components(mesh: CADMesh) -> np.ndarray:
 
 
 def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    tri = vertices[faces]
-    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    return triangle_areas(vertices[faces])
+
+
+def triangle_areas(corners: np.ndarray) -> np.ndarray:
+    """Areas of the triangles ``corners`` (k, 3, 3)."""
+    c = corners
+    return 0.5 * np.linalg.norm(np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]), axis=1)
 
 
 def one_sided_area(vertices: np.ndarray, faces: np.ndarray) -> float:
