@@ -109,42 +109,20 @@ def shipped_forest(folder: Path, name: str, *, thumbnail: bool = True):
     return dest / "forest.usda", build
 
 
-def text_forest(
-    folder: Path,
-    name: str,
-    text: str,
-    *,
-    files: dict[str, str | bytes] | None = None,
-    thumbnail: bool = False,
-    **overrides,
-):
-    """``(<name>.usda, ForestBuild)`` of the recipe ``text`` (TOML), with ``files`` (name:
-    content) beside it for the recipe to read and ``overrides`` (``seed``, ``hard_core``,
-    ``season``) as :func:`usdforest.recipe.parse_recipe` takes them."""
+def text_forest(folder: Path, name: str, text: str, **overrides):
+    """``(<name>.usda, ForestBuild)`` of the recipe ``text`` (TOML) with ``overrides``
+    (``seed``, ``hard_core``, ``season``) as :func:`usdforest.recipe.parse_recipe` takes them,
+    built without a thumbnail."""
     tomllib.loads(text)  # a recipe that is no TOML fails here, before any lock
-    files = files or {}
 
     def make(dest: Path):
         from usdforest.recipe import parse_recipe
         from usdforest.usd.forest import write_forest
 
-        for fname, content in files.items():
-            target = dest / fname
-            if isinstance(content, bytes):
-                target.write_bytes(content)
-            else:
-                target.write_text(content)
         recipe = parse_recipe(tomllib.loads(text), dest, f"{name}.toml", **overrides)
-        return write_forest(recipe, dest / f"{name}.usda", thumbnail=thumbnail)
+        return write_forest(recipe, dest / f"{name}.usda", thumbnail=False)
 
-    parts = {
-        "name": name,
-        "text": text,
-        "files": {k: hashlib.sha256(v.encode() if isinstance(v, str) else v).hexdigest()
-                  for k, v in sorted(files.items())},
-        "thumbnail": thumbnail,
-        "overrides": overrides,
-    }  # fmt: skip
+    parts = {"name": name, "text": text, "overrides": overrides}
     dest, build = cached(folder, parts, make)
     return dest / f"{name}.usda", build
 
