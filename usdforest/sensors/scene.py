@@ -25,6 +25,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from usdforest.sensors.implicit import IMPLICIT, shape_triangles
+from usdforest.sensors.native import NativeMeshes
+from usdforest.sensors.reflectors import blade_reflectors
+from usdforest.sensors.reflectors import placed_leaves as leaves_placed
 from usdforest.sensors.scenecache import PrototypeStore, adopted, kept, stored
 from usdforest.sensors.scenetypes import (
     Instances,
@@ -198,66 +201,6 @@ def _realise(
         np.tile(b.path, n),
     )
     return leaves, part, no_leaves()
-
-
-def blade_reflectors(tri: np.ndarray) -> Leaves:
-    """Each connected blade, leaf or frond of ``tri (m, 3, 3)`` (a ground-vegetation patch's)
-    as a leaf reflector: its area-weighted centre, its area-weighted mean normal (turned up)
-    and its one-sided area."""
-    from usdforest.meshes import triangle_components
-
-    if not len(tri):
-        return Leaves.concat([])
-    t = np.asarray(tri, dtype=float)
-    label = triangle_components(t)
-    cross = 0.5 * np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    area = np.linalg.norm(cross, axis=1)
-    n = int(label.max()) + 1
-    total = np.bincount(label, area, n)
-    centre = (
-        np.stack([np.bincount(label, area * t[:, :, k].mean(axis=1), n) for k in range(3)], axis=1)
-        / np.maximum(total, 1e-30)[:, None]
-    )
-    # a triangle's normal turned up before summing: a curved blade's two faces do not cancel
-    up = np.where(cross[:, 2:3] < 0, -cross, cross)
-    vec = np.stack([np.bincount(label, up[:, k], n) for k in range(3)], axis=1)
-    length = np.linalg.norm(vec, axis=1, keepdims=True)
-    normal = np.where(length > 1e-30, vec / np.maximum(length, 1e-30), [0.0, 0.0, 1.0])
-    keep = total > 0
-    m = int(keep.sum())
-    return Leaves(
-        centre[keep], normal[keep], total[keep], np.full(m, -1, np.int64), np.ones(m, bool)
-    )
-
-
-def _placed_leaves(
-    proto: Prototype, m: np.ndarray, tree: int, centre: np.ndarray | None, radius: float | None
-) -> Leaves:
-    """A prototype's leaves placed by ``m`` (row-vector 4x4), those within reach only: a
-    tree's scaled by s² (its uniform scale), a ground-vegetation blade's area vector moved
-    by the cofactor of ``m`` (a patch is stretched more across than up)."""
-    lv = proto.leaves
-    rot = m[:3, :3]
-    c = lv.centre @ rot + m[3, :3]
-    keep = np.ones(len(c), dtype=bool)
-    if centre is not None and radius is not None:
-        keep = np.linalg.norm(c - centre, axis=1) <= radius + 2 * np.sqrt(lv.area) + 1e-6
-    normal = lv.normal[keep]
-    n = normal @ np.linalg.inv(rot).T
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    n /= np.maximum(length, 1e-12)
-    det = abs(np.linalg.det(rot))
-    # a tree is turned and scaled uniformly: s² (its half-float turn is not quite a rotation,
-    # so s² is taken from the determinant, as the copied scene does)
-    area = lv.area[keep] * det ** (2 / 3)
-    blade = lv.blade[keep] if lv.blade is not None else None
-    if blade is not None and blade.any():
-        # a patch is stretched: |det M| |M^-T n| / |n|
-        stretch = length[blade, 0] / np.maximum(np.linalg.norm(normal[blade], axis=1), 1e-12)
-        area[blade] = lv.area[keep][blade] * det * stretch
-    shape = lv.shape[keep] if lv.shape is not None else None
-    frame = lv.frame[keep] @ m if lv.frame is not None else None
-    return Leaves(c[keep], n, area, np.full(int(keep.sum()), tree, np.int64), blade, shape, frame)
 
 
 def extract_scene(
@@ -446,7 +389,8 @@ def extract_scene(
         inv = np.linalg.inv(_m(cache.GetLocalToWorldTransform(prim)))
         if top:  # the world: in metres, Z up
             inv = inv @ frame
-        parts = []
+        parts: list = []
+        rows: dict = {}  # native instances met: (prototype, mesh) -> their slots in ``parts``
         it = iter(Usd.PrimRange(prim, Usd.TraverseInstanceProxies()))
         for p in it:
             if (
@@ -482,9 +426,37 @@ def extract_scene(
                 parts.append(instances(p, _m(cache.GetLocalToWorldTransform(p)) @ inv, top))
             elif p.IsA(UsdGeom.Gprim):
                 unseen.append(str(p.GetPath()))
+            if p.IsInstance() and not p.IsA(UsdGeom.PointInstancer):
+                inner = natives.of(p.GetPrototype())
+                if inner is None or moving_proxies():
+                    continue  # walked proxy by proxy
+                it.PruneChildren()
+                to_root = _m(cache.GetLocalToWorldTransform(p)) @ inv
+                outer = _class_of(p, prim) if any(c is None for *_, c in inner) else 0
+                for j, (below, _, cls) in enumerate(inner):
+                    row = (len(parts), to_root, pid(f"{p.GetPath()}/{below}"))
+                    rows.setdefault((p.GetPrototype().GetPath(), j), []).append(
+                        (*row, outer if cls is None else cls)
+                    )
+                    parts.append(None)
+        for slot, path_id, cls, t in natives.place(rows):
+            n = len(t)
+            cls_tree_path = ((cls, np.uint8), (-1, np.int32), (path_id, np.int32))
+            parts[slot] = _Part(t, *(np.full(n, v, d) for v, d in cls_tree_path))
         out = _Part.concat(parts)
         memo[key] = out
         return out
+
+    natives = NativeMeshes(cache, CLASS_ID)
+    proxied = [0, False]  # how many of ``pruned`` were looked at, whether one is a proxy
+
+    def moving_proxies() -> bool:  # a part that moves on its own inside a native instance
+        if proxied[0] != len(pruned):
+            proxied[:] = [
+                len(pruned),
+                any(stage.GetPrimAtPath(q).IsInstanceProxy() for q in pruned),
+            ]
+        return proxied[1]
 
     def instances(p, to_root: np.ndarray, top: bool = False) -> _Part:
         """A PointInstancer's instances, in the space of the subtree being gathered."""
@@ -594,7 +566,7 @@ def extract_scene(
     )
     placed_leaves = []
     for i, (k, m, t) in enumerate(placed if reflectors else []):
-        lv = _placed_leaves(protos[k], m, t, centre, radius)
+        lv = leaves_placed(protos[k], m, t, centre, radius)
         if part_rows:  # a tree is placed as more than one instance: say which placed each
             lv = replace(lv, carrier=np.full(len(lv), i, np.int64))
         placed_leaves.append(lv)
