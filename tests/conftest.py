@@ -78,15 +78,17 @@ def forest_folder(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def shipped(forest_folder):
-    """``shipped(name)``: the shipped recipe ``name`` built once a run (with its thumbnail)
-    by whichever pytest process asks first, as ``(forest.usda, ForestBuild)``. Several test
-    files read the default forest and the 1 ha stand; each build takes a minute or more.
-    Tests only read it."""
+    """``shipped(name)``: the shipped recipe ``name`` built once a run by whichever pytest
+    process asks first, as ``(forest.usda, ForestBuild)``: the default with its thumbnail,
+    as ``make forest`` builds it, the others without (18 s of the 1 ha stand's 81 s build,
+    and no test looks at their thumbnails). Several test files read the default forest and
+    the 1 ha stand; each build takes a minute or more. Tests only read it."""
     built = {}
 
     def build(name: str):
         if name not in built:
-            built[name] = forestcache.shipped_forest(forest_folder, name)
+            thumbnail = name == "default"
+            built[name] = forestcache.shipped_forest(forest_folder, name, thumbnail=thumbnail)
         return built[name]
 
     return build

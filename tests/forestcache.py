@@ -19,6 +19,7 @@ import json
 import os
 import pickle
 import shutil
+import time
 import tomllib
 from collections.abc import Callable
 from importlib import metadata
@@ -77,11 +78,13 @@ def cached(folder: Path, parts: dict, make: Callable[[Path], object], code: str 
     that holds nothing else) and returned, for the key of ``parts`` and ``code`` (default
     :func:`code_digest`); built here if no process of the run has built it, else read back.
     The result is pickled beside ``out`` (a file this run's own processes wrote, in the run's
-    own folder)."""
+    own folder). ``times.log`` says how long each process waited for the lock and built."""
     key = key_of(parts, code_digest() if code is None else code)
     folder.mkdir(parents=True, exist_ok=True)
     dest = folder / key
+    asked = time.monotonic()
     with FileLock(str(folder / f"{key}.lock")):
+        waited = time.monotonic() - asked
         if not (dest / DONE).is_file():
             shutil.rmtree(dest, ignore_errors=True)  # a build that was stopped halfway
             (dest / "out").mkdir(parents=True)
@@ -91,8 +94,15 @@ def cached(folder: Path, parts: dict, make: Callable[[Path], object], code: str 
             (dest / DONE).write_text(json.dumps(record, sort_keys=True, default=str))
             with open(folder / "builds.log", "a", encoding="utf-8") as log:
                 log.write(f"{key} {os.getpid()}\n")
+            _timed(folder, key, waited, time.monotonic() - asked - waited)
             return dest / "out", result
+    _timed(folder, key, waited, 0.0)
     return dest / "out", pickle.loads((dest / "result.pickle").read_bytes())
+
+
+def _timed(folder: Path, key: str, waited: float, built: float) -> None:
+    with open(folder / "times.log", "a", encoding="utf-8") as log:
+        log.write(f"{key} {os.getpid()} waited {waited:.1f} s built {built:.1f} s\n")
 
 
 def shipped_forest(folder: Path, name: str, *, thumbnail: bool = True):
