@@ -446,3 +446,42 @@ def test_a_sonar_scan_without_occlusion_skips_leaf_triangles(tmp_path):
     a = sonar_scan(full, pose, SonarConfig())
     b = sonar_scan(light, pose, SonarConfig())
     np.testing.assert_array_equal(a.echo, b.echo)
+
+
+def test_wood_that_fits_no_cylinder_gives_no_row():
+    """A prototype without wood (a ground-vegetation patch) fits no cylinder: every field of
+    the result is empty, so that copies placed after it keep their ``joined`` flags in line
+    (one stray flag each had shifted every later piece's chain)."""
+    from usdforest.sensors.wood import fit_cylinders
+
+    tri = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]], dtype=float)
+    none = fit_cylinders(tri, np.array([CLASS_ID["leaf"]]), np.zeros(1, int), np.full(1, -1), 0.5)
+    assert {len(getattr(none, f)) for f in ("centre", "joined", "carrier")} == {0}
+    with pytest.raises(ValueError, match="different lengths"):
+        Cylinders(*(np.zeros((2, 3)),) * 2, *(np.zeros(2),) * 4, np.zeros(1, bool))
+
+
+def test_a_sonar_scene_kept_to_a_box_echoes_as_the_whole_scene(tmp_path):
+    """Reflectors a pulse cannot reach are left out before indexing (a flight keeps its
+    poses' box grown by the range): a pulse inside the box hears the same echo, target by
+    target, as from the whole scene. Two trunks 4 m and 30 m away, the ground."""
+    path = _stage(tmp_path / "t.usda", trunk=(0.15, 2.0, (4.0, 0.0, 1.0)), ground_z=0.0)
+    stage = Usd.Stage.Open(str(path))
+    far = UsdGeom.Mesh.Define(stage, "/World/Far")
+    near = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Trunk"))
+    for name in ("points", "faceVertexCounts", "faceVertexIndices"):
+        far.GetPrim().CreateAttribute(name, near.GetPrim().GetAttribute(name).GetTypeName()).Set(
+            near.GetPrim().GetAttribute(name).Get()
+        )
+    UsdGeom.XformCommonAPI(far).SetTranslate(Gf.Vec3d(30.0, 0.0, 1.0))
+    _labelled(far.GetPrim(), "trunk")
+    stage.Save()
+    scene = extract_scene(path)
+    cfg = SonarConfig(max_range=10.0, occlusion=False)
+    pose = Pose(0.0, 0.0, 1.0, 0.0, 0.0)
+    box = np.array([[-10.0, -10.0, -9.0], [10.0, 10.0, 11.0]])
+    whole, kept = SonarScene(scene, cfg), SonarScene(scene, cfg, within=box)
+    assert len(kept.wood) < len(whole.wood)  # the far trunk is left out
+    a, b = whole.echo(pose, cfg), kept.echo(pose, cfg)
+    np.testing.assert_array_equal(a.echo, b.echo)
+    assert np.array_equal(a.labels, b.labels)

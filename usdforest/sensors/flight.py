@@ -528,7 +528,10 @@ def fly_sonar(
     pos, rot, vel = traj.at(times)
     if progress is not None:  # the stage shows while its scene is prepared (seconds)
         progress(0, len(times))
-    prepared = SonarScene(scene, cfg, seed=seed, caster=caster)
+    reach = np.array([motion.reach(t) for t in times]) if motion is not None else None
+    grow = cfg.max_range + (float(reach.max()) if reach is not None and len(reach) else 0.0)
+    within = np.stack([pos.min(axis=0) - grow, pos.max(axis=0) + grow]) if len(pos) else None
+    prepared = SonarScene(scene, cfg, seed=seed, caster=caster, within=within)
     echoes, counts, labels = [], [], []
     parts: dict[str, list] = {}
     for k, (p, rm, v) in enumerate(zip(pos, rot, vel, strict=True)):
@@ -542,7 +545,7 @@ def fly_sonar(
                 "wood_moved": functools.partial(wood_at, motion, times[k]),
                 # what hides a reflector stands where the wind has moved it too
                 "caster": prepared.caster.moved(motion.at(times[k])) if cfg.occlusion else None,
-                "reach": motion.reach(times[k]),
+                "reach": reach[k],
             }
         e = prepared.echo(Pose(*p, yaw, pitch), cfg, velocity=v, **moving)
         echoes.append(e.echo)

@@ -809,6 +809,11 @@ def _leaf_subset(lv: Leaves, sel: np.ndarray) -> Leaves:
     return lv.take(sel)
 
 
+def _in_box(box: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """Whether each of the points ``(n, 3)`` lies in ``box`` (lower and upper corner)."""
+    return lambda c: np.all((c >= box[0]) & (c <= box[1]), axis=1)
+
+
 def _labels(tree: np.ndarray, cls: np.ndarray, energy: np.ndarray, r: np.ndarray) -> np.ndarray:
     """One row per (tree id, class): summed energy, first and last range."""
     key = np.asarray(tree, np.int64) * 256 + np.asarray(cls, np.int64)
@@ -873,9 +878,29 @@ class SonarScene:
     ground ready to be sampled as facets (when ``cfg.wood`` and ``cfg.ground`` are on), for
     any number of pulses."""
 
-    def __init__(self, scene: Scene, cfg: SonarConfig, *, seed: int = 0, caster=None):
+    def __init__(
+        self,
+        scene: Scene,
+        cfg: SonarConfig,
+        *,
+        seed: int = 0,
+        caster=None,
+        within: np.ndarray | None = None,
+    ):
         self.scene = scene
-        self.wood = scene_cylinders(scene, cfg.wood_segment) if cfg.wood else Cylinders.concat([])
+        # reflectors a pulse can reach: centres in ``within`` (a flight's poses' box grown by
+        # the range; a pulse's k-d query finds no other), the rest left out before indexing
+        inside = (lambda c: np.ones(len(c), bool)) if within is None else _in_box(within)
+        trees = None
+        if within is not None and len(scene.instances):
+            centre, radius = scene.instance_spheres()
+            gap = np.maximum(within[0] - centre, 0) + np.maximum(centre - within[1], 0)
+            trees = np.linalg.norm(gap, axis=1) <= radius
+        self.wood = (
+            scene_cylinders(scene, cfg.wood_segment, trees) if cfg.wood else Cylinders.concat([])
+        )
+        self.wood = self.wood.take(np.flatnonzero(inside(self.wood.centre)))
+        self.leaves = _leaf_subset(scene.leaves, np.flatnonzero(inside(scene.leaves.centre)))
         self.ground = GroundField(scene, cfg.ground_patch, seed) if cfg.ground else None
         self._caster = caster
 
@@ -899,7 +924,7 @@ class SonarScene:
 
         return tuple(
             cKDTree(np.ascontiguousarray(points, dtype=float))
-            for points in (self.scene.leaves.centre, self.wood.centre)
+            for points in (self.leaves.centre, self.wood.centre)
         )
 
     def _in_range(self, pose: Pose, cfg: SonarConfig, reach: float = 0.0) -> Targets:
@@ -917,9 +942,7 @@ class SonarScene:
             else Facets.empty()
         )
         leaves, wood = self._index
-        return Targets(
-            _leaf_subset(self.scene.leaves, near(leaves)), self.wood.take(near(wood)), ground
-        )
+        return Targets(_leaf_subset(self.leaves, near(leaves)), self.wood.take(near(wood)), ground)
 
     def _unseen_dropped(
         self, targets: Targets, pose: Pose, cfg: SonarConfig, caster=None
@@ -980,7 +1003,9 @@ class SonarScene:
 
 def sonar_scan(scene: Scene, pose: Pose, cfg: SonarConfig, caster=None, *, seed: int = 0) -> Echo:
     """The echo of the stage's leaves, wood and ground at ``pose`` (see :class:`SonarScene`)."""
-    return SonarScene(scene, cfg, seed=seed, caster=caster).echo(pose, cfg)
+    at = np.asarray(pose.position, dtype=float)
+    within = np.stack([at - cfg.max_range, at + cfg.max_range])
+    return SonarScene(scene, cfg, seed=seed, caster=caster, within=within).echo(pose, cfg)
 
 
 def write_echo(e: Echo, out: str | Path) -> list[Path]:

@@ -53,6 +53,9 @@ class Cylinders:
             object.__setattr__(self, "joined", np.zeros(len(self.radius), bool))
         if self.carrier is None:
             object.__setattr__(self, "carrier", np.full(len(self.radius), -1, np.int64))
+        sizes = {f: len(getattr(self, f)) for f in _FIELDS}
+        if len(set(sizes.values())) > 1:  # every field one row per cylinder
+            raise ValueError(f"Cylinders: fields of different lengths {sizes}")
 
     def __len__(self) -> int:
         return int(self.centre.shape[0])
@@ -236,7 +239,8 @@ def _fit_prims(
     # consecutive slices of one prim make a chain: a polyline through the midpoints between
     # their centres, so that each piece starts exactly where the one before it ends
     slice_no = used[keep] - offset[sp[keep]]
-    joined = np.r_[False, (np.diff(sp[keep]) == 0) & (np.diff(slice_no) == 1)]
+    # (sliced: no piece at all must give no flag)
+    joined = np.r_[False, (np.diff(sp[keep]) == 0) & (np.diff(slice_no) == 1)][: len(slice_no)]
     start, end = _polyline(centre[keep], local[keep] * length[keep, None], joined)
     start, end = _free_ends(start, end, joined, used[keep], S, *ends)
     axis_v = end - start
@@ -333,9 +337,10 @@ def _gradient(centre: np.ndarray, mid: np.ndarray, sp: np.ndarray, axis: np.ndar
     return out
 
 
-def scene_cylinders(scene: Scene, segment: float) -> Cylinders:
+def scene_cylinders(scene: Scene, segment: float, trees: np.ndarray | None = None) -> Cylinders:
     """Every wood cylinder of ``scene``: its own triangles' and each tree instance's (the
-    prototype fitted once, then placed)."""
+    prototype fitted once, then placed); only the instances ``trees`` (a boolean per
+    instance) says, where given."""
     path = scene.path
     dead = np.flatnonzero(scene.cls == CLASS_ID["dead_wood"])
     if dead.size:  # instances copied into one prim path each: one fit per piece
@@ -344,7 +349,7 @@ def scene_cylinders(scene: Scene, segment: float) -> Cylinders:
     parts = [fit_cylinders(scene.triangles, scene.cls, path, scene.tree, segment)]
     inst = scene.instances
     for k, proto in enumerate(scene.protos):
-        which = np.flatnonzero(inst.proto == k)
+        which = np.flatnonzero((inst.proto == k) & (True if trees is None else trees))
         if which.size == 0:
             continue
         local = fit_cylinders(
