@@ -37,7 +37,7 @@ from usdforest.sensors.motion import SceneMotion, leaves_at, rolling_cast, wood_
 from usdforest.sensors.pose import Pose, rotations
 from usdforest.sensors.raycast import SceneCaster
 from usdforest.sensors.scene import CLASSES, Scene
-from usdforest.sensors.sonar import SonarConfig, SonarScene
+from usdforest.sensors.sonar import SonarConfig, SonarScene, reach_box
 
 MAX_COORDINATE = 1e8  # stage units: no flight goes further
 MAX_ANGLE = 3600.0  # degrees of pitch or roll in a path (ten turns)
@@ -528,9 +528,8 @@ def fly_sonar(
     pos, rot, vel = traj.at(times)
     if progress is not None:  # the stage shows while its scene is prepared (seconds)
         progress(0, len(times))
-    reach = np.array([motion.reach(t) for t in times]) if motion is not None else None
-    grow = cfg.max_range + (float(reach.max()) if reach is not None and len(reach) else 0.0)
-    within = np.stack([pos.min(axis=0) - grow, pos.max(axis=0) + grow]) if len(pos) else None
+    reach = np.zeros(len(times)) if motion is None else np.array([motion.reach(t) for t in times])
+    within = reach_box(pos, cfg.max_range + float(reach.max(initial=0.0)))
     prepared = SonarScene(scene, cfg, seed=seed, caster=caster, within=within)
     echoes, counts, labels = [], [], []
     parts: dict[str, list] = {}

@@ -809,6 +809,14 @@ def _leaf_subset(lv: Leaves, sel: np.ndarray) -> Leaves:
     return lv.take(sel)
 
 
+def reach_box(positions: np.ndarray, grow: float) -> np.ndarray | None:
+    """The box of ``positions (n, 3)`` grown by ``grow`` m each way (None for no position):
+    what pulses from them reach (:class:`SonarScene`'s ``within``)."""
+    if not len(positions):
+        return None
+    return np.stack([positions.min(axis=0) - grow, positions.max(axis=0) + grow])
+
+
 def _in_box(box: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """Whether each of the points ``(n, 3)`` lies in ``box`` (lower and upper corner)."""
     return lambda c: np.all((c >= box[0]) & (c <= box[1]), axis=1)
@@ -1003,8 +1011,7 @@ class SonarScene:
 
 def sonar_scan(scene: Scene, pose: Pose, cfg: SonarConfig, caster=None, *, seed: int = 0) -> Echo:
     """The echo of the stage's leaves, wood and ground at ``pose`` (see :class:`SonarScene`)."""
-    at = np.asarray(pose.position, dtype=float)
-    within = np.stack([at - cfg.max_range, at + cfg.max_range])
+    within = reach_box(np.asarray(pose.position, dtype=float)[None], cfg.max_range)
     return SonarScene(scene, cfg, seed=seed, caster=caster, within=within).echo(pose, cfg)
 
 
