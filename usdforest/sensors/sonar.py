@@ -898,7 +898,6 @@ class SonarScene:
         self.scene = scene
         # reflectors a pulse can reach: centres in ``within`` (a flight's poses' box grown by
         # the range; a pulse's k-d query finds no other), the rest left out before indexing
-        inside = (lambda c: np.ones(len(c), bool)) if within is None else _in_box(within)
         trees = None
         if within is not None and len(scene.instances):
             centre, radius = scene.instance_spheres()
@@ -907,8 +906,11 @@ class SonarScene:
         self.wood = (
             scene_cylinders(scene, cfg.wood_segment, trees) if cfg.wood else Cylinders.concat([])
         )
-        self.wood = self.wood.take(np.flatnonzero(inside(self.wood.centre)))
-        self.leaves = _leaf_subset(scene.leaves, np.flatnonzero(inside(scene.leaves.centre)))
+        self.leaves = scene.leaves
+        if within is not None:  # (without a box nothing is copied)
+            inside = _in_box(within)
+            self.wood = self.wood.take(np.flatnonzero(inside(self.wood.centre)))
+            self.leaves = _leaf_subset(self.leaves, np.flatnonzero(inside(self.leaves.centre)))
         self.ground = GroundField(scene, cfg.ground_patch, seed) if cfg.ground else None
         self._caster = caster
 
