@@ -62,7 +62,9 @@ def test_bad_input_gives_one_clean_line(case: Case, tmp_path, monkeypatch, capfd
     if case.category == "Dask":  # a closed port or a bad host is retried until the timeout
         from usdforest import cluster
 
-        monkeypatch.setattr(cluster.connect, "__defaults__", (QUICK_CONNECT, QUICK_WORKERS))
+        monkeypatch.setattr(
+            cluster.connect, "__defaults__", (QUICK_CONNECT, QUICK_WORKERS, QUICK_GRACE)
+        )
     check_case(case, tmp_path, monkeypatch, capfd)
 
 
@@ -70,6 +72,7 @@ def test_bad_input_gives_one_clean_line(case: Case, tmp_path, monkeypatch, capfd
 # that wait them out: the same code path ends the build, only sooner.
 QUICK_CONNECT = 1.0
 QUICK_WORKERS = 2.0
+QUICK_GRACE = 0.5  # a peer that never answers: the build gives up this long after the timeout
 
 
 def _command() -> list[str]:
@@ -89,7 +92,7 @@ def _run_quick(
     process of its own, the build's connect attempt waited out sooner."""
     script = (
         "import usdforest.cluster as c\n"
-        f"c.connect.__defaults__ = ({connect!r}, {workers!r})\n"
+        f"c.connect.__defaults__ = ({connect!r}, {workers!r}, {QUICK_GRACE!r})\n"
         "from usdforest.entry import main\n"
         "main()\n"
     )

@@ -167,7 +167,9 @@ def test_an_unreachable_scheduler_is_named(tmp_path, runner, monkeypatch):
     from usdforest.cli import app
 
     # a closed port is retried until the connect timeout (10 s in a build): 1 s here
-    monkeypatch.setattr(cluster.connect, "__defaults__", (1.0, cluster.WORKER_TIMEOUT))
+    monkeypatch.setattr(
+        cluster.connect, "__defaults__", (1.0, cluster.WORKER_TIMEOUT, cluster.CONNECT_GRACE)
+    )
 
     p = tmp_path / "t.toml"
     p.write_text(default_recipe_path().read_text() + "\n[tiles]\nsize = 50\n", encoding="utf-8")

@@ -65,6 +65,7 @@ def settle(client, timeout: float = 30.0) -> None:
 
 CONNECT_TIMEOUT = 10.0  # seconds for a scheduler to answer
 WORKER_TIMEOUT = 30.0  # seconds for a scheduler to have a worker
+CONNECT_GRACE = 5.0  # seconds more for Dask's own attempt to give up before the build does
 
 
 def scheduler_address(address: str, name: str = "scheduler") -> str:
@@ -87,10 +88,13 @@ def scheduler_address(address: str, name: str = "scheduler") -> str:
 
 
 def connect(
-    address: str, timeout: float = CONNECT_TIMEOUT, workers_timeout: float = WORKER_TIMEOUT
+    address: str,
+    timeout: float = CONNECT_TIMEOUT,
+    workers_timeout: float = WORKER_TIMEOUT,
+    grace: float = CONNECT_GRACE,
 ):
     """A client of the scheduler at ``address`` that has at least one worker, or an error
-    naming ``--scheduler`` within about ``timeout + workers_timeout`` seconds: nothing
+    naming ``--scheduler`` within about ``timeout + grace + workers_timeout`` seconds: nothing
     listening, something that is not a Dask scheduler (silent, or another protocol), a
     scheduler without workers. The attempt runs in a daemon thread, so a peer that never
     answers cannot hold the build."""
@@ -113,7 +117,7 @@ def connect(
 
     t = threading.Thread(target=attempt, daemon=True, name="usdforest-connect")
     t.start()
-    t.join(timeout + 5.0)
+    t.join(timeout + grace)
     box["abandoned"] = True
     if t.is_alive() or "client" not in box:
         exc = box.get("error")
