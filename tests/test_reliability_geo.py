@@ -135,9 +135,9 @@ def _http_server() -> int:
 
 @pytest.mark.parametrize("peer", ["silent", "http"])
 def test_a_scheduler_that_is_not_dask_ends_the_build_in_one_line(tmp_path, peer):
-    """Within the connect timeout (10 s in a build, shortened here; and 5 s of grace; the
-    subprocess is given 120 s so a busy machine cannot fail it): exit 2, one line, nothing
-    written."""
+    """Within the connect timeout and its grace (10 s and 5 s in a build, both shortened
+    here; the subprocess is given 120 s so a busy machine cannot fail it): exit 2, one line,
+    nothing written."""
     pytest.importorskip("distributed")
     (tmp_path / "r.toml").write_text(TILED)
     port = _silent_server() if peer == "silent" else _http_server()

@@ -43,18 +43,6 @@ def save_npz(path: str | Path, /, **arrays) -> Path:
     return Path(path)
 
 
-def refuse_overwrite(*paths: str | Path, force: bool) -> None:
-    """Raise a :class:`UsdForestError` naming the first of ``paths`` that exists, unless
-    ``force``."""
-    from usdforest.errors import UsdForestError
-
-    if force:
-        return
-    for p in paths:
-        if Path(p).exists():
-            raise UsdForestError(f"{p} exists; pass --force to overwrite it")
-
-
 BUILD_MARK = ".build-"
 LOCK_NAME = "lock"  # .<stem>.build-lock: a killed writer's is reused, then removed, by the next
 

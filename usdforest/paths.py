@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import stat
 import tempfile
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 from usdforest.errors import UsdForestError
@@ -98,11 +99,30 @@ def _real(path: str | Path) -> Path:
     return Path(os.path.realpath(path))
 
 
-def refuse_inputs(outputs: list[Path], inputs: list[Path], folders: tuple[Path, ...] = ()) -> None:
-    """Refuse, whatever ``--force`` says, an output that is (or resolves to, through links
-    and ``..``) one of the command's ``inputs``, or an output folder (replaced whole) that
-    holds one: a command never replaces what it reads."""
-    real_inputs = {_real(p): p for p in inputs if p is not None and os.path.lexists(p)}
+Inputs = Iterable[str | Path | None] | Callable[[], Iterable[str | Path | None]]
+
+
+def claim_outputs(
+    outputs: Iterable[str | Path],
+    *,
+    inputs: Inputs = (),
+    folders: Iterable[str | Path] = (),
+    force: bool = False,
+) -> None:
+    """The rule every writing command goes through before it writes: ``outputs`` (files it
+    writes) and ``folders`` (folders it replaces whole) may not be, resolve to (through links
+    and ``..``) or hold one of the command's ``inputs``, whatever ``force`` says; and one
+    that exists is refused unless ``force``. A command never replaces what it reads.
+
+    ``inputs`` may be a function that lists them (a stage's layers, a recipe's files): it is
+    called only when an output or folder exists, since one that does not cannot be an input.
+    """
+    outputs, folders = [Path(p) for p in outputs], [Path(p) for p in folders]
+    existing = [p for p in (*outputs, *folders) if os.path.lexists(p)]
+    if not existing:
+        return
+    listed = inputs() if callable(inputs) else inputs
+    real_inputs = {_real(p): Path(p) for p in listed if p is not None and os.path.lexists(p)}
     for out in outputs:
         found = real_inputs.get(_real(out))
         if found is not None:
@@ -118,6 +138,26 @@ def refuse_inputs(outputs: list[Path], inputs: list[Path], folders: tuple[Path, 
                     f"{shown(folder)}: would be replaced, but holds an input of this command "
                     f"({shown(given)}); write the output elsewhere"
                 )
+    if not force:
+        raise UsdForestError(f"{shown(existing[0])} exists; pass --force to overwrite it")
+
+
+def stage_inputs(stage: str | Path) -> Callable[[], list[Path]]:
+    """The files a command that reads ``stage`` reads, listed when asked: the stage's own file,
+    every layer it composes, and the files of its assets folder (``<stem>_assets``: the
+    ground-truth tables beside the layers)."""
+
+    def listed() -> list[Path]:
+        stage_path = Path(stage)
+        assets = stage_path.parent / f"{stage_path.stem}_assets"
+        found = [p for p in assets.rglob("*") if p.is_file()] if assets.is_dir() else []
+        try:
+            layers = layer_inputs(stage_path)
+        except Exception:  # a stage pxr cannot open: its reader reports that in its own line
+            layers = [stage_path]
+        return [*layers, *found]
+
+    return listed
 
 
 def layer_inputs(stage: str | Path) -> list[Path]:

@@ -119,12 +119,16 @@ def build_manifest(
 ) -> list[Path]:
     """Import every template of ``manifest`` and write ``<output>/<name>.usdc`` (refusing,
     before any is written, when one exists and not ``force``)."""
-    from usdforest.atomic import refuse_overwrite
     from usdforest.cad.parts import import_part
+    from usdforest.paths import claim_outputs
     from usdforest.usd.template import write_template
 
     out = output or manifest.output
-    refuse_overwrite(*(out / f"{spec.name}.usdc" for spec in manifest.templates), force=force)
+    claim_outputs(
+        [out / f"{spec.name}.usdc" for spec in manifest.templates],
+        inputs=[manifest.path, *(spec.source for spec in manifest.templates)],
+        force=force,
+    )
     written = []
     for spec in manifest.templates:
         part = import_part(

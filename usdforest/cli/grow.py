@@ -172,6 +172,11 @@ def tree_cmd(
         from usdforest.grow.species import get_species
 
         sp = get_species(species or "paper-rule-3")
+    from usdforest.paths import claim_outputs
+
+    # the recipe that defines the species is an input too (write_tree checks its templates)
+    claim_outputs([output], inputs=[pipeline], folders=[output.parent / f"{output.stem}_assets"],
+                  force=force)  # fmt: skip
     b = write_tree(
         sp,
         output,

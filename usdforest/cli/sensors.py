@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 
 from usdforest import arguments
-from usdforest.atomic import move_into_place, output_lock, refuse_overwrite, staging_folder
+from usdforest.atomic import move_into_place, output_lock, staging_folder
 from usdforest.cli.app import (
     MAX_SEED,
     Command,
@@ -25,7 +25,7 @@ from usdforest.cli.app import (
     progress_bars,
 )
 from usdforest.errors import UsdForestError
-from usdforest.paths import refuse_inputs, require_output
+from usdforest.paths import claim_outputs, require_output, stage_inputs
 
 
 @app.command("scan", cls=Command)
@@ -103,8 +103,8 @@ def scan_cmd(
             for k in ("rgb", "depth", "semantic", "instance")
         ],
     }.get(sensor, [])
-    refuse_inputs([output, *companions], [stage, config])
-    refuse_overwrite(output, *companions, force=force)
+    reads = stage_inputs(stage)
+    claim_outputs([output, *companions], inputs=lambda: [*reads(), config], force=force)
     p = parse_pose(pose)
     if at is not None:
         arguments.number(at, "--time")
@@ -336,8 +336,8 @@ def fly_cmd(
     )
     for o in outs:
         require_output(o)
-    refuse_inputs(outs, [stage, path, config])
-    refuse_overwrite(*outs, force=force)
+    reads = stage_inputs(stage)
+    claim_outputs(outs, inputs=lambda: [*reads(), path, config], force=force)
     t0 = time.perf_counter()
     summary: dict = {"duration_s": traj.duration, "outputs": [str(o) for o in outs]}
     with (
@@ -345,7 +345,8 @@ def fly_cmd(
         progress_bars(not (quiet or as_json), t0) as tick,
         staging_folder(output) as tmp,
     ):
-        refuse_overwrite(*outs, force=force)  # again, now that no other flight can write them
+        # again, now that no other flight can write them
+        claim_outputs(outs, inputs=lambda: [*reads(), path, config], force=force)
         done = fly(
             stage, path=traj, lidar=lidar_cfg, sonar=sonar_cfg, camera=camera_cfg,
             lidar_rate=lidar_rate, camera_rate=camera_rate, seed=seed, progress=tick,

@@ -11,7 +11,6 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from usdforest.atomic import refuse_overwrite
 from usdforest.cli.app import (
     Command,
     ForceOption,
@@ -26,7 +25,7 @@ from usdforest.cli.app import (
     progress_bars,
 )
 from usdforest.errors import UsdForestError
-from usdforest.paths import require_output
+from usdforest.paths import claim_outputs, require_output, stage_inputs
 
 
 def _progress(quiet: bool):
@@ -409,7 +408,9 @@ def sample_cmd(
                 shown_given = given if len(given) <= 60 else given[:57] + "..."
                 raise UsdForestError(f"{option} {shown_given!r}: {detail}") from None
         raise
-    refuse_overwrite(output, force=force)
+    from usdforest.recipe import recipe_inputs
+
+    claim_outputs([output], inputs=lambda: [path, *recipe_inputs(recipe)], force=force)
     total = replicates * recipe.expected_trees()
     if total > recipe.max_trees:
         raise UsdForestError(
@@ -472,7 +473,7 @@ def preview_cmd(
     image_format(output)
     if view not in VIEWS:
         raise UsdForestError(f"--view: {view!r} is not one of {', '.join(VIEWS)}")
-    refuse_overwrite(output, force=force)
+    claim_outputs([output], inputs=stage_inputs(stage), force=force)
     t0 = time.perf_counter()
     with _progress(quiet) as tick:
         info = preview(
@@ -501,12 +502,13 @@ def plot_sites_cmd(
     """Plot the intensity map with sampled sites over it (the paper's IPP figure)."""
     require_output(output)
     from usdforest.paths import image_format
+    from usdforest.recipe import recipe_inputs
     from usdforest.sites.sampling import read_sites_csv, sample_sites
     from usdforest.view.plots import plot_sites
 
     image_format(output)
-    refuse_overwrite(output, force=force)
     recipe = _load_recipe(pipeline, seed, hard_core)
+    claim_outputs([output], inputs=lambda: [sites_csv, *recipe_inputs(recipe)], force=force)
     if sites_csv is not None:
         sites = read_sites_csv(sites_csv, recipe.species_names, replicate)
     else:

@@ -11,11 +11,10 @@ from typing import Annotated
 
 import typer
 
-from usdforest.atomic import refuse_overwrite
 from usdforest.cli.app import Command, ForceOption, QuietOption, app, handles_errors, out
 from usdforest.cli.stages import _print_pairs, _progress
 from usdforest.errors import UsdForestError
-from usdforest.paths import require_output
+from usdforest.paths import claim_outputs, require_output, stage_inputs
 
 
 @app.command("pattern", cls=Command)
@@ -57,7 +56,7 @@ def pattern_cmd(
 
         require_output(output)
         image_format(output)
-        refuse_overwrite(output, force=force)
+        claim_outputs([output], inputs=stage_inputs(source), force=force)
     xy, own = _pattern_points(source, replicate)
     with _progress(quiet) as tick:
         summary = describe(xy, _window(xy, region, own), rmax=rmax, nsim=nsim,
@@ -130,14 +129,9 @@ def fit_cmd(
     require_output(output)
     if output.suffix.lower() != ".toml":
         raise UsdForestError(f"{output}: the fitted recipe is written as .toml")
-    refuse_overwrite(output, force=force)
     raster = output.with_suffix(".intensity.npy")
-    inputs = [stem_map, *(covariates or [])]
-    for path in (output, raster):
-        if any(path.resolve() == q.resolve() for q in inputs):
-            raise UsdForestError(f"{path}: is an input of this fit; write the recipe elsewhere")
-    if covariates:
-        refuse_overwrite(raster, force=force)
+    claim_outputs([output, *([raster] if covariates else [])],
+                  inputs=[stem_map, *(covariates or [])], force=force)  # fmt: skip
     xy, species, dbh = _stem_map(stem_map)
     window = _window(xy, region)
     rasters = tuple(read_covariate(path, window) for path in covariates or [])

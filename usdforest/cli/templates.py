@@ -10,7 +10,6 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from usdforest.atomic import refuse_overwrite
 from usdforest.cli.app import (
     Command,
     ForceOption,
@@ -19,7 +18,7 @@ from usdforest.cli.app import (
     handles_errors,
     out,
 )
-from usdforest.paths import require_output
+from usdforest.paths import claim_outputs, require_output
 
 template_app = typer.Typer(
     cls=Group,
@@ -48,7 +47,7 @@ def template_import_cmd(
     from usdforest.cad.parts import import_part
     from usdforest.usd.template import write_template
 
-    refuse_overwrite(output, force=force)
+    claim_outputs([output], inputs=[file, file.with_suffix(".mtl")], force=force)
     t = import_part(file, part, units=units, up=up, name=name or part)
     write_template(t, output)
     info = {
@@ -90,7 +89,7 @@ def template_extract_cmd(
     from usdforest.cad.extract import extract_tree
     from usdforest.usd.template import write_template
 
-    refuse_overwrite(output, force=force)
+    claim_outputs([], inputs=[file], folders=[output], force=force)
     ex = extract_tree(file, units=units, up=up)
     output.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.", dir=output.parent))

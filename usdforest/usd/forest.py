@@ -48,11 +48,11 @@ import numpy as np
 import tomli_w
 from pxr import Gf, Sdf, Vt
 
-from usdforest.atomic import output_lock, publish, refuse_overwrite, staging_folder
+from usdforest.atomic import output_lock, publish, staging_folder
 from usdforest.cluster import Progress, dask_client, run_tasks
 from usdforest.errors import UsdForestError
 from usdforest.grow.bounds import EMPTY_EXTENT
-from usdforest.paths import refuse_inputs
+from usdforest.paths import claim_outputs
 from usdforest.recipe import Recipe, recipe_inputs, resolved_toml
 from usdforest.sites.local import Plan, classes_for, first_ids, place, squares, whole
 from usdforest.sites.stand import merge_sums
@@ -248,8 +248,7 @@ def write_forest(
         )
     assets = out.parent / f"{out.stem}_assets"
     with output_lock(out):
-        refuse_inputs([out], recipe_inputs(recipe), folders=(assets,))
-        refuse_overwrite(out, assets, force=force)
+        claim_outputs([out], inputs=lambda: recipe_inputs(recipe), folders=[assets], force=force)
         tiled = recipe.tiles is not None
         with dask_client(workers, scheduler) if tiled else nullcontext() as client:
             return _write_forest(

@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom
 
-from usdforest.atomic import output_lock, refuse_overwrite
+from usdforest.atomic import output_lock
 from usdforest.errors import UsdForestError
-from usdforest.paths import layer_inputs, refuse_inputs, require_file, require_output, shown
+from usdforest.paths import claim_outputs, layer_inputs, require_file, require_output, shown
 from usdforest.usd.layers import T, attr, prim, save_layer
 
 UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
@@ -70,8 +70,7 @@ def wrap(
     with output_lock(out):
         # a host that replaced its own asset (or a layer the asset composes) would reference
         # itself: refused whatever --force says
-        refuse_inputs([out], layer_inputs(asset))
-        refuse_overwrite(out, force=force)
+        claim_outputs([out], inputs=lambda: layer_inputs(asset), force=force)
         return _write_host(layer, asset, out, up, units, name)
 
 

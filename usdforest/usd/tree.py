@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Vt
 
-from usdforest.atomic import output_lock, publish, refuse_overwrite, staging_folder
+from usdforest.atomic import output_lock, publish, staging_folder
 from usdforest.cad.library import template_dir, template_path
 from usdforest.errors import UsdForestError
 from usdforest.grow.architecture import TreeSize
@@ -61,6 +61,7 @@ from usdforest.grow.placement import Placement, place
 from usdforest.grow.proxy import Levels, levels
 from usdforest.grow.seasons import keep_leaves
 from usdforest.grow.species import Geometry, Grown, Species, grow, sized, tree_size
+from usdforest.paths import claim_outputs
 from usdforest.seeds import stream
 from usdforest.usd.layers import (
     T,
@@ -739,10 +740,17 @@ def write_tree(
         raise UsdForestError(f"{out}: the tree layer must end in .usda, .usdc or .usd")
     assets = out.parent / f"{out.stem}_assets"
     with output_lock(out):
-        refuse_overwrite(out, assets, force=force)
+        claim_outputs([out], inputs=lambda: _template_files(template_base), folders=[assets],
+                      force=force)  # fmt: skip
         return _write_tree(
             species, seed, variant, out, assets, template_base, colliders, force, limbs
         )
+
+
+def _template_files(base: Path | None) -> list[Path]:
+    """The template layers of the user's folder ``base`` that a tree reads (the shipped
+    templates are the package's own)."""
+    return [] if base is None else [p for p in Path(base).rglob("*") if p.is_file()]
 
 
 def _write_tree(
