@@ -64,11 +64,11 @@ def test_a_second_extraction_reads_the_prototypes_and_equals_the_first(tmp_path,
     assert not cache.exists()  # cache=False neither reads nor writes the store
     ticks: list[tuple[str, int, int]] = []
     first = extract_scene(out, centre=CENTRE, radius=30.0, progress=lambda *a: ticks.append(a))
-    stored = sorted(cache.rglob("*.pkl"))
+    stored = sorted(cache.rglob("*.npz"))
     assert len(stored) == len(first.protos) == 2
     assert ("tree prototypes", 2, 2) in ticks and ticks[-1] == ("leaf reflectors", 2, 2)
     second = extract_scene(out, centre=CENTRE, radius=30.0)
-    assert sorted(cache.rglob("*.pkl")) == stored
+    assert sorted(cache.rglob("*.npz")) == stored
     _same(first, second)
     _same(second, extract_scene(out, centre=CENTRE, radius=30.0, cache=False))
     for kw in ({"reflectors": False}, {"leaf_triangles": False}, {}):
@@ -116,7 +116,7 @@ def test_one_edited_tree_layer_is_enough_to_gather_again(tmp_path, cache):
 def test_a_damaged_entry_is_gathered_again(tmp_path, cache):
     out = _forest(tmp_path)
     first = extract_scene(out)
-    for f in cache.rglob("*.pkl"):
+    for f in cache.rglob("*.npz"):
         f.write_bytes(f.read_bytes()[:100])
     _same(first, extract_scene(out))
     _same(first, extract_scene(out))  # and stored whole again
@@ -185,3 +185,91 @@ def test_sensors_and_stand_figures_see_every_leaf_at_any_selected_level(tmp_path
     stage = Usd.Stage.Open(str(light))
     protos = stage.GetPrimAtPath("/Forest/Trees/Prototypes").GetChildren()
     assert {p.GetVariantSet("lod").GetVariantSelection() for p in protos} == {level}
+
+
+def _reads(monkeypatch) -> list[bool]:
+    """Whether each prototype the store is asked for is read from it (True) or gathered."""
+    from usdforest.sensors import scenecache
+
+    seen: list[bool] = []
+    get = scenecache.PrototypeStore.get
+
+    def spy(self, path, mode, valid=None):
+        entry = get(self, path, mode, valid)
+        if valid is scenecache.valid_stored:
+            seen.append(entry is not None)
+        return entry
+
+    monkeypatch.setattr(scenecache.PrototypeStore, "get", spy)
+    return seen
+
+
+def test_a_planted_pickle_runs_nothing_and_is_gathered_again(tmp_path, cache, monkeypatch):
+    """The cache is data only: a pickle planted under every entry's name (one that would run
+    a command as it is read) runs nothing; the scene is gathered again, as without a cache,
+    and the entries are stored whole again, read by the next scan."""
+    import pickle
+
+    out = _forest(tmp_path)
+    first = extract_scene(out)
+    marker = tmp_path / "ran"
+
+    class Payload:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+
+    planted = pickle.dumps(Payload())
+    entries = sorted(cache.rglob("*.npz"))
+    assert entries
+    for f in entries:
+        f.write_bytes(planted)
+    reads = _reads(monkeypatch)
+    _same(first, extract_scene(out))
+    assert not marker.exists() and reads == [False, False]
+    _same(first, extract_scene(out))
+    assert reads == [False, False, True, True]
+
+
+@pytest.mark.parametrize("wrong", ["a string", "arrays cut in half", "indices out of range"])
+def test_an_entry_of_the_wrong_content_is_gathered_again(tmp_path, cache, monkeypatch, wrong):
+    """A well-formed entry whose content does not fit what it stands for (another value,
+    arrays of lengths that disagree, paths it does not have) is ignored: the scene is the one
+    gathered without the cache, and stored whole again."""
+    from usdforest.sensors.scenecache import read_entry, write_entry
+
+    out = _forest(tmp_path)
+    first = extract_scene(out)
+    for f in sorted(cache.rglob("*.npz")):
+        entry = read_entry(f)
+        if wrong == "a string":
+            entry = {"path": entry["path"], "value": "a string"}
+        elif wrong == "arrays cut in half":
+            entry["triangles"] = entry["triangles"][: len(entry["triangles"]) // 2]
+        else:
+            entry["path_index"] = entry["path_index"] + len(entry["paths"])
+        with f.open("wb") as fh:
+            write_entry(fh, entry)
+    reads = _reads(monkeypatch)
+    _same(first, extract_scene(out))
+    _same(first, extract_scene(out))
+    assert reads == [False, False, True, True]
+
+
+def test_an_entry_keeps_data_only(tmp_path):
+    """What the store writes reads back as it was (arrays by value, tuples, lists, dicts,
+    None); anything that is not data (an object array, an object) is refused on writing."""
+    import io
+
+    from usdforest.sensors.scenecache import read_entry, write_entry
+
+    value = {"a": (np.arange(3), None, [1.5, "x"]), "b": np.zeros((0, 3), np.float32), "c": True}
+    with (tmp_path / "e.npz").open("wb") as fh:
+        write_entry(fh, value)
+    back = read_entry(tmp_path / "e.npz")
+    assert back.keys() == value.keys() and back["c"] is True
+    np.testing.assert_array_equal(back["a"][0], value["a"][0])
+    assert back["a"][1] is None and back["a"][2] == [1.5, "x"]
+    assert back["b"].shape == (0, 3) and back["b"].dtype == np.float32
+    for bad in (np.array([{}], dtype=object), object()):
+        with pytest.raises(TypeError):
+            write_entry(io.BytesIO(), {"x": bad})

@@ -28,7 +28,14 @@ from usdforest.sensors.implicit import IMPLICIT, shape_triangles
 from usdforest.sensors.native import NativeMeshes
 from usdforest.sensors.reflectors import blade_reflectors
 from usdforest.sensors.reflectors import placed_leaves as leaves_placed
-from usdforest.sensors.scenecache import PrototypeStore, adopted, kept, stored
+from usdforest.sensors.scenecache import (
+    PrototypeStore,
+    adopted,
+    kept,
+    stored,
+    valid_stored,
+    valid_turns,
+)
 from usdforest.sensors.scenetypes import (
     Instances,
     LeafInstances,
@@ -322,7 +329,7 @@ def extract_scene(
             store = store_get()
             moving = len(parts_of.get(key, ()))
             mode = f"{store_mode} without {moving} parts" if moving else store_mode
-            entry = store.get(str(key), mode) if store is not None else None
+            entry = store.get(str(key), mode, valid_stored) if store is not None else None
             if entry is None:
                 seen = (len(unseen), len(paths), len(shapes))
                 proto = gather(prim, reflectors or store is not None)
@@ -351,7 +358,13 @@ def extract_scene(
             return parts_of[key]
         found = []
         if parted:  # the walk takes 0.8 s in the windy default forest: kept with its prototypes
-            names = kept(store_get(), f"parts of {key}", "moving", lambda: moving_parts(proto))
+            names = kept(
+                store_get(),
+                f"parts of {key}",
+                "moving",
+                lambda: moving_parts(proto),
+                lambda v: isinstance(v, list) and all(isinstance(n, str) for n in v),
+            )
             found = [stage.GetPrimAtPath(n) for n in names]
         parts_of[key] = found  # read by ``prototype(proto)``'s store key
         pruned.update(q.GetPath() for q in found)
@@ -578,6 +591,7 @@ def extract_scene(
     turns, sweep = kept(
         store_get() if parted else None, f"shape turns {digest}", repr(when.GetValue()),
         lambda: shape_turns(stage, shape_keys, shapes, when),
+        lambda v: valid_turns(v, len(shape_keys)),
     )  # fmt: skip
     turning = bool(leaves.turning.any()) or turns is not None
     # a stage holding one tree that is not instanced: tree id 0

@@ -8,16 +8,23 @@ the stage uses (so a rebuilt or edited forest is gathered again, never read stal
 prototype's path and what was gathered. The store is a folder per stage in the user's cache
 (``$USDFOREST_CACHE``, else ``$XDG_CACHE_HOME/usdforest/scenes`` or
 ``~/.cache/usdforest/scenes``); ``USDFOREST_CACHE=off`` turns it off. A store that cannot
-be written is skipped, a damaged entry is gathered again.
+be written is skipped.
+
+An entry is data only: a ``.npz`` of plain arrays (read with ``allow_pickle=False``) and a
+JSON outline of where each goes, so nothing in the cache folder can make a scan run code. An
+entry that does not read back (damaged, cut short, from another version, planted) or whose
+content does not fit what it stands for (the shapes, lengths and index ranges its reader
+checks before using it) is ignored and gathered again.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
-import pickle
 import shutil
 import tempfile
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -26,7 +33,7 @@ import numpy as np
 
 from usdforest.sensors.scenetypes import LeafInstances, Leaves, Prototype, Shape
 
-FORMAT = b"usdforest-scene-cache-3"  # bump when what is stored changes
+FORMAT = b"usdforest-scene-cache-4"  # bump when what is stored changes
 KEEP_STAGES = 4  # stage folders kept (0.4 GB for the default forest), least recently used first
 
 
@@ -81,19 +88,26 @@ class PrototypeStore:
 
     def _file(self, path: str, mode: str) -> Path:
         name = hashlib.blake2b(f"{mode}\0{path}".encode(), digest_size=16).hexdigest()
-        return self.folder / f"{name}.pkl"
+        return self.folder / f"{name}.npz"
 
-    def get(self, path: str, mode: str) -> dict[str, Any] | None:
-        """The entry stored for prototype ``path`` gathered in ``mode``, or None."""
+    def get(
+        self, path: str, mode: str, valid: Callable[[Any], bool] | None = None
+    ) -> dict[str, Any] | None:
+        """The entry stored for prototype ``path`` gathered in ``mode``, or None: also when it
+        does not read back as data or ``valid`` (given the entry) says it does not fit."""
         f = self._file(path, mode)
         try:
-            with open(f, "rb") as fh:
-                entry = pickle.load(fh)
+            entry = read_entry(f)
         except FileNotFoundError:
             return None
-        except Exception:  # damaged or from another version: gather it again
+        except Exception:  # damaged, cut short, foreign or from another version: gather again
             return None
         if not isinstance(entry, dict) or entry.get("path") != path:
+            return None
+        try:
+            if valid is not None and not valid(entry):
+                return None
+        except Exception:  # content of the wrong kind where the check looked
             return None
         try:
             os.utime(self.folder)  # recently used: kept longest
@@ -111,7 +125,7 @@ class PrototypeStore:
             fd, tmp = tempfile.mkstemp(dir=self.folder, suffix=".tmp")
             try:
                 with os.fdopen(fd, "wb") as fh:
-                    pickle.dump({**entry, "path": path}, fh, protocol=5)
+                    write_entry(fh, {**entry, "path": path})
                 os.replace(tmp, self._file(path, mode))
             except BaseException:
                 Path(tmp).unlink(missing_ok=True)
@@ -122,11 +136,84 @@ class PrototypeStore:
             self.writable = False
 
 
-def kept(store: PrototypeStore | None, name: str, mode: str, make: Callable[[], Any]) -> Any:
+OUTLINE = "outline"  # the npz member holding the JSON outline
+
+
+def write_entry(fh, value: Any) -> None:
+    """``value`` (dicts of string keys, lists, tuples, strings, numbers, None and numpy
+    arrays of numbers or booleans) as an uncompressed ``.npz``: its arrays as members
+    ``a0``, ``a1``... and an outline (JSON) that says where each goes."""
+    arrays: dict[str, np.ndarray] = {}
+
+    def outline(v: Any) -> Any:
+        if isinstance(v, np.ndarray):
+            if v.dtype.kind not in "biuf":
+                raise TypeError(f"the cache keeps arrays of numbers, not {v.dtype}")
+            name = f"a{len(arrays)}"
+            arrays[name] = v
+            return {"a": name}
+        if isinstance(v, dict):
+            if not all(isinstance(k, str) for k in v):
+                raise TypeError("the cache keeps dicts of string keys")
+            return {"d": {k: outline(x) for k, x in v.items()}}
+        if isinstance(v, tuple):
+            return {"t": [outline(x) for x in v]}
+        if isinstance(v, list):
+            return [outline(x) for x in v]
+        if v is None or isinstance(v, str | bool | int | float):
+            return v
+        raise TypeError(f"the cache keeps data, not {type(v).__name__}")
+
+    text = json.dumps(outline(value), allow_nan=False)
+    np.savez(fh, **{OUTLINE: np.frombuffer(text.encode(), dtype=np.uint8)}, **arrays)
+
+
+def read_entry(path: Path) -> Any:
+    """What :func:`write_entry` wrote to ``path``: arrays read as data (no pickles), the
+    outline as JSON; a ``ValueError`` where the file is not such an entry."""
+    z = np.load(path, allow_pickle=False)
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise ValueError("not an entry")
+    with z:
+        members = set(z.files)
+        outline = json.loads(bytes(z[OUTLINE]).decode())
+
+        def value(node: Any) -> Any:
+            if isinstance(node, list):
+                return [value(x) for x in node]
+            if isinstance(node, dict):
+                (kind, inner), *rest = node.items()
+                if rest:
+                    raise ValueError("not an entry")
+                if kind == "a" and inner in members and inner != OUTLINE:
+                    return z[inner]
+                if kind == "t" and isinstance(inner, list):
+                    return tuple(value(x) for x in inner)
+                if kind == "d" and isinstance(inner, dict):
+                    return {k: value(x) for k, x in inner.items()}
+                raise ValueError("not an entry")
+            return node
+
+        try:
+            return value(outline)
+        except (zipfile.BadZipFile, EOFError) as exc:  # a member cut short
+            raise ValueError("not an entry") from exc
+
+
+def kept(
+    store: PrototypeStore | None,
+    name: str,
+    mode: str,
+    make: Callable[[], Any],
+    valid: Callable[[Any], bool],
+) -> Any:
     """``make()``, read from ``store`` under ``name`` and ``mode`` where an earlier call kept
-    it, and kept there otherwise (``store`` None: made each time)."""
-    entry = store.get(name, mode) if store is not None else None
-    if entry is not None and "value" in entry:
+    it and ``valid`` (given the value read) says it fits, and kept there otherwise (``store``
+    None: made each time)."""
+    entry = None
+    if store is not None:
+        entry = store.get(name, mode, lambda e: "value" in e and valid(e["value"]))
+    if entry is not None:
         return entry["value"]
     value = make()
     if store is not None:
@@ -218,3 +305,71 @@ def adopted(entry: dict, pid: Callable[[str], int], add_shape) -> Prototype:
         entry["box"],
         LeafInstances(smap[shape] if len(shape) else shape, matrix, tree),
     )
+
+
+def _array(x: Any, kinds: str, shape: tuple) -> bool:
+    """Whether ``x`` is an array of one of the dtype ``kinds`` and of ``shape`` (``None``:
+    any length there)."""
+    return (
+        isinstance(x, np.ndarray)
+        and x.dtype.kind in kinds
+        and x.ndim == len(shape)
+        and all(want is None or got == want for got, want in zip(x.shape, shape, strict=True))
+    )
+
+
+def _indices(x: np.ndarray, n: int, low: int = 0) -> bool:
+    return not len(x) or (int(x.min()) >= low and int(x.max()) < n)
+
+
+def valid_stored(entry: dict) -> bool:
+    """Whether ``entry`` is a gathered prototype as :func:`stored` writes it: every field
+    :func:`adopted` reads, of its kind and shape, lengths that agree and indices in range."""
+    paths, shapes = entry["paths"], entry["shapes"]
+    if not (isinstance(paths, list) and all(isinstance(p, str) for p in paths)):
+        return False
+    n_paths = len(paths)
+    if not (isinstance(shapes, list) and all(isinstance(s, tuple) and len(s) == 4
+                                             for s in shapes)):  # fmt: skip
+        return False
+    for key, tri, cls, path in shapes:
+        k = len(tri) if isinstance(tri, np.ndarray) else -1
+        if not (isinstance(key, str) and _array(tri, "f", (k, 3, 3)) and _array(cls, "iu", (k,))
+                and _array(path, "iu", (k,)) and _indices(path, n_paths)):  # fmt: skip
+            return False
+    tri, cls, where = entry["triangles"], entry["cls"], entry["path_index"]
+    n = len(tri) if isinstance(tri, np.ndarray) else -1
+    if not (_array(tri, "f", (n, 3, 3)) and _array(cls, "iu", (n,)) and _array(where, "iu", (n,))
+            and _indices(where, n_paths) and _array(entry["box"], "f", (2, 3))):  # fmt: skip
+        return False
+    leaves, inst = entry["leaves"], entry["instances"]
+    if not (isinstance(leaves, tuple) and len(leaves) == 7):
+        return False
+    centre, normal, area, trees, blade, turns, frame = leaves
+    m = len(centre) if isinstance(centre, np.ndarray) else -1
+    if not (_array(centre, "f", (m, 3)) and _array(normal, "f", (m, 3))
+            and _array(area, "f", (m,)) and _array(trees, "iu", (m,))
+            and (blade is None or _array(blade, "biu", (m,)))
+            and (turns is None or (_array(turns, "iu", (m,)) and _indices(turns, len(shapes), -1)))
+            and (frame is None or _array(frame, "f", (m, 4, 4)))):  # fmt: skip
+        return False
+    if not (isinstance(inst, tuple) and len(inst) == 3):
+        return False
+    shape, matrix, tree = inst
+    k = len(shape) if isinstance(shape, np.ndarray) else -1
+    return bool(
+        _array(shape, "iu", (k,)) and _indices(shape, len(shapes))
+        and _array(matrix, "f", (k, 4, 4)) and _array(tree, "iu", (k,))
+        and isinstance(entry["unseen"], list) and all(isinstance(u, str) for u in entry["unseen"])
+    )  # fmt: skip
+
+
+def valid_turns(value: Any, n: int) -> bool:
+    """Whether ``value`` is what :func:`usdforest.sensors.turns.shape_turns` gives for ``n``
+    leaf shapes: ``(None, None)``, or their transforms ``(n, 4, 4)`` and boxes ``(n, 2, 3)``."""
+    if not (isinstance(value, tuple) and len(value) == 2):
+        return False
+    own, sweep = value
+    if own is None or sweep is None:
+        return own is None and sweep is None
+    return _array(own, "f", (n, 4, 4)) and _array(sweep, "f", (n, 2, 3))
