@@ -87,6 +87,15 @@ def time_warning(stage_path, seconds: float | None) -> str | None:
         return None
     start, end, _, loops = time_range(layer)
     if not end > start:
+        from pxr import Usd
+
+        from usdforest.sensors.stageframe import animated
+
+        if animated(Usd.Stage.Open(layer)):  # a host of one's own that gives no range
+            return (
+                "time: the stage gives no time range (startTimeCode, endTimeCode): scanned at "
+                f"{seconds:g} s as its layers' time samples give it"
+            )
         return "time: the stage has no animation (no time codes): scanned as it stands"
     if loops:
         t = looped(seconds, (start, end - start))

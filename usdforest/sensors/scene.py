@@ -46,7 +46,13 @@ from usdforest.sensors.scenetypes import (
     Sources,
     no_leaves,
 )
-from usdforest.sensors.stageframe import leaf_boxes, moved_boxes, stage_frame, stage_time
+from usdforest.sensors.stageframe import (
+    animated,
+    leaf_boxes,
+    moved_boxes,
+    stage_frame,
+    stage_time,
+)
 from usdforest.sensors.turns import moving_parts, shape_turns
 from usdforest.usd.layers import class_labels, mesh_triangles, open_stage, rendered
 
@@ -281,12 +287,13 @@ def extract_scene(
     shape_keys: list[str] = []
     geometry = ("instance" if instancing else "copy") if leaf_triangles else None
     # an animated stage's prototypes move in time too (its leaves flutter): kept per time
-    animated = stage.HasAuthoredTimeCodeRange() and not when.IsDefault()
-    store_mode = f"{geometry} at {when.GetValue():.17g}" if animated else str(geometry)
+    moves = animated(stage)
+    at_time = moves and not when.IsDefault()
+    store_mode = f"{geometry} at {when.GetValue():.17g}" if at_time else str(geometry)
     store_of: list = []  # the stage's prototype store, keyed when the first prototype is met
     # an animated stage's tree prototypes may have parts that move on their own (limbs that
     # sway): each part is an instance of its own, its tree's prototype gathered without it
-    parted = stage.HasAuthoredTimeCodeRange()
+    parted = moves
     parts_of: dict = {}
     part_rows: list[tuple[str, str]] = []  # (part prim, its prototype's prim)
     pruned: set = set()  # the parts' prims, which their prototypes' subtrees leave out

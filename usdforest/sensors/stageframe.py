@@ -88,6 +88,14 @@ def looped(seconds: float, loop: tuple[float, float | None]) -> float:
     return start + (t - start) % period if period else t
 
 
+def animated(stage) -> bool:
+    """Whether ``stage`` moves in time: it gives a time code range, or a layer it uses holds
+    time samples (a hand-made host of a windy forest that gives no range moves too)."""
+    return bool(stage.HasAuthoredTimeCodeRange()) or any(
+        layer.ListAllTimeSamples() for layer in stage.GetUsedLayers()
+    )
+
+
 def stage_time(stage, seconds: float | None):
     """The ``Usd.TimeCode`` of ``seconds`` into ``stage``'s animation (``None``: default),
     wrapped into its loop when it loops (:func:`looped`)."""

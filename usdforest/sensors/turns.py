@@ -135,7 +135,9 @@ def shape_turns(
     """Where leaf shape prims (at ``keys``, their triangles in ``shapes``) turn in time
     (flutter): every shape's own transform at the time code ``when`` and its box over all
     its turns (:meth:`Turns.sweeps`); ``(None, None)`` when none turns."""
-    if not stage.HasAuthoredTimeCodeRange() or not keys:
+    from usdforest.sensors.stageframe import animated
+
+    if not keys or not animated(stage):
         return None, None
     turns = Turns([stage.GetPrimAtPath(k) for k in keys])
     if not turns.moving.any():

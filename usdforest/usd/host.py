@@ -19,7 +19,7 @@ from pxr import Gf, Sdf, Tf, Usd, UsdGeom
 from usdforest.atomic import output_lock
 from usdforest.errors import UsdForestError
 from usdforest.paths import claim_outputs, layer_inputs, require_file, require_output, shown
-from usdforest.usd.layers import T, attr, prim, save_layer
+from usdforest.usd.layers import T, attr, prim, require_playable, save_layer
 
 UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
 UP_AXES = ("Y", "Z")
@@ -67,6 +67,7 @@ def wrap(
         raise UsdForestError(f"{shown(asset)}: not a USD layer ({_first_reason(exc)})") from None
     if layer is None:
         raise UsdForestError(f"{shown(asset)}: not a USD layer")
+    require_playable(layer, asset)
     with output_lock(out):
         # a host that replaced its own asset (or a layer the asset composes) would reference
         # itself: refused whatever --force says
@@ -97,6 +98,7 @@ def _write_host(layer: Sdf.Layer, asset: Path, out: Path, up: str, units: str, n
     host.pseudoRoot.SetInfo("upAxis", up)
     host.pseudoRoot.SetInfo("metersPerUnit", mpu)
     host.defaultPrim = name
+    _carry_time(layer, host)
     host.comment = (
         f"usdforest wrap: {asset.name} (Z-up, metres) in a {up}-up stage in {units}: scaled "
         f"{1 / mpu:g}" + (", turned -90 degrees about X" if up == "Y" else "")
@@ -113,6 +115,23 @@ def _write_host(layer: Sdf.Layer, asset: Path, out: Path, up: str, units: str, n
         attr(placed, "xformOp:transform", T.Matrix4d, matrix)
         attr(placed, "xformOpOrder", T.TokenArray, ["xformOp:transform"], uniform=True)
     return save_layer(host, out)
+
+
+def _carry_time(asset: Sdf.Layer, host: Sdf.Layer) -> None:
+    """The asset's animation on the host: its time codes a second, frames a second, first and
+    last time codes and whether it loops (a wind's ``loops``), so that the host plays what
+    the asset plays (at the host's rate a referenced layer's time codes are the asset's own)
+    and clients and sensors see its range."""
+    for has, key in (
+        (asset.HasTimeCodesPerSecond, "timeCodesPerSecond"),
+        (asset.HasFramesPerSecond, "framesPerSecond"),
+        (asset.HasStartTimeCode, "startTimeCode"),
+        (asset.HasEndTimeCode, "endTimeCode"),
+    ):
+        if has():
+            setattr(host, key, getattr(asset, key))
+    if "loops" in asset.customLayerData:
+        host.customLayerData = {**host.customLayerData, "loops": asset.customLayerData["loops"]}
 
 
 def _asset_roots(stage: Usd.Stage) -> list[Usd.Prim]:

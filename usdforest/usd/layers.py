@@ -58,9 +58,12 @@ def _reason(exc: Exception) -> str:
     return shown(quoted[0] if quoted else text)[:300]
 
 
-def open_stage(path: str | Path, *, sound: bool = False, full: bool = False) -> Usd.Stage:
+def open_stage(
+    path: str | Path, *, sound: bool = False, full: bool = False, playable: bool = True
+) -> Usd.Stage:
     """Open the stage at ``path``, with a one-line error if it is missing, not a file, not
-    USD, corrupt, or composes with errors (a reference to a missing or corrupt layer).
+    USD, corrupt, or composes with errors (a reference to a missing or corrupt layer), or
+    (``playable``) if its time metadata cannot be played (:func:`time_problems`).
 
     ``sound``: also refuse structurally broken geometry (see :mod:`usdforest.usd.integrity`),
     for commands that walk or draw it. ``full``: every tree at its full level of detail
@@ -82,6 +85,8 @@ def open_stage(path: str | Path, *, sound: bool = False, full: bool = False) -> 
         raise UsdForestError(
             f"{shown(path)}: does not compose: {_reason(Exception(str(errors[0])))}{more}"
         )
+    if playable:
+        require_playable(stage.GetRootLayer(), path)
     if full:
         select_full_detail(stage)
     if sound:
@@ -335,6 +340,41 @@ def bind_material(spec: Sdf.PrimSpec, material: Sdf.Path) -> None:
         items.insert(0, "MaterialBindingAPI")
     spec.SetInfo("apiSchemas", Sdf.TokenListOp.Create(prependedItems=items))
     rel(spec, "material:binding", [material])
+
+
+def time_problems(layer: Sdf.Layer) -> list[str]:
+    """What is wrong with the time metadata of ``layer`` (a stage's root layer), each as
+    ``key = value: why``: a rate (``timeCodesPerSecond``, ``framesPerSecond``) that is not a
+    positive finite number, a start or end that is not finite, an end before the start. USD
+    divides by the rate and walks the range: a stage with one of these cannot be played."""
+    import math
+
+    found = []
+    for key, has, value in (
+        ("timeCodesPerSecond", layer.HasTimeCodesPerSecond(), layer.timeCodesPerSecond),
+        ("framesPerSecond", layer.HasFramesPerSecond(), layer.framesPerSecond),
+    ):
+        if has and not (math.isfinite(value) and value > 0):
+            found.append(f"{key} = {value:g}: not a positive rate")
+    start, end = layer.startTimeCode, layer.endTimeCode
+    for key, has, value in (
+        ("startTimeCode", layer.HasStartTimeCode(), start),
+        ("endTimeCode", layer.HasEndTimeCode(), end),
+    ):
+        if has and not math.isfinite(value):
+            found.append(f"{key} = {value:g}: not a finite time")
+    if (layer.HasStartTimeCode() and layer.HasEndTimeCode() and math.isfinite(start)
+            and math.isfinite(end) and end < start):  # fmt: skip
+        found.append(f"endTimeCode = {end:g}: before startTimeCode = {start:g}")
+    return found
+
+
+def require_playable(layer: Sdf.Layer, path: str | Path) -> None:
+    """A one-line :class:`UsdForestError` naming ``path`` where ``layer``'s time metadata
+    cannot be played (:func:`time_problems`)."""
+    problems = time_problems(layer)
+    if problems:
+        raise UsdForestError(f"{shown(path)}: {problems[0]}; fix the layer's time metadata")
 
 
 def time_range(layer: Sdf.Layer) -> tuple[float, float, float, bool]:

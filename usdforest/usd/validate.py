@@ -12,7 +12,7 @@ from pxr import Sdf, Usd, UsdGeom, UsdValidation
 from usdforest.progress import Progress
 from usdforest.usd.host import placement_problems
 from usdforest.usd.integrity import structural_problems
-from usdforest.usd.layers import open_stage
+from usdforest.usd.layers import open_stage, time_problems
 
 
 @dataclass(frozen=True)
@@ -112,6 +112,8 @@ def project_findings(stage: Usd.Stage) -> list[Finding]:
     root = stage.GetDefaultPrim()
     if not root:
         err("stageMetadata", "/", "no defaultPrim")
+    for problem in time_problems(stage.GetRootLayer()):
+        err("timeMetadata", "/", problem)
     if root and "usdforest" in root.GetCustomData():
         # a usdforest asset itself: Z-up metres, the product's contract
         if UsdGeom.GetStageUpAxis(stage) != UsdGeom.Tokens.z:
@@ -204,7 +206,7 @@ def validate(path: str | Path, progress: Progress | None = None) -> list[Finding
     tick = progress or (lambda stage, done, total: None)
     tick("validating", 0, 4)
     path = Path(path)
-    stage = open_stage(path)
+    stage = open_stage(path, playable=False)  # reported below as findings
     tick("validating", 1, 4)
     broken = structure_findings(stage)
     tick("validating", 2, 4)
