@@ -198,10 +198,11 @@ def test_ctrl_c_during_a_tiled_dask_build_leaves_nothing(tmp_path):
     if not _wait_for_tiles(p, tmp_path):
         p.communicate(timeout=600)
         pytest.skip("the build finished before its tiles could be interrupted")
-    p.send_signal(signal.SIGINT)
+    os.killpg(p.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the workers' processes too
     _, err = p.communicate(timeout=600)
     assert p.returncode == 130, err
-    assert err.strip().splitlines()[-1] == "error: interrupted" and "Traceback" not in err, err
+    # (each Dask worker printed its KeyboardInterrupt traceback: about 70 lines)
+    assert [x for x in err.splitlines() if not _progress(x)] == ["error: interrupted"], err
     assert snapshot(tmp_path) == {"r.toml"}
 
 
@@ -314,7 +315,7 @@ def test_a_quiet_dask_build_prints_nothing_and_a_stopped_one_one_line(tmp_path, 
     if not _wait_for_tiles(p, tmp_path):
         p.communicate(timeout=600)
         pytest.skip("the build finished before its tiles could be stopped")
-    p.send_signal(sig)
+    os.killpg(p.pid, sig)  # the process group, as a terminal or a service manager sends it
     _, err = p.communicate(timeout=600)
     want = {signal.SIGINT: (130, "error: interrupted"), signal.SIGTERM: (143, "error: terminated")}
     assert (p.returncode, [x for x in err.splitlines() if not _progress(x)]) == (

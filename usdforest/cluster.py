@@ -164,13 +164,33 @@ def dask_client(workers: int, scheduler: str | None):
         with client:
             yield client
         return
-    with (
-        LocalCluster(
+    with _spawned_ignoring_ctrl_c():
+        cluster = LocalCluster(
             n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
-        ) as cluster,
-        Client(cluster) as client,
-    ):
+        )
+    with cluster, Client(cluster) as client:
         yield client
+
+
+@contextmanager
+def _spawned_ignoring_ctrl_c():
+    """The worker processes started inside ignore SIGINT: a terminal's Ctrl-C reaches the
+    whole process group, and each Dask worker printed its KeyboardInterrupt traceback
+    (about 70 lines before the build's one). This process still handles it and closes them;
+    a Ctrl-C in the second or two the workers take to start is not seen (press it again).
+    (A signal ignored when a process starts stays ignored in it: Python keeps it so. Only the
+    main thread may set handlers; elsewhere the workers start as they would.)"""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 @contextmanager
