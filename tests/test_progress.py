@@ -74,3 +74,31 @@ def test_the_api_takes_a_callable_true_or_nothing():
     assert resolve_progress(f) is f
     with pytest.raises(UsdForestError, match=r"^progress: expected True, False, None or a"):
         resolve_progress(3)
+
+
+def test_a_first_runs_kernel_compilation_is_a_step_of_its_own():
+    """numba's compilation (a first scan's minute) is reported as its own step while it runs
+    (every ``every`` seconds) and once when done; work that compiles nothing reports
+    nothing."""
+    import time
+
+    from numba import njit
+
+    from usdforest.progress import COMPILING, compiling
+
+    ticks: list[tuple[str, int, int]] = []
+
+    def slow_to_compile(x):  # a new function each run: never in numba's cache
+        return x + 1
+
+    kernel = njit(cache=False)(slow_to_compile)
+    with compiling(lambda *a: ticks.append(a), every=0.01):
+        assert kernel(1) == 2
+        time.sleep(0.05)
+    assert ticks and all(stage == COMPILING for stage, _, _ in ticks)
+    assert ticks[0] == (COMPILING, 0, 1) and ticks[-1] == (COMPILING, 1, 1)
+    ticks.clear()
+    with compiling(lambda *a: ticks.append(a), every=0.01):
+        assert kernel(2) == 3  # compiled already
+        time.sleep(0.05)
+    assert ticks == []

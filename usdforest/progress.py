@@ -8,8 +8,10 @@ Every long function of the API takes ``progress=``: a callable of that form, or 
 from __future__ import annotations
 
 import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any, TextIO
 
 from usdforest.errors import UsdForestError
@@ -50,6 +52,60 @@ def progress_lines(
         print(f"{stage}: {done:,}/{total:,} ({now - start:.0f} s{left})", file=out, flush=True)
 
     return tick
+
+
+COMPILING = "compiling kernels once"  # (a progress line's stage: letters and spaces)
+HEARTBEAT_SECONDS = 2.0
+
+
+@contextmanager
+def compiling(tick: Progress | None, every: float = HEARTBEAT_SECONDS) -> Iterator[None]:
+    """While the block runs, numba's compilations reported through ``tick`` as their own step
+    (:data:`COMPILING`: kernels compiled of those begun), every ``every`` seconds while one
+    runs and once when the block ends. The sensors' and the point processes' kernels compile
+    on their first use on a machine (numba caches them after): a minute of a first scan that
+    showed nothing after its last bar. Nothing is reported when nothing compiles."""
+    if tick is None:
+        yield
+        return
+    try:
+        from numba.core import event
+    except ImportError:  # pragma: no cover - numba is a dependency
+        yield
+        return
+    lock = threading.Lock()
+    state = {"done": 0, "running": 0}
+    stop = threading.Event()
+
+    class Listener(event.Listener):
+        def on_start(self, _event) -> None:
+            with lock:
+                state["running"] += 1
+                done, running = state["done"], state["running"]
+            tick(COMPILING, done, done + running)
+
+        def on_end(self, _event) -> None:
+            with lock:
+                state["running"] -= 1
+                state["done"] += 1
+
+    def beat() -> None:
+        while not stop.wait(every):
+            with lock:
+                done, running = state["done"], state["running"]
+            if running:
+                tick(COMPILING, done, done + running)
+
+    beater = threading.Thread(target=beat, daemon=True, name="usdforest-compiling")
+    beater.start()
+    try:
+        with event.install_listener("numba:compile", Listener()):
+            yield
+    finally:
+        stop.set()
+        beater.join()
+        if state["done"]:
+            tick(COMPILING, state["done"], state["done"])
 
 
 def resolve_progress(progress: Any, name: str = "progress") -> Progress | None:

@@ -194,10 +194,12 @@ def progress_bars(
         TimeRemainingColumn,
     )
 
-    from usdforest.progress import progress_lines
+    from usdforest.progress import compiling, progress_lines
 
     if show and not err.is_terminal:  # a log file or CI: a short line now and then
-        yield progress_lines(every=PLAIN_PROGRESS_SECONDS, t0=t0, completions=completions)
+        lines = progress_lines(every=PLAIN_PROGRESS_SECONDS, t0=t0, completions=completions)
+        with compiling(lines):
+            yield lines
         return
     with Progress(
         TextColumn("{task.description:<18}"),
@@ -217,7 +219,8 @@ def progress_bars(
                 tasks[stage] = bar.add_task(stage, total=total)
             bar.update(tasks[stage], completed=done, total=total)
 
-        yield tick
+        with compiling(tick if show else None):
+            yield tick
 
 
 def _click_exceptions():
