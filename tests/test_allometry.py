@@ -426,7 +426,7 @@ def test_an_absurd_yaw_is_refused_with_its_row(tmp_path, yaw):
     start = text.index("sites = [")
     text = text[:start] + 'sites = "stems.csv"\n' + text[text.index("]\n", start) + 2 :]
     (tmp_path / "r.toml").write_text(text)
-    with pytest.raises(RecipeError, match=r"stems.csv line 3\.yaw: "):
+    with pytest.raises(RecipeError, match=r"stems.csv line 3(\.|: )yaw"):
         read_recipe(tmp_path / "r.toml")
 
 

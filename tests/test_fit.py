@@ -129,7 +129,7 @@ def test_the_fitted_recipe_makes_stands_like_the_map(tmp_path, runner, kind):
     [
         ("x,y,species\n1,1,larch\n", [], "species 'larch' not among the presets"),
         ("x,y\n" + "".join(f"{k},{k}\n" for k in range(5)), [], "at least 20 trees"),
-        ("a,b\n1,2\n", [], "expected a header with x and y"),
+        ("a,b\n1,2\n", [], "needs the columns x, y"),
         ("x,y\n1,1\n2,2\n", ["-o", "f.usda"], "written as .toml"),
     ],
 )
@@ -140,3 +140,78 @@ def test_fit_refuses_bad_maps_in_one_line(tmp_path, runner, rows, args, message)
     assert r.exit_code == 2 and message in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv"]
+
+
+def _map(rows: list[str], header: str = "x,y,dbh") -> str:
+    return header + "\n" + "".join(r + "\n" for r in rows)
+
+
+GRID = [f"{1 + 2 * (k % 5)},{1 + 2 * (k // 5)},0.2" for k in range(25)]
+
+
+@pytest.mark.parametrize(
+    ("text", "args", "message"),
+    [
+        # the reader the recipe's stem maps go through: DBH in metres, 0 or more, finite
+        (_map([*GRID[:24], "3,3,25"]), [], "line 26: dbh = 25 looks like centimetres"),
+        (_map([*GRID[:24], "3,3,-0.2"]), [], "line 26: dbh = -0.2 is below 0"),
+        (_map([*GRID[:24], "3,3,nan"]), [], "line 26: dbh = nan is not a finite number"),
+        (_map([*GRID[:24], "1e300,3,0.2"]), [], "line 26: x = 1e+300 is beyond 1e+08 m"),
+        (_map(GRID, "x,y,x"), [], "the header names x more than once"),
+        (_map(GRID), ["--region", "0,0,1e12,1e12"], "reaches beyond 1e+08 m"),
+        # maps too small or degenerate to fit, named with the file and why
+        (_map([]), [], "0 tree(s) at 0 distinct position(s); a fit needs at least 20 trees"),
+        (_map(["3,3,0.2"] * 25), [], "25 tree(s) at 1 distinct position(s)"),
+        (_map([f"{k},5,0.2" for k in range(25)]), [], "the trees lie on one line (y = 5 for"),
+    ],
+)
+def test_fit_reads_maps_as_the_stem_map_reader_does(tmp_path, runner, text, args, message):
+    """What a recipe's stem map refuses, fit refuses: one line naming the file (and the line
+    or the reason), nothing written (before: a recipe of dbh_mean 64.2 that build then
+    refused, bad rows dropped, exit 3 on overflow, "window: bounds [5.0, 5.0, 5.0, 5.0] are
+    empty")."""
+    (tmp_path / "m.csv").write_text(text)
+    r = runner.invoke(app, ["fit", str(tmp_path / "m.csv"), "-o", str(tmp_path / "f.toml"),
+                            *args])  # fmt: skip
+    lines = r.stderr.strip().splitlines()
+    assert r.exit_code == 2 and len(lines) == 1 and message in lines[0], r.output
+    assert "m.csv" in lines[0] or "--region" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv"]
+    if "--region" not in args and "one line" in message:  # the plot's window fits it
+        r = runner.invoke(app, ["fit", str(tmp_path / "m.csv"), "-o", str(tmp_path / "f.toml"),
+                                "--region", "-1,0,25,10"])  # fmt: skip
+        assert r.exit_code == 0, r.output
+
+
+def test_a_large_maps_pairs_stay_within_the_budget():
+    """K and g hold the pairs within rmax: a quarter of the window's side, or less where a
+    map is dense (100,000 trees on 1 km² held 1e9 pairs within 250 m: 24 GB, and the fit
+    never ended); counted here on a random map against the budget."""
+    from scipy.spatial import cKDTree
+
+    from usdforest.sites.pattern import PAIR_BUDGET, pair_rmax
+
+    assert pair_rmax(500, 100.0, 100.0, 25.0) == 25.0  # a plot's map: as before
+    r = pair_rmax(100_000, 1000.0, 1000.0, 250.0)
+    assert 20.0 < r < 30.0
+    n, side, budget = 20_000, 200.0, 200_000
+    pts = np.random.default_rng(3).uniform(0, side, (n, 2))
+    r = pair_rmax(n, side, side, side / 4, budget)
+    pairs = (cKDTree(pts).count_neighbors(cKDTree(pts), r) - n) / 2
+    assert 0.8 * budget < pairs < 1.05 * budget  # the edge loses a few
+    assert PAIR_BUDGET == 10_000_000
+
+
+def test_a_recipes_stem_map_refuses_a_column_named_twice(tmp_path):
+    """The recipe's stem maps go through the same reader: a second ``x`` column was read in
+    place of the first, without a word."""
+    from usdforest.errors import RecipeError
+    from usdforest.recipe import read_recipe
+
+    (tmp_path / "s.csv").write_text("x,y,species,dbh,height,x\n3,4,pine,0.2,18,30\n")
+    (tmp_path / "r.toml").write_text(
+        'seed = 1\nsites = "s.csv"\n[region]\nbounds = [0, 0, 40, 40]\n'
+        '[species.pine]\npreset = "scots-pine"\n'
+    )
+    with pytest.raises(RecipeError, match=r"r\.toml: sites: s\.csv: the header names x more"):
+        read_recipe(tmp_path / "r.toml")

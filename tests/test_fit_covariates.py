@@ -179,5 +179,5 @@ def test_an_output_never_replaces_an_input(tmp_path, runner, elevation):
         app, ["fit", str(stems), "--covariates", str(trap), "-o", str(tmp_path / "z.toml"),
               "--force"],
     )  # fmt: skip
-    assert run.exit_code == 2 and "is an input of this fit" in run.stderr, run.stderr
+    assert run.exit_code == 2 and "is an input of this command" in run.stderr, run.stderr
     assert trap.read_bytes() == before and not (tmp_path / "z.toml").exists()

@@ -165,7 +165,7 @@ def test_usdforest_pattern_on_a_forest_and_on_a_csv(tmp_path, runner):
     assert r.exit_code == 0, r.output
     assert "clark_evans" in r.stdout and png.stat().st_size > 10_000
     for args, message in (
-        ([str(tmp_path / "f_assets" / "pipeline.toml")], "expected a header with x and y"),
+        ([str(tmp_path / "f_assets" / "pipeline.toml")], "needs the columns x, y"),
         ([str(tmp_path / "stems.csv"), "--region", "0,0,5"], "--region: expected x0,y0,x1,y1"),
         ([str(tmp_path / "stems.csv"), "-o", str(png)], "exists; pass --force"),
     ):

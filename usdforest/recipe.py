@@ -622,45 +622,31 @@ def _site_sizes(
 
 def read_stem_map(path: Path, where: str) -> list[dict]:
     """A stem-map CSV (header ``x,y,species,dbh,height`` and optional ``crown_radius``,
-    ``yaw``; metres) as ``[[sites]]`` rows."""
-    import csv
+    ``yaw``; metres) as ``[[sites]]`` rows (:func:`usdforest.sites.stemmap.read_table`, the
+    reader ``fit`` and ``pattern`` use)."""
+    from usdforest.sites.stemmap import number, read_table
 
-    from usdforest.paths import require_file
-
-    require_file(path, "stem map")
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RecipeError(f"{where}: cannot read {path} as UTF-8 text ({exc})") from None
-    reader = csv.DictReader(text.splitlines())
-    cols = [c.strip() for c in (reader.fieldnames or [])]
-    missing = [c for c in ("x", "y", "species") if c not in cols]
-    if missing or not {"dbh", "height"} & set(cols):
+    cols, table = read_table(path, ("x", "y", "species"), known=SITE_KEYS, where=where,
+                             error=RecipeError)  # fmt: skip
+    if not {"dbh", "height"} & set(cols):
         raise RecipeError(
             f"{where}: {path.name} needs the columns x, y, species and dbh and/or height "
-            f"(metres); it has {', '.join(cols) or 'none'}"
+            f"(metres); it has {', '.join(cols)}"
         )
-    unknown = set(cols) - SITE_KEYS
-    if unknown:
-        raise RecipeError(f"{where}: {path.name} has unknown columns {', '.join(sorted(unknown))}")
     rows = []
-    for line, row in enumerate(reader, 2):
+    name = f"{where}: {path.name}"
+    for row in table:
         r: dict = {}
-        for k, v in row.items():
-            if k is None or v is None:
-                raise RecipeError(f"{where}: {path.name} line {line}: wrong number of fields")
-            k, v = k.strip(), v.strip()
-            if v == "":
+        for k in cols:
+            if row[k] == "":
                 continue
             if k == "species":
-                r[k] = v
+                r[k] = row[k]
                 continue
             try:
-                r[k] = float(v)
-            except ValueError:
-                raise RecipeError(
-                    f"{where}: {path.name} line {line}: {k} = {v!r} is not a number"
-                ) from None
+                r[k] = number(row, k, name)
+            except UsdForestError as exc:
+                raise RecipeError(str(exc)) from None
         rows.append(r)
     if not rows:
         raise RecipeError(f"{where}: {path.name} has no trees")

@@ -133,7 +133,7 @@ def fit_cmd(
     claim_outputs([output, *([raster] if covariates else [])],
                   inputs=[stem_map, *(covariates or [])], force=force)  # fmt: skip
     xy, species, dbh = _stem_map(stem_map)
-    window = _window(xy, region)
+    window = _fit_window(xy, region, stem_map)
     rasters = tuple(read_covariate(path, window) for path in covariates or [])
     names = [c.name for c in rasters]
     if len(set(names)) < len(names):
@@ -242,15 +242,20 @@ def _fit_method(f) -> str:
 
 
 def _stem_map(path: Path):
-    """Positions, species (or None) and DBH (or None) of a stem map CSV, read once."""
+    """Positions, species (or None) and DBH (or None) of a stem map CSV, read as the recipe's
+    stem-map reader reads it (:mod:`usdforest.sites.stemmap`: every row's position finite and
+    in range, every DBH in metres and 0 or more), and enough of them to fit."""
     import numpy as np
 
     from usdforest.grow.species import PRESETS
-    from usdforest.sites.pattern import points_of, read_rows
+    from usdforest.paths import shown
+    from usdforest.sites.stemmap import dbh as dbh_of
+    from usdforest.sites.stemmap import position, read_table
 
-    fields, rows = read_rows(path)
-    xy = points_of(rows, path)
-    species = [r["species"].strip() for r in rows] if "species" in fields else None
+    name = shown(path)
+    cols, rows = read_table(path, ("x", "y"))
+    xy = np.array([position(r, name) for r in rows], dtype=float).reshape(-1, 2)
+    species = [r["species"] for r in rows] if "species" in cols else None
     if species is not None:
         unknown = sorted({s for s in species if s not in PRESETS})
         if unknown:
@@ -259,12 +264,34 @@ def _stem_map(path: Path):
                 "('usdforest species' lists them); rename them in the map"
             )
     dbh = None
-    if "dbh" in fields:
-        try:
-            dbh = np.array([float(r["dbh"]) if r["dbh"].strip() else math.nan for r in rows])
-        except ValueError:
-            raise UsdForestError(f"{path}: dbh must be numbers (metres)") from None
+    if "dbh" in cols:
+        dbh = np.array([math.nan if (d := dbh_of(r, name)) is None else d for r in rows])
+    distinct = len(np.unique(xy, axis=0)) if len(xy) else 0
+    if distinct < MIN_FIT_TREES:
+        raise UsdForestError(
+            f"{name}: {len(xy):,} tree(s) at {distinct:,} distinct position(s); a fit needs "
+            f"at least {MIN_FIT_TREES} trees"
+        )
     return xy, species, dbh
+
+
+MIN_FIT_TREES = 20  # (usdforest.sites.fit refuses fewer too)
+
+
+def _fit_window(xy, region: str | None, path: Path) -> tuple[float, float, float, float]:
+    """The fit's window: ``--region``, else the trees' bounding box, which must be an area
+    (trees on one line need the plot's ``--region``)."""
+    from usdforest.paths import shown
+
+    window = _window(xy, region)
+    x0, y0, x1, y1 = window
+    if region is None and not (x1 > x0 and y1 > y0):
+        raise UsdForestError(
+            f"{shown(path)}: the trees lie on one line ({'x' if x1 == x0 else 'y'} = "
+            f"{x0 if x1 == x0 else y0:g} for all), so their bounding box has no area; give the "
+            "plot's --region x0,y0,x1,y1"
+        )
+    return window
 
 
 def _pattern_points(source: Path, replicate: int):
@@ -308,4 +335,11 @@ def _parse_bounds(text: str, name: str) -> tuple[float, float, float, float]:
         or not (vals[2] > vals[0] and vals[3] > vals[1])
     ):
         raise UsdForestError(f"{name}: expected x0,y0,x1,y1 with x1 > x0 and y1 > y0, got {text!r}")
+    from usdforest.sites.pointprocess import MAX_COORDINATE
+
+    if max(abs(v) for v in vals) > MAX_COORDINATE:
+        raise UsdForestError(
+            f"{name}: {text!r} reaches beyond {MAX_COORDINATE:.0e} m (coordinates in metres of "
+            "a projected CRS)"
+        )
     return vals  # type: ignore[return-value]

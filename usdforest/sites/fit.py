@@ -38,7 +38,7 @@ from usdforest.errors import UsdForestError
 from usdforest.sites.clusters import MAX_SCALE, Clusters
 from usdforest.sites.covariates import Covariate, quadrature
 from usdforest.sites.inhibition import MAX_RADIUS, Inhibition
-from usdforest.sites.pattern import Bounds, _checked, clark_evans, inhomogeneous_k
+from usdforest.sites.pattern import Bounds, _checked, clark_evans, inhomogeneous_k, pair_rmax
 
 CHI2_2DF_95 = 5.991  # the 95 % quantile of chi-squared with 2 degrees of freedom
 CHI2_1DF_95 = 3.841  # and with 1
@@ -323,7 +323,7 @@ def fit_stand(
         covariates=covariates, slopes=slopes, slopes_se=slopes_se,
     )  # fmt: skip
     lam = fitted.intensity(pts[:, 0], pts[:, 1])
-    rmax = min(w, h) / 4
+    rmax = pair_rmax(n, w, h, min(w, h) / 4)  # (a large map's pairs held in bounded memory)
     r = np.linspace(rmax / 40, rmax, 40)
     short = r <= rmax / 2
     k_hat = inhomogeneous_k(pts, window, r, lam)
@@ -434,9 +434,10 @@ def thomas_covariance(f: FittedStand, kappa: float, sigma: float) -> np.ndarray:
     w = dx * dy
     fields = [c * lam for c in cols]
     info = np.array([[w * float((a * b / lam).sum()) for b in fields] for a in fields])
-    reach = 8 * sigma  # the kernel below exp(-16)
-    kx = np.arange(-int(reach / dx), int(reach / dx) + 1) * dx
-    ky = np.arange(-int(reach / dy), int(reach / dy) + 1) * dy
+    # the kernel to where it falls below exp(-16), or across the window (no pair is further
+    # apart: a minimum contrast that ran off to a huge sigma made a grid of 77 GiB)
+    kx = np.arange(-min(int(8 * sigma / dx), nx), min(int(8 * sigma / dx), nx) + 1) * dx
+    ky = np.arange(-min(int(8 * sigma / dy), ny), min(int(8 * sigma / dy), ny) + 1) * dy
     kxx, kyy = np.meshgrid(kx, ky)
     kernel = np.exp(-(kxx**2 + kyy**2) / (4 * sigma**2)) / (4 * math.pi * kappa * sigma**2)
     spread = [fftconvolve(fld, kernel, mode="same") for fld in fields]

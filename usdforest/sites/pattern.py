@@ -119,6 +119,19 @@ def clark_evans(xy: np.ndarray, bounds: Bounds) -> float:
     return float(nn.mean() / expected)
 
 
+PAIR_BUDGET = 10_000_000  # pairs within rmax held at once: about 0.6 GB with their weights
+
+
+def pair_rmax(n: int, w: float, h: float, cap: float, budget: int = PAIR_BUDGET) -> float:
+    """The largest distance of a K or g estimate: ``cap`` (a quarter of the window's shorter
+    side), or less where that would hold more than ``budget`` pairs of ``n`` points (a random
+    pattern has ``n^2 pi r^2 / (2 |W|)`` within ``r``): 100,000 trees on 1 km² would hold 1e9
+    pairs within 250 m (24 GB), 1e7 within 25 m."""
+    if n < 2:
+        return cap
+    return min(cap, math.sqrt(2.0 * w * h * budget / (math.pi * n * n)))
+
+
 def _check_r(r: np.ndarray, w: float, h: float) -> None:
     if r.size and (np.any(r < 0) or r.max() > min(w, h) / 2):
         raise UsdForestError(
@@ -179,45 +192,21 @@ def csr_envelope(
 
 def read_rows(path: str | Path, replicate: int = 0) -> tuple[set[str], list[dict]]:
     """The columns and rows of a CSV of trees with ``x`` and ``y`` (a stem map, a forest's
-    ``trees.csv``, or ``usdforest sample``'s output, of which only ``replicate``)."""
-    import csv
-    import io
+    ``trees.csv``, or ``usdforest sample``'s output, of which only ``replicate``), read as
+    every table of trees is (:func:`usdforest.sites.stemmap.read_table`)."""
+    from usdforest.sites.stemmap import read_table
 
-    from usdforest.paths import require_file
-
-    path = Path(path)
-    require_file(path, "CSV file")
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError:
-        raise UsdForestError(f"{path}: not a text file (expected a CSV with x,y)") from None
-    reader = csv.DictReader(io.StringIO(text, newline=""))
-    fields = set(reader.fieldnames or ())
-    if not {"x", "y"} <= fields:
-        raise UsdForestError(f"{path}: expected a header with x and y columns")
-    rows = []
-    for line, row in enumerate(reader, 2):
-        try:
-            if row.get("replicate") and int(row["replicate"]) != replicate:
-                continue
-        except ValueError:
-            raise UsdForestError(f"{path}: line {line}: replicate must be a whole number") from None
-        rows.append({**row, "line": line})
-    return fields, rows
+    cols, rows = read_table(path, ("x", "y"), replicate=replicate)
+    return set(cols), rows
 
 
 def points_of(rows: list[dict], path: str | Path) -> np.ndarray:
-    """``(n, 2)`` positions of :func:`read_rows`' rows, each checked finite."""
-    pts = []
-    for row in rows:
-        try:
-            x, y = float(row["x"]), float(row["y"])
-        except (TypeError, ValueError):
-            raise UsdForestError(f"{path}: line {row['line']}: x and y must be numbers") from None
-        if not (math.isfinite(x) and math.isfinite(y)):
-            raise UsdForestError(f"{path}: line {row['line']}: x and y must be finite")
-        pts.append((x, y))
-    return np.array(pts, dtype=float).reshape(-1, 2)
+    """``(n, 2)`` positions of :func:`read_rows`' rows, each finite and within range."""
+    from usdforest.paths import shown
+    from usdforest.sites.stemmap import position
+
+    name = shown(path)
+    return np.array([position(row, name) for row in rows], dtype=float).reshape(-1, 2)
 
 
 def read_points(path: str | Path, replicate: int = 0) -> np.ndarray:
@@ -237,10 +226,10 @@ def describe(
 ) -> dict:
     """A stand's pattern in one dict: trees, stems/ha, nearest-neighbour distances,
     Clark-Evans R and, at ``steps`` distances up to ``rmax`` (default a quarter of the
-    window's shorter side, at most 25 m), L(r) - r and g(r) with their CSR envelopes
-    (``nsim`` simulations: the pointwise 2/(nsim + 1) test)."""
+    window's shorter side, at most 25 m and :func:`pair_rmax`), L(r) - r and g(r) with their
+    CSR envelopes (``nsim`` simulations: the pointwise 2/(nsim + 1) test)."""
     pts, w, h, area = _checked(xy, bounds)
-    top = min(min(w, h) / 4, 25.0) if rmax is None else float(rmax)
+    top = pair_rmax(len(pts), w, h, min(min(w, h) / 4, 25.0)) if rmax is None else float(rmax)
     r = np.linspace(top / steps, top, steps)
     nn = cKDTree(pts).query(pts, k=2)[0][:, 1]
     env_l = csr_envelope(pts, bounds, r, l_function, nsim, seed, progress)
