@@ -205,6 +205,40 @@ BAD_ARGUMENTS = {
         lambda d: usdforest.fly(d / "f.usda", line=LINE, lidar_rate=None),
         "lidar_rate: expected a finite number, got None",
     ),
+    # issue 61's: builtin errors without the argument's name, and absurd magnitudes
+    "load-recipe-number": (lambda d: usdforest.load_recipe(123), "recipe: expected a file name"),
+    "scan-stage-none": (
+        lambda d: usdforest.scan(None, "lidar", (0, 0, 2)),
+        "stage: expected a file name",
+    ),
+    "scan-pose-none": (
+        lambda d: usdforest.scan(d / "f.usda", "lidar", None),
+        "pose: expected x, y, z[, yaw, pitch, roll]",
+    ),
+    "fly-stage-number": (
+        lambda d: usdforest.fly(5, line=LINE),
+        "stage: expected a file name",
+    ),
+    "build-unwritable-folder": (
+        lambda d: usdforest.build_forest(TWO_TREES, d / "f.usda" / "sub" / "g.usda"),
+        "{d}/f.usda/sub/g.usda: {d}/f.usda is a file, not a folder",
+    ),
+    "fly-camera-number": (
+        lambda d: usdforest.fly(d / "f.usda", line=LINE, lidar=None, camera=5),
+        "camera: expected a preset's name",
+    ),
+    "fly-camera-baseline-huge": (
+        lambda d: usdforest.fly(d / "f.usda", line=LINE, lidar=None, camera={"baseline": 1e300}),
+        "camera.baseline: 1e+300 is outside 0 to 10 m",
+    ),
+    "scan-camera-noise-huge": (
+        lambda d: usdforest.scan(d / "f.usda", "camera", (0, 0, 2), settings={"noise": 1e300}),
+        "camera.noise: 1e+300 is outside 0 to 255",
+    ),
+    "fly-lidar-range-huge": (
+        lambda d: usdforest.fly(d / "f.usda", line=LINE, lidar={"max_range": 1e300}),
+        "lidar.max_range: must be a number in (0, 100000] m",
+    ),
 }
 
 
@@ -225,6 +259,7 @@ def test_the_api_names_a_bad_argument_and_writes_nothing(small_forest, tmp_path,
     before = sorted(p.name for p in tmp_path.iterdir())
     with pytest.raises(UsdForestError) as err:
         call(tmp_path)
+    start = start.replace("{d}", str(tmp_path))
     assert str(err.value).startswith(start), str(err.value)
     assert len(str(err.value).splitlines()) == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == before
@@ -248,3 +283,32 @@ def test_progress_reaches_a_notebook_as_lines_or_a_callback(small_forest, capsys
     usdforest.fly(stage, line=LINE, lidar_rate=10, progress=lambda *t: ticks.append(t))
     sweeps = [t for t in ticks if t[0] == "lidar sweeps"]
     assert sweeps and sweeps[-1][1] == sweeps[-1][2] > 1
+
+
+def test_fly_takes_settings_tables_as_scan_does(small_forest, tmp_path):
+    """A sensor's table of keys over its first preset, in ``fly`` as in ``scan``
+    (``fly(camera={...})`` ended in AttributeError): the camera flown is the one scanned."""
+    table = {"width": 32, "height": 24, "max_range": 20.0}
+    flight = usdforest.fly(small_forest / "f.usda", line=LINE, lidar=None, camera=table)
+    scan = usdforest.scan(small_forest / "f.usda", "camera", (0, -6, 1.5), settings=table)
+    assert flight.camera.camera == scan.settings
+    assert (scan.settings.width, scan.settings.height) == (32, 24)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("season", "spring", "recipe.season: expected summer or autumn or winter"),
+        ("wind", {"speed": 8}, "recipe.wind: expected None or a usdforest.grow.sway.WindSpec"),
+        ("seed", -1, "recipe.seed: expected an integer"),
+        ("tiles", 0.0, "recipe.tiles: expected None or a tile side"),
+    ],
+)
+def test_a_recipe_changed_in_python_is_checked_as_read(field, value, message):
+    """``dataclasses.replace`` goes through the same checks as the reader (a season or a
+    wind that is none built silently or failed deep inside the build)."""
+    import dataclasses
+
+    recipe = usdforest.load_recipe(TWO_TREES)
+    with pytest.raises(UsdForestError, match=re.escape(message)):
+        dataclasses.replace(recipe, **{field: value})

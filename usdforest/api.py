@@ -53,6 +53,8 @@ def load_recipe(
     from usdforest.recipe import parse_recipe, read_recipe, recipe_path
 
     seed = arguments.optional_seed(seed)
+    if base is not None:
+        arguments.path(base, "base")
     if isinstance(recipe, Mapping):
         folder = Path(base) if base is not None else Path.cwd()
         return parse_recipe(
@@ -63,6 +65,8 @@ def load_recipe(
             hard_core=hard_core,
             season=season,
         )
+    if recipe is not None:
+        arguments.path(recipe, "recipe")
     return read_recipe(recipe_path(recipe), seed=seed, hard_core=hard_core, season=season)
 
 
@@ -94,6 +98,7 @@ def build_forest(
     from usdforest.usd.forest import write_forest
 
     seed = arguments.optional_seed(seed)
+    arguments.path(out, "out")
     progress = resolve_progress(progress)
     if not isinstance(recipe, Recipe):
         recipe = load_recipe(recipe, seed=seed)
@@ -156,9 +161,11 @@ def scan(
     "cuda" or "cuda:N"), ``time`` seconds into the stage's animation (a forest's wind; the
     still stage when omitted); ``progress`` as :func:`build_forest` takes it; see
     :func:`usdforest.sensors.survey.scan`."""
+    from usdforest import arguments
     from usdforest.progress import resolve_progress
     from usdforest.sensors import survey
 
+    arguments.path(stage, "stage")
     return survey.scan(
         stage, sensor, pose, preset=preset, settings=settings, seed=seed, device=device,
         progress=resolve_progress(progress), time=time,
@@ -192,6 +199,7 @@ def fly(
     from usdforest.progress import resolve_progress
     from usdforest.sensors import survey
 
+    arguments.path(stage, "stage")
     return survey.fly(
         stage,
         path=path,

@@ -345,6 +345,41 @@ class Recipe:
     wind: Any = None  # grow.sway.WindSpec: the trees' sway, as a layer of time samples
     season: str = "summer"  # the species' leaves and their colour (usdforest.grow.seasons)
 
+    def __post_init__(self) -> None:
+        """The fields a caller may change with ``dataclasses.replace`` checked as the
+        recipe's reader checks them (a season or wind that is none built silently or failed
+        deep inside): a :class:`RecipeError` naming the field."""
+        from usdforest.grow.colliders import COLLIDER_MODES
+        from usdforest.grow.seasons import SEASONS
+        from usdforest.grow.sway import WindSpec
+
+        def bad(field_: str, expected: str) -> RecipeError:
+            return RecipeError(f"{self.source}: recipe.{field_}: expected {expected}, got "
+                               f"{getattr(self, field_)!r}")  # fmt: skip
+
+        if not (isinstance(self.seed, int) and not isinstance(self.seed, bool)
+                and 0 <= self.seed < 2**64):  # fmt: skip
+            raise bad("seed", "an integer from 0 to 2**64-1")
+        if self.season not in SEASONS:
+            raise bad("season", " or ".join(SEASONS))
+        if self.wind is not None and not isinstance(self.wind, WindSpec):
+            raise bad("wind", "None or a usdforest.grow.sway.WindSpec")
+        if self.colliders not in COLLIDER_MODES:
+            raise bad("colliders", ", ".join(COLLIDER_MODES))
+        if self.lod not in ("full", "medium", "proxy"):
+            raise bad("lod", "full, medium or proxy")
+        if self.origin not in ("corner", "centre"):
+            raise bad("origin", "corner or centre")
+        if not (isinstance(self.hard_core, int | float) and math.isfinite(self.hard_core)
+                and self.hard_core >= 0):  # fmt: skip
+            raise bad("hard_core", "a finite number of metres, 0 or more")
+        if self.tiles is not None and not (
+            isinstance(self.tiles, int | float) and math.isfinite(self.tiles) and self.tiles > 0
+        ):
+            raise bad("tiles", "None or a tile side in metres above 0")
+        if not (isinstance(self.max_trees, int) and self.max_trees > 0):
+            raise bad("max_trees", "a whole number above 0")
+
     @property
     def species_names(self) -> tuple[str, ...]:
         return tuple(name for name, _ in self.mix)

@@ -132,6 +132,12 @@ class SpinningLidar:
         return np.column_stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
 
 
+# what a camera's settings may be (read noise in 8-bit counts, a sensor's full-well
+# capacity, a stereo rig's baseline): beyond these an image is all noise or all saturated
+CAMERA_LIMITS = {"noise": (255.0, "counts of 255"), "full_well": (1e7, "electrons"),
+                 "baseline": (10.0, "m")}  # fmt: skip
+
+
 @dataclass(frozen=True)
 class DepthCamera:
     """A pinhole camera looking along +X: ``width`` x ``height`` rays, horizontal FOV.
@@ -171,9 +177,11 @@ class DepthCamera:
                 raise UsdForestError(f"{table}.{key}: must be a finite number")
             if self.kind != "camera" and value != 0:
                 raise UsdForestError(f"lidar.{key}: a camera setting, not a depth camera's")
-        for key in ("noise", "full_well", "baseline"):
-            if getattr(self, key) < 0:
-                raise UsdForestError(f"{table}.{key}: must be >= 0, got {getattr(self, key):g}")
+        for key, (top, unit) in CAMERA_LIMITS.items():
+            if not 0 <= getattr(self, key) <= top:
+                raise UsdForestError(
+                    f"{table}.{key}: {getattr(self, key):g} is outside 0 to {top:g} {unit}"
+                )
         if self.baseline > 0 and any(getattr(self, k) for k in DISTORTION):
             raise UsdForestError(
                 f"{table}.baseline: a stereo pair is rectified (its images undistorted): set "
@@ -212,11 +220,15 @@ CAMERA_ONLY = (
 )
 
 
+MAX_RANGE = 1e5  # m: beyond any laser or camera in forest sensing (airborne: a few km)
+MAX_RANGE_NOISE = 10.0  # m, one standard deviation
+
+
 def _check_common(max_range: float, noise: float, table: str = "lidar") -> None:
-    if not (np.isfinite(max_range) and max_range > 0):
-        raise UsdForestError(f"{table}.max_range: must be a finite number > 0")
-    if not (np.isfinite(noise) and noise >= 0):
-        raise UsdForestError(f"{table}.range_noise: must be >= 0")
+    if not (np.isfinite(max_range) and 0 < max_range <= MAX_RANGE):
+        raise UsdForestError(f"{table}.max_range: must be a number in (0, {MAX_RANGE:g}] m")
+    if not (np.isfinite(noise) and 0 <= noise <= MAX_RANGE_NOISE):
+        raise UsdForestError(f"{table}.range_noise: must be within 0 and {MAX_RANGE_NOISE:g} m")
 
 
 # Divergence: VLP-16 3 mrad (the sister VLS-128's manual gives 3.0 x 1.5; the VLP-16's own

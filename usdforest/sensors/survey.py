@@ -98,7 +98,14 @@ def _pose(pose: Pose | str | Sequence[float]) -> Pose:
         return pose
     if isinstance(pose, str):
         return parse_pose(pose)
-    return parse_pose(",".join(repr(float(v)) for v in pose))
+    try:
+        values = [float(v) for v in pose]
+    except (TypeError, ValueError):
+        raise UsdForestError(
+            f"pose: expected x, y, z[, yaw, pitch, roll] (numbers, a string or a Pose), got "
+            f"{pose!r}"
+        ) from None
+    return parse_pose(",".join(repr(v) for v in values))
 
 
 @dataclass(frozen=True)
@@ -263,9 +270,17 @@ def flight_settings(
             out.append(
                 sensor_settings(sensor, given, tables.get(sensor), where=where, presets=presets)
             )
-        else:
+        elif isinstance(given, Mapping):  # a table over the sensor's first preset, as scan's
+            out.append(sensor_settings(sensor, None, given, where=where, presets=presets))
+        elif isinstance(given, type(next(iter(presets.values())))):
             given.check()
             out.append(given)
+        else:
+            kind = type(next(iter(presets.values()))).__name__
+            raise UsdForestError(
+                f"{sensor}: expected a preset's name ({', '.join(presets)}), a table of "
+                f"settings or a {kind}, got {given!r}"
+            )
     if all(x is None for x in out):
         raise UsdForestError("nothing to fly: --lidar none, --sonar none and --camera none")
     return out[0], out[1], out[2]

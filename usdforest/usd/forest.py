@@ -52,7 +52,7 @@ from usdforest.atomic import output_lock, publish, staging_folder
 from usdforest.cluster import Progress, dask_client, run_tasks
 from usdforest.errors import UsdForestError
 from usdforest.grow.bounds import EMPTY_EXTENT
-from usdforest.paths import claim_outputs
+from usdforest.paths import claim_outputs, require_output
 from usdforest.recipe import Recipe, recipe_inputs, resolved_toml
 from usdforest.sites.local import Plan, classes_for, first_ids, place, squares, whole
 from usdforest.sites.stand import merge_sums
@@ -234,6 +234,7 @@ def write_forest(
     from usdforest import arguments
 
     out = Path(arguments.path(out, "out"))
+    require_output(out)
     if out.suffix != ".usda":
         raise UsdForestError(f"{out}: the forest's interface layer must end in .usda")
     arguments.seed(recipe.seed, "seed")

@@ -61,7 +61,7 @@ from usdforest.grow.placement import Placement, place
 from usdforest.grow.proxy import Levels, levels
 from usdforest.grow.seasons import keep_leaves
 from usdforest.grow.species import Geometry, Grown, Species, grow, sized, tree_size
-from usdforest.paths import claim_outputs
+from usdforest.paths import claim_outputs, require_output
 from usdforest.seeds import stream
 from usdforest.usd.layers import (
     T,
@@ -736,6 +736,7 @@ def write_tree(
     that grows on it, so that one transform (a layer of the user's own) moves it whole.
     """
     out = Path(out)
+    require_output(out)
     if out.suffix not in (".usda", ".usdc", ".usd"):
         raise UsdForestError(f"{out}: the tree layer must end in .usda, .usdc or .usd")
     assets = out.parent / f"{out.stem}_assets"
