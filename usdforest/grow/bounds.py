@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from usdforest import exact
+
 CHUNK = 400_000  # transformed points held at once
 SMALL = 20_000  # transformed points below which every instance is transformed
 
@@ -200,7 +202,7 @@ def grouped_extents(
         step = max(1, CHUNK // len(hull))
         for start in range(0, len(sel), step):
             i = sel[start : start + step]
-            pts = np.matmul(hull, rows[i]) + translate[i, None, :]
+            pts = exact.matmul(hull, rows[i]) + translate[i, None, :]
             np.minimum.at(lo, group[i], pts.min(axis=1))
             np.maximum.at(hi, group[i], pts.max(axis=1))
     empty = ~np.isfinite(lo[:, 0])

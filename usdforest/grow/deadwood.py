@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from usdforest import exact
 from usdforest.errors import UsdForestError
 from usdforest.grow.allometry import weibull_for
 from usdforest.grow.obstacles import Stems, point_segment
@@ -255,7 +256,7 @@ def _frames(axis: np.ndarray, roll: np.ndarray) -> np.ndarray:
     """Unit side vectors (the template's +X) across each ``axis``, turned ``roll`` radians
     from the direction nearest world up (for a vertical axis: from world +X)."""
     up = np.array([0.0, 0.0, 1.0])
-    ref = up - (axis @ up)[:, None] * axis
+    ref = up - exact.dot(axis, up)[:, None] * axis
     vertical = np.linalg.norm(ref, axis=1) < 1e-6
     ref[vertical] = [1.0, 0.0, 0.0]
     ref /= np.linalg.norm(ref, axis=1, keepdims=True)
@@ -362,7 +363,7 @@ def place_dead_wood(
             out["kind"].append(KINDS.index(kind))
             out["decay"].append(dc)
             out["base"].append(base)
-            out["axis"].append(axis / np.linalg.norm(axis))
+            out["axis"].append(axis / exact.norm(axis))
             out["roll"].append(roll)
             out["len"].append(ln)
             out["d"].append(d)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from usdforest import exact
+
 
 class Stems:
     """Stems as discs (centres ``xy`` (n, 2), base radii ``r``), the few near a footprint
@@ -32,5 +34,5 @@ class Stems:
 def point_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Distances of points ``p`` (m, 2) from the segment ``a``-``b``."""
     ab = b - a
-    t = np.clip(((p - a) @ ab) / max(float(ab @ ab), 1e-18), 0.0, 1.0)
+    t = np.clip(exact.dot(p - a, ab) / max(float(exact.dot(ab, ab)), 1e-18), 0.0, 1.0)
     return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from usdforest import exact
 from usdforest.errors import UsdForestError
 from usdforest.grow.leafangles import LeafAngles
 from usdforest.grow.skeleton import Skeleton
@@ -143,8 +144,8 @@ class Placement:
         """``(w, 4, 4)`` row-vector transforms (USD convention: p' = p @ M)."""
         rot = matrix_from_quat(self.orient)  # column-vector rotations
         m = np.zeros((self.n_wood, 4, 4))
-        m[:, :3, :3] = shear_matrices(self.shear) @ (
-            np.transpose(rot, (0, 2, 1)) * self.scale[:, :, None]
+        m[:, :3, :3] = exact.matmul(
+            shear_matrices(self.shear), np.transpose(rot, (0, 2, 1)) * self.scale[:, :, None]
         )
         m[:, 3, :3] = self.translate
         m[:, 3, 3] = 1.0
@@ -187,7 +188,7 @@ def _runs(sk: Skeleton, bend_split_deg: float) -> tuple[list[list[int]], np.ndar
         p = parent[i]
         if p >= 0 and axis[p] == axis[i]:
             r = int(run_of[p])
-            if runs[r][-1] == p and float(direction[i] @ run_dir[r]) >= cos_limit:
+            if runs[r][-1] == p and float(exact.dot(direction[i], run_dir[r])) >= cos_limit:
                 runs[r].append(i)
                 run_of[i] = r
                 continue
@@ -586,7 +587,7 @@ def _leaf_frames(
     else:
         # blade normal: towards the sky, tilted at random about the blade
         sky = np.array([0.0, 0.0, 1.0])
-        n = sky - blade * (blade @ sky)[:, None]
+        n = sky - blade * exact.dot(blade, sky)[:, None]
         flat = np.linalg.norm(n, axis=1) < 1e-6
         n[flat] = out[flat]
         n /= np.linalg.norm(n, axis=1, keepdims=True)

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
+from usdforest import exact
 from usdforest.atomic import atomic_path
 from usdforest.errors import UsdForestError
 from usdforest.paths import require_file, shown
@@ -148,7 +149,7 @@ def mesh_triangles(prim: Usd.Prim, to_root: np.ndarray) -> np.ndarray:
     idx = mesh.GetFaceVertexIndicesAttr().Get()
     if pts is None or counts is None or idx is None or len(pts) == 0 or len(counts) == 0:
         return np.zeros((0, 3, 3))
-    v = np.asarray(pts, dtype=float) @ to_root[:3, :3] + to_root[3, :3]
+    v = exact.matmul(np.asarray(pts, dtype=float), to_root[:3, :3]) + to_root[3, :3]
     counts, idx = np.asarray(counts), np.asarray(idx)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     tri = []

@@ -24,6 +24,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from usdforest import exact
 from usdforest.errors import UsdForestError
 from usdforest.progress import Progress
 from usdforest.runs import run_starts
@@ -64,9 +65,10 @@ class Cloud:
     def transformed(self, m: np.ndarray) -> Cloud:
         """Apply a row-vector 4x4 transform (USD convention)."""
         rot = m[:3, :3]
-        n = self.normals @ np.linalg.inv(rot).T
+        n = exact.matmul(self.normals, exact.inv3(rot).T)
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        return Cloud(self.points @ rot + m[3, :3], n, self.colors, self.spacing * _scale(m))
+        return Cloud(exact.matmul(self.points, rot) + m[3, :3], n, self.colors,
+                     self.spacing * _scale(m))  # fmt: skip
 
 
 # --------------------------------------------------------------------------- stage -> points
@@ -104,7 +106,7 @@ def _sample_triangles(
     template mesh each. ``color()`` gives the mesh's colour."""
     if len(local) == 0 or len(mats) == 0:
         return Cloud.concat([])
-    t = (local.reshape(1, -1, 3) @ mats[:, :3, :3] + mats[:, None, 3, :3]).reshape(
+    t = (exact.matmul(local.reshape(1, -1, 3), mats[:, :3, :3]) + mats[:, None, 3, :3]).reshape(
         len(mats), -1, 3, 3
     )
     e1, e2 = t[:, :, 1] - t[:, :, 0], t[:, :, 2] - t[:, :, 0]
@@ -143,7 +145,7 @@ def _times3(x: np.ndarray, a: np.ndarray) -> np.ndarray:
 
 def _scale(m: np.ndarray) -> float:
     """The (median) uniform scale of row-vector 4x4 transforms ``m`` ((4, 4) or (k, 4, 4))."""
-    det = np.abs(np.linalg.det(np.asarray(m).reshape(-1, 4, 4)[:, :3, :3]))
+    det = np.abs(exact.det3(np.asarray(m).reshape(-1, 4, 4)[:, :3, :3]))
     return float(np.median(np.cbrt(det))) or 1.0
 
 
@@ -200,17 +202,17 @@ def stage_cloud(
         """Samples on the meshes of the instanceable prim ``first`` (read through its
         instance proxies) placed by each instance's transform ``mats`` (k, 4, 4)."""
         out = []
-        first_inv = np.linalg.inv(_matrix(cache.GetLocalToWorldTransform(first)))
+        first_inv = exact.inv_affine(_matrix(cache.GetLocalToWorldTransform(first)))
         it = iter(Usd.PrimRange(first, Usd.TraverseInstanceProxies()))
         next(it)
         for p in it:
             if not _drawn(p):
                 it.PruneChildren()
                 continue
-            rel = _matrix(cache.GetLocalToWorldTransform(p)) @ first_inv
+            rel = exact.matmul(_matrix(cache.GetLocalToWorldTransform(p)), first_inv)
             if p.IsA(UsdGeom.PointInstancer):
                 it.PruneChildren()
-                inner = _instances(p, spacing / _scale(rel @ mats)).transformed(rel)
+                inner = _instances(p, spacing / _scale(exact.matmul(rel, mats))).transformed(rel)
                 out.extend(inner.transformed(m) for m in mats)
                 continue
             if not p.IsA(UsdGeom.Mesh):
@@ -228,7 +230,7 @@ def stage_cloud(
         if key in memo:
             return memo[key]
         prim_to_world = _matrix(cache.GetLocalToWorldTransform(prim))
-        inv = np.linalg.inv(prim_to_world)
+        inv = exact.inv_affine(prim_to_world)
         parts = []
         instances: dict = {}  # instanceable prims (a tree's branches) by their prototype
         it = iter(Usd.PrimRange(prim, Usd.TraverseInstanceProxies()))
@@ -237,18 +239,20 @@ def stage_cloud(
                 it.PruneChildren()
                 continue
             if p.IsA(UsdGeom.Mesh):
-                to_root = _matrix(cache.GetLocalToWorldTransform(p)) @ inv
+                to_root = exact.matmul(_matrix(cache.GetLocalToWorldTransform(p)), inv)
                 parts.append(_sample_mesh(p, to_root, spacing, rng))
             elif p.IsA(UsdGeom.PointInstancer):
                 it.PruneChildren()
-                to_root = _matrix(cache.GetLocalToWorldTransform(p)) @ inv
-                deferred = defer is not None and _defer(p, spacing, to_root @ prim_to_world, defer)
+                to_root = exact.matmul(_matrix(cache.GetLocalToWorldTransform(p)), inv)
+                deferred = defer is not None and _defer(
+                    p, spacing, exact.matmul(to_root, prim_to_world), defer
+                )
                 if not deferred:  # sampled in the instancer's own units
                     parts.append(_instances(p, spacing / _scale(to_root)).transformed(to_root))
             elif p.IsInstance():
                 # its prototype's meshes are sampled below, once for all its instances
                 it.PruneChildren()
-                to_root = _matrix(cache.GetLocalToWorldTransform(p)) @ inv
+                to_root = exact.matmul(_matrix(cache.GetLocalToWorldTransform(p)), inv)
                 instances.setdefault(p.GetPrototype().GetPath(), (p, []))[1].append(to_root)
         for first, mats in instances.values():
             parts.extend(_instanced(first, np.stack(mats), spacing))
@@ -343,7 +347,7 @@ def stage_cloud(
             sel = np.flatnonzero(idx == k)
             if sel.size == 0:
                 continue
-            scales = np.cbrt(np.abs(np.linalg.det(xf_all[sel, :3, :3])))
+            scales = np.cbrt(np.abs(exact.det3(xf_all[sel, :3, :3])))
             local = _prototype(p, path, scales, spacing)
             if len(local) == 0:
                 continue
@@ -383,9 +387,9 @@ def view_basis(view: str) -> np.ndarray:
         return np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, -1.0]])
     if view == "iso":
         f = np.array([1.0, 1.0, -0.75])
-        f /= np.linalg.norm(f)
+        f /= exact.norm(f)
         r = np.cross(f, [0, 0, 1.0])
-        r /= np.linalg.norm(r)
+        r /= exact.norm(r)
         u = np.cross(r, f)
         return np.stack([r, u, f])
     raise UsdForestError(f"unknown view {view!r}; use side, top or iso")
@@ -424,12 +428,12 @@ def splat(
     if len(cloud) == 0 and window is None:
         return img, (0.0, 1.0, 0.0, 1.0)
     if window is None:
-        window = view_window(cloud.points @ basis[:2].T, size, margin)
+        window = view_window(exact.matmul(cloud.points, basis[:2].T), size, margin)
     u0, u1, _, v1 = window
     px = (u1 - u0) / w
     zb = _ZBuffer(img)
     if len(cloud):
-        uvd = cloud.points @ basis.T
+        uvd = exact.matmul(cloud.points, basis.T)
         col = np.floor((uvd[:, 0] - u0) / px).astype(np.int64)
         row = np.floor((v1 - uvd[:, 1]) / px).astype(np.int64)
         zb.add(*_expand(row, col, uvd[:, 2], _radius(cloud.spacing, px)), _shaded(cloud))
@@ -439,7 +443,7 @@ def splat(
 
 
 def _shaded(cloud: Cloud) -> np.ndarray:
-    shade = 0.3 + 0.7 * np.abs(cloud.normals @ LIGHT)
+    shade = 0.3 + 0.7 * np.abs(exact.dot(cloud.normals, LIGHT))
     return np.clip(cloud.colors * shade[:, None] * 1.25, 0, 1)
 
 
@@ -586,7 +590,7 @@ def _sprite(cloud: Cloud, yaw: float, scale: float, basis: np.ndarray, px: float
     m = np.eye(4)
     m[:3, :3] = np.array([[c, sn, 0.0], [-sn, c, 0.0], [0.0, 0.0, 1.0]]) * scale
     turned = cloud.transformed(m)
-    uvd = turned.points @ basis.T
+    uvd = exact.matmul(turned.points, basis.T)
     col = np.floor(uvd[:, 0] / px + 0.5).astype(np.int64)
     row = np.floor(-uvd[:, 1] / px + 0.5).astype(np.int64)
     row, col, depth, src = _expand(row, col, uvd[:, 2], _radius(turned.spacing, px))
@@ -654,7 +658,7 @@ def render_stage(
     corners = np.array(
         [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
     )
-    uv = corners @ basis[:2].T
+    uv = exact.matmul(corners, basis[:2].T)
     extent = float(max(np.ptp(uv[:, 0]) / size[0], np.ptp(uv[:, 1]) / size[1]))
     kind = (
         "forest"
@@ -719,9 +723,9 @@ def _ground(
         from usdforest.usd.layers import mesh_triangles
 
         frame = np.eye(4) if frame is None else frame
+        now = Usd.TimeCode.Default()
         world = [
-            _matrix(UsdGeom.Xformable(m).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
-            @ frame
+            exact.matmul(_matrix(UsdGeom.Xformable(m).ComputeLocalToWorldTransform(now)), frame)
             for m in meshes
         ]
         corners = np.concatenate(
