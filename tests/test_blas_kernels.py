@@ -3,7 +3,7 @@ of the default recipe (its dead wood, colliders, layers under the crowns and thu
 built in two processes that force two OpenBLAS kernels, is the same file for file. Under
 Haswell's kernel and this machine's own, a collider's position and the thumbnail differed
 in their last bits (BLAS sums in the kernel's order and fuses multiply-adds); usdforest's
-geometry goes through :mod:`usdforest.exact` instead. (A 20 m plot came out the same under
+geometry goes through :mod:`usdforest.grow.exact` instead. (A 20 m plot came out the same under
 both kernels before that too: 30 m is the smallest that showed it.)"""
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ def test_two_blas_kernels_build_the_same_bytes(tmp_path):
 
 def test_exact_products_are_numpys_to_rounding():
     """The fixed-order products agree with numpy's (BLAS's) to rounding, inverses invert."""
-    from usdforest import exact
+    from usdforest.grow import exact
 
     rng = np.random.default_rng(5)
     a, b = rng.normal(size=(7, 5, 3)), rng.normal(size=(7, 3, 4))

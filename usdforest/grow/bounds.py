@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from usdforest import exact
+from usdforest.grow import exact
 
 CHUNK = 400_000  # transformed points held at once
 SMALL = 20_000  # transformed points below which every instance is transformed

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from usdforest import exact
 from usdforest.errors import UsdForestError
+from usdforest.grow import exact
 from usdforest.grow.allometry import weibull_for
 from usdforest.grow.obstacles import Stems, point_segment
 from usdforest.seeds import stream

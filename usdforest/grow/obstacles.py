@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from usdforest import exact
+from usdforest.grow import exact
 
 
 class Stems:

@@ -37,8 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from usdforest import exact
 from usdforest.errors import UsdForestError
+from usdforest.grow import exact
 from usdforest.grow.leafangles import LeafAngles
 from usdforest.grow.skeleton import Skeleton
 from usdforest.grow.species import Clumps, Geometry

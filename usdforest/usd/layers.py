@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
-from usdforest import exact
 from usdforest.atomic import atomic_path
 from usdforest.errors import UsdForestError
+from usdforest.grow import exact
 from usdforest.paths import require_file, shown
 
 T = Sdf.ValueTypeNames

@@ -24,8 +24,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from usdforest import exact
 from usdforest.errors import UsdForestError
+from usdforest.grow import exact
 from usdforest.progress import Progress
 from usdforest.runs import run_starts
 
