@@ -68,42 +68,59 @@ def compiling(tick: Progress | None, every: float = HEARTBEAT_SECONDS) -> Iterat
     if tick is None:
         yield
         return
-    try:
-        from numba.core import event
-    except ImportError:  # pragma: no cover - numba is a dependency
-        yield
-        return
     lock = threading.Lock()
     state = {"done": 0, "running": 0}
     stop = threading.Event()
+    registered: list = []  # (event module, listener), once numba is imported
 
-    class Listener(event.Listener):
-        def on_start(self, _event) -> None:
-            with lock:
-                state["running"] += 1
-                done, running = state["done"], state["running"]
-            tick(COMPILING, done, done + running)
+    def on_start() -> None:
+        with lock:
+            state["running"] += 1
+            done, running = state["done"], state["running"]
+        tick(COMPILING, done, done + running)
 
-        def on_end(self, _event) -> None:
-            with lock:
-                state["running"] -= 1
-                state["done"] += 1
+    def on_end() -> None:
+        with lock:
+            state["running"] -= 1
+            state["done"] += 1
+
+    def listen() -> None:
+        """Hear numba's compilations once the command has imported numba (importing it here,
+        0.3 s, would slow every command that shows progress and compiles nothing)."""
+        numba = sys.modules.get("numba")
+        if registered or getattr(numba, "njit", None) is None:
+            return
+        from numba.core import event
+
+        class Listener(event.Listener):
+            def on_start(self, _event) -> None:
+                on_start()
+
+            def on_end(self, _event) -> None:
+                on_end()
+
+        listener = Listener()
+        event.register("numba:compile", listener)
+        registered.append((event, listener))
 
     def beat() -> None:
         while not stop.wait(every):
+            listen()
             with lock:
                 done, running = state["done"], state["running"]
             if running:
                 tick(COMPILING, done, done + running)
 
+    listen()
     beater = threading.Thread(target=beat, daemon=True, name="usdforest-compiling")
     beater.start()
     try:
-        with event.install_listener("numba:compile", Listener()):
-            yield
+        yield
     finally:
         stop.set()
         beater.join()
+        for event, listener in registered:
+            event.unregister("numba:compile", listener)
         if state["done"]:
             tick(COMPILING, state["done"], state["done"])
 
