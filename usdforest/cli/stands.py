@@ -249,6 +249,7 @@ def _stem_map(path: Path):
 
     from usdforest.grow.species import PRESETS
     from usdforest.paths import shown
+    from usdforest.sites.fit import MIN_TREES as MIN_FIT_TREES
     from usdforest.sites.stemmap import dbh as dbh_of
     from usdforest.sites.stemmap import position, read_table
 
@@ -273,9 +274,6 @@ def _stem_map(path: Path):
             f"at least {MIN_FIT_TREES} trees"
         )
     return xy, species, dbh
-
-
-MIN_FIT_TREES = 20  # (usdforest.sites.fit refuses fewer too)
 
 
 def _fit_window(xy, region: str | None, path: Path) -> tuple[float, float, float, float]:

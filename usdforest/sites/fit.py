@@ -303,6 +303,9 @@ def fit_strauss(
     return r, math.exp(float(p[-1])), (*head, *slopes)
 
 
+MIN_TREES = 20  # a fit of fewer is refused (also by `usdforest fit`, naming the map)
+
+
 def fit_stand(
     xy: np.ndarray,
     window: Bounds,
@@ -315,8 +318,8 @@ def fit_stand(
     intensity log-linear in the coordinates and in ``covariates`` where the data say so."""
     pts, w, h, area = _checked(xy, window)
     n = len(pts)
-    if n < 20:
-        raise UsdForestError(f"a fit needs at least 20 trees, got {n}")
+    if n < MIN_TREES:
+        raise UsdForestError(f"a fit needs at least {MIN_TREES} trees, got {n}")
     beta, se, trend, covariates, slopes, slopes_se = _first_order(pts, window, covariates)
     fitted = FittedStand(
         window, n, beta, se, trend, None, None, 0.0, 0.0, "poisson",
