@@ -183,12 +183,20 @@ def _self_check(lib: Embree) -> None:
     lib.rtcReleaseScene(inner)
     del kept
     lib.check("checking the library")
-    if got != (3.0, 0, 0, 1):
+    if not self_check_hit(got):
         raise UsdForestError(
             f"Embree ({lib.path.name}) does not report instance-array hits as the ray caster "
             f"reads them (distance, geometry, instance, entry: {got}, expected (3.0, 0, 0, 1)); "
             "install the embreex wheel from PyPI (its Embree 4.4)"
         )
+
+
+def self_check_hit(got: tuple[float, int, int, int]) -> bool:
+    """Whether the self-check's hit (distance, geometry, instance, entry) is the one expected:
+    the ids exactly, the distance 3 to a few float32 roundings (Embree's kernels differ by
+    CPU: an AMD EPYC with AVX2 gives 3 less one ulp with every ISA Embree offers it, where
+    the machines before gave 3, and every scan there was refused)."""
+    return abs(got[0] - 3.0) <= 4 * float(np.spacing(np.float32(3.0))) and got[1:] == (0, 0, 1)
 
 
 def _release(lib, scenes: list[int]) -> None:
