@@ -47,7 +47,14 @@ def _understorey_leaves(stage: Usd.Stage) -> int:
     return total
 
 
-def test_default_forest_validates_and_composes(default_forest):
+@pytest.fixture(scope="module")
+def default_infos(shipped):
+    """``usdforest info`` of the default forest at its selected level and at ``full``."""
+    out, _ = shipped("default")
+    return stage_info(out), stage_info(out, full=True)
+
+
+def test_default_forest_validates_and_composes(default_forest, default_infos):
     out, build = default_forest
     assert validate(out) == []
     stage = Usd.Stage.Open(str(out))
@@ -75,7 +82,7 @@ def test_default_forest_validates_and_composes(default_forest):
     assert pi.GetOrientationsAttr().GetTypeName() == "quath[]"
     # clients open the forest at lod = medium (leaf clusters); sensors and stats see it full
     # (the trees and the understorey's shrubs and young trees alike)
-    info, full = stage_info(out), stage_info(out, full=True)
+    info, full = default_infos
     assert info["trees"] == full["trees"] == build.n_trees
     n_under = len(
         UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Understorey"))
@@ -97,6 +104,45 @@ def test_default_forest_validates_and_composes(default_forest):
     pi = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
     assert {stage.GetPrimAtPath(t).GetVariantSet("lod").GetVariantSelection()
             for t in pi.GetPrototypesRel().GetTargets()} == {"medium"}  # fmt: skip
+
+
+DOC_ROWS = {  # the first word of a row of Getting started's table: the info key it quotes
+    "trees": "trees",
+    "prims": "prims",
+    "meshes,": "meshes",
+    "triangles,": "triangles",
+    "leaves": "leaves",
+    "instances": "instances",
+}
+
+
+def test_the_docs_quote_the_default_forests_own_counts(default_forest, default_infos):
+    """Getting started's table of the default forest's counts (issue 61: it quoted 2,730,030
+    clusters and 1.39 G triangles where ``info`` printed 2,917,470 and 1.68 G) holds, row by
+    row, what ``stage_info`` counts on the built forest at ``medium`` and ``full``; the README
+    and Getting started quote no other triangle or leaf count of it."""
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "docs" / "getting-started.md").read_text(encoding="utf-8")
+    block = text[text.index("<!-- default-forest-counts:") :].split("\n\n", 1)[0]
+    rows = [
+        [c.strip() for c in line.strip("|").split("|")]
+        for line in block.splitlines()[3:]  # the marker, the header and its rule
+    ]
+    medium, full = default_infos
+    want = {key: (f"{medium[key]:,}", f"{full[key]:,}") for key in DOC_ROWS.values()}
+    quoted = {DOC_ROWS[r[0].split()[0]]: (r[1], r[2]) for r in rows}
+    assert quoted == want
+    counts = re.compile(r"(\d[\d.,]*) (?:G|M|k)? ?(?:triangles|leaves|clusters|shoots)")
+    for page in (root / "README.md", root / "docs" / "getting-started.md"):
+        prose = page.read_text(encoding="utf-8").replace(block, "")
+        assert counts.findall(prose) == [], page.name
+    # the stands guide's tree assets: as many as the build wrote
+    _, build = default_forest
+    stands = (root / "docs" / "guide" / "stands.md").read_text(encoding="utf-8")
+    quoted = re.search(
+        r"\((\d+) trees, [\d-]+\s+size classes per species, (\d+) tree assets", stands
+    )
+    assert quoted and tuple(map(int, quoted.groups())) == (build.n_trees, len(build.prototypes))
 
 
 def test_layout_and_ground_truth(default_forest):

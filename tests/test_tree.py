@@ -493,3 +493,28 @@ def test_leaves_placed_in_chunks_are_the_leaves_placed_at_once(monkeypatch):
     for f in ("leaf_position", "leaf_orient", "leaf_scale", "leaf_segment"):
         assert np.array_equal(getattr(chunked.placement, f), getattr(whole.placement, f)), f
     assert np.array_equal(chunked.extent, whole.extent)
+
+
+@pytest.mark.parametrize("name", ["scots-pine", "european-beech"])
+def test_one_height_per_tree(built, runner, tmp_path, name):
+    """A tree has one height (issue 61: 20.57 m on the command line, 20.42 m from the API):
+    the composed stage's full-detail top above its base, computed here from the composed
+    triangles, is what ``TreeBuild.height``, ``usdforest tree`` and the asset's customData say;
+    the allometry's target stays within 1 % of it."""
+    path, b = built[name]
+    stage = Usd.Stage.Open(str(path))
+    box = measure.composed_bounds(stage)
+    assert b.height == pytest.approx(box[1, 2] - box[0, 2], abs=1e-4)
+    data = stage.GetDefaultPrim().GetCustomData()["usdforest"]
+    assert data["lsystem"]["height"] == pytest.approx(b.height, abs=1e-9)
+    r = runner.invoke(app, ["tree", str(tmp_path / "t.usda"), "-s", name, "--seed", "3", "--json"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["height"] == pytest.approx(b.height, abs=1e-9)
+
+
+def test_allometric_trees_reach_their_target_height(built):
+    """``size.height`` is a target: every allometric preset's grown tree ends within 1 % of it."""
+    grown = {n: b for n, (_, b) in built.items() if b.size is not None}
+    assert len(grown) == 5
+    for name, b in grown.items():
+        assert b.height == pytest.approx(b.size.height, rel=0.01), name

@@ -195,7 +195,7 @@ def tree_cmd(
         "wood_prims": b.placement.n_wood,
         "leaves": b.placement.n_leaves,
         "branches_by_order": b.grown.skeleton.branch_counts(),
-        "height": float(b.extent[1, 2] - b.extent[0, 2]),
+        "height": b.height,
     }
     if as_json:
         sys.stdout.write(json.dumps(stats) + "\n")

@@ -34,7 +34,9 @@ class TreeSize:
     """One tree's target sizes (metres, m²): height, DBH (over bark, at 1.3 m), crown radius
     (mean horizontal reach), crown base height and one-sided leaf area; ``asymmetry`` makes
     the crown reach ``1 + asymmetry`` times as far on one side as on average and
-    ``1 - asymmetry`` on the other (a crown grown away from its neighbours)."""
+    ``1 - asymmetry`` on the other (a crown grown away from its neighbours). Targets, not
+    the grown tree's figures: its height is
+    :attr:`usdforest.usd.tree.TreeBuild.height`."""
 
     height: float
     dbh: float

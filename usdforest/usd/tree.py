@@ -137,6 +137,18 @@ class TreeBuild:
         return self.extent if self.summer_bounds is None else self.summer_bounds.extent
 
     @property
+    def height(self) -> float:
+        """The tree's height (m): from its base to its highest leaf, shoot or wood tip at full
+        detail, with the leaves it carries in summer (a season does not change it). The one
+        height everywhere: what ``usdforest tree`` prints, the asset's ``lsystem.height``, and,
+        once a stand scales the tree to its site, ``trees.csv``'s ``height``. ``stats`` measures
+        the composed stage, the same in leaf; a leaf-off tree's composed top is its wood's, a
+        little lower. ``size.height`` is only the target the allometry grew it towards (within
+        about 1 %)."""
+        e = self.sized_extent
+        return float(e[1, 2] - e[0, 2])
+
+    @property
     def summer_footprint(self) -> np.ndarray:
         """The full level's footprint with every leaf (what shades the floor in summer)."""
         b = self.bounds["full"] if self.summer_bounds is None else self.summer_bounds
@@ -459,7 +471,7 @@ def tree_layer(
         "woodPrims": p.n_wood,
         # keys are identifiers ("order0"): tinyusdz and others reject dictionary keys of digits
         "branchesByOrder": {f"order{k}": v for k, v in sk.branch_counts().items()},
-        "height": float(build.extent[1, 2] - build.extent[0, 2]),
+        "height": build.height,
     }
     with Sdf.ChangeBlock():
         root = prim(layer, "Tree", "Xform")
