@@ -130,3 +130,20 @@ def test_a_stages_inputs_are_its_layers_and_its_assets(forest):
     assert all((assets / "templates" / t).resolve() in listed
                for t in ("trunk.usdc",) if (assets / "templates" / t).exists())  # fmt: skip
     assert (forest / "r.toml").resolve() not in listed
+
+
+def test_a_stages_inputs_are_listed_once(tmp_path, monkeypatch):
+    """``fly`` claims its outputs twice (before and under its lock): the stage's layers were
+    composed for each claim, seconds apiece on the default forest; they are listed once."""
+    from usdforest import paths
+
+    stage = tmp_path / "s.usda"
+    stage.write_text("#usda 1.0\n")
+    (tmp_path / "s_assets").mkdir()
+    (tmp_path / "s_assets" / "trees.csv").write_text("id\n")
+    calls = []
+    monkeypatch.setattr(paths, "layer_inputs", lambda p: calls.append(p) or [p])
+    reads = paths.stage_inputs(stage)
+    first = reads()
+    assert reads() == first == [stage, tmp_path / "s_assets" / "trees.csv"]
+    assert calls == [stage]

@@ -102,3 +102,30 @@ def test_a_first_runs_kernel_compilation_is_a_step_of_its_own():
         assert kernel(2) == 3  # compiled already
         time.sleep(0.05)
     assert ticks == []
+
+
+def test_a_step_that_takes_long_between_ticks_is_repeated_on_a_log():
+    """Issue 61: a log said nothing for 16 s while the first batch of gap rays was cast (and 7 s
+    while the stage opened). ``steady`` repeats the last unfinished step while nothing is
+    heard; a finished step is not repeated."""
+    import threading
+
+    from usdforest.progress import steady
+
+    calls: list[tuple[str, int, int]] = []
+    repeated = threading.Event()
+
+    def tick(stage: str, done: int, total: int) -> None:
+        calls.append((stage, done, total))
+        if len(calls) >= 3:
+            repeated.set()
+
+    with steady(tick, every=0.05) as heard:
+        heard("casting gap rays", 0, 13)
+        assert repeated.wait(60)  # a hang guard: repeated within 0.05 s of quiet
+        heard("casting gap rays", 13, 13)
+        n = len(calls)
+        threading.Event().wait(0.3)  # six beats' time: a finished step stays quiet
+        assert len(calls) == n
+    assert set(calls[: n - 1]) == {("casting gap rays", 0, 13)}
+    assert calls[n - 1] == ("casting gap rays", 13, 13)

@@ -145,9 +145,14 @@ def claim_outputs(
 def stage_inputs(stage: str | Path) -> Callable[[], list[Path]]:
     """The files a command that reads ``stage`` reads, listed when asked: the stage's own file,
     every layer it composes, and the files of its assets folder (``<stem>_assets``: the
-    ground-truth tables beside the layers)."""
+    ground-truth tables beside the layers). Listed once (composing every layer's dependencies
+    takes seconds on a large forest): a command that claims its outputs again under its lock
+    checks them against the same list."""
+    memo: list[list[Path]] = []
 
     def listed() -> list[Path]:
+        if memo:
+            return list(memo[0])
         stage_path = Path(stage)
         assets = stage_path.parent / f"{stage_path.stem}_assets"
         found = [p for p in assets.rglob("*") if p.is_file()] if assets.is_dir() else []
@@ -155,7 +160,8 @@ def stage_inputs(stage: str | Path) -> Callable[[], list[Path]]:
             layers = layer_inputs(stage_path)
         except Exception:  # a stage pxr cannot open: its reader reports that in its own line
             layers = [stage_path]
-        return [*layers, *found]
+        memo.append([*layers, *found])
+        return list(memo[0])
 
     return listed
 

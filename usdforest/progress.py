@@ -125,6 +125,39 @@ def compiling(tick: Progress | None, every: float = HEARTBEAT_SECONDS) -> Iterat
             tick(COMPILING, state["done"], state["done"])
 
 
+@contextmanager
+def steady(tick: Progress, every: float = EVERY_SECONDS) -> Iterator[Progress]:
+    """``tick``, and while the block runs the last step it heard repeated every ``every``
+    seconds that no step is heard: a log's line for a step that takes long between its
+    ticks (a stage opening, a first batch of rays) says it is still going, with the time
+    so far, instead of nothing. A finished step (done = total) is not repeated."""
+    lock = threading.Lock()
+    last: dict[str, Any] = {"step": None, "at": time.perf_counter()}
+    stop = threading.Event()
+
+    def heard(stage: str, done: int, total: int) -> None:
+        with lock:  # one at a time: a repeat never lands after the step that ends it
+            last["step"], last["at"] = (stage, done, total), time.perf_counter()
+            tick(stage, done, total)
+
+    def beat() -> None:
+        while not stop.wait(every / 4):
+            with lock:
+                step, quiet = last["step"], time.perf_counter() - last["at"]
+                if step is None or step[1] >= step[2] or quiet < every:
+                    continue
+                last["at"] = time.perf_counter()
+                tick(*step)
+
+    beater = threading.Thread(target=beat, daemon=True, name="usdforest-steady")
+    beater.start()
+    try:
+        yield heard
+    finally:
+        stop.set()
+        beater.join()
+
+
 def resolve_progress(progress: Any, name: str = "progress") -> Progress | None:
     """``progress=`` as the API takes it: None or False (silent), True (lines on stderr) or a
     callable ``(stage, done, total)``."""

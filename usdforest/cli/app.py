@@ -194,12 +194,12 @@ def progress_bars(
         TimeRemainingColumn,
     )
 
-    from usdforest.progress import compiling, progress_lines
+    from usdforest.progress import compiling, progress_lines, steady
 
     if show and not err.is_terminal:  # a log file or CI: a short line now and then
         lines = progress_lines(every=PLAIN_PROGRESS_SECONDS, t0=t0, completions=completions)
-        with compiling(lines):
-            yield lines
+        with steady(lines, PLAIN_PROGRESS_SECONDS) as heard, compiling(heard):
+            yield heard
         return
     with Progress(
         TextColumn("{task.description:<18}"),

@@ -194,16 +194,23 @@ def stats_cmd(
     per hectare, ground-vegetation cover; and by rays: canopy cover, gap fraction at 0, 30,
     45 and 60 degrees, G, clumping index, mean leaf angle and leaf inclination
     distribution."""
-    from usdforest.usd.inventory import stand_figures
+    from usdforest.usd import statscache
+    from usdforest.usd.inventory import open_forest, stand_figures
 
+    rays = not no_rays
     with _progress(quiet) as tick:
-        f = stand_figures(stage, progress=tick)
-        if not no_rays and f["region_bounds"] is not None:
-            from usdforest.sensors.gaps import canopy_figures
+        opened = open_forest(stage, tick)
+        key = statscache.figures_key(opened, rays)
+        f = statscache.read(key, rays)  # measured before, on the same layers and code
+        if f is None:
+            f = stand_figures(stage, progress=tick, stage=opened)
+            f.pop("per_tree")
+            if rays and f["region_bounds"] is not None:
+                from usdforest.sensors.gaps import canopy_figures
 
-            f |= canopy_figures(stage, tuple(f["region_bounds"]), f["leaf_area_index"],
-                                progress=tick)  # fmt: skip
-    f.pop("per_tree")
+                f |= canopy_figures(stage, tuple(f["region_bounds"]), f["leaf_area_index"],
+                                    progress=tick, opened=opened)  # fmt: skip
+            f = statscache.keep(key, f)
     if as_json:
         sys.stdout.write(json.dumps(f) + "\n")
         return

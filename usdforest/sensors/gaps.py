@@ -259,15 +259,18 @@ def canopy_figures(
     *,
     zeniths: tuple[float, ...] = ZENITHS,
     progress: Callable[[str, int, int], None] | None = None,
+    opened=None,
 ) -> dict:
     """What ``usdforest stats`` reports of a forest's canopy, measured by rays over the plot
     ``bounds`` with the stand's one-sided ``lai``: ``canopy_cover`` (1 - P(0)), the leaves'
     mean inclination and inclination distribution (:func:`leaf_angles`), and per zenith
-    angle the gap fraction, ``G`` and the effective clumping index (keys: degrees)."""
+    angle the gap fraction, ``G`` and the effective clumping index (keys: degrees).
+    ``opened``: the stage already opened as :func:`usdforest.usd.layers.open_stage` opens it
+    with ``sound`` and ``full`` (not opened again)."""
     from usdforest.sensors.raycast import SceneCaster
     from usdforest.sensors.scene import extract_scene
 
-    scene = extract_scene(stage_path, reflectors=False, progress=progress)
+    scene = extract_scene(stage_path, reflectors=False, progress=progress, opened=opened)
     caster = SceneCaster(scene, progress=progress)
     gaps = gap_fractions(scene, caster, bounds, zeniths, progress=progress)
     g, lid, mean_angle = leaf_angles(scene, zeniths)

@@ -326,13 +326,25 @@ def _cover(grid: tuple[np.ndarray, np.ndarray], pts: np.ndarray, mats: np.ndarra
         g[cy[ok], cx[ok]] = True
 
 
-def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
-    """Stand figures of the forest at ``path`` (see the module docstring);
-    ``progress(stage, done, total)`` as the stage opens and each tree prototype is measured."""
+def open_forest(path: str | Path, progress: Progress | None = None) -> Usd.Stage:
+    """The forest at ``path`` opened as the figures measure it: every tree at full detail,
+    its geometry checked."""
     tick = progress or (lambda stage, done, total: None)
     tick("opening the stage", 0, 1)
     stage = open_stage(Path(path), sound=True, full=True)
     tick("opening the stage", 1, 1)
+    return stage
+
+
+def stand_figures(
+    path: str | Path, progress: Progress | None = None, *, stage: Usd.Stage | None = None
+) -> dict:
+    """Stand figures of the forest at ``path`` (see the module docstring);
+    ``progress(stage, done, total)`` as the stage opens and each tree prototype is measured.
+    ``stage``: the forest already opened as :func:`open_forest` opens it (not opened again)."""
+    tick = progress or (lambda stage, done, total: None)
+    if stage is None:
+        stage = open_forest(path, tick)
     measured = [0]
     root = stage.GetDefaultPrim()
     if not root:
@@ -360,13 +372,19 @@ def stand_figures(path: str | Path, progress: Progress | None = None) -> dict:
         if not p.IsA(UsdGeom.PointInstancer) or p.GetName() == "Leaves":
             continue
         if is_dead_wood(p):
+            tick("measuring dead wood", 0, 1)
             dead = dead_wood_figures(p, area)
+            tick("measuring dead wood", 1, 1)
             continue
         if is_ground_vegetation(p):
+            tick("measuring ground vegetation", 0, 1)
             green = ground_vegetation_figures(p, area)
+            tick("measuring ground vegetation", 1, 1)
             continue
         if is_understorey(p):
+            tick("measuring the understorey", 0, 1)
             under = understorey_figures(p, area, _footprints(p))
+            tick("measuring the understorey", 1, 1)
             continue
         pi = UsdGeom.PointInstancer(p)
         idx = np.asarray(pi.GetProtoIndicesAttr().Get() or [], dtype=np.int64)
