@@ -269,7 +269,7 @@ def test_blender_plays_the_leaves_flutter(tmp_path):
 def test_blender_imports_the_default_forest_at_its_default_level(shipped):
     """The default forest opens in Blender 5 as a user's import does, at the level it selects
     (medium), within 8 GiB: at full (6.77 G triangles) the import passed 9 GiB and was
-    stopped. Measured: 19 s to import, a 3.8 GB peak."""
+    stopped. Measured (docs/guide/other-tools.md): a 1.44 GB peak; 80-527 s to import."""
     py = _blender_python()
     out, _ = shipped("default")
     run = subprocess.run([py, str(PROBE), str(out), "--no-count"], capture_output=True,
