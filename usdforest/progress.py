@@ -130,23 +130,24 @@ def steady(tick: Progress, every: float = EVERY_SECONDS) -> Iterator[Progress]:
     """``tick``, and while the block runs the last step it heard repeated every ``every``
     seconds that no step is heard: a log's line for a step that takes long between its
     ticks (a stage opening, a first batch of rays) says it is still going, with the time
-    so far, instead of nothing. A finished step (done = total) is not repeated."""
+    so far, instead of nothing. A finished step (done = total) is not repeated. Its quiet is
+    timed on ``time.monotonic``, apart from the clock the lines print."""
     lock = threading.Lock()
-    last: dict[str, Any] = {"step": None, "at": time.perf_counter()}
+    last: dict[str, Any] = {"step": None, "at": time.monotonic()}
     stop = threading.Event()
 
     def heard(stage: str, done: int, total: int) -> None:
         with lock:  # one at a time: a repeat never lands after the step that ends it
-            last["step"], last["at"] = (stage, done, total), time.perf_counter()
+            last["step"], last["at"] = (stage, done, total), time.monotonic()
             tick(stage, done, total)
 
     def beat() -> None:
         while not stop.wait(every / 4):
             with lock:
-                step, quiet = last["step"], time.perf_counter() - last["at"]
+                step, quiet = last["step"], time.monotonic() - last["at"]
                 if step is None or step[1] >= step[2] or quiet < every:
                     continue
-                last["at"] = time.perf_counter()
+                last["at"] = time.monotonic()
                 tick(*step)
 
     beater = threading.Thread(target=beat, daemon=True, name="usdforest-steady")
