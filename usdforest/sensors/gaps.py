@@ -24,11 +24,15 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from usdforest.sensors.scene import CLASS_ID
 from usdforest.sensors.scenetypes import Scene
+
+if TYPE_CHECKING:
+    from pxr import Usd
 
 ZENITHS = (0.0, 30.0, 45.0, 60.0)  # degrees: nadir, and the rings instruments read
 AZIMUTHS = (0.0, 90.0, 180.0, 270.0)
@@ -259,7 +263,7 @@ def canopy_figures(
     *,
     zeniths: tuple[float, ...] = ZENITHS,
     progress: Callable[[str, int, int], None] | None = None,
-    opened=None,
+    opened: Usd.Stage | None = None,
 ) -> dict:
     """What ``usdforest stats`` reports of a forest's canopy, measured by rays over the plot
     ``bounds`` with the stand's one-sided ``lai``: ``canopy_cover`` (1 - P(0)), the leaves'

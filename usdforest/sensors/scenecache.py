@@ -25,7 +25,7 @@ import os
 import shutil
 import tempfile
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -224,11 +224,21 @@ def kept(
 def _evict(root: Path) -> None:
     """Keep the ``KEEP_STAGES`` most recently used stage folders."""
     try:
-        folders = sorted((p for p in root.iterdir() if p.is_dir()), key=lambda p: p.stat().st_mtime)
+        folders = [p for p in root.iterdir() if p.is_dir()]
     except OSError:
         return
-    for old in folders[:-KEEP_STAGES]:
-        shutil.rmtree(old, ignore_errors=True)
+    keep_recent(folders, KEEP_STAGES, lambda p: shutil.rmtree(p, ignore_errors=True))
+
+
+def keep_recent(entries: Iterable[Path], keep: int, remove: Callable[[Path], Any]) -> None:
+    """``remove`` all but the ``keep`` most recently used (modified) of ``entries``; nothing
+    where they cannot be listed."""
+    try:
+        ordered = sorted(entries, key=lambda p: p.stat().st_mtime)
+    except OSError:
+        return
+    for old in ordered[:-keep]:
+        remove(old)
 
 
 def stored(

@@ -16,6 +16,8 @@ by rays are :mod:`usdforest.sensors.gaps`').
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -326,6 +328,14 @@ def _cover(grid: tuple[np.ndarray, np.ndarray], pts: np.ndarray, mats: np.ndarra
         g[cy[ok], cx[ok]] = True
 
 
+@contextmanager
+def _step(tick: Progress, name: str) -> Iterator[None]:
+    """The block, reported through ``tick`` as the one-part step ``name``."""
+    tick(name, 0, 1)
+    yield
+    tick(name, 1, 1)
+
+
 def open_forest(path: str | Path, progress: Progress | None = None) -> Usd.Stage:
     """The forest at ``path`` opened as the figures measure it: every tree at full detail,
     its geometry checked."""
@@ -372,19 +382,16 @@ def stand_figures(
         if not p.IsA(UsdGeom.PointInstancer) or p.GetName() == "Leaves":
             continue
         if is_dead_wood(p):
-            tick("measuring dead wood", 0, 1)
-            dead = dead_wood_figures(p, area)
-            tick("measuring dead wood", 1, 1)
+            with _step(tick, "measuring dead wood"):
+                dead = dead_wood_figures(p, area)
             continue
         if is_ground_vegetation(p):
-            tick("measuring ground vegetation", 0, 1)
-            green = ground_vegetation_figures(p, area)
-            tick("measuring ground vegetation", 1, 1)
+            with _step(tick, "measuring ground vegetation"):
+                green = ground_vegetation_figures(p, area)
             continue
         if is_understorey(p):
-            tick("measuring the understorey", 0, 1)
-            under = understorey_figures(p, area, _footprints(p))
-            tick("measuring the understorey", 1, 1)
+            with _step(tick, "measuring the understorey"):
+                under = understorey_figures(p, area, _footprints(p))
             continue
         pi = UsdGeom.PointInstancer(p)
         idx = np.asarray(pi.GetProtoIndicesAttr().Get() or [], dtype=np.int64)

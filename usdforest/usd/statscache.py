@@ -16,7 +16,6 @@ import functools
 import hashlib
 import json
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -100,27 +99,13 @@ def keep(key: str | None, figures: dict) -> dict:
     path = _file(key) if key is not None else None
     if path is None:
         return kept
+    from usdforest.atomic import atomic_path
+    from usdforest.sensors.scenecache import keep_recent
+
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8") as fh:
-                fh.write(text)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        _evict(path.parent)
+        with atomic_path(path) as tmp:
+            tmp.write_text(text, encoding="utf-8")
+        keep_recent(path.parent.glob(f"{PREFIX}*.json"), KEEP, lambda p: p.unlink(missing_ok=True))
     except OSError:
         pass
     return kept
-
-
-def _evict(root: Path) -> None:
-    """Keep the ``KEEP`` most recently used entries."""
-    try:
-        entries = sorted(root.glob(f"{PREFIX}*.json"), key=lambda p: p.stat().st_mtime)
-    except OSError:
-        return
-    for old in entries[:-KEEP]:
-        old.unlink(missing_ok=True)
