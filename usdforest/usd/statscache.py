@@ -39,10 +39,11 @@ def _code_digest() -> bytes:
 
 
 def figures_key(stage, rays: bool) -> str | None:
-    """The key of ``stage``'s figures (None when a layer is only in memory or unreadable)."""
-    from usdforest.sensors.scenecache import stage_key
+    """The key of ``stage``'s figures (None when caching is off, or a layer is only in memory
+    or unreadable: nothing is hashed then)."""
+    from usdforest.sensors.scenecache import cache_root, stage_key
 
-    layers = stage_key(stage)
+    layers = stage_key(stage) if cache_root() is not None else None
     if layers is None:
         return None
     h = hashlib.blake2b(FORMAT, digest_size=20)
