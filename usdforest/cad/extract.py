@@ -48,6 +48,7 @@ from usdforest.cad.parts import (
     read_cad,
 )
 from usdforest.errors import CADError
+from usdforest.grow import exact
 from usdforest.meshes import vertex_normals
 
 WOOD_NAMES = re.compile(r"bark|wood|trunk|branch|stem|twig|log|limb", re.IGNORECASE)
@@ -346,10 +347,10 @@ def _clump_frame(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     centre = v.mean(axis=0)
     _, axes = principal_axes(v, f)
     local = (v - centre) @ axes.T
-    skew = np.sum(local**3, axis=0) / len(local)
+    skew = np.sum(local * local * local, axis=0) / len(local)
     axes = axes * np.where(skew < 0, -1.0, 1.0)[:, None]
     if np.linalg.det(axes) < 0:  # right-handed: flip the axis whose sign is least certain
-        k = int(np.argmin(np.abs(skew) / (np.std(local, axis=0) ** 3 + 1e-30)))
+        k = int(np.argmin(np.abs(skew) / (exact.power(np.std(local, axis=0), 3) + 1e-30)))
         axes[k] = -axes[k]
     local = (v - centre) @ axes.T
     mid = 0.5 * (local.min(axis=0) + local.max(axis=0))
@@ -402,7 +403,9 @@ def _clumps(foliage: CADMesh, provenance: dict) -> tuple[list[ClumpMeasure], lis
     for i, m in enumerate(meshes):
         centre, axes, ext = frames[i]
         g = int(template_of[i])
-        scale = np.full(3, float(np.exp(np.mean(np.log(np.maximum(ext / rep_extent[g], 1e-9))))))
+        scale = np.full(
+            3, float(exact.exp(np.mean(exact.log(np.maximum(ext / rep_extent[g], 1e-9)))))
+        )
         clumps.append(
             ClumpMeasure(
                 centre=tuple(float(x) for x in centre),

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from usdforest.grow import exact
 from usdforest.grow.placement import centreline_of
 
 
@@ -28,7 +29,7 @@ def wood_uvs(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     cx = np.interp(z, heights, line[:, 0])
     cy = np.interp(z, heights, line[:, 1])
     dx, dy = p[:, 0] - cx, p[:, 1] - cy
-    u = np.mod(np.arctan2(dy, dx) / (2 * np.pi), 1.0)
+    u = np.mod(exact.arctan2(dy, dx) / (2 * np.pi), 1.0)
     r = np.hypot(dx, dy)[f]
     rim = r >= 0.1 * r.max(axis=1, keepdims=True)
     cu = u[f]

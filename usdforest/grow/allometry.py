@@ -42,6 +42,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from usdforest.grow import exact
+
 
 @dataclass(frozen=True)
 class Allometry:
@@ -61,19 +63,19 @@ class Allometry:
         """Mean height (m) of trees of DBH ``d`` (cm)."""
         p, a, b = self.naslund
         d = np.asarray(d, dtype=float)
-        return 1.3 + d**p / (a + b * d) ** p
+        return 1.3 + exact.power(d, p) / exact.power(a + b * d, p)
 
     def dbh(self, h: np.ndarray) -> np.ndarray:
         """The DBH (cm) whose mean height is ``h`` (the curve's inverse)."""
         p, a, b = self.naslund
-        x = (np.maximum(np.asarray(h, dtype=float) - 1.3, 1e-6)) ** (1.0 / p)
+        x = exact.power(np.maximum(np.asarray(h, dtype=float) - 1.3, 1e-6), 1.0 / p)
         # d / (a + b d) = x  ->  d = a x / (1 - b x)
         return a * x / np.maximum(1.0 - b * x, 1e-6)
 
     def crown_radius(self, d: np.ndarray) -> np.ndarray:
         """Open-grown crown radius (m) of DBH ``d`` (cm), Hasenauer 1997."""
         b0, b1, mse = self.crown
-        return 0.5 * np.exp(b0 + b1 * np.log(np.asarray(d, dtype=float)) + 0.5 * mse)
+        return 0.5 * exact.exp(b0 + b1 * exact.log(np.asarray(d, dtype=float)) + 0.5 * mse)
 
     def crown_ratio_of(
         self, d: np.ndarray, h: np.ndarray, bal: np.ndarray | float = 0.0, ccf: float = 100.0
@@ -90,7 +92,7 @@ class Allometry:
             + c1 * np.asarray(bal)
             + c2 * math.log(max(ccf, 1.0))
         )
-        return 1.0 / (1.0 + np.exp(x))
+        return 1.0 / (1.0 + exact.exp(x))
 
     def leaf_area(self, d: np.ndarray, h: np.ndarray) -> np.ndarray:
         """One-sided leaf area (m²) of a tree of DBH ``d`` (cm) and height ``h`` (m)."""
@@ -101,9 +103,9 @@ class Allometry:
             return c[0] * math.pi * (d / 200.0) ** 2
         b0, b1, k, b2, bias = c
         ds = 2.0 + 1.25 * d
-        mass = np.exp(b0 + b1 * ds / (ds + k) + b2 * h / (h + 1.0) + bias)
+        mass = exact.exp(b0 + b1 * ds / (ds + k) + b2 * h / (h + 1.0) + bias)
         if self.name == "silver-birch":  # Repola 2008 only above 11 cm (Majasalmi et al. 2013)
-            mass = np.where(d > 11.0, mass, 0.00371 * (10.0 * ds) ** 1.11993)
+            mass = np.where(d > 11.0, mass, 0.00371 * exact.power(10.0 * ds, 1.11993))
         return mass * self.sla
 
 

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from usdforest.grow import exact
+
 # the conical trunk template (templates/make_cad.py: trunk_cone): ring vertices and foot
 TRUNK_SECTIONS = 24
 TRUNK_FOOT = 0.03
@@ -128,8 +130,8 @@ def _reach(size: TreeSize, arch: Architecture, z: np.ndarray) -> np.ndarray:
     t = np.clip((size.height - z) / crown, 0.0, 1.0)
     if arch.dome:  # an ellipsoid-like crown widest at 40 % of its length below the top
         w = np.where(t < 0.4, t / 0.4, 1.0 - (t - 0.4) / 0.6 * 0.55)
-        return size.crown_radius * np.clip(w, 0.0, 1.0) ** arch.shape
-    return size.crown_radius * t**arch.shape
+        return size.crown_radius * exact.power(np.clip(w, 0.0, 1.0), arch.shape)
+    return size.crown_radius * exact.power(t, arch.shape)
 
 
 def _f(x: float) -> str:

@@ -153,7 +153,7 @@ def _diameters(spec: DeadWoodSpec, rng: np.random.Generator, n: int) -> np.ndarr
     k, lam = weibull_for(spec.diameter_mean, spec.diameter_cv)
     lo = 1.0 - math.exp(-((spec.min_diameter / lam) ** k))
     u = lo + (1.0 - lo) * rng.random(n)
-    return lam * (-np.log1p(-np.minimum(u, 1 - 1e-12))) ** (1 / k)
+    return lam * exact.power(-exact.log1p(-np.minimum(u, 1 - 1e-12)), 1 / k)
 
 
 def _sizes(

@@ -1,15 +1,29 @@
-"""Products and inverses of small vectors and matrices in a fixed order of operations.
+"""Arithmetic whose result does not depend on the machine's CPU.
 
-numpy hands ``@``, ``np.dot`` and ``np.linalg.inv`` of float arrays to BLAS and LAPACK, whose
+Products and inverses of small vectors and matrices in a fixed order of operations: numpy
+hands ``@``, ``np.dot`` and ``np.linalg.inv`` of float arrays to BLAS and LAPACK, whose
 kernel is chosen for the machine's CPU (OpenBLAS: ``OPENBLAS_CORETYPE``): kernels sum in
 other orders and fuse multiply-adds, so the same forest came out a last bit apart under two
 kernels (a collider's position, the thumbnail). What usdforest writes goes through these
 instead: element-wise multiplications and additions, each rounded as IEEE 754 says, in the
 order written here, the same on every machine. They are for the small inner dimensions of
 geometry (2, 3 or 4), where BLAS gains nothing.
+
+Elementary functions (:func:`exp`, :func:`log`, :func:`power`, :func:`arctan2`...) through
+the C library's scalar ``libm`` (Python's :mod:`math`), one element at a time. numpy picks
+its own SIMD loops for these by the CPU it runs on (``np.show_runtime()``: AVX2, AVX-512...),
+and they round differently: on an AVX-512 machine ``np.exp``, ``np.log``, ``np.power`` and
+``np.arctan2`` differ in their last bit from the same numpy on an AVX2 machine, so a
+forest's trunk colliders did. The C library picks one code path for every CPU with FMA (all
+x86-64 since 2013, every arm64), so the same glibc gives the same bits there. They cost about
+0.1 µs an element: they are for per-tree, per-branch and per-leaf arrays, not per pixel.
+Outside the build (the sensors' rays, ``fit``'s likelihood, ``stats``) numpy's own are used.
 """
 
 from __future__ import annotations
+
+import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -88,3 +102,87 @@ def inv_affine(m: np.ndarray) -> np.ndarray:
     out[..., 3, :3] = -matmul(m[..., 3:4, :3], r)[..., 0, :]
     out[..., 3, 3] = 1.0
     return out
+
+
+def _libm(fn: Callable[..., float], *args, valid: np.ndarray | None = None, fill=np.nan):
+    """``fn`` of each element of the broadcast ``args`` (floats), where ``valid`` (else
+    ``fill``); a 0-d result as a numpy float, like a ufunc's."""
+    xs = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in args))
+    shape = xs[0].shape
+    out = np.full(shape, fill, dtype=float)
+    if valid is None:
+        valid = np.ones(shape, dtype=bool)
+    picked = [x[valid].tolist() for x in xs]
+    out[valid] = np.fromiter(map(fn, *picked), dtype=float, count=len(picked[0]))
+    return out[()] if out.ndim == 0 else out
+
+
+def exp(x) -> np.ndarray:
+    """``np.exp``, the same bits on every CPU; ``inf`` beyond float64's range."""
+    return _libm(_exp, x)
+
+
+def _exp(x: float) -> float:
+    try:
+        return math.exp(x)
+    except OverflowError:
+        return math.inf
+
+
+def log(x) -> np.ndarray:
+    """``np.log``, the same bits on every CPU: ``-inf`` at 0, ``nan`` below."""
+    x = np.asarray(x, dtype=float)
+    out = _libm(math.log, x, valid=x > 0)
+    return np.where(x == 0, -np.inf, out)[()] if np.any(x == 0) else out
+
+
+def log1p(x) -> np.ndarray:
+    """``np.log1p``, the same bits on every CPU: ``-inf`` at -1, ``nan`` below."""
+    x = np.asarray(x, dtype=float)
+    out = _libm(math.log1p, x, valid=x > -1)
+    return np.where(x == -1, -np.inf, out)[()] if np.any(x == -1) else out
+
+
+def log2(x) -> np.ndarray:
+    """``np.log2``, the same bits on every CPU."""
+    x = np.asarray(x, dtype=float)
+    out = _libm(math.log2, x, valid=x > 0)
+    return np.where(x == 0, -np.inf, out)[()] if np.any(x == 0) else out
+
+
+def power(x, y) -> np.ndarray:
+    """``x ** y`` elementwise (``np.power`` of floats), the same bits on every CPU: ``nan``
+    for a negative base and a fractional exponent, ``inf`` past float64's range."""
+    x, y = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
+    return _libm(_pow, x, y)
+
+
+def _pow(x: float, y: float) -> float:
+    try:
+        return math.pow(x, y)
+    except ValueError:  # 0 ** negative, or a negative base and a fractional exponent
+        return math.inf if x == 0 else math.nan
+    except OverflowError:
+        return math.inf if x > 0 or (float(y).is_integer() and y % 2 == 0) else -math.inf
+
+
+def arctan2(y, x) -> np.ndarray:
+    """``np.arctan2``, the same bits on every CPU."""
+    return _libm(math.atan2, y, x)
+
+
+def arcsin(x) -> np.ndarray:
+    """``np.arcsin``, the same bits on every CPU: ``nan`` outside [-1, 1]."""
+    x = np.asarray(x, dtype=float)
+    return _libm(math.asin, x, valid=np.abs(x) <= 1)
+
+
+def arccos(x) -> np.ndarray:
+    """``np.arccos``, the same bits on every CPU: ``nan`` outside [-1, 1]."""
+    x = np.asarray(x, dtype=float)
+    return _libm(math.acos, x, valid=np.abs(x) <= 1)
+
+
+def cbrt(x) -> np.ndarray:
+    """``np.cbrt``, the same bits on every CPU."""
+    return _libm(math.cbrt, x)

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from usdforest.errors import RecipeError
+from usdforest.grow import exact
 from usdforest.seeds import stream
 
 FORMS = ("grass", "herb", "fern", "moss")
@@ -155,7 +156,7 @@ def floor_light(
         if counts.sum():
             cells = np.concatenate([np.asarray(h, dtype=np.int64) for h in hits])
             np.add.at(lai, cells, np.repeat(np.asarray(crowns_lai, float), counts))
-    return np.exp(-EXTINCTION * lai)
+    return exact.exp(-EXTINCTION * lai)
 
 
 def cells_in(region, cell: float) -> np.ndarray:
@@ -222,7 +223,7 @@ def place_ground_cover(
             "groundcover.cover or give more of the cells to herb and moss"
         )
     light = floor_light(centre, *crowns)
-    weight = light**spec.light_response
+    weight = exact.power(light, spec.light_response)
     cover = _fill(weight, cap, total)
     fill = np.array([shapes[f].fill for f in FORMS])[form]
     diameter = 2 * a * np.sqrt(cover / (fill * math.pi))

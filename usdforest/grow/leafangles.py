@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from usdforest.errors import RecipeError
+from usdforest.grow import exact
 
 ARCHETYPES = ("planophile", "erectophile", "plagiophile", "extremophile", "spherical", "uniform")
 PARAMETERS = {**{k: 0 for k in ARCHETYPES}, "ellipsoidal": 1, "beta": 2}
@@ -53,7 +54,7 @@ def density(spec: tuple, theta: np.ndarray) -> np.ndarray:
         return np.sin(t) / (np.cos(t) ** 2 + x * x * np.sin(t) ** 2) ** 2
     mu, nu = args
     s = np.clip(2.0 * t / math.pi, 1e-12, 1.0 - 1e-12)
-    return s ** (nu - 1.0) * (1.0 - s) ** (mu - 1.0)
+    return exact.power(s, nu - 1.0) * exact.power(1.0 - s, mu - 1.0)
 
 
 def check(spec: tuple, where: str) -> tuple:

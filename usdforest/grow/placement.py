@@ -270,7 +270,7 @@ def place(
         if not len(sel):
             continue
         ex = radius[sel, None] / rn_t[ids][None, :] / length[sel, None]
-        cost = np.where(ex <= MAX_BEND_EXAGGERATION, np.abs(np.log(ex)), np.inf)
+        cost = np.where(ex <= MAX_BEND_EXAGGERATION, np.abs(exact.log(ex)), np.inf)
         best = np.argmin(cost, axis=1)
         fits = np.isfinite(cost[np.arange(len(sel)), best])
         template[sel[fits]] = ids[best[fits]]
@@ -526,7 +526,7 @@ def _inclined(
     """Blade directions and normals of leaves whose normals lean ``incline`` from the vertical
     towards the blade's azimuth plus ``spin``: each blade keeps as much of its direction from
     the twig as a plane at that inclination allows."""
-    azimuth = np.arctan2(blade[:, 1], blade[:, 0]) + spin
+    azimuth = exact.arctan2(blade[:, 1], blade[:, 0]) + spin
     s = np.sin(incline)
     n = np.stack([s * np.cos(azimuth), s * np.sin(azimuth), np.cos(incline)], axis=1)
     b = blade - n * np.sum(blade * n, axis=1, keepdims=True)

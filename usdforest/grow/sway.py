@@ -52,6 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from usdforest.grow import exact
 from usdforest.rotations import quat_multiply
 
 AIR_DENSITY = 1.204  # kg/m³, dry air at 20 °C and sea level
@@ -154,7 +155,7 @@ def natural_frequency(dbh: np.ndarray, height: np.ndarray, spec: WindSpec) -> np
 
 def compliance(stems: Stems, spec: WindSpec) -> np.ndarray:
     """Stem-top deflection per newton of crown drag (m/N): zc² (3 H - zc) / (6 E I)."""
-    inertia = math.pi * stems.dbh**4 / 64
+    inertia = math.pi * exact.power(stems.dbh, 4) / 64
     zc = np.minimum(stems.centre, stems.height)
     return zc**2 * (3 * stems.height - zc) / (6 * spec.wood_modulus * inertia)
 
@@ -162,7 +163,7 @@ def compliance(stems: Stems, spec: WindSpec) -> np.ndarray:
 def crown_wind(stems: Stems, spec: WindSpec) -> np.ndarray:
     """Mean wind speed at each crown's centre (m/s), the canopy profile below the tallest."""
     top = float(stems.height.max()) if len(stems.height) else 1.0
-    return spec.speed * np.exp(spec.attenuation * (np.minimum(stems.centre / top, 1.0) - 1.0))
+    return spec.speed * exact.exp(spec.attenuation * (np.minimum(stems.centre / top, 1.0) - 1.0))
 
 
 def drag_force(stems: Stems, wind: np.ndarray, spec: WindSpec) -> np.ndarray:
@@ -258,15 +259,15 @@ class Boughs:
 def bough_wind(boughs: Boughs, top: float, spec: WindSpec) -> np.ndarray:
     """Mean wind (m/s) at each limb's middle, the canopy profile below the stand's ``top``."""
     rel = np.minimum(boughs.height / max(top, 1e-9), 1.0)
-    return spec.speed * np.exp(spec.attenuation * (rel - 1.0))
+    return spec.speed * exact.exp(spec.attenuation * (rel - 1.0))
 
 
 def bough_deflection(boughs: Boughs, top: float, spec: WindSpec) -> np.ndarray:
     """Each limb's tip deflection (m) under its mean drag spread evenly along it:
     F L³ / (8 E I), F = 1/2 rho_air Cd A U², I = pi d⁴ / 64."""
     force = 0.5 * AIR_DENSITY * spec.drag * boughs.area * bough_wind(boughs, top, spec) ** 2
-    inertia = math.pi * np.maximum(boughs.diameter, 1e-6) ** 4 / 64
-    return force * boughs.length**3 / (8 * spec.wood_modulus * inertia)
+    inertia = math.pi * exact.power(np.maximum(boughs.diameter, 1e-6), 4) / 64
+    return force * exact.power(boughs.length, 3) / (8 * spec.wood_modulus * inertia)
 
 
 def oscillator(w: np.ndarray, w0: np.ndarray, zeta: float) -> np.ndarray:
@@ -350,7 +351,7 @@ def tilts(displacement: np.ndarray, height: np.ndarray) -> np.ndarray:
     its top (0, 0, H) moves by ``displacement`` (..., trees, 2) in the horizontal plane."""
     d = np.linalg.norm(displacement, axis=-1)
     r = np.sqrt(np.maximum(height**2 - d**2, 0.0))
-    angle = np.arctan2(d, r)  # the top at (dx, dy, sqrt(H² - d²)): horizontal move d
+    angle = exact.arctan2(d, r)  # the top at (dx, dy, sqrt(H² - d²)): horizontal move d
     axis = np.stack([-displacement[..., 1], displacement[..., 0]], axis=-1)
     axis /= np.maximum(d, 1e-300)[..., None]
     half = angle / 2

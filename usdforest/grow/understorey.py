@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from usdforest.errors import RecipeError
+from usdforest.grow import exact
 from usdforest.grow.groundcover import cells_in, floor_light
 from usdforest.grow.obstacles import Stems
 from usdforest.seeds import stream
@@ -152,7 +153,7 @@ def _lit_cells(
     (:func:`~usdforest.grow.groundcover.floor_light`) and ``light ** response``."""
     centre = cells_in(region, cell)
     light = floor_light(centre, *crowns)
-    return centre, light, light**response
+    return centre, light, exact.power(light, response)
 
 
 def place_shrubs(
@@ -213,7 +214,7 @@ def _weighted_order(weight: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     u = rng.uniform(size=len(w))
     ok = w > 0
     key = np.full(len(w), -np.inf)
-    key[ok] = np.log(u[ok]) / w[ok]
+    key[ok] = exact.log(u[ok]) / w[ok]
     return np.argsort(-key, kind="stable")[: int(ok.sum())]
 
 
@@ -236,7 +237,7 @@ def regeneration_heights(spec: RegenerationSpec) -> np.ndarray:
     equal log-steps of ``spec.height``."""
     lo, hi = (math.log(h) for h in spec.height)
     edges = np.linspace(lo, hi, spec.classes + 1)
-    return np.exp((edges[:-1] + edges[1:]) / 2)
+    return exact.exp((edges[:-1] + edges[1:]) / 2)
 
 
 def place_regeneration(
@@ -262,9 +263,9 @@ def place_regeneration(
     cell_of = np.repeat(np.arange(len(centre)), counts)
     species = rng.choice(len(shares), size=n, p=shares / shares.sum())
     lo, hi = (math.log(h) for h in spec.height)
-    height = np.exp(rng.uniform(lo, hi, n))
+    height = exact.exp(rng.uniform(lo, hi, n))
     classes = regeneration_heights(spec)
-    cls = np.argmin(np.abs(np.log(height)[:, None] - np.log(classes)[None]), axis=1)
+    cls = np.argmin(np.abs(exact.log(height)[:, None] - exact.log(classes)[None]), axis=1)
     stems_at = Stems(*stems)
     rows, kept = [], []
     for i, c in enumerate(cell_of):

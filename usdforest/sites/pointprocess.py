@@ -19,6 +19,7 @@ import numpy as np
 
 from usdforest.errors import RecipeError, UsdForestError
 from usdforest.expr import Expression, compile_expression
+from usdforest.grow import exact
 
 MAX_CANDIDATES = 50_000_000  # thinning candidates drawn at most (memory: ~16 bytes each)
 CHUNK = 4_000_000
@@ -406,7 +407,7 @@ class GaussianMixture:
     def evaluate(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         out = np.full(np.shape(x), self.base, dtype=float)
         for b in self.bumps:
-            out += b.peak * np.exp(-((x - b.x) ** 2 + (y - b.y) ** 2) / (2 * b.sigma**2))
+            out += b.peak * exact.exp(-((x - b.x) ** 2 + (y - b.y) ** 2) / (2 * b.sigma**2))
         return np.maximum(out, 0.0)
 
     def bound(self, region: Region) -> float:

@@ -37,6 +37,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from usdforest.grow import exact as libm
 from usdforest.grow.allometry import ALLOMETRY, weibull_for
 from usdforest.grow.architecture import BREAST_HEIGHT, TreeSize, dbh_of_base, scaled_dbh
 from usdforest.grow.species import Species, tree_size
@@ -73,7 +74,7 @@ def draw_dbh(spec: StandSpec, n: int, rng: np.random.Generator) -> np.ndarray:
     k, lam = weibull_for(spec.dbh_mean, spec.dbh_cv)
     f0 = 1.0 - math.exp(-((spec.dbh_min / lam) ** k))
     u = f0 + (1.0 - f0) * rng.uniform(size=n)
-    return lam * (-np.log1p(-u)) ** (1.0 / k)
+    return lam * libm.power(-libm.log1p(-u), 1.0 / k)
 
 
 def _fixed(x) -> np.ndarray:
@@ -117,7 +118,7 @@ def tree_sizes(
             noise[at] = rng.standard_normal(len(at))
         unknown = np.isnan(dbh[idx]) | (dbh[idx] == 0)  # DBH 0: a sapling's
         d = np.where(unknown, drawn, dbh[idx])
-        h_curve = a.height(d * 100.0) * np.exp(a.height_sd * noise)
+        h_curve = a.height(d * 100.0) * libm.exp(a.height_sd * noise)
         d = np.where(unknown & ~np.isnan(height[idx]), a.dbh(height[idx]) / 100, d)
         young = unknown & (height[idx] < BREAST_HEIGHT)
         d = np.where(young, sapling_dbh(np.where(young, height[idx], 1.0)), d)
@@ -168,7 +169,7 @@ def pressed(push: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     each crown grows away from its neighbours, NaN where they do not press it to one side."""
     pressure = np.minimum(np.hypot(push[:, 0], push[:, 1]), 1.0)
     away = np.where(
-        pressure >= 0.05, np.round(np.degrees(np.arctan2(-push[:, 1], -push[:, 0])), 3), np.nan
+        pressure >= 0.05, np.round(np.degrees(libm.arctan2(-push[:, 1], -push[:, 0])), 3), np.nan
     )
     return pressure, away
 
@@ -176,8 +177,8 @@ def pressed(push: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def fine_keys(height: np.ndarray, dbh: np.ndarray, split: int = 1) -> np.ndarray:
     """(n, 2) int64: each tree's cell on the grid of log height and log slenderness (its
     steps divided by ``split``: an inventory's finer grid)."""
-    lh = np.log(height)
-    ls = np.log(height / dbh)
+    lh = libm.log(height)
+    ls = libm.log(height / dbh)
     return np.stack(
         [np.floor(lh * split / HEIGHT_STEP), np.floor(ls * split / SLENDERNESS_STEP)], axis=1
     ).astype(np.int64)
@@ -221,8 +222,8 @@ def stand_sums(
         given = np.isfinite(given_crown[idx])
         cols = [
             np.ones(len(idx), dtype=np.int64),
-            _fixed(np.log(height[idx])),
-            _fixed(np.log(height[idx] / dbh[idx])),
+            _fixed(libm.log(height[idx])),
+            _fixed(libm.log(height[idx] / dbh[idx])),
             _fixed(pressure[idx]),
             given.astype(np.int64),
             np.where(given, _fixed(np.where(given, given_crown[idx], 0.0)), 0),
@@ -298,8 +299,8 @@ class SizeClasses:
             d_class = np.array([s.dbh for s in self.sizes])
             ratio = height[rows, None] / tall[None, :]
             with np.errstate(divide="ignore"):  # a class that would leave it no DBH: inf
-                err = np.abs(np.log(scaled_dbh(d_class, h_class, ratio) / dbh[rows, None]))
-            far = np.abs(np.log(ratio))
+                err = np.abs(libm.log(scaled_dbh(d_class, h_class, ratio) / dbh[rows, None]))
+            far = np.abs(libm.log(ratio))
             close = err <= EXACT_DBH
             score = np.where(close, far, 1e3 + err)  # any close class before every other
             variant[rows] = np.argmin(score, axis=1)

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom
 
+from usdforest.grow import exact
 from usdforest.grow.colliders import Capsules
 from usdforest.grow.deadwood import DECAY_CLASSES, KINDS, Pieces, PieceShape
 from usdforest.rotations import quat_from_matrix
@@ -177,8 +178,8 @@ def write_deadwood_csv(path: Path, pieces: Pieces, ids: np.ndarray) -> None:
     from usdforest import csvtext
 
     c = pieces.centre
-    az = np.degrees(np.arctan2(pieces.axis[:, 1], pieces.axis[:, 0]))
-    pitch = np.degrees(np.arcsin(np.clip(pieces.axis[:, 2], -1, 1)))
+    az = np.degrees(exact.arctan2(pieces.axis[:, 1], pieces.axis[:, 0]))
+    pitch = np.degrees(exact.arcsin(np.clip(pieces.axis[:, 2], -1, 1)))
     with path.open("wb") as f:
         f.write((",".join(CSV_HEADER) + "\n").encode())
         csvtext.write_rows(

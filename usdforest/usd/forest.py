@@ -51,6 +51,7 @@ from pxr import Gf, Sdf, Vt
 from usdforest.atomic import output_lock, publish, staging_folder
 from usdforest.cluster import Progress, dask_client, run_tasks
 from usdforest.errors import UsdForestError
+from usdforest.grow import exact
 from usdforest.grow.bounds import EMPTY_EXTENT
 from usdforest.paths import claim_outputs, require_output
 from usdforest.recipe import Recipe, recipe_inputs, resolved_toml
@@ -488,7 +489,7 @@ def _leans(trees: list[TreeBuild]) -> np.ndarray:
     symmetric one."""
     return np.array(
         [
-            np.degrees(np.arctan2(*t.leaf_centre))
+            np.degrees(exact.arctan2(*t.leaf_centre))
             if t.size is not None and t.size.asymmetry > 0 and t.leaf_centre is not None
             else np.nan
             for t in trees

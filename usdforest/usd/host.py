@@ -18,6 +18,7 @@ from pxr import Gf, Sdf, Tf, Usd, UsdGeom
 
 from usdforest.atomic import output_lock
 from usdforest.errors import UsdForestError
+from usdforest.grow import exact
 from usdforest.paths import claim_outputs, layer_inputs, require_file, require_output, shown
 from usdforest.usd.layers import T, attr, prim, require_playable, save_layer
 
@@ -158,7 +159,7 @@ def placement_problems(stage: Usd.Stage) -> list[tuple[str, str]]:
     for p in _asset_roots(stage):
         m = np.array(cache.GetLocalToWorldTransform(p), dtype=float)[:3, :3]
         scales = np.linalg.norm(m, axis=1)
-        scale = float(np.cbrt(abs(np.linalg.det(m)))) if scales.all() else 0.0
+        scale = float(exact.cbrt(abs(np.linalg.det(m)))) if scales.all() else 0.0
         if scale == 0 or np.ptp(scales) > 1e-6 * scale:
             out.append((str(p.GetPath()), "is not scaled uniformly"))
             continue

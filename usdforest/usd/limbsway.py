@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
+from usdforest.grow import exact
 from usdforest.grow.placement import frames_from_directions
 from usdforest.grow.sway import Boughs, WindSpec, bough_sway
 from usdforest.rotations import quat_from_matrix
@@ -116,8 +117,8 @@ def sway_angles(limbs: TreeLimbs, tips: np.ndarray) -> np.ndarray:
     tip by ``tips`` ``(frames, k, 2)`` along the frame's x and y (the tip lies on the frame's
     z, its chord from the base)."""
     length = np.maximum(np.linalg.norm(limbs.tip - limbs.base, axis=1), 1e-9)
-    ax = -np.arcsin(np.clip(tips[..., 1] / length, -1.0, 1.0))
-    ay = np.arcsin(np.clip(tips[..., 0] / (length * np.cos(ax)), -1.0, 1.0))
+    ax = -exact.arcsin(np.clip(tips[..., 1] / length, -1.0, 1.0))
+    ay = exact.arcsin(np.clip(tips[..., 0] / (length * np.cos(ax)), -1.0, 1.0))
     return np.stack([ax, ay], axis=-1)
 
 

@@ -14,6 +14,7 @@ cost a few pixels each.
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -146,7 +147,7 @@ def _times3(x: np.ndarray, a: np.ndarray) -> np.ndarray:
 def _scale(m: np.ndarray) -> float:
     """The (median) uniform scale of row-vector 4x4 transforms ``m`` ((4, 4) or (k, 4, 4))."""
     det = np.abs(exact.det3(np.asarray(m).reshape(-1, 4, 4)[:, :3, :3]))
-    return float(np.median(np.cbrt(det))) or 1.0
+    return float(np.median(exact.cbrt(det))) or 1.0
 
 
 def _matrix(m) -> np.ndarray:
@@ -275,7 +276,7 @@ def stage_cloud(
         proto = p.GetStage().GetPrimAtPath(path)
         # (on a grid of half octaves, so that instancers of the same trees share samples)
         sp = float(
-            2.0 ** (np.round(2 * np.log2(spacing / max(float(np.median(scales)), 1e-6))) / 2)
+            2.0 ** (np.round(2 * math.log2(spacing / max(float(np.median(scales)), 1e-6))) / 2)
         )
         # the same tree asset under several instancers (a tiled forest's tiles) is sampled
         # once: keyed by the specs it composes from outside its own layer and its variants
@@ -322,7 +323,7 @@ def stage_cloud(
             ):
                 return False
             scale[a : a + len(s)] = s
-            yaw[a : a + len(s)] = np.arctan2(lin[:, 0, 1], lin[:, 0, 0])
+            yaw[a : a + len(s)] = exact.arctan2(lin[:, 0, 1], lin[:, 0, 0])
             origin[a : a + len(s)] = (
                 _times3(xf[a : a + 250_000, 3, :3], to_world[:3, :3]) + to_world[3, :3]
             )
@@ -347,7 +348,7 @@ def stage_cloud(
             sel = np.flatnonzero(idx == k)
             if sel.size == 0:
                 continue
-            scales = np.cbrt(np.abs(exact.det3(xf_all[sel, :3, :3])))
+            scales = exact.cbrt(np.abs(exact.det3(xf_all[sel, :3, :3])))
             local = _prototype(p, path, scales, spacing)
             if len(local) == 0:
                 continue
@@ -535,7 +536,7 @@ def _stamp(zb: _ZBuffer, s: Stamps, basis: np.ndarray, window, px: float) -> Non
         sel = s.proto == k
         yaws, step = _bins(cloud, scale[sel], px)
         ybin[sel] = np.round(yaw[sel] / (2 * np.pi) * yaws).astype(np.int64) % yaws
-        sbin[sel] = np.round(np.log(np.maximum(scale[sel], 1e-12)) / np.log(step))
+        sbin[sel] = np.round(exact.log(np.maximum(scale[sel], 1e-12)) / math.log(step))
         steps.append((yaws, step))
     origin = _times3(s.origin, basis.T)
     col = np.floor((origin[:, 0] - u0) / px).astype(np.int64)
@@ -552,7 +553,13 @@ def _stamp(zb: _ZBuffer, s: Stamps, basis: np.ndarray, window, px: float) -> Non
         i = order[bounds[b]]
         yaws, step = steps[s.proto[i]]
         sprites.append(
-            _sprite(s.protos[s.proto[i]], ybin[i] * 2 * np.pi / yaws, step ** sbin[i], basis, px)
+            _sprite(
+                s.protos[s.proto[i]],
+                ybin[i] * 2 * np.pi / yaws,
+                math.pow(step, float(sbin[i])),
+                basis,
+                px,
+            )
         )
     palette = np.concatenate([sp[3] for sp in sprites]) if sprites else np.zeros((0, 3))
     offset = np.r_[0, np.cumsum([len(sp[0]) for sp in sprites])]
@@ -805,7 +812,7 @@ def preview(
 
 
 def _nice_length(x: float) -> float:
-    e = 10 ** np.floor(np.log10(max(x, 1e-9)))
+    e = 10 ** math.floor(math.log10(max(x, 1e-9)))
     for m in (1, 2, 5, 10):
         if m * e >= x * 0.7:
             return float(m * e)
