@@ -15,8 +15,8 @@ its own SIMD loops for these by the CPU it runs on (``np.show_runtime()``: AVX2,
 and they round differently: on an AVX-512 machine ``np.exp``, ``np.log``, ``np.power`` and
 ``np.arctan2`` differ in their last bit from the same numpy on an AVX2 machine, so a
 forest's trunk colliders did. The C library picks one code path for every CPU with FMA (all
-x86-64 since 2013, every arm64), so the same glibc gives the same bits there. They cost about
-0.1 µs an element: they are for per-tree, per-branch and per-leaf arrays, not per pixel.
+x86-64 since 2013, every arm64), so the same glibc gives the same bits there. They cost
+0.1-0.3 µs an element: they are for per-tree, per-branch and per-leaf arrays, not per pixel.
 Outside the build (the sensors' rays, ``fit``'s likelihood, ``stats``) numpy's own are used.
 """
 
@@ -131,29 +131,29 @@ def _exp(x: float) -> float:
 
 def log(x) -> np.ndarray:
     """``np.log``, the same bits on every CPU: ``-inf`` at 0, ``nan`` below."""
-    x = np.asarray(x, dtype=float)
-    out = _libm(math.log, x, valid=x > 0)
-    return np.where(x == 0, -np.inf, out)[()] if np.any(x == 0) else out
+    return _logarithm(math.log, x, 0.0)
 
 
 def log1p(x) -> np.ndarray:
     """``np.log1p``, the same bits on every CPU: ``-inf`` at -1, ``nan`` below."""
-    x = np.asarray(x, dtype=float)
-    out = _libm(math.log1p, x, valid=x > -1)
-    return np.where(x == -1, -np.inf, out)[()] if np.any(x == -1) else out
+    return _logarithm(math.log1p, x, -1.0)
 
 
 def log2(x) -> np.ndarray:
-    """``np.log2``, the same bits on every CPU."""
+    """``np.log2``, the same bits on every CPU: ``-inf`` at 0, ``nan`` below."""
+    return _logarithm(math.log2, x, 0.0)
+
+
+def _logarithm(fn: Callable[[float], float], x, pole: float) -> np.ndarray:
+    """``fn`` above its ``pole``, ``-inf`` at it, ``nan`` below (where ``math`` raises)."""
     x = np.asarray(x, dtype=float)
-    out = _libm(math.log2, x, valid=x > 0)
-    return np.where(x == 0, -np.inf, out)[()] if np.any(x == 0) else out
+    out = np.where(x == pole, -np.inf, _libm(fn, x, valid=x > pole))
+    return out[()] if out.ndim == 0 else out
 
 
 def power(x, y) -> np.ndarray:
     """``x ** y`` elementwise (``np.power`` of floats), the same bits on every CPU: ``nan``
     for a negative base and a fractional exponent, ``inf`` past float64's range."""
-    x, y = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
     return _libm(_pow, x, y)
 
 
