@@ -35,12 +35,12 @@ def main() -> None:
     args = parser.parse_args()
     only = set(args.only.split(","))
     from usdforest.recipe import default_recipe_path, read_recipe
-    from usdforest.sensors import camera
-    from usdforest.sensors.flight import Trajectory, fly_lidar
-    from usdforest.sensors.lidar import PRESETS as LIDARS
-    from usdforest.sensors.raycast import SceneCaster
-    from usdforest.sensors.scene import extract_scene
-    from usdforest.sensors.sonar import PRESETS as SONARS
+    from usdforest.sensors.cast.raycast import SceneCaster
+    from usdforest.sensors.lidar.scanners import PRESETS as LIDARS
+    from usdforest.sensors.optics import camera
+    from usdforest.sensors.platforms.flight import Trajectory, fly_lidar
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.sonar.model import PRESETS as SONARS
     from usdforest.usd.forest import write_forest
 
     work = Path(tempfile.mkdtemp(prefix="usdforest-flight-"))
@@ -84,9 +84,9 @@ def main() -> None:
 
 
 def sonar_rows(scene, sonar, traj, caster, rows) -> None:
-    from usdforest.sensors import bandsum
-    from usdforest.sensors.flight import fly_sonar
-    from usdforest.sensors.sonar import SonarScene
+    from usdforest.sensors.platforms.flight import fly_sonar
+    from usdforest.sensors.sonar import bandsum
+    from usdforest.sensors.sonar.model import SonarScene
 
     t = time.perf_counter()
     prepared = SonarScene(scene, sonar, caster=caster)
@@ -135,7 +135,7 @@ def sonar_rows(scene, sonar, traj, caster, rows) -> None:
 
 
 def camera_rows(stage, scene, cam, traj, caster, rows) -> None:
-    from usdforest.sensors import camera
+    from usdforest.sensors.optics import camera
 
     t = time.perf_counter()
     colours = camera.path_colours(stage, scene.paths)

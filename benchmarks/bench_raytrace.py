@@ -49,9 +49,9 @@ def _best(fn, repeat: int = 3) -> float:
 def prepare(work: Path) -> Path:
     """Build the quick mixed stand, extract 15 m of it and save what every library needs."""
     from usdforest.recipe import default_recipe_path, read_recipe
-    from usdforest.sensors.lidar import PRESETS, DepthCamera
+    from usdforest.sensors.lidar.scanners import PRESETS, DepthCamera
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
     from usdforest.usd.forest import write_forest
 
     forest = work / "forest.usda"
@@ -91,7 +91,7 @@ def prepare(work: Path) -> Path:
 
 
 def _embree(z) -> dict:
-    from usdforest.sensors.raycast import RayCaster
+    from usdforest.sensors.cast.raycast import RayCaster
 
     t = time.perf_counter()
     caster = RayCaster(z["flat"])
@@ -106,8 +106,8 @@ def _embree(z) -> dict:
 
 def _instanced(device: str):
     def setup(z) -> dict:
-        from usdforest.sensors.raycast import SceneCaster
-        from usdforest.sensors.scene import extract_scene
+        from usdforest.sensors.cast.raycast import SceneCaster
+        from usdforest.sensors.scene.extraction import extract_scene
 
         scene = extract_scene(str(z["forest"]), centre=z["origin"], radius=REACH, reflectors=False)
         t = time.perf_counter()
@@ -223,10 +223,10 @@ DEFAULT_REACH = 100.0
 
 def measure_default(device: str, forest: str, out: str) -> dict:
     """Part 2: one caster on the default forest (in its own process)."""
-    from usdforest.sensors.lidar import PRESETS, DepthCamera
+    from usdforest.sensors.cast.raycast import SceneCaster
+    from usdforest.sensors.lidar.scanners import PRESETS, DepthCamera
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.raycast import SceneCaster
-    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
 
     pose = Pose(*DEFAULT_POSE)
     scene = extract_scene(forest, centre=pose.position, radius=DEFAULT_REACH, reflectors=False)
@@ -260,7 +260,7 @@ def part2() -> None:
     work = Path(tempfile.mkdtemp(prefix="usdforest-raytrace-default-"))
     forest = work / "forest.usda"
     write_forest(read_recipe(default_recipe_path()), forest, thumbnail=False)
-    from usdforest.sensors.warpcast import cuda_devices
+    from usdforest.sensors.cast.warpcast import cuda_devices
 
     rows = {}
     for device in ("cpu", "warp-cpu", *cuda_devices()[:1]):

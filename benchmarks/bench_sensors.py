@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 
 from usdforest.grow.species import get_species
-from usdforest.sensors.lidar import SpinningLidar, scan
+from usdforest.sensors.cast.raycast import SceneCaster
+from usdforest.sensors.lidar.scanners import SpinningLidar, scan
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.raycast import SceneCaster
-from usdforest.sensors.scene import extract_scene
-from usdforest.sensors.sonar import SonarConfig, echo_from_leaves
+from usdforest.sensors.scene.extraction import extract_scene
+from usdforest.sensors.sonar.model import SonarConfig, echo_from_leaves
 from usdforest.usd.tree import write_tree
 
 WORK = Path(tempfile.mkdtemp(prefix="usdforest-bench-"))
@@ -62,7 +62,7 @@ def sonar_100k_leaves() -> tuple[int, str, str]:
 
 def lidar_forest_scan() -> tuple[int, str, str]:
     """End to end in the default forest: extract (culled), build, cast a VLP-16 at 30 m."""
-    from usdforest.sensors.lidar import PRESETS
+    from usdforest.sensors.lidar.scanners import PRESETS
 
     sensor = replace(PRESETS["vlp-16"], max_range=30.0)
     pose = Pose(30.0, 70.0, 1.5)
@@ -93,7 +93,7 @@ def camera_shadows() -> tuple[int, str, str]:
     """What the sun's shadows cost the camera (issue 40, item 3): a 640 x 480 frame at head
     height in the default forest with a shadow ray per sunlit pixel against none, on one warm
     caster, alternating, best of three (target: within 2x: at most one more ray a pixel)."""
-    from usdforest.sensors.camera import PRESETS, path_colours, render
+    from usdforest.sensors.optics.camera import PRESETS, path_colours, render
 
     pose = Pose(50.0, 50.0, 1.6, yaw=20.0, pitch=5.0)
     cam = PRESETS["pinhole-640"]
@@ -119,7 +119,7 @@ def _vlp16_variants(variants: dict, target: float) -> tuple[int, str, str]:
     """A VLP-16 at head height in the default forest as each of ``variants`` (name -> its
     changes to the preset), on one warm caster, alternating, best of three each in this run;
     the first against the second, with its ``target`` ratio."""
-    from usdforest.sensors.lidar import PRESETS
+    from usdforest.sensors.lidar.scanners import PRESETS
 
     pose = Pose(50.0, 50.0, 2.0)
     scene = extract_scene(_default_forest(), centre=pose.position, radius=100.0)
@@ -144,7 +144,7 @@ def _vlp16_variants(variants: dict, target: float) -> tuple[int, str, str]:
 def lidar_leaf_transmittance() -> tuple[int, str, str]:
     """What following light through leaves costs: leaves at 0.42 transmittance against
     opaque leaves (target: within 2x)."""
-    from usdforest.sensors.lidar import PRESETS
+    from usdforest.sensors.lidar.scanners import PRESETS
 
     through = {"leaf_transmittance": PRESETS["vlp-16"].leaf_transmittance}
     return _vlp16_variants({"through": through, "opaque": {"leaf_transmittance": 0.0}}, 2.0)
@@ -165,7 +165,7 @@ def sonar_wood() -> tuple[int, str, str]:
     5x)."""
     import timeit
 
-    from usdforest.sensors.sonar import (
+    from usdforest.sensors.sonar.model import (
         PRESETS,
         SonarScene,
         _Grid,
@@ -235,8 +235,8 @@ def _forest_floor(kind: str) -> tuple[int, str, str]:
     import timeit
 
     from usdforest.recipe import default_recipe_path, read_recipe
-    from usdforest.sensors.lidar import PRESETS, DepthCamera
-    from usdforest.sensors.raycast import RayCaster
+    from usdforest.sensors.cast.raycast import RayCaster
+    from usdforest.sensors.lidar.scanners import PRESETS, DepthCamera
     from usdforest.usd.forest import write_forest
 
     if "quick" not in _CACHE:

@@ -178,10 +178,10 @@ def canopy_gaps(out: Path, stage: Path) -> None:
     from typer.testing import CliRunner
 
     from usdforest.cli import app
-    from usdforest.sensors import camera
-    from usdforest.sensors.lidar import DepthCamera
+    from usdforest.sensors.lidar.scanners import DepthCamera
+    from usdforest.sensors.optics import camera
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
 
     r = CliRunner().invoke(app, ["stats", str(stage), "--json", "-q"])
     if r.exit_code:
@@ -224,8 +224,8 @@ def crowns(out: Path, work: Path) -> None:
     from matplotlib.path import Path as PolygonPath
     from scipy.spatial import ConvexHull
 
-    from usdforest.sensors.raycast import SceneCaster
-    from usdforest.sensors.scene import CLASS_ID, extract_scene
+    from usdforest.sensors.cast.raycast import SceneCaster
+    from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
 
     names = ("european-beech", "sessile-oak", "silver-birch", "scots-pine", "norway-spruce")
     fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.6))
@@ -425,11 +425,11 @@ def gallery(out: Path, work: Path) -> None:
 
 def sensors(out: Path, work: Path) -> None:
     """A lidar scan of the two-tree stand by class, and a sonar echo of a broadleaf."""
-    from usdforest.sensors.lidar import PRESETS as LIDARS
-    from usdforest.sensors.lidar import scan
+    from usdforest.sensors.lidar.scanners import PRESETS as LIDARS
+    from usdforest.sensors.lidar.scanners import scan
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.scene import CLASSES, extract_scene
-    from usdforest.sensors.sonar import SonarConfig, sonar_scan, write_echo
+    from usdforest.sensors.scene.extraction import CLASSES, extract_scene
+    from usdforest.sensors.sonar.model import SonarConfig, sonar_scan, write_echo
 
     stand = work / "paper-two-tree-stand.usda"
     scene = extract_scene(stand)
@@ -465,12 +465,12 @@ def forest_sensors(out: Path, work: Path) -> None:
     import numpy as np
 
     from usdforest.recipe import default_recipe_path
-    from usdforest.sensors import camera
-    from usdforest.sensors.flight import Trajectory
+    from usdforest.sensors.cast.raycast import SceneCaster
+    from usdforest.sensors.optics import camera
+    from usdforest.sensors.platforms.flight import Trajectory
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.raycast import SceneCaster
-    from usdforest.sensors.scene import extract_scene
-    from usdforest.sensors.sonar import SonarConfig, sonar_scan, write_echo
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.sonar.model import SonarConfig, sonar_scan, write_echo
 
     stage = work / "default.usda"
     if not stage.exists():
@@ -525,10 +525,10 @@ def camera_model(out: Path, work: Path) -> None:
     import numpy as np
 
     from usdforest.recipe import default_recipe_path
-    from usdforest.sensors import camera
+    from usdforest.sensors.cast.raycast import SceneCaster
+    from usdforest.sensors.optics import camera
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.raycast import SceneCaster
-    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
 
     stage = work / "default.usda"
     if not stage.exists():
@@ -572,10 +572,10 @@ def _default_variant(work: Path, name: str, **change) -> Path:
 def seasons(out: Path, work: Path) -> None:
     """The default forest in summer, autumn and winter (``season``) from one pose: at eye
     height, and looking up into the crowns."""
-    from usdforest.sensors import camera
+    from usdforest.sensors.cast.raycast import SceneCaster
+    from usdforest.sensors.optics import camera
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.raycast import SceneCaster
-    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
 
     stages = {"summer": _default_variant(work, "default")}  # the default is summer's
     stages.update(
@@ -603,11 +603,11 @@ def wind(out: Path, work: Path) -> None:
     then (as ``fly`` sees them), as an animated GIF."""
     from PIL import Image
 
-    from usdforest.sensors import camera
-    from usdforest.sensors.motion import SceneMotion
+    from usdforest.sensors.cast.raycast import SceneCaster
+    from usdforest.sensors.optics import camera
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.raycast import SceneCaster
-    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.scene.motion import SceneMotion
 
     stage = _default_variant(
         work, "default-wind", wind={"speed": 12.0, "duration": 4.0, "fps": 24.0}
@@ -633,8 +633,8 @@ def sonar_wind(out: Path, work: Path) -> None:
     import numpy as np
 
     from usdforest import api
-    from usdforest.sensors.flight import Trajectory
-    from usdforest.sensors.sonar import envelope
+    from usdforest.sensors.platforms.flight import Trajectory
+    from usdforest.sensors.sonar.model import envelope
 
     windy = _default_variant(
         work, "default-wind", wind={"speed": 12.0, "duration": 4.0, "fps": 24.0}
@@ -672,10 +672,10 @@ def dead_wood(out: Path, work: Path) -> None:
     import numpy as np
 
     from usdforest.recipe import default_recipe_path
-    from usdforest.sensors import camera
+    from usdforest.sensors.cast.raycast import SceneCaster
+    from usdforest.sensors.optics import camera
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.raycast import SceneCaster
-    from usdforest.sensors.scene import CLASS_ID, extract_scene
+    from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
 
     stage = work / "default.usda"
     if not stage.exists():
@@ -739,10 +739,10 @@ def ground_vegetation(out: Path, work: Path) -> None:
 
     from usdforest.grow.groundcover import FORMS
     from usdforest.recipe import default_recipe_path
-    from usdforest.sensors import camera
+    from usdforest.sensors.cast.raycast import SceneCaster
+    from usdforest.sensors.optics import camera
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.raycast import SceneCaster
-    from usdforest.sensors.scene import CLASS_ID, extract_scene
+    from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
 
     stage = work / "default.usda"
     if not stage.exists():

@@ -15,10 +15,10 @@ from scenes import ball_and_wall
 
 from usdforest.cli import app
 from usdforest.recipe import default_recipe_path, read_recipe
-from usdforest.sensors.camera import PRESETS, intrinsics, path_colours, render
-from usdforest.sensors.lidar import DepthCamera
+from usdforest.sensors.lidar.scanners import DepthCamera
+from usdforest.sensors.optics.camera import PRESETS, intrinsics, path_colours, render
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene import CLASS_ID, extract_scene
+from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
 from usdforest.usd.forest import write_forest
 
 

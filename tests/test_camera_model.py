@@ -15,7 +15,8 @@ from PIL import Image
 from scenes import ball_and_wall, new_stage, quad
 
 from usdforest.errors import UsdForestError
-from usdforest.sensors.camera import (
+from usdforest.sensors.lidar.scanners import DepthCamera
+from usdforest.sensors.optics.camera import (
     PRESETS,
     dist_coeffs,
     intrinsics,
@@ -23,9 +24,8 @@ from usdforest.sensors.camera import (
     render,
     write_frame,
 )
-from usdforest.sensors.lidar import DepthCamera
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene import extract_scene
+from usdforest.sensors.scene.extraction import extract_scene
 
 # a wide-angle lens of the usual strength (barrel, a little tangential): OpenCV's names
 LENS = {"k1": -0.28, "k2": 0.07, "p1": 1e-3, "p2": -5e-4, "k3": 0.01}
@@ -223,7 +223,7 @@ def test_shadows_leave_the_roofs_shadow_to_the_sky_light(tmp_path):
     the roof towards the sun (a ray-square test written here) is the sky's AMBIENT share of
     its colour, every other one AMBIENT + (1 - AMBIENT) cos i, within a count (a band of 2
     cm round the shadow's edge left out); without, the shadow is not there."""
-    from usdforest.sensors.camera import AMBIENT
+    from usdforest.sensors.optics.camera import AMBIENT
     from usdforest.view.preview import LIGHT
 
     scene = _floor_and_roof(tmp_path / "r.usda")

@@ -22,9 +22,9 @@ from scipy.spatial import ConvexHull
 from usdforest.cad.library import template_dir
 from usdforest.grow.placement import shade_weights
 from usdforest.grow.species import get_species
-from usdforest.sensors.gaps import leaf_projection
-from usdforest.sensors.raycast import SceneCaster
-from usdforest.sensors.scene import CLASS_ID, extract_scene
+from usdforest.sensors.cast.raycast import SceneCaster
+from usdforest.sensors.optics.gaps import leaf_projection
+from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
 from usdforest.usd.tree import write_tree
 
 ALLOMETRIC = ("european-beech", "sessile-oak", "silver-birch", "scots-pine", "norway-spruce")

@@ -290,8 +290,8 @@ def test_a_tiled_forest_has_the_same_dead_wood_with_its_colliders(forest, tmp_pa
 
 
 def test_sensors_see_dead_wood_as_its_own_class(forest):
-    from usdforest.sensors.scene import CLASS_ID, extract_scene
-    from usdforest.sensors.wood import scene_cylinders
+    from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
+    from usdforest.sensors.sonar.wood import scene_cylinders
 
     rows = _rows(forest, "deadwood.csv")
     log = max((r for r in rows if r["kind"] == "log"), key=lambda r: float(r["diameter"]))
@@ -308,7 +308,7 @@ def test_sensors_see_dead_wood_as_its_own_class(forest):
     # no dead-wood cylinder is wider than the thickest piece
     assert cyl.radius[dead].max() < max(float(r["diameter"]) for r in rows)
     # a nadir ray onto the log's middle from 5 m up meets dead wood at its top
-    from usdforest.sensors.raycast import SceneCaster
+    from usdforest.sensors.cast.raycast import SceneCaster
 
     hit = SceneCaster(scene).first_hit(np.array([[x, y, z + 5.0]]), np.array([[0.0, 0.0, -1.0]]))
     assert hit.cls[0] == CLASS_ID["dead_wood"]

@@ -12,11 +12,11 @@ import pytest
 from usdforest.cli import app
 from usdforest.errors import UsdForestError
 from usdforest.recipe import default_recipe_path, read_recipe
-from usdforest.sensors.flight import Trajectory, fly_lidar, read_path
-from usdforest.sensors.lidar import SpinningLidar
+from usdforest.sensors.lidar.scanners import SpinningLidar
+from usdforest.sensors.platforms.flight import Trajectory, fly_lidar, read_path
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene import Leaves, extract_scene
-from usdforest.sensors.sonar import SonarConfig, chirp, echo_from_leaves
+from usdforest.sensors.scene.extraction import Leaves, extract_scene
+from usdforest.sensors.sonar.model import SonarConfig, chirp, echo_from_leaves
 from usdforest.usd.forest import write_forest
 
 
@@ -281,7 +281,7 @@ def test_a_flight_reports_progress_and_an_interrupted_one_leaves_nothing(
     """Progress lines name each sensor's work with its count (the sonar only when asked for:
     it is off by default); Ctrl-C during the sonar, after the lidar has finished, leaves no
     LAS, no sonar files and no staging folder."""
-    import usdforest.sensors.flight as flight
+    import usdforest.sensors.platforms.flight as flight
 
     stand = tmp_path / "two.usda"
     pipe = default_recipe_path().parent / "paper-two-tree-stand.toml"
@@ -336,7 +336,7 @@ def test_lidar_intensity_follows_the_lidar_equation_on_a_wall(tmp_path):
     exact cloud (``noise = False``)."""
     from dataclasses import replace
 
-    from usdforest.sensors.lidar import PRESETS, scan
+    from usdforest.sensors.lidar.scanners import PRESETS, scan
 
     scene = extract_scene(_wall(tmp_path, 10.0))
     r = scan(scene, replace(PRESETS["vlp-16"], noise=False), Pose(0, 0, 0))
@@ -355,8 +355,9 @@ def test_a_start_time_gives_adjusted_standard_gps_time(tmp_path, runner):
 
     import laspy
 
-    from usdforest.sensors.flight import write_las, write_trajectory
-    from usdforest.sensors.gpstime import gps_seconds, parse_utc
+    from usdforest.sensors.lidar.gpstime import gps_seconds, parse_utc
+    from usdforest.sensors.lidar.las import write_las
+    from usdforest.sensors.platforms.flight import write_trajectory
 
     assert gps_seconds(parse_utc("2017-01-01T00:00:00Z")) == 1_167_264_018
     assert gps_seconds(parse_utc("2016-12-31T23:59:59Z")) == 1_167_264_016  # before the leap

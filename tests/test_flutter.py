@@ -38,7 +38,7 @@ def stands(tmp_path_factory):
 @pytest.fixture(scope="module")
 def rest_scene(stands):
     """The windy stand's sensor scene at its default time, uncached (scenes are frozen)."""
-    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
 
     return extract_scene(stands["windy"], cache=False)
 
@@ -161,8 +161,8 @@ def test_a_scene_at_a_time_holds_its_leaves_turned_and_motion_turns_them_there(s
     """The sensors' scene at t holds each leaf where USD's composed transforms put it then
     (the leaf's own turn applied once), and SceneMotion moves a scene extracted at another
     time to t exactly, with velocities the central differences of scenes at t +- 1 ms."""
-    from usdforest.sensors.motion import SceneMotion
-    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.scene.motion import SceneMotion
 
     path = stands["windy"]
     stage = Usd.Stage.Open(str(path))
@@ -253,7 +253,7 @@ def test_conifers_alone_or_leafless_broadleaves_need_no_frames_for_flutter(tmp_p
 def test_each_leaf_shapes_box_holds_it_at_every_turn_between_the_time_codes(stands, rest_scene):
     """The casters' box of a fluttering leaf shape (kept for the whole flight) holds the shape
     as USD turns it at any time, also between two time codes (where the stage slerps)."""
-    from usdforest.sensors.motion import SceneMotion
+    from usdforest.sensors.scene.motion import SceneMotion
 
     path = stands["windy"]
     scene = rest_scene
@@ -278,8 +278,8 @@ def test_the_shapes_turns_and_sweeps_are_kept_with_the_stages_prototypes(
     """The leaf shapes' turns and swept boxes (a second for the windy default forest) are kept
     in the scene cache with the prototypes: a second extraction reads them, equal to those
     made without the cache, at the default time and at another."""
-    from usdforest.sensors import scene as scene_module
-    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.scene import extraction as scene_module
+    from usdforest.sensors.scene.extraction import extract_scene
 
     monkeypatch.setenv("USDFOREST_CACHE", str(tmp_path / "cache"))
     path = stands["windy"]
@@ -318,11 +318,11 @@ def test_a_flights_lidar_sees_each_leaf_turned_as_it_is_at_its_slice(stands, res
     from scipy.spatial import cKDTree
 
     from usdforest import api
-    from usdforest.sensors.flight import Trajectory
-    from usdforest.sensors.lidar import PRESETS
-    from usdforest.sensors.motion import SceneMotion
-    from usdforest.sensors.raycast import SceneCaster
-    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.cast.raycast import SceneCaster
+    from usdforest.sensors.lidar.scanners import PRESETS
+    from usdforest.sensors.platforms.flight import Trajectory
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.scene.motion import SceneMotion
 
     path, at = stands["windy"], (10.0, 10.0, 9.0)
     sensor = dataclasses.replace(PRESETS["vlp-16"], noise=False)

@@ -11,9 +11,9 @@ import pytest
 import shapely
 from pxr import Sdf, Usd, UsdGeom
 
-from usdforest.sensors.gaps import clumping, gap_fractions, leaf_angles, leaf_projection
-from usdforest.sensors.raycast import SceneCaster
-from usdforest.sensors.scene import extract_scene
+from usdforest.sensors.cast.raycast import SceneCaster
+from usdforest.sensors.optics.gaps import clumping, gap_fractions, leaf_angles, leaf_projection
+from usdforest.sensors.scene.extraction import extract_scene
 
 
 def _stage(path, quads: np.ndarray | None = None, polygons=(), label="leaf"):
@@ -164,8 +164,8 @@ def test_stats_cover_is_a_top_down_cameras(tmp_path, runner):
 
     from usdforest.cli import app
     from usdforest.recipe import read_recipe
-    from usdforest.sensors import camera
-    from usdforest.sensors.lidar import DepthCamera
+    from usdforest.sensors.lidar.scanners import DepthCamera
+    from usdforest.sensors.optics import camera
     from usdforest.sensors.pose import Pose
     from usdforest.usd.forest import write_forest
 

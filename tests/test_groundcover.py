@@ -146,8 +146,8 @@ def test_composed_patches_cover_what_the_recipe_asks(forest):
 def test_nadir_rays_meet_vegetation_on_the_cover_fraction(forest):
     """Rays straight down from 1 m, between the stems, meet ground vegetation first on the
     cover fraction of them (a binomial sample: 4 sigma)."""
-    from usdforest.sensors.raycast import SceneCaster
-    from usdforest.sensors.scene import CLASS_ID, extract_scene
+    from usdforest.sensors.cast.raycast import SceneCaster
+    from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
 
     scene = extract_scene(forest, cache=False)
     rng = np.random.default_rng(3)
@@ -309,8 +309,8 @@ def test_the_sonar_hears_every_blade_as_a_leaf_of_its_own_class(forest):
     import trimesh
 
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.scene import extract_scene
-    from usdforest.sensors.sonar import PRESETS, Targets, echo_from_targets
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.sonar.model import PRESETS, Targets, echo_from_targets
 
     stage = Usd.Stage.Open(str(forest))
     inst = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/GroundVegetation"))

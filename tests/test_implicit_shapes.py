@@ -8,10 +8,10 @@ import numpy as np
 from pxr import Gf, Usd, UsdGeom
 
 from usdforest.cli import app
-from usdforest.sensors.checks import unseen_warning
-from usdforest.sensors.lidar import SpinningLidar, scan
+from usdforest.sensors.lidar.scanners import SpinningLidar, scan
+from usdforest.sensors.platforms.checks import unseen_warning
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene import extract_scene
+from usdforest.sensors.scene.extraction import extract_scene
 
 
 def _stage(path):

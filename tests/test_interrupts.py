@@ -302,7 +302,7 @@ def test_a_ctrl_c_inside_compiled_code_is_an_interrupt_not_an_internal_error(
     API re-raises it as KeyboardInterrupt, the CLI ends in its one line and exit 130."""
     import usdforest
     from usdforest.cli.app import main
-    from usdforest.sensors import survey
+    from usdforest.sensors.platforms import survey
 
     write_forest(read_recipe(TWO_TREES), tmp_path / "f.usda", thumbnail=False)
     monkeypatch.setattr(survey, "fly", _stopped_inside_compiled_code)

@@ -20,7 +20,7 @@ LONG = {
     "cad.parts": "one import path from a CAD file to a checked, measured part",
     "grow.species": "the presets themselves",
     "usd.tree": "the tree writer: layers, variants, levels of detail",
-    "sensors.sonar": "the sonar model: geometry, propagation and the coherent sum",
+    "sensors.sonar.model": "the sonar model: geometry, propagation and the coherent sum",
     "cad.extract": "one decomposition of a whole-tree model",
 }
 
@@ -118,3 +118,45 @@ def test_every_subpackage_is_installed():
         if "__pycache__" not in p.parts
     }
     assert found - listed == set()
+
+
+# the sensors' layers in the order data flows through them: each imports only those before it
+SENSOR_LAYERS = ("scene", "cast", "lidar", "sonar", "optics", "platforms")
+
+
+def _runtime_imports(path: Path, known: set[str]) -> set[str]:
+    """The usdforest modules ``path`` imports when it runs: those under ``if TYPE_CHECKING:``
+    are annotations, not data flow."""
+    tree = ast.parse(path.read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            node.body = []
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module:
+            base = node.module.removeprefix("usdforest").lstrip(".")
+            out |= {f"{base}.{a.name}" if f"{base}.{a.name}" in known else base for a in node.names}
+        elif isinstance(node, ast.Import):
+            out |= {a.name.removeprefix("usdforest.") for a in node.names}
+    return {m for m in out if m in known}
+
+
+def test_the_sensors_data_flows_one_way():
+    """scene -> cast -> lidar -> sonar -> optics -> platforms: a module imports its own layer,
+    the layers before it and ``sensors.pose``, never a later one; every sensors module is in
+    a layer."""
+    mods = modules()
+    sensors = {m: p for m, p in mods.items() if m.startswith("sensors.")}
+    loose = sorted(m for m in sensors if m.split(".")[1] not in (*SENSOR_LAYERS, "pose"))
+    assert loose == []
+    wrong = []
+    for m, p in sensors.items():
+        layer = m.split(".")[1]
+        if layer == "pose":
+            continue
+        rank = SENSOR_LAYERS.index(layer)
+        for d in _runtime_imports(p, set(mods)):
+            if d.startswith("sensors.") and d.split(".")[1] in SENSOR_LAYERS:
+                if SENSOR_LAYERS.index(d.split(".")[1]) > rank:
+                    wrong.append(f"{m} imports {d}")
+    assert wrong == []

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from test_lidar_returns import _beam, _stage
 
-from usdforest.sensors.lidar import PRESETS, SpinningLidar, scan
+from usdforest.sensors.lidar.returns import merge_echoes
+from usdforest.sensors.lidar.scanners import PRESETS, SpinningLidar, scan
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.returns import merge_echoes
 
 
 def _wall(tmp_path, d):

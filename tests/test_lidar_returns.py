@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdGeom
 
-from usdforest.sensors.lidar import PRESETS, SpinningLidar, scan
+from usdforest.sensors.lidar.returns import beam_pattern, merge_echoes, subray_directions
+from usdforest.sensors.lidar.scanners import PRESETS, SpinningLidar, scan
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.returns import beam_pattern, merge_echoes, subray_directions
-from usdforest.sensors.scene import extract_scene
+from usdforest.sensors.scene.extraction import extract_scene
 
 GAIN, RHO = 65535.0, 0.5  # sensor gain; reflectance of unlabelled prims
 
@@ -300,7 +300,7 @@ def test_a_pulse_through_a_leaf_returns_the_transmitted_light_from_the_wall_behi
     (its reflectance 0.47), and the wall's (reflectance 0.5) carrying T² of it, the light
     that passed the leaf out and back (T = 0.42 at 905 nm, docs/notes/lidar-radiometry.md).
     With opaque leaves the wall is not seen."""
-    from usdforest.sensors.lidar import LEAF_TRANSMITTANCE, REFLECTANCE
+    from usdforest.sensors.lidar.scanners import LEAF_TRANSMITTANCE, REFLECTANCE
 
     def stage(leaves):
         scene_path = tmp_path / f"leaf{len(list(tmp_path.glob('leaf*.usda')))}.usda"

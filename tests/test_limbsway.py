@@ -254,10 +254,10 @@ def test_the_sensors_see_each_limb_where_it_sways(stands):
     at t holds them, rays cast at it meet what rays cast at the scene read at t meet, and the
     limbs' own turns move the leaves by centimetres beyond their trees' sway (the same gusts
     with ``branch_sway = false``)."""
-    from usdforest.sensors.motion import SceneMotion
-    from usdforest.sensors.raycast import SceneCaster
-    from usdforest.sensors.scene import extract_scene
-    from usdforest.sensors.wood import scene_cylinders
+    from usdforest.sensors.cast.raycast import SceneCaster
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.scene.motion import SceneMotion
+    from usdforest.sensors.sonar.wood import scene_cylinders
 
     t = 1.52  # between the time codes 36 and 37
     moved, at_rest = {}, {}
@@ -313,8 +313,8 @@ def test_the_swaying_limbs_found_are_kept_with_the_stages_prototypes(stands, tmp
     """Finding a prototype's swaying limbs walks its prims (0.8 s in the windy default
     forest): a second extraction reads them from the scene cache, and places the same parts
     as an extraction without it."""
-    from usdforest.sensors import scene as scene_module
-    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.scene import extraction as scene_module
+    from usdforest.sensors.scene.extraction import extract_scene
 
     monkeypatch.setenv("USDFOREST_CACHE", str(tmp_path / "cache"))
     real = scene_module.moving_parts

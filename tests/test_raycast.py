@@ -14,12 +14,12 @@ from usdforest import api
 from usdforest.cli import app
 from usdforest.errors import UsdForestError
 from usdforest.recipe import read_recipe
-from usdforest.sensors.lidar import PRESETS, DepthCamera, SpinningLidar, scan
+from usdforest.sensors.cast.raycast import SceneCaster, resolve_device
+from usdforest.sensors.cast.warpcast import cuda_devices
+from usdforest.sensors.lidar.returns import beam_pattern, subray_directions
+from usdforest.sensors.lidar.scanners import PRESETS, DepthCamera, SpinningLidar, scan
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.raycast import SceneCaster, resolve_device
-from usdforest.sensors.returns import beam_pattern, subray_directions
-from usdforest.sensors.scene import extract_scene
-from usdforest.sensors.warpcast import cuda_devices
+from usdforest.sensors.scene.extraction import extract_scene
 from usdforest.usd.forest import write_forest
 
 ALLOMETRIC = allometric_stand(
@@ -185,8 +185,8 @@ def test_the_warp_kernels_cuda_runs_agree_with_warps_bvh_walk(scene):
     """The kernel CUDA runs (tree level: a loop over boxes, as CUDA needs) run here on the
     CPU: the same hits as the BVH walk over trees, so what the GPU runs is checked on
     every machine."""
-    from usdforest.sensors.rayscene import RayScene
-    from usdforest.sensors.warpcast import WarpCaster
+    from usdforest.sensors.cast.rayscene import RayScene
+    from usdforest.sensors.cast.warpcast import WarpCaster
 
     rays = np.ascontiguousarray(_rays(), np.float32)
     origins = np.ascontiguousarray(np.broadcast_to(POSE.position, rays.shape), np.float32)
@@ -207,7 +207,7 @@ def test_embrees_self_check_takes_its_rounding_and_refuses_a_wrong_hit():
     (AVX2) returns 3 less one float32 ulp with every ISA Embree offers, where earlier machines
     returned 3: the check refused the library there and every scan exited 2. A rounding is
     taken; another distance, geometry, instance or entry is refused."""
-    from usdforest.sensors.embree import embree, self_check_hit
+    from usdforest.sensors.cast.embree import embree, self_check_hit
 
     ulp = float(np.spacing(np.float32(3.0)))
     assert self_check_hit((3.0, 0, 0, 1)) and self_check_hit((3.0 - ulp, 0, 0, 1))

@@ -1,5 +1,5 @@
-"""Native instances in the sensors' scene (usdforest.sensors.scene): each prototype's meshes
-read once and placed by every instance, the same triangles, classes and paths as a walk of
+"""Native instances in the sensors' scene (usdforest.sensors.scene.extraction): each prototype's
+meshes read once and placed by every instance, the same triangles, classes and paths as a walk of
 every instance proxy."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from pxr import Gf, Usd, UsdGeom, UsdSemantics
 
-from usdforest.sensors.scene import CLASS_ID, extract_scene
+from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
 from usdforest.usd.layers import class_labels
 
 QUAD = [(0, 0, 0), (1, 0, 0), (1, 1, 0.5), (0, 1, 0)]

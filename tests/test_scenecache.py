@@ -11,7 +11,7 @@ import pytest
 
 from usdforest.cli import app
 from usdforest.recipe import read_recipe
-from usdforest.sensors.scene import extract_scene
+from usdforest.sensors.scene.extraction import extract_scene
 from usdforest.usd.forest import write_forest
 
 PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
@@ -189,7 +189,7 @@ def test_sensors_and_stand_figures_see_every_leaf_at_any_selected_level(tmp_path
 
 def _reads(monkeypatch) -> list[bool]:
     """Whether each prototype the store is asked for is read from it (True) or gathered."""
-    from usdforest.sensors import scenecache
+    from usdforest.sensors.scene import scenecache
 
     seen: list[bool] = []
     get = scenecache.PrototypeStore.get
@@ -235,7 +235,7 @@ def test_an_entry_of_the_wrong_content_is_gathered_again(tmp_path, cache, monkey
     """A well-formed entry whose content does not fit what it stands for (another value,
     arrays of lengths that disagree, paths it does not have) is ignored: the scene is the one
     gathered without the cache, and stored whole again."""
-    from usdforest.sensors.scenecache import read_entry, write_entry
+    from usdforest.sensors.scene.scenecache import read_entry, write_entry
 
     out = _forest(tmp_path)
     first = extract_scene(out)
@@ -260,7 +260,7 @@ def test_an_entry_keeps_data_only(tmp_path):
     None); anything that is not data (an object array, an object) is refused on writing."""
     import io
 
-    from usdforest.sensors.scenecache import read_entry, write_entry
+    from usdforest.sensors.scene.scenecache import read_entry, write_entry
 
     value = {"a": (np.arange(3), None, [1.5, "x"]), "b": np.zeros((0, 3), np.float32), "c": True}
     with (tmp_path / "e.npz").open("wb") as fh:

@@ -15,11 +15,11 @@ from stands import allometric_stand
 from usdforest.cli import app
 from usdforest.grow.species import get_species
 from usdforest.recipe import read_recipe
-from usdforest.sensors.backscatter import disk_backscatter
-from usdforest.sensors.lidar import DepthCamera, SpinningLidar, scan
+from usdforest.sensors.lidar.scanners import DepthCamera, SpinningLidar, scan
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene import CLASS_ID, Leaves, extract_scene
-from usdforest.sensors.sonar import (
+from usdforest.sensors.scene.extraction import CLASS_ID, Leaves, extract_scene
+from usdforest.sensors.sonar.backscatter import disk_backscatter
+from usdforest.sensors.sonar.model import (
     SonarConfig,
     absorption_db_per_m,
     beam_amplitude,
@@ -456,7 +456,7 @@ def test_a_pose_inside_a_lone_trees_trunk_is_refused(tmp_path, runner, sensor):
 def _cast_both_ways(stage: Path, pose: Pose, reach: float):
     """The rays of a spinning lidar and a camera at ``pose``, cast through the instances
     (Warp: trees, then leaves) and by Embree on every triangle copied into one scene."""
-    from usdforest.sensors.raycast import RayCaster, SceneCaster
+    from usdforest.sensors.cast.raycast import RayCaster, SceneCaster
 
     inst = extract_scene(stage, centre=pose.position, radius=reach, reflectors=False)
     flat = extract_scene(

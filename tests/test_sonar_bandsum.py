@@ -13,11 +13,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from usdforest.sensors import bandsum, sonar
-from usdforest.sensors.backscatter import group_fit_backscatter
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene import Leaves
-from usdforest.sensors.sonar import PRESETS, SonarConfig, _Grid
+from usdforest.sensors.scene.extraction import Leaves
+from usdforest.sensors.sonar import bandsum
+from usdforest.sensors.sonar import model as sonar
+from usdforest.sensors.sonar.backscatter import group_fit_backscatter
+from usdforest.sensors.sonar.model import PRESETS, SonarConfig, _Grid
 
 
 def reference_deposit(amp: np.ndarray, tau: np.ndarray, bands: bandsum.Bands) -> np.ndarray:
@@ -131,8 +132,8 @@ def test_sums_do_not_depend_on_how_the_reflectors_are_cut_into_blocks(monkeypatc
 def _targets(n: int, seed: int = 3) -> sonar.Targets:
     """A crown of ``n`` leaves 2-6 m ahead and around (some behind), 40 wood cylinders in it
     and a rough ground 1.5 m below."""
-    from usdforest.sensors.facets import Facets
-    from usdforest.sensors.wood import Cylinders
+    from usdforest.sensors.sonar.facets import Facets
+    from usdforest.sensors.sonar.wood import Cylinders
 
     rng = np.random.default_rng(seed)
     centre = rng.normal((4.0, 0.0, 0.0), 1.5, (n, 3))
@@ -221,8 +222,8 @@ def test_a_pulse_finds_the_reflectors_in_range_as_measuring_each_would(tmp_path)
     """The k-d trees' picks equal measuring every leaf's and cylinder's distance, in the same
     order; the labels' first and last ranges equal each group's min and max."""
     from usdforest.recipe import default_recipe_path, read_recipe
-    from usdforest.sensors.scene import extract_scene
-    from usdforest.sensors.sonar import SonarScene
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.sonar.model import SonarScene
     from usdforest.usd.forest import write_forest
 
     stand = tmp_path / "two.usda"

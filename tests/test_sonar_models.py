@@ -15,10 +15,15 @@ import pytest
 from scipy.special import erf, j1
 
 from usdforest.errors import UsdForestError
-from usdforest.sensors.backscatter import disk_backscatter, group_fit_backscatter
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene import Leaves
-from usdforest.sensors.sonar import PRESETS, SonarConfig, absorption_db_per_m, echo_from_leaves
+from usdforest.sensors.scene.extraction import Leaves
+from usdforest.sensors.sonar.backscatter import disk_backscatter, group_fit_backscatter
+from usdforest.sensors.sonar.model import (
+    PRESETS,
+    SonarConfig,
+    absorption_db_per_m,
+    echo_from_leaves,
+)
 
 C = 343.0
 A = 0.03  # leaf radius, m

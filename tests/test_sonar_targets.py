@@ -16,10 +16,10 @@ from pxr import Gf, Usd, UsdGeom, UsdSemantics, Vt
 
 from usdforest.cli import app
 from usdforest.recipe import default_recipe_path, read_recipe
-from usdforest.sensors.backscatter import cylinder_end, cylinder_specular
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene import CLASS_ID, extract_scene
-from usdforest.sensors.sonar import (
+from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
+from usdforest.sensors.sonar.backscatter import cylinder_end, cylinder_specular
+from usdforest.sensors.sonar.model import (
     SonarConfig,
     SonarScene,
     absorption_db_per_m,
@@ -28,7 +28,7 @@ from usdforest.sensors.sonar import (
     wood_amplitudes,
     wood_points,
 )
-from usdforest.sensors.wood import Cylinders
+from usdforest.sensors.sonar.wood import Cylinders
 from usdforest.usd.forest import write_forest
 
 C = 343.0
@@ -159,7 +159,7 @@ def test_an_ends_fresnel_functions_are_scipys():
     within 2e-8."""
     from scipy.special import fresnel
 
-    from usdforest.sensors import wood_kernels
+    from usdforest.sensors.sonar import wood_kernels
 
     x = np.linspace(1e-3, 30, 30001)
     s, c = fresnel(x)
@@ -238,7 +238,7 @@ def test_a_trees_wood_prims_fitted_together_are_each_fitted_alone(tmp_path):
     (same count, same centres, radii, lengths and axes up to sign) as fitting every prim's
     triangles on its own, with trunk segments running up the stem."""
     from usdforest.grow.species import get_species
-    from usdforest.sensors.wood import fit_cylinders
+    from usdforest.sensors.sonar.wood import fit_cylinders
     from usdforest.usd.tree import write_tree
 
     out = tmp_path / "p.usda"
@@ -421,7 +421,7 @@ def test_a_forests_echoes_are_labelled_by_class_and_tree(tmp_path, runner):
 def test_the_echo_envelope_is_the_analytic_signals():
     from scipy.signal import hilbert
 
-    from usdforest.sensors.sonar import envelope
+    from usdforest.sensors.sonar.model import envelope
 
     rng = np.random.default_rng(3)
     for n in (1000, 1001):
@@ -452,7 +452,7 @@ def test_wood_that_fits_no_cylinder_gives_no_row():
     """A prototype without wood (a ground-vegetation patch) fits no cylinder: every field of
     the result is empty, so that copies placed after it keep their ``joined`` flags in line
     (one stray flag each had shifted every later piece's chain)."""
-    from usdforest.sensors.wood import fit_cylinders
+    from usdforest.sensors.sonar.wood import fit_cylinders
 
     tri = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]], dtype=float)
     none = fit_cylinders(tri, np.array([CLASS_ID["leaf"]]), np.zeros(1, int), np.full(1, -1), 0.5)

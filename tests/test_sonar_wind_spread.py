@@ -33,10 +33,10 @@ import numpy as np
 import pytest
 from stands import build_text
 
-from usdforest.sensors.motion import SceneMotion, leaves_at
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene import Leaves, extract_scene
-from usdforest.sensors.sonar import SonarConfig, SonarScene, echo_from_leaves, leaf_amplitudes
+from usdforest.sensors.scene.extraction import Leaves, extract_scene
+from usdforest.sensors.scene.motion import SceneMotion, leaves_at
+from usdforest.sensors.sonar.model import SonarConfig, SonarScene, echo_from_leaves, leaf_amplitudes
 
 # one 22 m Scots pine in a gale gusting hard from the west: its crown sways at tenths of a
 # metre to a couple of metres a second, Doppler shifts of up to ~1 kHz at 80 kHz
@@ -161,7 +161,7 @@ def _predicted(leaves: Leaves, velocity: np.ndarray, pose: Pose) -> tuple[float,
 
 
 def _recorded(motion: SceneMotion, t: float, seen: list, leaves: Leaves):
-    """A flight's leaves at ``t`` (:func:`usdforest.sensors.motion.leaves_at`), kept in
+    """A flight's leaves at ``t`` (:func:`usdforest.sensors.scene.motion.leaves_at`), kept in
     ``seen`` for the prediction."""
     now, velocity = leaves_at(motion, t, leaves)
     seen.append((now, velocity))

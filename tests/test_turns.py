@@ -1,4 +1,4 @@
-"""Prims' own transforms in time as the sensors read them (usdforest.sensors.turns), against
+"""Prims' own transforms in time as the sensors read them (usdforest.sensors.scene.turns), against
 USD's own XformCache, and the boxes that hold a turning shape between time samples."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from pxr import Gf, Usd, UsdGeom
 
-from usdforest.sensors.turns import Turns, swept_boxes
+from usdforest.sensors.scene.turns import Turns, swept_boxes
 
 
 def _stage() -> tuple[Usd.Stage, list[Usd.Prim]]:

@@ -273,8 +273,8 @@ def test_a_tiled_forest_has_the_same_understorey(forest, tmp_path):
 def test_sensors_see_shrubs_as_no_trees_and_the_canopy_gaps_pass_them(forest):
     """A ray straight down onto a hazel meets its wood or leaves with no tree id; a ray that
     meets a shrub first is a gap in the trees' canopy."""
-    from usdforest.sensors.raycast import SceneCaster
-    from usdforest.sensors.scene import CLASS_ID, extract_scene
+    from usdforest.sensors.cast.raycast import SceneCaster
+    from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
 
     rows = [r for r in _rows(forest, "understorey.csv") if r["name"] == "hazel"]
     row = max(rows, key=lambda r: float(r["light"]))
@@ -289,7 +289,7 @@ def test_sensors_see_shrubs_as_no_trees_and_the_canopy_gaps_pass_them(forest):
     assert shrub.sum() > 20
     assert (hit.tree[shrub] == -1).all()
     # the canopy's gap fractions count them as passed: the understorey's prims, and only them
-    from usdforest.sensors.gaps import understorey_paths
+    from usdforest.sensors.optics.gaps import understorey_paths
 
     under = understorey_paths(scene)
     assert under[hit.path[shrub]].all()

@@ -425,7 +425,7 @@ def test_a_scan_refuses_a_time_that_is_no_number(tmp_path, forests):
 
 def _hover(seconds: float, start: float = 0.0):
     """A platform hovering at (20, 20, 12), facing +x, from ``start`` to ``seconds``."""
-    from usdforest.sensors.flight import Trajectory
+    from usdforest.sensors.platforms.flight import Trajectory
 
     return Trajectory(
         np.array([start, seconds]), np.array([[20.0, 20.0, 12.0]] * 2), yaw=np.zeros(2),
@@ -442,8 +442,8 @@ def test_a_flight_sees_each_sweep_where_the_trees_sway_then(forests):
 
     from scipy.spatial import cKDTree
 
-    from usdforest.sensors.lidar import PRESETS
-    from usdforest.sensors.motion import animated
+    from usdforest.sensors.lidar.scanners import PRESETS
+    from usdforest.sensors.scene.motion import animated
 
     assert animated(forests["gusty"]) and not animated(forests["still"])
     sensor = dataclasses.replace(PRESETS["vlp-16"], noise=False)
@@ -487,7 +487,7 @@ def test_a_hover_of_a_tenth_of_a_second_is_one_sweep_wherever_it_starts(forests)
     truly longer than one sweep makes a second."""
     import dataclasses
 
-    from usdforest.sensors.lidar import PRESETS
+    from usdforest.sensors.lidar.scanners import PRESETS
 
     sensor = dataclasses.replace(PRESETS["vlp-16"], noise=False)
     one_sweep = sensor.directions().shape[0]
@@ -502,7 +502,10 @@ def test_a_flights_camera_frames_see_the_trees_at_their_own_times(forests, monke
     import dataclasses
 
     import usdforest.usd.layers
-    from usdforest.sensors import camera, motion, scene, survey
+    from usdforest.sensors.optics import camera
+    from usdforest.sensors.platforms import survey
+    from usdforest.sensors.scene import extraction as scene
+    from usdforest.sensors.scene import motion
 
     opened = []
     real = usdforest.usd.layers.open_stage
@@ -532,8 +535,8 @@ def test_leaves_move_with_their_swaying_trees_at_the_velocity_the_scene_gives(fo
     """SceneMotion's leaf velocities at the middle of a time code's interval are the finite
     differences of the leaves' own positions, extracted anew at two times inside that interval
     (where USD interpolates each tree's tilt): within 1 % of the fastest."""
-    from usdforest.sensors.motion import SceneMotion
-    from usdforest.sensors.scene import extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.scene.motion import SceneMotion
 
     stage, centre, radius = forests["gusty"], np.array([20.0, 20.0, 10.0]), 30.0
     t, dt = 10.125, 0.05  # the gusty forest has 4 time codes a second: 10.0 to 10.25 here
@@ -561,8 +564,8 @@ def test_a_leaf_moving_towards_the_sonar_sounds_as_a_sonar_moving_towards_it():
     at second order in v/c (2 r (c - v) / c² against 2 r / (c + v)), so the still leaf is
     placed that much nearer, by r v² / c² (0.03 mm at 3 m)."""
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.scene import Leaves
-    from usdforest.sensors.sonar import PRESETS, Targets, echo_from_targets
+    from usdforest.sensors.scene.extraction import Leaves
+    from usdforest.sensors.sonar.model import PRESETS, Targets, echo_from_targets
 
     cfg, pose = PRESETS["paper"], Pose(0.0, 0.0, 0.0)
     c = cfg.speed_of_sound
@@ -604,11 +607,11 @@ def test_the_wood_sways_with_its_tree_and_the_sonar_hears_it_there(forests):
     of the scene extracted at t when the reflectors' velocities are left out."""
     import functools
 
-    from usdforest.sensors.motion import SceneMotion, leaves_at, wood_at
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.scene import extract_scene
-    from usdforest.sensors.sonar import SonarConfig, SonarScene
-    from usdforest.sensors.wood import scene_cylinders
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.scene.motion import SceneMotion, leaves_at, wood_at
+    from usdforest.sensors.sonar.model import SonarConfig, SonarScene
+    from usdforest.sensors.sonar.wood import scene_cylinders
 
     stage, centre, radius = forests["gusty"], np.array([20.0, 20.0, 10.0]), 30.0
     t = 10.125  # between the time codes 40 and 41 (4 a second)

@@ -24,7 +24,7 @@ from usdforest.signals import interruptible
 if TYPE_CHECKING:
     from usdforest.grow.species import Species
     from usdforest.recipe import Recipe
-    from usdforest.sensors.survey import Flight, Scan
+    from usdforest.sensors.platforms.survey import Flight, Scan
     from usdforest.usd.instances import ForestBuild
     from usdforest.usd.tree import TreeBuild
 
@@ -160,10 +160,10 @@ def scan(
     pitch, roll]: the stage's units and axes, degrees), casting rays on ``device`` ("cpu",
     "cuda" or "cuda:N"), ``time`` seconds into the stage's animation (a forest's wind; the
     still stage when omitted); ``progress`` as :func:`build_forest` takes it; see
-    :func:`usdforest.sensors.survey.scan`."""
+    :func:`usdforest.sensors.platforms.survey.scan`."""
     from usdforest import arguments
     from usdforest.progress import resolve_progress
-    from usdforest.sensors import survey
+    from usdforest.sensors.platforms import survey
 
     arguments.path(stage, "stage")
     return survey.scan(
@@ -190,14 +190,14 @@ def fly(
     progress: Callable[[str, int, int], None] | bool | None = None,
 ) -> Flight:
     """Fly sensors through ``stage`` along ``path`` (a CSV of poses or a
-    :class:`~usdforest.sensors.flight.Trajectory`) or a straight ``line`` at ``speed``, the
-    lidar sweeping ``lidar_rate`` times and the camera ``camera_rate`` frames a second, rays
+    :class:`~usdforest.sensors.platforms.flight.Trajectory`) or a straight ``line`` at ``speed``,
+    the lidar sweeping ``lidar_rate`` times and the camera ``camera_rate`` frames a second, rays
     cast on ``device`` ("cpu", "cuda" or "cuda:N"). Work beyond the command line's limits is
     refused unless ``long``; ``progress`` as :func:`build_forest` takes it; see
-    :func:`usdforest.sensors.survey.fly`."""
+    :func:`usdforest.sensors.platforms.survey.fly`."""
     from usdforest import arguments
     from usdforest.progress import resolve_progress
-    from usdforest.sensors import survey
+    from usdforest.sensors.platforms import survey
 
     arguments.path(stage, "stage")
     return survey.fly(

@@ -1,4 +1,5 @@
-"""Sensor commands: ``scan`` and ``fly`` (thin layers over :mod:`usdforest.sensors.survey`)."""
+"""Sensor commands: ``scan`` and ``fly`` (thin layers over
+:mod:`usdforest.sensors.platforms.survey`)."""
 
 from __future__ import annotations
 
@@ -86,10 +87,12 @@ def scan_cmd(
     import time
 
     from usdforest.config import check_keys, load_toml
-    from usdforest.sensors import camera, lidar, sonar
+    from usdforest.sensors.lidar import scanners as lidar
+    from usdforest.sensors.optics import camera
+    from usdforest.sensors.platforms.survey import SENSORS, scan, sensor_settings, sensor_table
     from usdforest.sensors.pose import parse_pose
-    from usdforest.sensors.scene import class_counts
-    from usdforest.sensors.survey import SENSORS, scan, sensor_settings, sensor_table
+    from usdforest.sensors.scene.extraction import class_counts
+    from usdforest.sensors.sonar import model as sonar
 
     if sensor not in SENSORS:
         raise UsdForestError(f"--sensor: {sensor!r} is not lidar, sonar or camera")
@@ -282,15 +285,17 @@ def fly_cmd(
     import numpy as np
 
     from usdforest.config import check_keys, load_toml
-    from usdforest.sensors import camera, flight
-    from usdforest.sensors.scene import class_counts
-    from usdforest.sensors.survey import (
+    from usdforest.sensors.lidar.las import gps_times, write_las
+    from usdforest.sensors.optics import camera
+    from usdforest.sensors.platforms import flight
+    from usdforest.sensors.platforms.survey import (
         check_work,
         flight_settings,
         fly,
         planned_work,
         trajectory,
     )
+    from usdforest.sensors.scene.extraction import class_counts
 
     if (path is None) == (line is None):
         raise UsdForestError("give the flight as --path CSV or as --line x0,y0,z0:x1,y1,z1")
@@ -304,7 +309,7 @@ def fly_cmd(
             raise UsdForestError(f"--line: expected x0,y0,z0:x1,y1,z1, got {line!r}") from None
     require_output(output, "output stem")
     if start_time is not None:
-        flight.gps_times(np.zeros(1), start_time.strip())  # a bad time fails before any work
+        gps_times(np.zeros(1), start_time.strip())  # a bad time fails before any work
         start_time = start_time.strip()
     traj = trajectory(stage, path=path, line=ends, speed=speed)
     tables = {}
@@ -357,7 +362,7 @@ def fly_cmd(
         writes = sum(x is not None for x in (done.lidar, done.sonar, done.camera))
         tick("writing outputs", 0, writes)
         if (r := done.lidar) is not None:
-            flight.write_las(r, staged.with_name(las.name), crs=done.crs, origin=done.origin,
+            write_las(r, staged.with_name(las.name), crs=done.crs, origin=done.origin,
                              start_time=start_time)  # fmt: skip
             flight.write_trajectory(traj, staged.with_name(trajectory_csv.name),
                                     origin=done.origin, start_time=start_time)  # fmt: skip

@@ -206,7 +206,7 @@ def stats_cmd(
             f = stand_figures(stage, progress=tick, stage=opened)
             f.pop("per_tree")
             if rays and f["region_bounds"] is not None:
-                from usdforest.sensors.gaps import canopy_figures
+                from usdforest.sensors.optics.gaps import canopy_figures
 
                 f |= canopy_figures(stage, tuple(f["region_bounds"]), f["leaf_area_index"],
                                     progress=tick, opened=opened)  # fmt: skip

@@ -10,7 +10,7 @@ branch meshes, the same one-sided convention). Per stand: stems/ha, basal area, 
 DBH, DBH and height distributions, leaf and wood area indices (over the region's area) and
 the crown footprint cover (the share of 0.25 m cells of the region under any leaf or wood
 point: crowns' outlines, not what a sensor sees through them; canopy cover and gap fractions
-by rays are :mod:`usdforest.sensors.gaps`').
+by rays are :mod:`usdforest.sensors.optics.gaps`').
 """
 
 from __future__ import annotations

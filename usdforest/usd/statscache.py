@@ -2,7 +2,7 @@
 
 A forest's figures take a minute or more to measure (every prototype's trunk and leaves, and
 the canopy's rays). They are kept as JSON in the user's cache (the scene cache's folder:
-:func:`usdforest.sensors.scenecache.cache_root`; ``USDFOREST_CACHE=off`` turns both off)
+:func:`usdforest.sensors.scene.scenecache.cache_root`; ``USDFOREST_CACHE=off`` turns both off)
 under a digest of the content of every layer the composed stage uses, of the package's own
 source and of what was asked (with or without rays): an edited layer, a rebuilt forest or
 another usdforest measures again. An entry is data only (JSON: it cannot run code), and one
@@ -41,7 +41,7 @@ def _code_digest() -> bytes:
 def figures_key(stage, rays: bool) -> str | None:
     """The key of ``stage``'s figures (None when caching is off, or a layer is only in memory
     or unreadable: nothing is hashed then)."""
-    from usdforest.sensors.scenecache import cache_root, stage_key
+    from usdforest.sensors.scene.scenecache import cache_root, stage_key
 
     layers = stage_key(stage) if cache_root() is not None else None
     if layers is None:
@@ -54,7 +54,7 @@ def figures_key(stage, rays: bool) -> str | None:
 
 
 def _file(key: str) -> Path | None:
-    from usdforest.sensors.scenecache import cache_root
+    from usdforest.sensors.scene.scenecache import cache_root
 
     root = cache_root()
     return None if root is None else root / f"{PREFIX}{key}.json"
@@ -101,7 +101,7 @@ def keep(key: str | None, figures: dict) -> dict:
     if path is None:
         return kept
     from usdforest.atomic import atomic_path
-    from usdforest.sensors.scenecache import keep_recent
+    from usdforest.sensors.scene.scenecache import keep_recent
 
     try:
         with atomic_path(path) as tmp:

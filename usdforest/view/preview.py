@@ -634,7 +634,7 @@ def render_stage(
     tick("drawing", 0, 3)
     from pxr import Usd, UsdGeom
 
-    from usdforest.sensors.stageframe import moved_boxes, stage_frame
+    from usdforest.sensors.scene.stageframe import moved_boxes, stage_frame
     from usdforest.usd.layers import open_stage
 
     path = Path(path)
