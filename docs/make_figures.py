@@ -225,7 +225,8 @@ def crowns(out: Path, work: Path) -> None:
     from scipy.spatial import ConvexHull
 
     from usdforest.sensors.cast.raycast import SceneCaster
-    from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.scene.scenetypes import CLASS_ID
 
     names = ("european-beech", "sessile-oak", "silver-birch", "scots-pine", "norway-spruce")
     fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.6))
@@ -428,7 +429,8 @@ def sensors(out: Path, work: Path) -> None:
     from usdforest.sensors.lidar.scanners import PRESETS as LIDARS
     from usdforest.sensors.lidar.scanners import scan
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.scene.extraction import CLASSES, extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.scene.scenetypes import CLASSES
     from usdforest.sensors.sonar.model import SonarConfig, sonar_scan, write_echo
 
     stand = work / "paper-two-tree-stand.usda"
@@ -675,7 +677,8 @@ def dead_wood(out: Path, work: Path) -> None:
     from usdforest.sensors.cast.raycast import SceneCaster
     from usdforest.sensors.optics import camera
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.scene.scenetypes import CLASS_ID
 
     stage = work / "default.usda"
     if not stage.exists():
@@ -742,7 +745,8 @@ def ground_vegetation(out: Path, work: Path) -> None:
     from usdforest.sensors.cast.raycast import SceneCaster
     from usdforest.sensors.optics import camera
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.scene.scenetypes import CLASS_ID
 
     stage = work / "default.usda"
     if not stage.exists():

@@ -18,7 +18,8 @@ from usdforest.recipe import default_recipe_path, read_recipe
 from usdforest.sensors.lidar.scanners import DepthCamera
 from usdforest.sensors.optics.camera import PRESETS, intrinsics, path_colours, render
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
+from usdforest.sensors.scene.extraction import extract_scene
+from usdforest.sensors.scene.scenetypes import CLASS_ID
 from usdforest.usd.forest import write_forest
 
 

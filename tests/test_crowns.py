@@ -24,7 +24,8 @@ from usdforest.grow.placement import shade_weights
 from usdforest.grow.species import get_species
 from usdforest.sensors.cast.raycast import SceneCaster
 from usdforest.sensors.optics.gaps import leaf_projection
-from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
+from usdforest.sensors.scene.extraction import extract_scene
+from usdforest.sensors.scene.scenetypes import CLASS_ID
 from usdforest.usd.tree import write_tree
 
 ALLOMETRIC = ("european-beech", "sessile-oak", "silver-birch", "scots-pine", "norway-spruce")

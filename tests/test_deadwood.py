@@ -290,7 +290,8 @@ def test_a_tiled_forest_has_the_same_dead_wood_with_its_colliders(forest, tmp_pa
 
 
 def test_sensors_see_dead_wood_as_its_own_class(forest):
-    from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.scene.scenetypes import CLASS_ID
     from usdforest.sensors.sonar.wood import scene_cylinders
 
     rows = _rows(forest, "deadwood.csv")

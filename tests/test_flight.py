@@ -15,7 +15,8 @@ from usdforest.recipe import default_recipe_path, read_recipe
 from usdforest.sensors.lidar.scanners import SpinningLidar
 from usdforest.sensors.platforms.flight import Trajectory, fly_lidar, read_path
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene.extraction import Leaves, extract_scene
+from usdforest.sensors.scene.extraction import extract_scene
+from usdforest.sensors.scene.scenetypes import Leaves
 from usdforest.sensors.sonar.model import SonarConfig, chirp, echo_from_leaves
 from usdforest.usd.forest import write_forest
 

@@ -278,7 +278,7 @@ def test_the_shapes_turns_and_sweeps_are_kept_with_the_stages_prototypes(
     """The leaf shapes' turns and swept boxes (a second for the windy default forest) are kept
     in the scene cache with the prototypes: a second extraction reads them, equal to those
     made without the cache, at the default time and at another."""
-    from usdforest.sensors.scene import extraction as scene_module
+    from usdforest.sensors.scene import walk as scene_module
     from usdforest.sensors.scene.extraction import extract_scene
 
     monkeypatch.setenv("USDFOREST_CACHE", str(tmp_path / "cache"))

@@ -147,7 +147,8 @@ def test_nadir_rays_meet_vegetation_on_the_cover_fraction(forest):
     """Rays straight down from 1 m, between the stems, meet ground vegetation first on the
     cover fraction of them (a binomial sample: 4 sigma)."""
     from usdforest.sensors.cast.raycast import SceneCaster
-    from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.scene.scenetypes import CLASS_ID
 
     scene = extract_scene(forest, cache=False)
     rng = np.random.default_rng(3)

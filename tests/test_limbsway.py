@@ -313,7 +313,7 @@ def test_the_swaying_limbs_found_are_kept_with_the_stages_prototypes(stands, tmp
     """Finding a prototype's swaying limbs walks its prims (0.8 s in the windy default
     forest): a second extraction reads them from the scene cache, and places the same parts
     as an extraction without it."""
-    from usdforest.sensors.scene import extraction as scene_module
+    from usdforest.sensors.scene import walk as scene_module
     from usdforest.sensors.scene.extraction import extract_scene
 
     monkeypatch.setenv("USDFOREST_CACHE", str(tmp_path / "cache"))

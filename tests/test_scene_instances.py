@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from pxr import Gf, Usd, UsdGeom, UsdSemantics
 
-from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
+from usdforest.sensors.scene.extraction import extract_scene
+from usdforest.sensors.scene.scenetypes import CLASS_ID
 from usdforest.usd.layers import class_labels
 
 QUAD = [(0, 0, 0), (1, 0, 0), (1, 1, 0.5), (0, 1, 0)]

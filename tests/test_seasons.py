@@ -17,7 +17,7 @@ from usdforest import api
 from usdforest.errors import RecipeError
 from usdforest.grow.species import get_species
 from usdforest.recipe import parse_recipe
-from usdforest.sensors.scene.extraction import CLASS_ID
+from usdforest.sensors.scene.scenetypes import CLASS_ID
 from usdforest.usd.inventory import stand_figures
 
 MIXED = f"""

@@ -17,7 +17,8 @@ from usdforest.grow.species import get_species
 from usdforest.recipe import read_recipe
 from usdforest.sensors.lidar.scanners import DepthCamera, SpinningLidar, scan
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene.extraction import CLASS_ID, Leaves, extract_scene
+from usdforest.sensors.scene.extraction import extract_scene
+from usdforest.sensors.scene.scenetypes import CLASS_ID, Leaves
 from usdforest.sensors.sonar.backscatter import disk_backscatter
 from usdforest.sensors.sonar.model import (
     SonarConfig,

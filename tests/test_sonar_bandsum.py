@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene.extraction import Leaves
+from usdforest.sensors.scene.scenetypes import Leaves
 from usdforest.sensors.sonar import bandsum
 from usdforest.sensors.sonar import model as sonar
 from usdforest.sensors.sonar.backscatter import group_fit_backscatter

@@ -16,7 +16,7 @@ from scipy.special import erf, j1
 
 from usdforest.errors import UsdForestError
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene.extraction import Leaves
+from usdforest.sensors.scene.scenetypes import Leaves
 from usdforest.sensors.sonar.backscatter import disk_backscatter, group_fit_backscatter
 from usdforest.sensors.sonar.model import (
     PRESETS,

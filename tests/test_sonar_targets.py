@@ -17,7 +17,8 @@ from pxr import Gf, Usd, UsdGeom, UsdSemantics, Vt
 from usdforest.cli import app
 from usdforest.recipe import default_recipe_path, read_recipe
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
+from usdforest.sensors.scene.extraction import extract_scene
+from usdforest.sensors.scene.scenetypes import CLASS_ID
 from usdforest.sensors.sonar.backscatter import cylinder_end, cylinder_specular
 from usdforest.sensors.sonar.model import (
     SonarConfig,

@@ -34,8 +34,9 @@ import pytest
 from stands import build_text
 
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene.extraction import Leaves, extract_scene
+from usdforest.sensors.scene.extraction import extract_scene
 from usdforest.sensors.scene.motion import SceneMotion, leaves_at
+from usdforest.sensors.scene.scenetypes import Leaves
 from usdforest.sensors.sonar.model import SonarConfig, SonarScene, echo_from_leaves, leaf_amplitudes
 
 # one 22 m Scots pine in a gale gusting hard from the west: its crown sways at tenths of a

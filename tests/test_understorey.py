@@ -274,7 +274,8 @@ def test_sensors_see_shrubs_as_no_trees_and_the_canopy_gaps_pass_them(forest):
     """A ray straight down onto a hazel meets its wood or leaves with no tree id; a ray that
     meets a shrub first is a gap in the trees' canopy."""
     from usdforest.sensors.cast.raycast import SceneCaster
-    from usdforest.sensors.scene.extraction import CLASS_ID, extract_scene
+    from usdforest.sensors.scene.extraction import extract_scene
+    from usdforest.sensors.scene.scenetypes import CLASS_ID
 
     rows = [r for r in _rows(forest, "understorey.csv") if r["name"] == "hazel"]
     row = max(rows, key=lambda r: float(r["light"]))

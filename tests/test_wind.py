@@ -564,7 +564,7 @@ def test_a_leaf_moving_towards_the_sonar_sounds_as_a_sonar_moving_towards_it():
     at second order in v/c (2 r (c - v) / c² against 2 r / (c + v)), so the still leaf is
     placed that much nearer, by r v² / c² (0.03 mm at 3 m)."""
     from usdforest.sensors.pose import Pose
-    from usdforest.sensors.scene.extraction import Leaves
+    from usdforest.sensors.scene.scenetypes import Leaves
     from usdforest.sensors.sonar.model import PRESETS, Targets, echo_from_targets
 
     cfg, pose = PRESETS["paper"], Pose(0.0, 0.0, 0.0)

@@ -91,7 +91,7 @@ def scan_cmd(
     from usdforest.sensors.optics import camera
     from usdforest.sensors.platforms.survey import SENSORS, scan, sensor_settings, sensor_table
     from usdforest.sensors.pose import parse_pose
-    from usdforest.sensors.scene.extraction import class_counts
+    from usdforest.sensors.scene.scenetypes import class_counts
     from usdforest.sensors.sonar import model as sonar
 
     if sensor not in SENSORS:
@@ -295,7 +295,7 @@ def fly_cmd(
         planned_work,
         trajectory,
     )
-    from usdforest.sensors.scene.extraction import class_counts
+    from usdforest.sensors.scene.scenetypes import class_counts
 
     if (path is None) == (line is None):
         raise UsdForestError("give the flight as --path CSV or as --line x0,y0,z0:x1,y1,z1")

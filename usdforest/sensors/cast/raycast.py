@@ -19,7 +19,7 @@ import numpy as np
 
 from usdforest.errors import UsdForestError
 from usdforest.sensors.cast.rayscene import Hits, RayScene
-from usdforest.sensors.scene.extraction import Scene
+from usdforest.sensors.scene.scenetypes import Scene
 
 __all__ = ["Hits", "RayCaster", "SceneCaster", "resolve_device"]
 
@@ -110,7 +110,7 @@ def resolve_device(device: str | None) -> str:
 
 
 class SceneCaster:
-    """First hits on a :class:`~usdforest.sensors.scene.extraction.Scene`, through its instances.
+    """First hits on a :class:`~usdforest.sensors.scene.scenetypes.Scene`, through its instances.
 
     Built once per scene. On the CPU (``device="cpu"``, the default) Embree 4 casts every
     ray on every core with both instance levels kept (trees, then leaves:

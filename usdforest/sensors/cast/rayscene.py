@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from usdforest.sensors.scene.extraction import Scene
+from usdforest.sensors.scene.scenetypes import Scene
 from usdforest.sensors.scene.stageframe import leaf_boxes, moved_boxes
 from usdforest.sensors.scene.turns import relative
 
@@ -71,7 +71,7 @@ def outward32(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass(frozen=True, eq=False)
 class RayScene:
-    """A :class:`~usdforest.sensors.scene.extraction.Scene` as flat arrays, grouped by owner.
+    """A :class:`~usdforest.sensors.scene.scenetypes.Scene` as flat arrays, grouped by owner.
 
     Wood: ``wood`` (m, 3, 3) float32 triangles, owner ``g``'s are
     ``wood[wood_first[g]:wood_first[g + 1]]``, with class, tree id (-1 in a prototype) and

@@ -12,7 +12,7 @@ import numpy as np
 
 from usdforest.atomic import atomic_path
 from usdforest.errors import UsdForestError
-from usdforest.sensors.scene.extraction import CLASSES, Scene
+from usdforest.sensors.scene.scenetypes import CLASSES, Scene
 
 # ASPRS LAS classes for our semantic classes: unclassified, ground, and vegetation (trunk,
 # branch, leaf, ground vegetation) by its height above the ground: low (3) under 2 m, medium

@@ -29,7 +29,7 @@ from usdforest.sensors.lidar.returns import (
     subray_directions,
 )
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene.extraction import CLASSES, Scene
+from usdforest.sensors.scene.scenetypes import CLASSES, Scene
 
 # Leaves and needles transmit near 905 nm: broadleaves 0.40-0.49 (PROSPECT-D), Norway spruce
 # needles 0.364 (RAMI-V Järvselja); one value for both, as REFLECTANCE has (0.47), 0.42

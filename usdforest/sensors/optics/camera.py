@@ -58,8 +58,8 @@ from usdforest.seeds import stream
 from usdforest.sensors.cast.raycast import SceneCaster
 from usdforest.sensors.lidar.scanners import CAMERA_ONLY, DISTORTION, DepthCamera
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene.extraction import CLASSES, Scene
 from usdforest.sensors.scene.motion import SceneMotion
+from usdforest.sensors.scene.scenetypes import CLASSES, Scene
 
 if TYPE_CHECKING:
     from pxr import Usd

@@ -28,8 +28,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from usdforest.sensors.scene.extraction import CLASS_ID
-from usdforest.sensors.scene.scenetypes import Scene
+from usdforest.sensors.scene.scenetypes import CLASS_ID, Scene
 
 if TYPE_CHECKING:
     from pxr import Usd

@@ -7,7 +7,7 @@ import numpy as np
 from usdforest.errors import UsdForestError
 from usdforest.sensors.cast.raycast import RayCaster
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene.extraction import CLASS_ID, Scene
+from usdforest.sensors.scene.scenetypes import CLASS_ID, Scene
 
 AXES = np.array([[1.0, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
 

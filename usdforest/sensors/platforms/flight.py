@@ -38,8 +38,8 @@ from usdforest.sensors.lidar.las import FlightReturns, gps_times, ground_height,
 from usdforest.sensors.lidar.rolling import rolling_cast
 from usdforest.sensors.lidar.scanners import SpinningLidar, cast_pulses, observed
 from usdforest.sensors.pose import Pose, rotations
-from usdforest.sensors.scene.extraction import CLASSES, Scene
 from usdforest.sensors.scene.motion import SceneMotion, leaves_at, wood_at
+from usdforest.sensors.scene.scenetypes import CLASSES, Scene
 from usdforest.sensors.sonar.model import SonarConfig, SonarScene, reach_box
 
 MAX_COORDINATE = 1e8  # stage units: no flight goes further

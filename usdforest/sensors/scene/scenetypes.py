@@ -9,6 +9,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+CLASSES = ("unknown", "trunk", "branch", "leaf", "ground", "dead_wood", "ground_vegetation")
+CLASS_ID = {name: i for i, name in enumerate(CLASSES)}
+
+
+def class_counts(cls: np.ndarray) -> dict[str, int]:
+    """How many of ``cls`` (class indices) fall in each class, by name."""
+    counts = np.bincount(np.asarray(cls, dtype=np.int64), minlength=len(CLASSES))
+    return {c: int(n) for c, n in zip(CLASSES, counts, strict=True)}
+
 
 @dataclass(frozen=True, eq=False)
 class Leaves:

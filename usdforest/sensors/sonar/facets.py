@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from usdforest.sensors.cast.raycast import RayCaster
-from usdforest.sensors.scene.extraction import CLASS_ID, Scene
+from usdforest.sensors.scene.scenetypes import CLASS_ID, Scene
 
 
 @dataclass(frozen=True, eq=False)

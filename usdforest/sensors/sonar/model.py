@@ -78,7 +78,7 @@ from usdforest.atomic import atomic_path, save_npz
 from usdforest.errors import UsdForestError
 from usdforest.runs import run_starts
 from usdforest.sensors.pose import Pose
-from usdforest.sensors.scene.extraction import CLASS_ID, CLASSES, Leaves, Scene
+from usdforest.sensors.scene.scenetypes import CLASS_ID, CLASSES, Leaves, Scene
 from usdforest.sensors.sonar import bandsum
 from usdforest.sensors.sonar.backscatter import (
     LEAF_MODELS,

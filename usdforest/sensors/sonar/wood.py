@@ -25,7 +25,7 @@ import numpy as np
 
 from usdforest.meshes import triangle_components
 from usdforest.runs import run_starts
-from usdforest.sensors.scene.extraction import CLASS_ID, Scene
+from usdforest.sensors.scene.scenetypes import CLASS_ID, Scene
 
 WOOD = (CLASS_ID["trunk"], CLASS_ID["branch"], CLASS_ID["dead_wood"])
 MAX_MISFIT = 0.15  # a slice's rms distance from its circle, as a share of the radius
