@@ -81,36 +81,58 @@ def scan_cmd(
 ) -> None:
     """Scan a stage with a lidar (ray casting), a bat-like sonar (echoes of leaves, wood and
     ground) or a camera (depth, semantic and instance images, shaded RGB)."""
-    import numpy as np
-
-    require_output(output)
     import time
 
-    from usdforest.config import check_keys, load_toml
-    from usdforest.sensors.lidar import scanners as lidar
-    from usdforest.sensors.optics import camera
-    from usdforest.sensors.platforms.survey import SENSORS, scan, sensor_settings, sensor_table
+    from usdforest.sensors.platforms.survey import SENSORS, scan
     from usdforest.sensors.pose import parse_pose
-    from usdforest.sensors.scene.scenetypes import class_counts
-    from usdforest.sensors.sonar import model as sonar
 
+    require_output(output)
     if sensor not in SENSORS:
         raise UsdForestError(f"--sensor: {sensor!r} is not lidar, sonar or camera")
+    reads = stage_inputs(stage)
+    claim_outputs(
+        [output, *_scan_outputs(sensor, output)],
+        inputs=lambda: [*reads(), config],
+        force=force,
+    )
+    p = parse_pose(pose)
+    if at is not None:
+        arguments.number(at, "--time")
+    settings = _scan_settings(sensor, preset, config, occlusion)
+    t0 = time.perf_counter()
+    with progress_bars(not (quiet or as_json), t0) as tick:
+        done = scan(
+            stage, sensor, p, settings=settings, seed=seed, device=device, progress=tick, time=at
+        )
+    for w in done.warnings:
+        err.print(f"warning: {w}", highlight=False)
+    summary, text = _write_scan(sensor, done, settings, output)
+    summary["seconds"] = round(time.perf_counter() - t0, 3)
+    if as_json:
+        sys.stdout.write(json.dumps(summary) + "\n")
+    else:
+        out.print(text, highlight=False)
+
+
+def _scan_outputs(sensor: str, output: Path) -> list[Path]:
+    """The files a scan writes beside ``output``, whose suffix is checked for ``sensor``."""
     suffixes = (".ply", ".npz") if sensor == "lidar" else (".npz",)
     if output.suffix.lower() not in suffixes:
         raise UsdForestError(f"{output}: a {sensor} scan is written as {' or '.join(suffixes)}")
-    companions = {
+    return {
         "sonar": [output.with_suffix(x) for x in (".wav", ".png")],  # OUT.npz -> OUT.wav
         "camera": [
             output.with_name(f"{output.stem}_{k}.png")
             for k in ("rgb", "depth", "semantic", "instance")
         ],
     }.get(sensor, [])
-    reads = stage_inputs(stage)
-    claim_outputs([output, *companions], inputs=lambda: [*reads(), config], force=force)
-    p = parse_pose(pose)
-    if at is not None:
-        arguments.number(at, "--time")
+
+
+def _scan_settings(sensor: str, preset: str | None, config: Path | None, occlusion: bool):
+    """The ``sensor``'s settings: its ``preset`` (or the default) with ``config``'s table."""
+    from usdforest.config import check_keys, load_toml
+    from usdforest.sensors.platforms.survey import SENSORS, sensor_settings, sensor_table
+
     presets, default = SENSORS[sensor]
     name = preset or default
     if name not in presets:
@@ -124,15 +146,18 @@ def scan_cmd(
         table = sensor_table(data.get(sensor), sensor, str(config))
     if occlusion and sensor == "sonar":
         table["occlusion"] = True
-    settings = sensor_settings(sensor, name, table, where=str(config) if config else "")
-    t0 = time.perf_counter()
-    with progress_bars(not (quiet or as_json), t0) as tick:
-        done = scan(
-            stage, sensor, p, settings=settings, seed=seed, device=device, progress=tick, time=at
-        )
-    for w in done.warnings:
-        err.print(f"warning: {w}", highlight=False)
-    triangles = done.triangles
+    return sensor_settings(sensor, name, table, where=str(config) if config else "")
+
+
+def _write_scan(sensor: str, done, settings, output: Path) -> tuple[dict, str]:
+    """Write a finished scan's files; its summary (for ``--json``) and its line of text."""
+    import numpy as np
+
+    from usdforest.sensors.lidar import scanners as lidar
+    from usdforest.sensors.optics import camera
+    from usdforest.sensors.scene.scenetypes import class_counts
+    from usdforest.sensors.sonar import model as sonar
+
     if sensor == "lidar":
         r = done.result
         lidar.write_returns(r, output)
@@ -143,16 +168,16 @@ def scan_cmd(
             "pulses_with_several_returns": int(np.count_nonzero(r.return_number == 2)),
             "returns_by_class": class_counts(r.cls),
             "trees_hit": int(np.unique(r.tree[r.tree >= 0]).size),
-            "triangles": triangles,
-            "seconds": round(time.perf_counter() - t0, 3),
+            "triangles": done.triangles,
         }
         text = (
             f"{output}: {len(r):,} returns from {r.n_rays:,} pulses "
             f"({summary['pulses_with_several_returns']:,} with several; "
             + ", ".join(f"{k} {v:,}" for k, v in summary["returns_by_class"].items() if v)
-            + f"), {summary['trees_hit']} trees, {triangles:,} triangles in range"
+            + f"), {summary['trees_hit']} trees, {done.triangles:,} triangles in range"
         )
-    elif sensor == "camera":
+        return summary, text
+    if sensor == "camera":
         frame = done.result
         files = camera.write_frame(frame, settings, output)
         summary = {
@@ -160,7 +185,6 @@ def scan_cmd(
             "pixels": int(frame.depth.size),
             "pixels_by_class": class_counts(frame.semantic.ravel()),
             "trees_seen": int(np.unique(frame.instance[frame.instance >= 0]).size),
-            "seconds": round(time.perf_counter() - t0, 3),
         }
         seen = summary["pixels_by_class"]
         text = (
@@ -168,37 +192,32 @@ def scan_cmd(
             + ", ".join(f"{k} {v:,}" for k, v in seen.items() if v and k != "unknown")
             + f"), {summary['trees_seen']} trees in view"
         )
-    else:
-        e = done.result
-        files = sonar.write_echo(e, output)
-        c = settings.speed_of_sound
-        env = np.abs(e.impulse)
-        peak = float(e.t[np.argmax(env)]) * c / 2 if env.max() > 0 else None
-        summary = {
-            "output": [str(f) for f in files],
-            "leaves_in_range": e.leaves_in_range,
-            "leaves_used": e.leaves_used,
-            "reflectors": e.reflectors,
-            "strongest_echo_range_m": peak,
-            "seconds": round(time.perf_counter() - t0, 3),
-        }
-        heard = {
-            "trunk": "trunk cylinders",
-            "branch": "branch cylinders",
-            "dead_wood": "dead-wood cylinders",
-            "ground_vegetation": "ground-vegetation blades",
-            "ground": "ground facets",
-        }
-        text = (
-            f"{', '.join(map(str, files))}: echo of {e.leaves_used:,} leaves "
-            f"(of {e.leaves_in_range:,} within {settings.max_range:g} m)"
-            + "".join(f", {n:,} {heard[k]}" for k, n in e.reflectors.items() if k in heard and n)
-            + (f", strongest at {peak:.2f} m" if peak is not None else "")
-        )
-    if as_json:
-        sys.stdout.write(json.dumps(summary) + "\n")
-    else:
-        out.print(text, highlight=False)
+        return summary, text
+    e = done.result
+    files = sonar.write_echo(e, output)
+    env = np.abs(e.impulse)
+    peak = float(e.t[np.argmax(env)]) * settings.speed_of_sound / 2 if env.max() > 0 else None
+    summary = {
+        "output": [str(f) for f in files],
+        "leaves_in_range": e.leaves_in_range,
+        "leaves_used": e.leaves_used,
+        "reflectors": e.reflectors,
+        "strongest_echo_range_m": peak,
+    }
+    heard = {
+        "trunk": "trunk cylinders",
+        "branch": "branch cylinders",
+        "dead_wood": "dead-wood cylinders",
+        "ground_vegetation": "ground-vegetation blades",
+        "ground": "ground facets",
+    }
+    text = (
+        f"{', '.join(map(str, files))}: echo of {e.leaves_used:,} leaves "
+        f"(of {e.leaves_in_range:,} within {settings.max_range:g} m)"
+        + "".join(f", {n:,} {heard[k]}" for k, n in e.reflectors.items() if k in heard and n)
+        + (f", strongest at {peak:.2f} m" if peak is not None else "")
+    )
+    return summary, text
 
 
 @app.command("fly", cls=Command)
@@ -285,9 +304,8 @@ def fly_cmd(
     import numpy as np
 
     from usdforest.config import check_keys, load_toml
-    from usdforest.sensors.lidar.las import gps_times, write_las
+    from usdforest.sensors.lidar.las import gps_times
     from usdforest.sensors.optics import camera
-    from usdforest.sensors.platforms import flight
     from usdforest.sensors.platforms.survey import (
         check_work,
         flight_settings,
@@ -295,18 +313,10 @@ def fly_cmd(
         planned_work,
         trajectory,
     )
-    from usdforest.sensors.scene.scenetypes import class_counts
 
     if (path is None) == (line is None):
         raise UsdForestError("give the flight as --path CSV or as --line x0,y0,z0:x1,y1,z1")
-    ends = None
-    if line is not None:
-        try:
-            ends = tuple([float(v) for v in end.split(",")] for end in line.split(":"))
-            if len(ends) != 2 or any(len(e) != 3 for e in ends):
-                raise ValueError
-        except ValueError:
-            raise UsdForestError(f"--line: expected x0,y0,z0:x1,y1,z1, got {line!r}") from None
+    ends = _line_ends(line) if line is not None else None
     require_output(output, "output stem")
     if start_time is not None:
         gps_times(np.zeros(1), start_time.strip())  # a bad time fails before any work
@@ -322,23 +332,8 @@ def fly_cmd(
     check_work(planned_work(traj, lidar_cfg, sonar_cfg, camera_cfg, lidar_rate, camera_rate), long)
     if camera_cfg is not None:
         camera.frame_times(camera_cfg, traj, camera_rate)  # checks the memory
-    las = output.with_name(output.name + ".las")
-    trajectory_csv = output.with_name(output.name + "_trajectory.csv")
-    echo_stem = output.with_name(output.name + "_sonar")
-    frames_stem = output.with_name(output.name + "_camera")
-    outs = (
-        ([las, trajectory_csv] if lidar_cfg else [])
-        + (
-            [echo_stem.with_name(echo_stem.name + x) for x in (".npz", ".wav", ".png")]
-            if sonar_cfg
-            else []
-        )
-        + (
-            [frames_stem.with_name(frames_stem.name + x) for x in (".npz", ".png")]
-            if camera_cfg
-            else []
-        )
-    )
+    files = _FlightFiles(output)
+    outs = files.written(lidar_cfg is not None, sonar_cfg is not None, camera_cfg is not None)
     for o in outs:
         require_output(o)
     reads = stage_inputs(stage)
@@ -358,49 +353,99 @@ def fly_cmd(
             warn=lambda w: err.print(f"warning: {w}", highlight=False), long=long,
             device=device,
         )  # fmt: skip
-        staged = tmp / output.name
-        writes = sum(x is not None for x in (done.lidar, done.sonar, done.camera))
-        tick("writing outputs", 0, writes)
-        if (r := done.lidar) is not None:
-            write_las(r, staged.with_name(las.name), crs=done.crs, origin=done.origin,
-                             start_time=start_time)  # fmt: skip
-            flight.write_trajectory(traj, staged.with_name(trajectory_csv.name),
-                                    origin=done.origin, start_time=start_time)  # fmt: skip
-            tick("writing outputs", 1, writes)
-            summary["lidar"] = {
-                "sweeps": r.sweeps,
-                "rays": r.n_rays,
-                "returns": len(r),
-                "returns_by_class": class_counts(r.cls),
-            }
-        if (f := done.sonar) is not None:
-            flight.write_flight_echo(f, staged.with_name(echo_stem.name))
-            tick("writing outputs", (done.lidar is not None) + 1, writes)
-            summary["sonar"] = {
-                "pulses": len(f.t),
-                "max_leaves_in_range": int(f.leaves.max()),
-                "classes_heard": sorted(k for k, v in f.parts.items() if np.any(v)),
-            }
-        if (frames := done.camera) is not None:
-            camera.write_frames(frames, staged.with_name(frames_stem.name))
-            tick("writing outputs", writes, writes)
-            summary["camera"] = {
-                "frames": len(frames),
-                "trees_seen": int(np.unique(frames.instance[frames.instance >= 0]).size),
-            }
+        summary |= _write_flight(done, traj, files, tmp, start_time, tick)
         move_into_place([(tmp / o.name, o) for o in outs], force=force)
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     if as_json:
         sys.stdout.write(json.dumps(summary) + "\n")
         return
+    out.print(_flight_text(traj, summary, files), highlight=False)
+
+
+def _line_ends(line: str) -> tuple[list[float], list[float]]:
+    """``--line x0,y0,z0:x1,y1,z1`` as its two ends."""
+    try:
+        ends = tuple([float(v) for v in end.split(",")] for end in line.split(":"))
+        if len(ends) != 2 or any(len(e) != 3 for e in ends):
+            raise ValueError
+    except ValueError:
+        raise UsdForestError(f"--line: expected x0,y0,z0:x1,y1,z1, got {line!r}") from None
+    return ends
+
+
+class _FlightFiles:
+    """The files a flight with the output stem ``output`` writes, beside it."""
+
+    def __init__(self, output: Path):
+        self.las = output.with_name(output.name + ".las")
+        self.trajectory = output.with_name(output.name + "_trajectory.csv")
+        self.echo = output.with_name(output.name + "_sonar")
+        self.frames = output.with_name(output.name + "_camera")
+
+    def written(self, lidar: bool, sonar: bool, camera: bool) -> list[Path]:
+        """Those the flight's sensors write, in the order they are written."""
+        return (
+            ([self.las, self.trajectory] if lidar else [])
+            + ([self.echo.with_name(self.echo.name + x) for x in (".npz", ".wav", ".png")]
+               if sonar else [])
+            + ([self.frames.with_name(self.frames.name + x) for x in (".npz", ".png")]
+               if camera else [])
+        )  # fmt: skip
+
+
+def _write_flight(done, traj, files: _FlightFiles, tmp: Path, start_time, tick) -> dict:
+    """Write a finished flight's files into the staging folder ``tmp``; each sensor's
+    summary (for ``--json``)."""
+    import numpy as np
+
+    from usdforest.sensors.lidar.las import write_las
+    from usdforest.sensors.optics import camera
+    from usdforest.sensors.platforms import flight
+    from usdforest.sensors.scene.scenetypes import class_counts
+
+    summary: dict = {}
+    writes = sum(x is not None for x in (done.lidar, done.sonar, done.camera))
+    tick("writing outputs", 0, writes)
+    if (r := done.lidar) is not None:
+        write_las(r, tmp / files.las.name, crs=done.crs, origin=done.origin,
+                  start_time=start_time)  # fmt: skip
+        flight.write_trajectory(traj, tmp / files.trajectory.name, origin=done.origin,
+                                start_time=start_time)  # fmt: skip
+        tick("writing outputs", 1, writes)
+        summary["lidar"] = {
+            "sweeps": r.sweeps,
+            "rays": r.n_rays,
+            "returns": len(r),
+            "returns_by_class": class_counts(r.cls),
+        }
+    if (f := done.sonar) is not None:
+        flight.write_flight_echo(f, tmp / files.echo.name)
+        tick("writing outputs", (done.lidar is not None) + 1, writes)
+        summary["sonar"] = {
+            "pulses": len(f.t),
+            "max_leaves_in_range": int(f.leaves.max()),
+            "classes_heard": sorted(k for k, v in f.parts.items() if np.any(v)),
+        }
+    if (frames := done.camera) is not None:
+        camera.write_frames(frames, tmp / files.frames.name)
+        tick("writing outputs", writes, writes)
+        summary["camera"] = {
+            "frames": len(frames),
+            "trees_seen": int(np.unique(frames.instance[frames.instance >= 0]).size),
+        }
+    return summary
+
+
+def _flight_text(traj, summary: dict, files: _FlightFiles) -> str:
+    """A flight's line of text: its length and each sensor's files and counts."""
     parts = [f"{traj.duration:.1f} s flight"]
     if "lidar" in summary:
         parts.append(
-            f"{las}: {summary['lidar']['returns']:,} returns in {summary['lidar']['sweeps']} sweeps"
-            f" (trajectory in {trajectory_csv.name})"
+            f"{files.las}: {summary['lidar']['returns']:,} returns in "
+            f"{summary['lidar']['sweeps']} sweeps (trajectory in {files.trajectory.name})"
         )
     if "sonar" in summary:
-        parts.append(f"{echo_stem}.npz/.wav/.png: {summary['sonar']['pulses']} sonar pulses")
+        parts.append(f"{files.echo}.npz/.wav/.png: {summary['sonar']['pulses']} sonar pulses")
     if "camera" in summary:
-        parts.append(f"{frames_stem}.npz/.png: {summary['camera']['frames']} camera frames")
-    out.print("; ".join(parts) + f" ({summary['seconds']:.1f} s)", highlight=False)
+        parts.append(f"{files.frames}.npz/.png: {summary['camera']['frames']} camera frames")
+    return "; ".join(parts) + f" ({summary['seconds']:.1f} s)"
