@@ -36,7 +36,7 @@ def main() -> None:
     only = set(args.only.split(","))
     from usdforest.recipe import default_recipe_path, read_recipe
     from usdforest.sensors.cast.raycast import SceneCaster
-    from usdforest.sensors.lidar.scanners import PRESETS as LIDARS
+    from usdforest.sensors.lidar.presets import PRESETS as LIDARS
     from usdforest.sensors.optics import camera
     from usdforest.sensors.platforms.flight import Trajectory, fly_lidar
     from usdforest.sensors.scene.extraction import extract_scene

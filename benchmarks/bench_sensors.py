@@ -62,7 +62,7 @@ def sonar_100k_leaves() -> tuple[int, str, str]:
 
 def lidar_forest_scan() -> tuple[int, str, str]:
     """End to end in the default forest: extract (culled), build, cast a VLP-16 at 30 m."""
-    from usdforest.sensors.lidar.scanners import PRESETS
+    from usdforest.sensors.lidar.presets import PRESETS
 
     sensor = replace(PRESETS["vlp-16"], max_range=30.0)
     pose = Pose(30.0, 70.0, 1.5)
@@ -119,7 +119,7 @@ def _vlp16_variants(variants: dict, target: float) -> tuple[int, str, str]:
     """A VLP-16 at head height in the default forest as each of ``variants`` (name -> its
     changes to the preset), on one warm caster, alternating, best of three each in this run;
     the first against the second, with its ``target`` ratio."""
-    from usdforest.sensors.lidar.scanners import PRESETS
+    from usdforest.sensors.lidar.presets import PRESETS
 
     pose = Pose(50.0, 50.0, 2.0)
     scene = extract_scene(_default_forest(), centre=pose.position, radius=100.0)
@@ -144,7 +144,7 @@ def _vlp16_variants(variants: dict, target: float) -> tuple[int, str, str]:
 def lidar_leaf_transmittance() -> tuple[int, str, str]:
     """What following light through leaves costs: leaves at 0.42 transmittance against
     opaque leaves (target: within 2x)."""
-    from usdforest.sensors.lidar.scanners import PRESETS
+    from usdforest.sensors.lidar.presets import PRESETS
 
     through = {"leaf_transmittance": PRESETS["vlp-16"].leaf_transmittance}
     return _vlp16_variants({"through": through, "opaque": {"leaf_transmittance": 0.0}}, 2.0)
@@ -236,7 +236,8 @@ def _forest_floor(kind: str) -> tuple[int, str, str]:
 
     from usdforest.recipe import default_recipe_path, read_recipe
     from usdforest.sensors.cast.raycast import RayCaster
-    from usdforest.sensors.lidar.scanners import PRESETS, DepthCamera
+    from usdforest.sensors.lidar.scanners import DepthCamera
+    from usdforest.sensors.lidar.presets import PRESETS
     from usdforest.usd.forest import write_forest
 
     if "quick" not in _CACHE:

@@ -426,7 +426,7 @@ def gallery(out: Path, work: Path) -> None:
 
 def sensors(out: Path, work: Path) -> None:
     """A lidar scan of the two-tree stand by class, and a sonar echo of a broadleaf."""
-    from usdforest.sensors.lidar.scanners import PRESETS as LIDARS
+    from usdforest.sensors.lidar.presets import PRESETS as LIDARS
     from usdforest.sensors.lidar.scanners import scan
     from usdforest.sensors.pose import Pose
     from usdforest.sensors.scene.extraction import extract_scene

@@ -319,7 +319,7 @@ def test_a_flights_lidar_sees_each_leaf_turned_as_it_is_at_its_slice(stands, res
 
     from usdforest import api
     from usdforest.sensors.cast.raycast import SceneCaster
-    from usdforest.sensors.lidar.scanners import PRESETS
+    from usdforest.sensors.lidar.presets import PRESETS
     from usdforest.sensors.platforms.flight import Trajectory
     from usdforest.sensors.scene.extraction import extract_scene
     from usdforest.sensors.scene.motion import SceneMotion

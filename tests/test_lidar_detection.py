@@ -14,7 +14,8 @@ import pytest
 from test_lidar_returns import _beam, _stage
 
 from usdforest.sensors.lidar.returns import merge_echoes
-from usdforest.sensors.lidar.scanners import PRESETS, SpinningLidar, scan
+from usdforest.sensors.lidar.scanners import SpinningLidar, scan
+from usdforest.sensors.lidar.presets import PRESETS
 from usdforest.sensors.pose import Pose
 
 
@@ -50,8 +51,9 @@ def test_noise_off_is_the_exact_cloud(tmp_path):
     scene = _wall(tmp_path, 10.0)
     exact = scan(scene, replace(PRESETS["vlp-16"], noise=False), Pose(0, 0, 0))
     bare = SpinningLidar(
-        16, -15.0, 15.0, 0.2, 130.0, divergence=3.0, returns="dual", pulse_width=4.0
-    )
+        channels=16, vfov_min=-15.0, vfov_max=15.0, azimuth_step=0.2, max_range=130.0,
+        divergence=3.0, returns="dual", pulse_width=4.0,
+    )  # fmt: skip
     ideal = scan(scene, bare, Pose(0, 0, 0))
     assert np.array_equal(exact.range, ideal.range)
     assert np.array_equal(exact.intensity, ideal.intensity)

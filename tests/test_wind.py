@@ -442,7 +442,7 @@ def test_a_flight_sees_each_sweep_where_the_trees_sway_then(forests):
 
     from scipy.spatial import cKDTree
 
-    from usdforest.sensors.lidar.scanners import PRESETS
+    from usdforest.sensors.lidar.presets import PRESETS
     from usdforest.sensors.scene.motion import animated
 
     assert animated(forests["gusty"]) and not animated(forests["still"])
@@ -487,7 +487,7 @@ def test_a_hover_of_a_tenth_of_a_second_is_one_sweep_wherever_it_starts(forests)
     truly longer than one sweep makes a second."""
     import dataclasses
 
-    from usdforest.sensors.lidar.scanners import PRESETS
+    from usdforest.sensors.lidar.presets import PRESETS
 
     sensor = dataclasses.replace(PRESETS["vlp-16"], noise=False)
     one_sweep = sensor.directions().shape[0]

@@ -49,8 +49,9 @@ def scan_cmd(
     preset: Annotated[
         str | None,
         typer.Option(
-            help="lidar: vlp-16, hdl-32, os1-64, depth-camera; sonar: bat-fm, paper, narrow, "
-            "wide; camera: pinhole-640, d435, d435-stereo, fpv-1280."
+            help="lidar: vlp-16, hdl-32, os1-64, depth-camera (robotics), vz-400 (terrestrial), "
+            "vux-1uav, livox-mid-40 (drone), vq-780i, als50-ii (airborne); sonar: bat-fm, "
+            "paper, narrow, wide; camera: pinhole-640, d435, d435-stereo, fpv-1280."
         ),
     ] = None,
     config: Annotated[
@@ -249,7 +250,12 @@ def fly_cmd(
     ] = None,
     speed: Annotated[float, typer.Option(help="m/s along --line.")] = 2.0,
     lidar_preset: Annotated[
-        str, typer.Option("--lidar", help="vlp-16, hdl-32, os1-64 or none.")
+        str,
+        typer.Option(
+            "--lidar",
+            help="vlp-16, hdl-32, os1-64 (robotics), vux-1uav, livox-mid-40 (drone), vq-780i, "
+            "als50-ii (airborne) or none.",
+        ),
     ] = "vlp-16",
     lidar_rate: Annotated[float, typer.Option(help="Lidar sweeps per second.")] = 10.0,
     sonar_preset: Annotated[

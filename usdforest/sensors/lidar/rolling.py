@@ -10,7 +10,7 @@ import numpy as np
 
 from usdforest.sensors.cast.raycast import SceneCaster
 from usdforest.sensors.lidar.returns import Echoes
-from usdforest.sensors.lidar.scanners import SpinningLidar, cast_pulses
+from usdforest.sensors.lidar.scanners import LaserScanner, cast_pulses
 from usdforest.sensors.scene.motion import SceneMotion
 
 ROLLING_SLICES = 16  # the most slices a sweep is cut into (6.25 ms each at 10 Hz)
@@ -38,7 +38,7 @@ def rolling_cast(
     times: np.ndarray,
     pos: np.ndarray,
     dirs: np.ndarray,
-    sensor: SpinningLidar,
+    sensor: LaserScanner,
 ) -> Echoes:
     """The returns of a lidar sweep (its start and end, where the flight's end cuts it short)
     whose pulses fire at ``times`` from ``pos`` along ``dirs``: each slice of the sweep

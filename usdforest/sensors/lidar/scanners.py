@@ -1,4 +1,5 @@
-"""Lidar: spinning multi-channel scanners and pinhole depth cameras.
+"""Lidar: laser scanners (their beam and receiver; spinning multi-channel scanners here, the
+survey patterns in :mod:`.patterns`) and pinhole depth cameras.
 
 A spinning lidar's pulse is a diverging beam sampled as sub-rays (:mod:`.returns`): a pulse
 whose footprint falls partly on a leaf and partly on what lies behind gives several returns,
@@ -40,8 +41,10 @@ LEAF_PASSES = 1
 
 
 @dataclass(frozen=True)
-class SpinningLidar:
-    """Channels evenly spread over [vfov_min, vfov_max] degrees, a full turn in azimuth.
+class LaserScanner:
+    """What every laser scanner shares: its beam, its receiver and its noise; the scan pattern
+    is the subclass's (:class:`SpinningLidar`, and the survey scanners' kinds in
+    :mod:`.patterns`).
 
     ``divergence`` (mrad, full angle at 1/e^2; 0: an ideal thin ray) is sampled by
     ``beam_rings`` rings of sub-rays (1: 7 sub-rays, 2: 19); hits closer in range than
@@ -58,7 +61,8 @@ class SpinningLidar:
     ``range_noise`` metres (standard deviation) and intensities with relative Gaussian noise
     ``intensity_noise``, from the scan's seed. ``noise = False`` turns all four off: the exact
     cloud, for ground truth. ``max_range`` is how far the rays are followed. ``model`` names
-    the sensor (a flight's LAS system identifier).
+    the sensor (a flight's LAS system identifier). ``wavelength`` (nm) picks the targets'
+    reflectances (:func:`reflectances`: near 905 nm or near 1550 nm).
 
     ``pulse_width`` (ns, full width at half maximum of the emitted pulse): echoes are the peaks
     of each pulse's return waveform (:func:`.returns.merge_echoes`), so two surfaces a pulse
@@ -66,13 +70,9 @@ class SpinningLidar:
     hits within ``return_separation`` are one echo at their energy-weighted range.
     """
 
-    channels: int = 16
-    vfov_min: float = -15.0
-    vfov_max: float = 15.0
-    azimuth_step: float = 0.2
     max_range: float = 100.0
     range_noise: float = 0.0
-    kind: str = "spinning"
+    kind: str = ""
     divergence: float = 0.0
     beam_rings: int = 1
     returns: str = "strongest"
@@ -86,6 +86,7 @@ class SpinningLidar:
     noise: bool = True
     model: str = ""
     pulse_width: float = 0.0
+    wavelength: float = 905.0
 
     def check(self) -> None:
         if not (np.isfinite(self.pulse_width) and 0 <= self.pulse_width <= 100):
@@ -102,8 +103,6 @@ class SpinningLidar:
             raise UsdForestError("lidar.intensity_noise: must be in [0, 1] (relative)")
         if not (np.isfinite(self.leaf_transmittance) and 0 <= self.leaf_transmittance < 1):
             raise UsdForestError("lidar.leaf_transmittance: must be in [0, 1)")
-        if not 1 <= self.channels <= 1024:
-            raise UsdForestError("lidar.channels: must be 1 to 1024")
         if not (np.isfinite(self.divergence) and 0 <= self.divergence <= 100):
             raise UsdForestError("lidar.divergence: must be in [0, 100] milliradians")
         if not 0 <= self.beam_rings <= 8:
@@ -116,11 +115,36 @@ class SpinningLidar:
             raise UsdForestError("lidar.max_returns: must be 1 to 15 (LAS 1.4 holds 15)")
         if not (np.isfinite(self.return_separation) and self.return_separation > 0):
             raise UsdForestError("lidar.return_separation: must be a finite number of metres > 0")
+        reflectances(self.wavelength)
+        _check_common(self.max_range, self.range_noise)
+
+    def sub_rays(self) -> int:
+        """Sub-rays cast per pulse (the beam's rings of :func:`.returns.beam_pattern`)."""
+        k = self.beam_rings
+        return 1 + 3 * k * (k + 1)
+
+
+@dataclass(frozen=True)
+class SpinningLidar(LaserScanner):
+    """Channels evenly spread over [vfov_min, vfov_max] degrees, a full turn in azimuth
+    (robot-mounted scanners: Velodyne, Ouster); the beam and receiver as
+    :class:`LaserScanner`'s. A flight turns it ``rate`` times a second, each pulse firing at
+    its azimuth's share of the turn."""
+
+    kind: str = "spinning"
+    channels: int = 16
+    vfov_min: float = -15.0
+    vfov_max: float = 15.0
+    azimuth_step: float = 0.2
+
+    def check(self) -> None:
+        super().check()
+        if not 1 <= self.channels <= 1024:
+            raise UsdForestError("lidar.channels: must be 1 to 1024")
         if not 0.01 <= self.azimuth_step <= 360:
             raise UsdForestError("lidar.azimuth_step: must be in [0.01, 360] degrees")
         if not -90 <= self.vfov_min <= self.vfov_max <= 90:
             raise UsdForestError("lidar.vfov_min/vfov_max: need -90 <= min <= max <= 90")
-        _check_common(self.max_range, self.range_noise)
 
     def angles(self) -> tuple[np.ndarray, np.ndarray]:
         """Azimuth and elevation (degrees) of every ray, azimuth-major (firing order)."""
@@ -136,6 +160,10 @@ class SpinningLidar:
     def directions(self) -> np.ndarray:
         a, e = (np.radians(v) for v in self.angles())
         return np.column_stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+
+    def pulses(self, duration: float, rate: float) -> int:
+        """Pulses fired in ``duration`` seconds turning ``rate`` times a second."""
+        return math.ceil(duration * rate) * self.channels * math.ceil(360.0 / self.azimuth_step)
 
 
 # what a camera's settings may be (read noise in 8-bit counts, a sensor's full-well
@@ -237,40 +265,6 @@ def _check_common(max_range: float, noise: float, table: str = "lidar") -> None:
         raise UsdForestError(f"{table}.range_noise: must be within 0 and {MAX_RANGE_NOISE:g} m")
 
 
-# Divergence: VLP-16 3 mrad (the sister VLS-128's manual gives 3.0 x 1.5; the VLP-16's own
-# figure is unpublished), HDL-32E 3.3 mrad (its manual's 4" x 2" spot at 100 ft, the wider
-# side), OS1-64 2.3 mrad (0.13 deg FWHM); Velodyne's dual mode reports strongest and last,
-# the OS1 (older firmware) the strongest. See docs/notes/lidar-radiometry.md.
-#
-# Detection and noise (docs/guide/sensors.md has the quotes): VLP-16 no return nearer than
-# 0.9 m (the ROS velodyne driver's min_range; "no points returned ... at less than about 0.9
-# meters"), 100 m range (its reflectance unstated: taken at 80 %, as Ouster states its own),
-# +-3 cm range accuracy read as one standard deviation (HELIOS++ models the VLP-16 so),
-# rays followed to 130 m (the ROS driver's max_range; the packet's 2 mm x 65,535); HDL-32E
-# "Valid Data Range 5 cm to 100 m" (its accuracy not found in its manual: the VLP-16's); OS1
-# 0.8 m and "120 m @ 80%" ("40 m @ 10%" agrees within 12 %), "+-3 cm (1 sigma)" at SNR 100.
-# Intensity noise: 5 % (a stated choice; no datasheet gives one). Pulse: 4 ns at half maximum,
-# HELIOS++'s VLP-16 (no maker states its pulse; a stated choice for all three).
-_DATASHEET = {
-    "range_noise": 0.03,
-    "intensity_noise": 0.05,
-    "detect_reflectance": 0.8,
-    "pulse_width": 4.0,
-}
-PRESETS: dict[str, SpinningLidar | DepthCamera] = {
-    "vlp-16": SpinningLidar(16, -15.0, 15.0, 0.2, 130.0, divergence=3.0, returns="dual",
-                            min_range=0.9, detect_range=100.0, model="Velodyne VLP-16",
-                            **_DATASHEET),
-    "hdl-32": SpinningLidar(32, -30.67, 10.67, 0.16, 130.0, divergence=3.3, returns="dual",
-                            min_range=0.05, detect_range=100.0, model="Velodyne HDL-32E",
-                            **_DATASHEET),
-    "os1-64": SpinningLidar(64, -16.6, 16.6, 0.35, 150.0, divergence=2.3,
-                            min_range=0.8, detect_range=120.0, model="Ouster OS1-64",
-                            **_DATASHEET),
-    "depth-camera": DepthCamera(640, 480, 87.0, 10.0),
-}  # fmt: skip
-
-
 # Hemispherical reflectance near 905 nm (the VLP-16's 903 nm; leaves differ by under 0.01 at
 # the OS1's 865 nm) per class, from docs/notes/lidar-radiometry.md: Norway spruce needles
 # 0.487 (RAMI-V Järvselja, Tartu Observatory) and broadleaves 0.44-0.51 (PROSPECT-D), so 0.47
@@ -286,7 +280,37 @@ REFLECTANCE = {
     "dead_wood": 0.35,  # bare wood 0.34-0.36 at 905 nm (docs/notes/lidar-radiometry.md), as bark
     "ground_vegetation": 0.47,  # green leaves of herbs, grasses and ferns: as the trees' leaves
 }
-_RHO = np.array([REFLECTANCE[c] for c in CLASSES])  # by class index
+# Near 1550 nm (most airborne and many terrestrial scanners) leaf water absorbs: green leaves
+# reflect about half what they do at 905 nm. ASTER/JHU spectra (Baldridge et al. 2009, as
+# HELIOS++ ships them in assets/spectra): deciduous leaves 0.554 at 905 nm and 0.253 at
+# 1550 nm, green grass 0.509 and 0.243; the 905 nm values above scaled by those ratios
+# (leaves 0.47 x 0.457, ground vegetation 0.47 x 0.477). Stems absorb less than leaves at
+# 1548 nm (Douglas et al. 2015, the dual-wavelength Echidna lidar): wood, dead wood and the
+# floor kept at their 905 nm values (no measured 1550 nm figure for bark or litter: a stated
+# choice).
+REFLECTANCE_1550 = {
+    **REFLECTANCE,
+    "leaf": 0.215,
+    "ground_vegetation": 0.224,
+}
+# the bands whose reflectances are known: the near-infrared plateau of leaves (800-1100 nm,
+# where PROSPECT's leaves change by a few hundredths: 865, 905 and 1064 nm scanners) and the
+# short-wave infrared near 1550 nm
+BANDS = ((800.0, 1100.0, REFLECTANCE), (1500.0, 1600.0, REFLECTANCE_1550))
+
+
+def reflectances(wavelength: float) -> np.ndarray:
+    """Each class's reflectance (by class index) at ``wavelength`` nm."""
+    for lo, hi, table in BANDS:
+        if np.isfinite(wavelength) and lo <= wavelength <= hi:
+            return np.array([table[c] for c in CLASSES])
+    raise UsdForestError(
+        f"lidar.wavelength: {wavelength:g} nm is not modelled; the reflectances known are "
+        "for 800-1100 nm and 1500-1600 nm (905, 1064 or 1550 nm scanners)"
+    )
+
+
+_RHO = reflectances(905.0)  # by class index, at 905 nm
 # what lets light through: the trees' leaves and the ground vegetation's blades
 _GREEN = np.array([CLASSES.index("leaf"), CLASSES.index("ground_vegetation")], np.uint8)
 LEAF_STEP = 1e-4  # m: a ray through a leaf starts again this far past it
@@ -312,15 +336,17 @@ def cast_pulses(
     caster: SceneCaster,
     origins: np.ndarray,
     dirs: np.ndarray,
-    sensor: SpinningLidar | DepthCamera,
+    sensor: LaserScanner | DepthCamera,
 ) -> Echoes:
     """The returns of pulses fired from ``origins`` along unit ``dirs`` (n, 3): every sub-ray
-    of a spinning lidar's beam cast in one batch, then merged (:func:`.returns.merge_echoes`);
+    of a laser scanner's beam cast in one batch, then merged (:func:`.returns.merge_echoes`);
     a depth camera's rays are thin and give their first hit."""
     from usdforest.sensors.lidar import returns_kernels
 
     near = least = sigma = 0.0
-    if isinstance(sensor, SpinningLidar):
+    rho = _RHO
+    if isinstance(sensor, LaserScanner):
+        rho = reflectances(sensor.wavelength)
         # the pulse's standard deviation in range: c/2 x FWHM / 2 sqrt(2 ln 2)
         sigma = 0.299792458 / 2 * sensor.pulse_width / (2 * np.sqrt(2 * np.log(2)))
         beam = beam_pattern(sensor.divergence, sensor.beam_rings)
@@ -337,7 +363,7 @@ def cast_pulses(
     weights = np.asarray(beam.weights, float)
     h = caster.first_hit(start, sub, sensor.max_range, group=s)
     energy, spread = returns_kernels.subray_energy(
-        sub, h.normal, h.t, h.cls, _RHO, weights, float(beam.cell)
+        sub, h.normal, h.t, h.cls, rho, weights, float(beam.cell)
     )
     columns = [(h.t, energy, spread, h.cls, h.tree, h.path)]
     trans = getattr(sensor, "leaf_transmittance", 0.0)
@@ -357,7 +383,7 @@ def cast_pulses(
         normal[through], cls[through] = nxt.normal, nxt.cls
         tree[through], path[through] = nxt.tree, nxt.path
         carry = carry * trans * trans
-        e, sp = returns_kernels.subray_energy(sub, normal, t, cls, _RHO, weights, float(beam.cell))
+        e, sp = returns_kernels.subray_energy(sub, normal, t, cls, rho, weights, float(beam.cell))
         columns.append((t, e * carry, sp, cls, tree, path))
         travelled, met = t, cls
     t, e, sp, cls, tree, path = (
@@ -370,7 +396,7 @@ def cast_pulses(
 
 
 def observed(
-    e: Echoes, sensor: SpinningLidar | DepthCamera, rng: np.random.Generator
+    e: Echoes, sensor: LaserScanner | DepthCamera, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
     """The ranges and intensities (:func:`counts`) the sensor reports for echoes ``e``: with
     its range noise (Gaussian, metres) and a spinning lidar's relative intensity noise drawn
@@ -409,7 +435,7 @@ class Returns:
 
 def scan(
     scene: Scene,
-    sensor: SpinningLidar | DepthCamera,
+    sensor: LaserScanner | DepthCamera,
     pose: Pose,
     *,
     seed: int = 0,

@@ -36,7 +36,7 @@ from usdforest.seeds import stream
 from usdforest.sensors.cast.raycast import SceneCaster
 from usdforest.sensors.lidar.las import FlightReturns, gps_times, ground_height, scan_angles
 from usdforest.sensors.lidar.rolling import rolling_cast
-from usdforest.sensors.lidar.scanners import SpinningLidar, cast_pulses, observed
+from usdforest.sensors.lidar.scanners import LaserScanner, SpinningLidar, cast_pulses, observed
 from usdforest.sensors.pose import Pose, rotations
 from usdforest.sensors.scene.motion import SceneMotion, leaves_at, wood_at
 from usdforest.sensors.scene.scenetypes import CLASSES, Scene
@@ -178,7 +178,7 @@ def sweep_starts(traj: Trajectory, rate: float) -> np.ndarray:
 
 def fly_lidar(
     scene: Scene,
-    sensor: SpinningLidar,
+    sensor: LaserScanner,
     traj: Trajectory,
     rate: float = 10.0,
     *,
@@ -188,7 +188,9 @@ def fly_lidar(
     motion: SceneMotion | None = None,
 ) -> FlightReturns:
     """Sweeps at ``rate`` Hz along ``traj`` (returns as the sensor's ``returns`` mode says;
-    each pulse its own time and pose); ``progress(done, total)`` after each sweep. With
+    each pulse its own time and pose); ``progress(done, total)`` after each sweep. A spinning
+    lidar turns once a sweep; a survey scanner's pattern (:mod:`usdforest.sensors.lidar.patterns`)
+    fires on through the sweeps, a sweep the pulses of its 1 / ``rate`` seconds. With
     ``motion`` (an animated stage: a forest's wind) the sweep rolls
     (:func:`usdforest.sensors.lidar.rolling.rolling_cast`: each slice of azimuth sees the trees
     where they stand at its middle; the trajectory's times are the stage's seconds)."""
@@ -196,14 +198,13 @@ def fly_lidar(
     check_lidar_rate(rate)
     caster = caster or SceneCaster(scene)
     static = caster
-    az, el = sensor.angles()
-    ring = np.unique(el, return_inverse=True)[1].astype(np.uint16)
-    azimuth = (az + 180.0) % 360.0 - 180.0
-    local = sensor.directions()
+    sweep = _sweeps(sensor, rate, traj.t[-1])
     starts = sweep_starts(traj, rate)
     parts = []
+    n_rays = 0
     for k, t0 in enumerate(starts):
-        times = np.minimum(t0 + (az % 360.0) / 360.0 / rate, traj.t[-1])
+        times, local, ring, azimuth = sweep(t0)
+        n_rays += len(times)
         pos, rot, _ = traj.at(times)
         dirs = np.einsum("nij,nj->ni", rot, local)
         if motion is None:
@@ -244,7 +245,7 @@ def fly_lidar(
         tree=cat[4].astype(np.int32),
         path=cat[5].astype(np.int32),
         paths=scene.paths,
-        n_rays=len(starts) * len(local),
+        n_rays=n_rays,
         sweeps=len(starts),
         ring=cat[6].astype(np.uint16),
         azimuth=cat[7],
@@ -255,6 +256,24 @@ def fly_lidar(
         height=cat[0][:, 2] - ground_height(scene, cat[0][:, :2]),
         system=sensor.model or "OTHER",
     )
+
+
+def _sweeps(sensor: LaserScanner, rate: float, end: float) -> Callable:
+    """``sweep(t0)``: the pulses of the sweep starting at ``t0`` (their times, directions in
+    the sensor's frame, channels and azimuths in degrees); none after the path's ``end``
+    but a spinning lidar's, which completes its turn at the end pose."""
+    if isinstance(sensor, SpinningLidar):
+        az, el = sensor.angles()
+        ring = np.unique(el, return_inverse=True)[1].astype(np.uint16)
+        azimuth = (az + 180.0) % 360.0 - 180.0
+        local = sensor.directions()
+        return lambda t0: (np.minimum(t0 + (az % 360.0) / 360.0 / rate, end), local, ring, azimuth)
+
+    def pattern(t0: float):
+        f = sensor.firing(t0, min(t0 + 1.0 / rate, end))
+        return f.t, f.dirs, f.channel, (f.angle + 180.0) % 360.0 - 180.0
+
+    return pattern
 
 
 SBET_COLUMNS = (

@@ -19,8 +19,9 @@ import numpy as np
 
 from usdforest.config import override
 from usdforest.errors import UsdForestError
-from usdforest.sensors.lidar import las
+from usdforest.sensors.lidar import las, patterns
 from usdforest.sensors.lidar import scanners as lidar
+from usdforest.sensors.lidar.presets import PRESETS as LIDARS
 from usdforest.sensors.optics import camera
 from usdforest.sensors.platforms import flight
 from usdforest.sensors.platforms.checks import (
@@ -37,11 +38,13 @@ from usdforest.sensors.sonar import model as sonar
 from usdforest.usd.layers import open_stage
 
 SENSORS = {
-    "lidar": (lidar.PRESETS, "vlp-16"),
+    "lidar": (LIDARS, "vlp-16"),
     "sonar": (sonar.PRESETS, "bat-fm"),
     "camera": (camera.PRESETS, "pinhole-640"),
 }
-SPINNING = {n: v for n, v in lidar.PRESETS.items() if v.kind == "spinning"}
+# the lidars a flight carries: every laser scanner but a terrestrial one (on its tripod)
+FLYING = {n: v for n, v in LIDARS.items() if isinstance(v, lidar.LaserScanner) and v.kind != "tls"}
+LIDAR_KINDS = {"spinning": lidar.SpinningLidar, "depth-camera": lidar.DepthCamera, **patterns.KINDS}
 SONARS, CAMERAS = sonar.PRESETS, camera.PRESETS
 CAMERA_MODULE = camera  # fly() names its camera settings `camera`
 Progress = Callable[[str, int, int], None]
@@ -85,10 +88,11 @@ def sensor_settings(
     if sensor == "camera":
         camera.refuse_lidar_keys(table, where or "settings")
     if sensor == "lidar" and table.get("kind") not in (None, settings.kind):
-        kinds = {"spinning": lidar.SpinningLidar(), "depth-camera": lidar.DepthCamera()}
-        if table["kind"] not in kinds:
-            raise UsdForestError(f"{label}.kind: {table['kind']!r} is not spinning or depth-camera")
-        settings = kinds[table["kind"]]
+        if table["kind"] not in LIDAR_KINDS:
+            raise UsdForestError(
+                f"{label}.kind: {table['kind']!r} is not one of {', '.join(LIDAR_KINDS)}"
+            )
+        settings = LIDAR_KINDS[table["kind"]]()
     settings = override(settings, table, label)
     try:
         settings.check()
@@ -261,7 +265,7 @@ def flight_settings(
     tables = tables or {}
     out = []
     for sensor, given, presets in (
-        ("lidar", lidar, SPINNING),
+        ("lidar", lidar, FLYING),
         ("sonar", sonar, SONARS),
         ("camera", camera, CAMERAS),
     ):
@@ -277,18 +281,28 @@ def flight_settings(
             )
         elif isinstance(given, Mapping):  # a table over the sensor's first preset, as scan's
             out.append(sensor_settings(sensor, None, given, where=where, presets=presets))
-        elif isinstance(given, type(next(iter(presets.values())))):
+        elif isinstance(given, _flown_type(sensor, presets)):
             given.check()
             out.append(given)
         else:
-            kind = type(next(iter(presets.values()))).__name__
+            kind = _flown_type(sensor, presets).__name__
             raise UsdForestError(
                 f"{sensor}: expected a preset's name ({', '.join(presets)}), a table of "
                 f"settings or a {kind}, got {given!r}"
             )
     if all(x is None for x in out):
         raise UsdForestError("nothing to fly: --lidar none, --sonar none and --camera none")
+    if getattr(out[0], "kind", "") == "tls":
+        raise UsdForestError(
+            "lidar.kind: a terrestrial scanner (tls) stands on its tripod: scan it at each "
+            "station (usdforest scan --sensor lidar --preset vz-400 --pose ...)"
+        )
     return out[0], out[1], out[2]
+
+
+def _flown_type(sensor: str, presets: Mapping[str, Any]) -> type:
+    """The settings type a flight takes for ``sensor``: any laser scanner for the lidar."""
+    return lidar.LaserScanner if sensor == "lidar" else type(next(iter(presets.values())))
 
 
 # planned work a flight refuses without ``long`` (README, "Limits")
@@ -313,9 +327,7 @@ def planned_work(
     d = traj.duration
     if lidar is not None:
         flight.check_lidar_rate(lidar_rate)
-        k = getattr(lidar, "beam_rings", 0)
-        per_sweep = lidar.channels * math.ceil(360.0 / lidar.azimuth_step) * (1 + 3 * k * (k + 1))
-        out["lidar rays"] = math.ceil(d * lidar_rate) * per_sweep
+        out["lidar rays"] = lidar.pulses(d, lidar_rate) * lidar.sub_rays()
     if sonar is not None:
         out["sonar pulses"] = math.floor(d * sonar.pulse_rate) + 1
     if camera is not None:
