@@ -10,9 +10,11 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import forestcache
 import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdGeom
+from stands import beech_and_pine
 
 from usdforest.cli import app
 from usdforest.errors import UsdForestError
@@ -237,3 +239,67 @@ def test_a_terrestrial_scanner_is_scanned_not_flown(ground, runner, tmp_path):
     r = runner.invoke(app, ["fly", "x.usda", "--lidar", "vz-400", "--line", "0,0,1:1,0,1",
                             "-o", str(tmp_path / "f")])  # fmt: skip
     assert r.exit_code != 0 and "vz-400" in r.output
+
+
+def _for_instance_reader(path):
+    """The FOR-instance convention as a benchmark's loader reads it (TreeLearn and
+    ForestFormer3D read the LAS ``classification`` and the extra dimension ``treeID``):
+    0 unclassified, 1 low vegetation, 2 terrain, 3 out-points, 4 stem, 5 live branches,
+    6 woody branches; treeID 0 no tree, 1..N one tree each."""
+    import laspy
+
+    las = laspy.read(str(path))
+    assert las.header.version.major == 1 and las.header.version.minor == 4
+    xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
+    return xyz, np.asarray(las.classification), np.asarray(las.treeID)
+
+
+def test_a_drone_flight_writes_the_benchmarks_labels(forest_folder, runner, tmp_path):
+    """A line scanner (its 330 degree line, as on a car or a low drone) flown 3 m above the
+    ground beside a beech and a pine with ``--labels for-instance``: stem,
+    live and woody branch points carry their tree's treeID (its trees.csv id + 1), every stem
+    point lies within its tree's trunk of that tree's axis (the trees.csv position), terrain
+    and low vegetation carry none."""
+    import csv
+
+    text = beech_and_pine(1) + '[ground]\nkind = "plane"\nmargin = 5.0\n'
+    forest, _ = forestcache.text_forest(forest_folder, "beech-pine-ground", text)
+    plan = tmp_path / "drone.toml"
+    plan.write_text("[lidar]\npulse_rate = 100000.0\nbeam_rings = 0\nnoise = false\n")
+    out = tmp_path / "drone"
+    args = ["fly", str(forest), "--lidar", "vux-1uav", "--config", str(plan), "--line",
+            "0,4,3:20,4,3", "--speed", "10", "--labels", "for-instance", "--sonar",
+            "none"]  # fmt: skip
+    r = runner.invoke(app, [*args, "-o", str(out), "--json"])
+    assert r.exit_code == 0, r.output
+    xyz, cls, tree_id = _for_instance_reader(tmp_path / "drone.las")
+    assert set(np.unique(cls)) <= {0, 1, 2, 4, 5, 6} and {2, 4, 5, 6} <= set(np.unique(cls))
+    on_tree = np.isin(cls, [4, 5, 6])
+    assert np.all(tree_id[on_tree] > 0) and np.all(tree_id[~on_tree] == 0)
+    with open(forest.parent / "beech-pine-ground_assets" / "trees.csv") as f:
+        trees = {int(row["id"]): row for row in csv.DictReader(f)}
+    assert set(np.unique(tree_id[on_tree]) - 1) <= set(trees)
+    stem = np.flatnonzero(cls == 4)
+    assert stem.size > 100
+    for i in stem:
+        t = trees[int(tree_id[i]) - 1]
+        d = math.hypot(xyz[i, 0] - float(t["x"]), xyz[i, 1] - float(t["y"]))
+        assert d <= float(t["dbh"]) / 2 * 1.5 + 0.02, (i, t["id"], d)
+
+
+def test_the_label_sets_are_one_list_and_bad_ones_are_refused(runner, tmp_path):
+    from usdforest.cli.sensors import LAS_LABELS
+    from usdforest.sensors.lidar.las import LABELS, for_instance_classes
+
+    assert LAS_LABELS == LABELS
+    r = runner.invoke(app, ["fly", "x.usda", "--labels", "semantic3d", "--line", "0,0,1:1,0,1",
+                            "-o", str(tmp_path / "f")])  # fmt: skip
+    assert (
+        r.exit_code != 0 and "--labels: 'semantic3d' is not one of asprs, for-instance" in r.output
+    )
+    assert not list(tmp_path.iterdir())
+    # every class of ours, on a tree and on none (a shrub's leaves are low vegetation)
+    cls = np.array([CLASS_ID[c] for c in ("unknown", "trunk", "branch", "leaf", "ground",
+                                          "dead_wood", "ground_vegetation")] * 2)  # fmt: skip
+    tree = np.repeat([3, -1], 7)
+    assert for_instance_classes(cls, tree).tolist() == [0, 4, 6, 5, 2, 1, 1, 0, 1, 1, 1, 2, 1, 1]

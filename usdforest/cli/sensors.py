@@ -28,6 +28,8 @@ from usdforest.cli.app import (
 from usdforest.errors import UsdForestError
 from usdforest.paths import claim_outputs, require_output, stage_inputs
 
+LAS_LABELS = ("asprs", "for-instance")  # usdforest.sensors.lidar.las.LABELS, not imported here
+
 
 @app.command("scan", cls=Command)
 @handles_errors
@@ -288,6 +290,14 @@ def fly_cmd(
             "from 0. The wind's time is t, not this."
         ),
     ] = None,
+    labels: Annotated[
+        str,
+        typer.Option(
+            help="The LAS classification: asprs (ground 2, vegetation 3-5 by height) or "
+            "for-instance (the tree-segmentation benchmarks': 1 low vegetation, 2 terrain, "
+            "4 stem, 5 live branches, 6 woody branches). Both write treeID (0: no tree)."
+        ),
+    ] = "asprs",
     device: DeviceOption = "cpu",
     force: Annotated[bool, typer.Option("--force", help="Overwrite the outputs.")] = False,
     long: Annotated[
@@ -322,6 +332,8 @@ def fly_cmd(
 
     if (path is None) == (line is None):
         raise UsdForestError("give the flight as --path CSV or as --line x0,y0,z0:x1,y1,z1")
+    if labels not in LAS_LABELS:
+        raise UsdForestError(f"--labels: {labels!r} is not one of {', '.join(LAS_LABELS)}")
     ends = _line_ends(line) if line is not None else None
     require_output(output, "output stem")
     if start_time is not None:
@@ -359,7 +371,7 @@ def fly_cmd(
             warn=lambda w: err.print(f"warning: {w}", highlight=False), long=long,
             device=device,
         )  # fmt: skip
-        summary |= _write_flight(done, traj, files, tmp, start_time, tick)
+        summary |= _write_flight(done, traj, files, tmp, start_time, tick, labels)
         move_into_place([(tmp / o.name, o) for o in outs], force=force)
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     if as_json:
@@ -399,7 +411,9 @@ class _FlightFiles:
         )  # fmt: skip
 
 
-def _write_flight(done, traj, files: _FlightFiles, tmp: Path, start_time, tick) -> dict:
+def _write_flight(
+    done, traj, files: _FlightFiles, tmp: Path, start_time, tick, labels: str = "asprs"
+) -> dict:
     """Write a finished flight's files into the staging folder ``tmp``; each sensor's
     summary (for ``--json``)."""
     import numpy as np
@@ -414,7 +428,7 @@ def _write_flight(done, traj, files: _FlightFiles, tmp: Path, start_time, tick) 
     tick("writing outputs", 0, writes)
     if (r := done.lidar) is not None:
         write_las(r, tmp / files.las.name, crs=done.crs, origin=done.origin,
-                  start_time=start_time)  # fmt: skip
+                  start_time=start_time, labels=labels)  # fmt: skip
         flight.write_trajectory(traj, tmp / files.trajectory.name, origin=done.origin,
                                 start_time=start_time)  # fmt: skip
         tick("writing outputs", 1, writes)

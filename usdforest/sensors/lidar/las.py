@@ -97,6 +97,29 @@ def asprs_classes(cls: np.ndarray, height: np.ndarray) -> np.ndarray:
     return out
 
 
+# The tree-segmentation benchmarks' classes (FOR-instance, NIBIO; read by TreeLearn,
+# ForestFormer3D and others): 0 unclassified, 1 low vegetation, 2 terrain, 3 out-points,
+# 4 stem, 5 live branches, 6 woody branches. A tree's trunk is its stem, its branches woody
+# branches and its leaves or needles the live branches that carry them; everything alive
+# under the trees that is no tree (ground vegetation, shrubs, regeneration) and dead wood on
+# the floor are low vegetation; a simulation has no out-points.
+FOR_INSTANCE = {"unknown": 0, "ground": 2, "ground_vegetation": 1, "dead_wood": 1}
+FOR_INSTANCE_TREE = {"trunk": 4, "branch": 6, "leaf": 5}
+LABELS = ("asprs", "for-instance")
+
+
+def for_instance_classes(cls: np.ndarray, tree: np.ndarray) -> np.ndarray:
+    """FOR-instance classification of returns of our classes ``cls`` on trees ``tree``
+    (-1: on none): a tree's trunk, branches and leaves 4, 6 and 5, the same classes on no
+    tree (shrubs, regeneration) low vegetation (1), the rest by :data:`FOR_INSTANCE`."""
+    on_tree = np.asarray(tree) >= 0
+    lut = np.array([FOR_INSTANCE.get(c, 1) for c in CLASSES], dtype=np.uint8)
+    tree_lut = np.array([FOR_INSTANCE_TREE.get(c, FOR_INSTANCE.get(c, 1)) for c in CLASSES],
+                        dtype=np.uint8)  # fmt: skip
+    cls = np.asarray(cls, dtype=np.int64)
+    return np.where(on_tree, tree_lut[cls], lut[cls]).astype(np.uint8)
+
+
 def stage_georeference(stage: str | Path) -> tuple[str | None, np.ndarray]:
     """The CRS a forest's root layer records (``customLayerData`` ``crs``, e.g. "EPSG:32633")
     and where the stage's origin is in it (``crsOrigin``, x and y); ``(None, 0)`` for a stage
@@ -129,6 +152,7 @@ def write_las(
     origin: np.ndarray | None = None,
     flight_line: int = 1,
     start_time: str | None = None,
+    labels: str = "asprs",
 ) -> Path:
     """LAS 1.4, point format 6, as the ASPRS specification defines it and point-cloud tools
     read it (checked with laspy): x, y, z (0.1 mm; in ``crs`` with the stage origin's map
@@ -141,11 +165,17 @@ def write_las(
     ``flight_line``; system identifier the sensor's model, generating software "usdforest
     <version>"; and the extra dimensions ``ring`` (uint16, the laser: 0 the lowest),
     ``azimuth`` (float32, degrees from the platform's forward axis), ``height`` (float32, m
-    above the ground), ``tree_id`` (int32, -1 off any tree) and ``usdforest_class`` (0
-    unknown, 1 trunk, 2 branch, 3 leaf, 4 ground, 5 dead wood, 6 ground vegetation). With a
-    ``crs`` the global encoding's WKT bit is set and a WKT CRS record written (pyproj)."""
+    above the ground), ``tree_id`` (int32, -1 off any tree), ``usdforest_class`` (0
+    unknown, 1 trunk, 2 branch, 3 leaf, 4 ground, 5 dead wood, 6 ground vegetation) and
+    ``treeID`` (int32, the tree-segmentation benchmarks' instance label: ``tree_id + 1``, 0
+    off any tree, so ``treeID - 1`` is the tree's ``id`` in ``trees.csv``). ``labels =
+    "for-instance"`` writes the benchmarks' classification instead of ASPRS's
+    (:func:`for_instance_classes`). With a ``crs`` the global encoding's WKT bit is set and a
+    WKT CRS record written (pyproj)."""
     import laspy
 
+    if labels not in LABELS:
+        raise UsdForestError(f"labels: {labels!r} is not one of {', '.join(LABELS)}")
     from usdforest import __version__
 
     gps = gps_times(r.gps_time, start_time)  # checks start_time before any work
@@ -177,6 +207,9 @@ def write_las(
             laspy.ExtraBytesParams(name="height", type=np.float32),
             laspy.ExtraBytesParams(name="tree_id", type=np.int32),
             laspy.ExtraBytesParams(name="usdforest_class", type=np.uint8),
+            laspy.ExtraBytesParams(
+                name="treeID", type=np.int32, description="tree instance, 0: none"
+            ),
         ]
     )
     las = laspy.LasData(header)
@@ -187,12 +220,15 @@ def write_las(
     las.intensity = r.intensity
     las.scan_angle = np.round(r.scan_angle / 0.006).astype(np.int16)  # 0.006 degree units
     las.point_source_id = np.full(len(r), flight_line, np.uint16)
-    las.classification = asprs_classes(r.cls, r.height)
+    las.classification = (
+        asprs_classes(r.cls, r.height) if labels == "asprs" else for_instance_classes(r.cls, r.tree)
+    )
     las.ring = r.ring
     las.azimuth = r.azimuth.astype(np.float32)
     las.height = r.height.astype(np.float32)
     las.tree_id = r.tree
     las.usdforest_class = r.cls
+    las.treeID = np.where(r.tree >= 0, r.tree.astype(np.int64) + 1, 0).astype(np.int32)
     with atomic_path(out) as tmp:
         las.write(str(tmp))
     return out
