@@ -18,6 +18,7 @@ __all__ = [
     "load_recipe",
     "recipes",
     "scan",
+    "survey",
 ]
 _API = frozenset(__all__) - {"__version__"}
 

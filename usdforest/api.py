@@ -24,6 +24,7 @@ from usdforest.signals import interruptible
 if TYPE_CHECKING:
     from usdforest.grow.species import Species
     from usdforest.recipe import Recipe
+    from usdforest.sensors.platforms.campaign import Survey
     from usdforest.sensors.platforms.survey import Flight, Scan
     from usdforest.usd.instances import ForestBuild
     from usdforest.usd.tree import TreeBuild
@@ -217,4 +218,45 @@ def fly(
     )
 
 
-__all__ = ["build_forest", "fly", "grow_tree", "load_recipe", "recipes", "scan"]
+def survey(
+    stage: str | Path,
+    plan: str | Path | Mapping[str, Any],
+    *,
+    out: str | Path | None = None,
+    seed: int | None = None,
+    force: bool = False,
+    progress: Callable[[str, int, int], None] | bool | None = None,
+) -> Survey:
+    """Survey ``stage`` as ``plan`` says: a TOML file, or its tables as a mapping
+    (``{"survey": {"kind": "tls", "stations": [[10, 10]]}, "lidar": {...}}``; see
+    :mod:`usdforest.sensors.platforms.plans`). With ``out``, its files are written there as
+    ``usdforest survey`` writes them (``force`` to replace an existing folder). ``seed``
+    overrides the plan's; ``progress`` as :func:`build_forest` takes it."""
+    from usdforest import arguments
+    from usdforest.progress import resolve_progress
+    from usdforest.sensors.platforms import campaign, plans
+    from usdforest.sensors.platforms.survey import sensor_settings
+
+    arguments.path(stage, "stage")
+    if isinstance(plan, Mapping):
+        the_plan, table = plans.plan_from(plan, "plan")
+        where, inputs = "plan", ()
+    else:
+        arguments.path(plan, "plan")
+        the_plan, table = plans.read_plan(plan)
+        where, inputs = str(plan), (plan,)
+    seed = arguments.optional_seed(seed)
+    if seed is not None:
+        the_plan = dataclasses.replace(the_plan, seed=seed)
+    lidar = sensor_settings("lidar", the_plan.lidar, table, where=where)
+    tick = resolve_progress(progress)
+    if out is None:
+        return campaign.run_survey(stage, the_plan, lidar, progress=tick)
+    arguments.path(out, "out")
+    return campaign.survey_folder(
+        stage, the_plan, lidar, out, force=arguments.flag(force, "force"), inputs=inputs,
+        progress=tick,
+    )  # fmt: skip
+
+
+__all__ = ["build_forest", "fly", "grow_tree", "load_recipe", "recipes", "scan", "survey"]

@@ -153,6 +153,7 @@ def write_las(
     flight_line: int = 1,
     start_time: str | None = None,
     labels: str = "asprs",
+    point_source: np.ndarray | None = None,
 ) -> Path:
     """LAS 1.4, point format 6, as the ASPRS specification defines it and point-cloud tools
     read it (checked with laspy): x, y, z (0.1 mm; in ``crs`` with the stage origin's map
@@ -171,7 +172,8 @@ def write_las(
     off any tree, so ``treeID - 1`` is the tree's ``id`` in ``trees.csv``). ``labels =
     "for-instance"`` writes the benchmarks' classification instead of ASPRS's
     (:func:`for_instance_classes`). With a ``crs`` the global encoding's WKT bit is set and a
-    WKT CRS record written (pyproj)."""
+    WKT CRS record written (pyproj). ``point_source``: each point's source instead of
+    ``flight_line`` (a merged survey's stations or lines)."""
     import laspy
 
     if labels not in LABELS:
@@ -219,7 +221,11 @@ def write_las(
     las.number_of_returns = r.number_of_returns
     las.intensity = r.intensity
     las.scan_angle = np.round(r.scan_angle / 0.006).astype(np.int16)  # 0.006 degree units
-    las.point_source_id = np.full(len(r), flight_line, np.uint16)
+    las.point_source_id = (
+        np.full(len(r), flight_line, np.uint16)
+        if point_source is None
+        else np.asarray(point_source, np.uint16)
+    )
     las.classification = (
         asprs_classes(r.cls, r.height) if labels == "asprs" else for_instance_classes(r.cls, r.tree)
     )

@@ -186,6 +186,7 @@ def fly_lidar(
     caster: SceneCaster | None = None,
     progress: Callable[[int, int], None] | None = None,
     motion: SceneMotion | None = None,
+    key: tuple[int, ...] = (),
 ) -> FlightReturns:
     """Sweeps at ``rate`` Hz along ``traj`` (returns as the sensor's ``returns`` mode says;
     each pulse its own time and pose); ``progress(done, total)`` after each sweep. A spinning
@@ -193,7 +194,8 @@ def fly_lidar(
     fires on through the sweeps, a sweep the pulses of its 1 / ``rate`` seconds. With
     ``motion`` (an animated stage: a forest's wind) the sweep rolls
     (:func:`usdforest.sensors.lidar.rolling.rolling_cast`: each slice of azimuth sees the trees
-    where they stand at its middle; the trajectory's times are the stage's seconds)."""
+    where they stand at its middle; the trajectory's times are the stage's seconds). ``key``
+    keeps the noise of several flights with one seed apart (a survey's lines)."""
     sensor.check()
     check_lidar_rate(rate)
     caster = caster or SceneCaster(scene)
@@ -212,7 +214,7 @@ def fly_lidar(
         else:
             last = min(t0 + 1.0 / rate, traj.t[-1])
             e = rolling_cast(static, motion, (t0, last), times, pos, dirs, sensor)
-        rng_, intensity = observed(e, sensor, stream(seed, "flight-lidar", k))
+        rng_, intensity = observed(e, sensor, stream(seed, "flight-lidar", *key, k))
         i = e.pulse
         parts.append(
             (

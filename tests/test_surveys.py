@@ -1,0 +1,190 @@
+"""Survey plans (issue 62): flight lines across a region at a spacing from the side overlap,
+the plan's pulse density against what flat ground receives, terrestrial stations registered
+in one frame, the plot's tree table against the forest's trees.csv, and bad plans refused in
+one line."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import forestcache
+import laspy
+import numpy as np
+import pytest
+from pxr import Usd, UsdGeom
+from stands import beech_and_pine
+
+from usdforest.cli import app
+from usdforest.errors import UsdForestError
+from usdforest.sensors.lidar.presets import PRESETS
+from usdforest.sensors.platforms.campaign import run_survey
+from usdforest.sensors.platforms.plans import (
+    SurveyPlan,
+    flight_lines,
+    pulse_density,
+    read_plan,
+    station_grid,
+)
+
+
+def _plane(path, points):
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    root = UsdGeom.Xform.Define(stage, "/Site")
+    mesh = UsdGeom.Mesh.Define(stage, "/Site/Plane")
+    mesh.CreatePointsAttr(points)
+    mesh.CreateFaceVertexCountsAttr([4])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    stage.SetDefaultPrim(root.GetPrim())
+    stage.Save()
+    return path
+
+
+def test_flight_lines_cover_the_region_at_their_spacing():
+    """Lines along the heading (degrees clockwise from north), spacing apart across it,
+    alternating, cut at the region's edges; east-west lines over a 100 x 60 m region at 25 m:
+    three lines, 25 m apart, each 100 m long."""
+    lines = flight_lines((0.0, 0.0, 100.0, 60.0), 90.0, 25.0)
+    assert lines.shape == (3, 2, 2)
+    np.testing.assert_allclose(sorted(lines[:, 0, 1]), [5.0, 30.0, 55.0])
+    np.testing.assert_allclose(np.abs(lines[:, 1, 0] - lines[:, 0, 0]), 100.0)
+    assert lines[0, 0, 0] < lines[0, 1, 0] and lines[1, 0, 0] > lines[1, 1, 0]  # there and back
+    north = flight_lines((0.0, 0.0, 100.0, 60.0), 0.0, 25.0)
+    assert north.shape == (4, 2, 2)
+    np.testing.assert_allclose(np.abs(north[:, 1, 1] - north[:, 0, 1]), 60.0)
+    diagonal = flight_lines((0.0, 0.0, 100.0, 100.0), 45.0, 10.0)
+    assert np.all((diagonal >= -1e-9) & (diagonal <= 100 + 1e-9))  # cut at the edges
+    grid = station_grid((0.0, 0.0, 30.0, 20.0), 10.0)
+    np.testing.assert_allclose(grid, [[5, 5], [15, 5], [25, 5], [5, 15], [15, 15], [25, 15]])
+
+
+def test_a_plans_density_is_what_flat_ground_receives(tmp_path):
+    """A line scanner at 30 m above flat ground, lines spaced by the swath
+    2 h tan(scan angle) less 30 % overlap: the first returns within the scan angle per m² of
+    the region's interior are pulse_rate f / (v s) within 5 %, f the share of the pattern's
+    pulses within the scan angle (here those of a line's 200 pulses, 1.65 deg apart from -165,
+    within 40 deg: 49)."""
+    ground = _plane(
+        tmp_path / "g.usda", [(-50, -50, 0), (250, -50, 0), (250, 250, 0), (-50, 250, 0)]
+    )
+    plan = SurveyPlan(kind="flight", region=(0.0, 0.0, 200.0, 200.0), height=30.0, speed=10.0,
+                      side_overlap=0.3, scan_angle=40.0)  # fmt: skip
+    lidar = PRESETS["vux-1uav"].__class__(**{**PRESETS["vux-1uav"].__dict__, "pulse_rate": 20e3,
+                                             "beam_rings": 0, "noise": False})  # fmt: skip
+    swath = 2 * 30.0 * math.tan(math.radians(40.0))
+    spacing = swath * 0.7
+    line = -165.0 + 330.0 * np.arange(200) / 200  # 20 kHz at 100 lines/s
+    share = np.count_nonzero(np.abs(line) <= 40.0) / 200
+    assert share == 49 / 200
+    expected = 20e3 * share / (10.0 * spacing)
+    assert pulse_density(plan, lidar) == pytest.approx(expected, rel=0.01)
+    survey = run_survey(ground, plan, lidar)
+    assert len(survey.parts) == math.ceil(200 / spacing - 1e-9)
+    assert survey.expected_density == pytest.approx(expected, rel=0.01)
+    assert survey.measured_density == pytest.approx(expected, rel=0.05)
+
+
+def test_stations_see_a_wall_in_one_frame(tmp_path):
+    """Two terrestrial stations 6 m apart facing a wall 10 m away: both put it where it is,
+    within the range noise (5 mm), each point carrying its station."""
+    wall = _plane(tmp_path / "w.usda", [(10, -20, -5), (10, 20, -5), (10, 20, 10), (10, -20, 10)])
+    plan = SurveyPlan(kind="tls", stations=((0.0, -3.0), (0.0, 3.0)), height=1.5)
+    tls = PRESETS["vz-400"].__class__(**{**PRESETS["vz-400"].__dict__, "azimuth_step": 1.0,
+                                         "elevation_step": 1.0})  # fmt: skip
+    survey = run_survey(wall, plan, tls)
+    merged, source = survey.merged()
+    assert set(np.unique(source)) == {1, 2}
+    on = np.abs(merged.points[:, 0] - 10.0) < 0.1
+    assert on.sum() > 1000 and np.all(on)
+    for k in (1, 2):
+        x = merged.points[source == k, 0]
+        assert abs(np.mean(x) - 10.0) < 0.001 and np.std(x) < 2 * tls.range_noise
+    # their GPS times run on: the second station after the first
+    assert merged.gps_time[source == 2].min() >= merged.gps_time[source == 1].max()
+
+
+def test_a_survey_writes_the_plot_its_stations_and_its_trees(forest_folder, runner, tmp_path):
+    """``usdforest survey`` of a beech and a pine from two stations: per-station and merged
+    LAS (point source = station), treeID as trees.csv's id + 1, and the tree table's DBH,
+    height and position as trees.csv gives them, its point counts the plot's."""
+    text = beech_and_pine(1) + '[ground]\nkind = "plane"\nmargin = 5.0\n'
+    forest, _ = forestcache.text_forest(forest_folder, "beech-pine-ground", text)
+    plan = tmp_path / "plot.toml"
+    plan.write_text('[survey]\nkind = "tls"\nstations = [[10.0, 4.0], [10.0, 16.0]]\n'
+                    "[lidar]\nazimuth_step = 0.5\nelevation_step = 0.5\n")  # fmt: skip
+    out = tmp_path / "plot"
+    r = runner.invoke(app, ["survey", str(forest), "--plan", str(plan), "-o", str(out), "--json"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads(r.stdout.strip().splitlines()[-1])
+    assert summary["parts"] == 2 and summary["trees_seen"] == 2
+    assert sorted(p.name for p in out.iterdir()) == ["plot.las", "stations", "survey.json",
+                                                     "trees.csv"]  # fmt: skip
+    plot = laspy.read(str(out / "plot.las"))
+    stations = [laspy.read(str(out / "stations" / f"station_00{k}.las")) for k in (1, 2)]
+    assert len(plot.points) == sum(len(s.points) for s in stations) == summary["points"]
+    assert set(np.unique(plot.point_source_id)) == {1, 2}
+    with open(forest.parent / "beech-pine-ground_assets" / "trees.csv") as f:
+        truth = {int(row["id"]): row for row in csv.DictReader(f)}
+    with open(out / "trees.csv") as f:
+        table = list(csv.DictReader(f))
+    assert len(table) == 2
+    tree_id = np.asarray(plot.treeID)
+    for row in table:
+        t = truth[int(row["id"])]
+        assert int(row["treeID"]) == int(row["id"]) + 1 and row["species"] == t["species"]
+        for k in ("x", "y", "dbh", "height"):
+            assert float(row[k]) == pytest.approx(float(t[k]), abs=1e-4)
+        assert float(row["z_1.3"]) == pytest.approx(float(t["z"]) + 1.3, abs=1e-4)
+        assert int(row["points"]) == np.count_nonzero(tree_id == int(row["treeID"])) > 1000
+        assert 0 < float(row["crown_base"]) < float(row["height"])
+        assert 0 < float(row["crown_radius"]) < float(row["height"])
+    assert set(np.unique(plot.classification)) <= {0, 1, 2, 4, 5, 6}  # for-instance, the default
+
+
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [
+        ('[survey]\nkind = "orbit"\n', "survey.kind: 'orbit' is not one of tls, flight"),
+        ('[survey]\nkind = "tls"\n', "give stations = [[x, y], ...] or a spacing"),
+        ('[survey]\nkind = "flight"\nwings = 2\n', "unknown key 'wings'"),
+        ('[survey]\nkind = "flight"\nside_overlap = 0.99\n', "survey.side_overlap"),
+        ('[survey]\nkind = "flight"\nregion = [5, 5, 1, 1]\n', "survey.region"),
+        ('[survey]\nkind = "flight"\nheight = -3\n', "survey.height"),
+        ("[lidar]\nfov = 10\n", "expected a [survey] table"),
+    ],
+)
+def test_bad_plans_are_refused_naming_the_key(tmp_path, text, fragment):
+    path = tmp_path / "p.toml"
+    path.write_text(text)
+    with pytest.raises(UsdForestError) as e:
+        read_plan(path)
+    assert fragment in str(e.value) and str(path) in str(e.value)
+
+
+def test_a_plan_and_its_scanner_must_agree(tmp_path, runner):
+    ground = _plane(tmp_path / "g.usda", [(-5, -5, 0), (5, -5, 0), (5, 5, 0), (-5, 5, 0)])
+    plan = tmp_path / "p.toml"
+    plan.write_text('[survey]\nkind = "flight"\nlidar = "vz-400"\n')
+    r = runner.invoke(app, ["survey", str(ground), "--plan", str(plan), "-o", str(tmp_path / "o")])
+    assert r.exit_code == 2 and "a flight survey needs an airborne" in r.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_the_api_surveys_from_a_mapping_and_checks_its_arguments(tmp_path):
+    import usdforest
+
+    ground = _plane(tmp_path / "g.usda", [(-5, -5, 0), (5, -5, 0), (5, 5, 0), (-5, 5, 0)])
+    plan = {"survey": {"kind": "tls", "stations": [[0.0, 0.0]]},
+            "lidar": {"azimuth_step": 5.0, "elevation_step": 5.0}}  # fmt: skip
+    done = usdforest.survey(ground, plan)
+    assert len(done.parts) == 1 and len(done.parts[0]) > 0
+    written = usdforest.survey(ground, plan, out=tmp_path / "out")
+    assert (tmp_path / "out" / "plot.las").is_file() and len(written.parts) == 1
+    with pytest.raises(UsdForestError, match=r"already exists|--force|exists"):
+        usdforest.survey(ground, plan, out=tmp_path / "out")
+    with pytest.raises(UsdForestError, match="unknown key 'orbit'"):
+        usdforest.survey(ground, {"survey": {"kind": "tls", "orbit": 1}})
+    with pytest.raises(UsdForestError, match="plan"):
+        usdforest.survey(ground, 42)

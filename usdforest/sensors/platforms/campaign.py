@@ -1,0 +1,371 @@
+"""A survey plan flown or scanned (:mod:`.plans`): terrestrial stations, each a full
+station of a terrestrial scanner, or drone and airborne flight lines following the ground;
+every point in the stage's one frame (the stations registered by construction), with the
+station or line it came from, and the tree table of the plot.
+
+:func:`run_survey` computes; :func:`write_survey` writes the per-station or per-line LAS,
+the merged cloud, the tree table and the plan's figures (expected and measured density).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+
+import numpy as np
+
+from usdforest.atomic import atomic_path
+from usdforest.errors import UsdForestError
+from usdforest.seeds import stream
+from usdforest.sensors.cast.raycast import SceneCaster
+from usdforest.sensors.lidar.las import (
+    FlightReturns,
+    gps_times,
+    ground_height,
+    stage_georeference,
+    write_las,
+)
+from usdforest.sensors.lidar.patterns import TerrestrialScanner
+from usdforest.sensors.lidar.scanners import LaserScanner, cast_pulses, observed
+from usdforest.sensors.platforms.flight import Trajectory, fly_lidar
+from usdforest.sensors.platforms.plans import (
+    SurveyPlan,
+    flight_lines,
+    pulse_density,
+    station_grid,
+)
+from usdforest.sensors.scene.scenetypes import Scene
+
+BREAST = 1.3  # m: the tree table's position at breast height
+CHUNK = 400_000  # pulses a terrestrial station casts at once (7 sub-rays each: 2.8 M rays)
+WAYPOINT = 5.0  # m between a flight line's points that follow the ground
+Progress = Callable[[str, int, int], None]
+
+
+@dataclass(frozen=True, eq=False)
+class Survey:
+    """A survey's clouds, one a station or line (``parts``, point source = its number from
+    1), where each started (``starts``: stations (n, 3) or line ends (n, 2, 3)), the plan's
+    pulse density (pulses/m², flights) and the one measured (first returns within the
+    swath, over the region less half a swath on each side), and the tree table."""
+
+    plan: SurveyPlan
+    lidar: LaserScanner
+    parts: tuple[FlightReturns, ...]
+    starts: np.ndarray
+    expected_density: float | None
+    measured_density: float | None
+    trees: dict[str, np.ndarray]
+
+    def merged(self) -> tuple[FlightReturns, np.ndarray]:
+        """All parts as one cloud, and each point's part (1-based)."""
+        names = [f.name for f in fields(FlightReturns)]
+        arrays = {
+            n: np.concatenate([getattr(p, n) for p in self.parts])
+            for n in names
+            if isinstance(getattr(self.parts[0], n), np.ndarray)
+        }
+        first = self.parts[0]
+        merged = replace(
+            first, **arrays, n_rays=sum(p.n_rays for p in self.parts),
+            sweeps=sum(p.sweeps for p in self.parts),
+        )  # fmt: skip
+        source = np.concatenate(
+            [np.full(len(p), k + 1, np.uint16) for k, p in enumerate(self.parts)]
+        )
+        return merged, source
+
+
+def region_of(plan: SurveyPlan, scene: Scene) -> tuple[float, float, float, float]:
+    """The plan's region, or the stage's bounds."""
+    if plan.region:
+        return tuple(float(v) for v in plan.region)
+    lo, hi = scene.bounds
+    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+
+def run_survey(
+    stage: str | Path,
+    plan: SurveyPlan,
+    lidar: LaserScanner,
+    *,
+    progress: Progress | None = None,
+) -> Survey:
+    """Scan the plan's stations or fly its lines over ``stage`` (see the module)."""
+    from usdforest.sensors.scene.extraction import extract_scene
+
+    tick = progress or (lambda stage, done, total: None)
+    if (plan.kind == "tls") != isinstance(lidar, TerrestrialScanner):
+        raise UsdForestError(
+            f"survey.lidar: a {plan.kind} survey needs "
+            + ("a terrestrial scanner (kind tls)" if plan.kind == "tls" else "an airborne one")
+        )
+    if plan.kind == "flight" and not hasattr(lidar, "firing"):
+        raise UsdForestError(
+            f"survey.lidar: {lidar.kind!r} has no swath; a flight survey flies a line, "
+            "oscillating, conical or rosette scanner"
+        )
+    lidar.check()
+    scene = extract_scene(stage, reflectors=False, progress=progress)
+    caster = SceneCaster(scene)
+    region = region_of(plan, scene)
+    if plan.kind == "tls":
+        xy = np.array(plan.stations, float) if plan.stations else station_grid(region, plan.spacing)
+        z = ground_height(scene, xy) + plan.height
+        starts = np.column_stack([xy, z])
+        duration = lidar.station_pulses() / lidar.pulse_rate
+        parts = []
+        for k, at in enumerate(starts):
+            parts.append(_station(scene, caster, lidar, at, k * duration, plan.seed, k, tick))
+            tick("stations", k + 1, len(starts))
+        trees = tree_table(stage, scene, parts)
+        return Survey(plan, lidar, tuple(parts), starts, None, None, trees)
+    lines = flight_lines(region, plan.heading, plan.spacing_between_lines)
+    parts, ends, t0 = [], [], 0.0
+    for j, (a, b) in enumerate(lines):
+        traj = _following(scene, a, b, plan.height, plan.speed, t0)
+        parts.append(fly_lidar(scene, lidar, traj, caster=caster, seed=plan.seed, key=(j,)))
+        ends.append(traj.position[[0, -1]])
+        t0 = float(traj.t[-1])
+        tick("flight lines", j + 1, len(lines))
+    survey = Survey(plan, lidar, tuple(parts), np.array(ends), pulse_density(plan, lidar),
+                    None, tree_table(stage, scene, parts))  # fmt: skip
+    return replace(survey, measured_density=_measured(survey, region))
+
+
+def _station(scene, caster, lidar, at, t0, seed, k, tick) -> FlightReturns:
+    """One terrestrial station at ``at``: its pulses cast in chunks of :data:`CHUNK`."""
+    dirs = lidar.directions()
+    az = lidar.grid()[0]
+    times = t0 + lidar.times()
+    rng = stream(seed, "tls", k)
+    out = []
+    for i in range(0, len(dirs), CHUNK):
+        d = dirs[i : i + CHUNK]
+        e = cast_pulses(caster, np.broadcast_to(at, d.shape), d, lidar)
+        r, intensity = observed(e, lidar, rng)
+        p = i + e.pulse
+        pts = at + dirs[p] * r[:, None]
+        out.append((pts, times[p], r, e, p, intensity))
+        tick(f"station {k + 1}", min(i + CHUNK, len(dirs)), len(dirs))
+    pts = np.concatenate([o[0] for o in out])
+    pulse = np.concatenate([o[4] for o in out])
+
+    def cat(name):
+        return np.concatenate([getattr(o[3], name) for o in out])
+
+    return FlightReturns(
+        points=pts,
+        gps_time=np.concatenate([o[1] for o in out]),
+        range=np.concatenate([o[2] for o in out]),
+        cls=cat("cls").astype(np.uint8),
+        tree=cat("tree").astype(np.int32),
+        path=cat("path").astype(np.int32),
+        paths=scene.paths,
+        n_rays=len(dirs),
+        sweeps=1,
+        ring=np.zeros(len(pts), np.uint16),
+        azimuth=(az[pulse] + 180.0) % 360.0 - 180.0,
+        intensity=np.concatenate([o[5] for o in out]).astype(np.uint16),
+        return_number=cat("return_number").astype(np.uint8),
+        number_of_returns=cat("number_of_returns").astype(np.uint8),
+        scan_angle=np.zeros(len(pts)),  # LAS's scan angle is an airborne one
+        height=pts[:, 2] - ground_height(scene, pts[:, :2]),
+        system=lidar.model or "OTHER",
+    )
+
+
+def _following(scene, a, b, height, speed, t0) -> Trajectory:
+    """A flight line from ``a`` to ``b`` (x, y) at ``height`` above the scene's ground,
+    level, at ``speed`` from ``t0``."""
+    length = float(np.hypot(*(np.asarray(b) - a)))
+    n = max(2, math.ceil(length / WAYPOINT) + 1)
+    s = np.linspace(0.0, 1.0, n)
+    xy = np.asarray(a) + s[:, None] * (np.asarray(b) - a)
+    z = ground_height(scene, xy) + height
+    return Trajectory(t0 + s * length / speed, np.column_stack([xy, z]))
+
+
+def _measured(survey: Survey, region) -> float | None:
+    """First returns within the plan's scan angle per m² of the region less half a swath
+    on each side (``None`` where nothing is left)."""
+    half = survey.plan.swath / 2
+    x0, y0, x1, y1 = region[0] + half, region[1] + half, region[2] - half, region[3] - half
+    if x1 <= x0 or y1 <= y0:
+        return None
+    n = 0
+    for p in survey.parts:
+        first = p.return_number == 1
+        inside = (
+            (p.points[:, 0] >= x0) & (p.points[:, 0] < x1)
+            & (p.points[:, 1] >= y0) & (p.points[:, 1] < y1)
+        )  # fmt: skip
+        n += int(
+            np.count_nonzero(first & inside & (np.abs(p.scan_angle) <= survey.plan.scan_angle))
+        )
+    return n / ((x1 - x0) * (y1 - y0))
+
+
+def tree_table(stage, scene: Scene, parts) -> dict[str, np.ndarray]:
+    """One row per tree of the scene: its treeID (``id + 1``), its ``trees.csv`` id, species,
+    DBH and height where the forest's ``trees.csv`` has them, its position where its stem
+    meets the ground and at breast height (1.3 m along its stem), its crown base (the lowest
+    leaf, m above its base) and crown radius (its farthest leaf from the stem, horizontally),
+    and the survey's points on it."""
+    inst = scene.instances
+    ids, first = np.unique(inst.tree[inst.tree >= 0], return_index=True)
+    rows = np.flatnonzero(inst.tree >= 0)[first]
+    m = inst.matrix[rows]
+    base = m[:, 3, :3]
+    up = m[:, 2, :3] / np.maximum(np.linalg.norm(m[:, 2, :3], axis=1, keepdims=True), 1e-12)
+    crown_base = np.full(len(ids), np.nan)
+    crown_radius = np.full(len(ids), np.nan)
+    for j, (row, k) in enumerate(zip(rows, inst.proto[rows], strict=True)):
+        leaves = scene.protos[k].leaf_instances
+        if not len(leaves):
+            continue
+        w = leaves.matrix[:, 3, :3] @ inst.matrix[row, :3, :3] + inst.matrix[row, 3, :3]
+        crown_base[j] = float(w[:, 2].min() - base[j, 2])
+        crown_radius[j] = float(np.hypot(*(w[:, :2] - base[j, :2]).T).max())
+    counts = np.zeros(len(ids), np.int64)
+    for p in parts:
+        on = p.tree[p.tree >= 0]
+        at = np.searchsorted(ids, on)
+        ok = (at < len(ids)) & (ids[np.minimum(at, len(ids) - 1)] == on)
+        np.add.at(counts, at[ok], 1)
+    species, dbh, height = _inventory(stage, ids)
+    bh = base + BREAST * up
+    return {
+        "treeID": ids + 1, "id": ids, "species": species,
+        "x": base[:, 0], "y": base[:, 1], "z": base[:, 2],
+        "x_1.3": bh[:, 0], "y_1.3": bh[:, 1], "z_1.3": bh[:, 2],
+        "dbh": dbh, "height": height, "crown_base": crown_base, "crown_radius": crown_radius,
+        "points": counts,
+    }  # fmt: skip
+
+
+def _inventory(stage, ids: np.ndarray):
+    """Species, DBH and height of trees ``ids`` from the forest's ``trees.csv`` (beside
+    the stage as ``<stem>_assets/trees.csv``); empty and NaN where it has none."""
+    path = Path(stage)
+    table = path.parent / f"{path.stem}_assets" / "trees.csv"
+    species = np.full(len(ids), "", dtype=object)
+    dbh, height = np.full(len(ids), np.nan), np.full(len(ids), np.nan)
+    if not table.is_file():
+        return species, dbh, height
+    where = {int(i): j for j, i in enumerate(ids)}
+    with open(table, newline="") as f:
+        for row in csv.DictReader(f):
+            j = where.get(int(row["id"]))
+            if j is not None:
+                species[j] = row.get("species", "")
+                dbh[j] = float(row.get("dbh") or "nan")
+                height[j] = float(row.get("height") or "nan")
+    return species, dbh, height
+
+
+def write_survey(survey: Survey, out: Path, *, crs=None, origin=None) -> list[Path]:
+    """The survey's files in the folder ``out``: ``stations/station_NNN.las`` or
+    ``lines/line_NNN.las``, the merged ``plot.las`` (tls) or ``survey.las`` with each
+    point's station or line as its point source, ``trees.csv`` and ``survey.json``."""
+    plan = survey.plan
+    start = plan.start_time or None
+    if start is not None:
+        gps_times(np.zeros(1), start)
+    part = "station" if plan.kind == "tls" else "line"
+    files = []
+    (out / f"{part}s").mkdir(parents=True, exist_ok=True)
+    for k, r in enumerate(survey.parts):
+        path = out / f"{part}s" / f"{part}_{k + 1:03d}.las"
+        write_las(r, path, crs=crs, origin=origin, flight_line=k + 1, start_time=start,
+                  labels=plan.labels)  # fmt: skip
+        files.append(path)
+    merged, source = survey.merged()
+    whole = out / ("plot.las" if plan.kind == "tls" else "survey.las")
+    write_las(merged, whole, crs=crs, origin=origin, start_time=start, labels=plan.labels,
+              point_source=source)  # fmt: skip
+    files.append(whole)
+    files.append(_write_trees(survey.trees, out / "trees.csv"))
+    summary = survey_summary(survey)
+    with atomic_path(out / "survey.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=2) + "\n")
+    files.append(out / "survey.json")
+    return files
+
+
+def _write_trees(trees: dict[str, np.ndarray], path: Path) -> Path:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(list(trees))
+        for i in range(len(trees["id"])):
+            w.writerow([_cell(trees[k][i]) for k in trees])
+    return path
+
+
+def _cell(v) -> str:
+    if isinstance(v, str):
+        return v
+    if isinstance(v, np.integer | int):
+        return str(int(v))
+    return "" if not math.isfinite(float(v)) else f"{float(v):.4f}"
+
+
+def survey_summary(survey: Survey) -> dict:
+    """What a survey was and what it gave, as JSON-ready values."""
+    plan = survey.plan
+    points = sum(len(p) for p in survey.parts)
+    return {
+        "plan": asdict(plan),
+        "lidar": asdict(survey.lidar),
+        "kind": plan.kind,
+        "parts": len(survey.parts),
+        "pulses": sum(p.n_rays for p in survey.parts),
+        "points": points,
+        "trees": len(survey.trees["id"]),
+        "trees_seen": int(np.count_nonzero(survey.trees["points"])),
+        "expected_pulse_density": survey.expected_density,
+        "measured_first_return_density": survey.measured_density,
+    }
+
+
+def survey_folder(
+    stage: str | Path,
+    plan: SurveyPlan,
+    lidar: LaserScanner,
+    out: str | Path,
+    *,
+    force: bool = False,
+    inputs: tuple = (),
+    progress: Progress | None = None,
+) -> Survey:
+    """:func:`run_survey` written to the folder ``out`` (:func:`write_survey`) as every
+    writing command writes: ``out`` never one of the stage's layers or ``inputs`` (the plan's
+    file), an existing one replaced only with ``force``, built beside it and moved into
+    place whole, nothing left by an interrupted survey."""
+    import os
+
+    from usdforest.atomic import interrupts_held, output_lock, refuse_appeared, staging_folder
+    from usdforest.paths import claim_outputs, require_output, stage_inputs
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise UsdForestError(f"{out}: the output must be a folder, and this is a file")
+    require_output(out / "survey.json", "output folder")
+    reads = stage_inputs(stage)
+    claim_outputs([], inputs=lambda: [*reads(), *inputs], folders=[out], force=force)
+    with output_lock(out), staging_folder(out) as tmp:
+        claim_outputs([], inputs=lambda: [*reads(), *inputs], folders=[out], force=force)
+        done = run_survey(stage, plan, lidar, progress=progress)
+        crs, origin = stage_georeference(stage)
+        staged = tmp / out.name
+        write_survey(done, staged, crs=crs, origin=origin)
+        refuse_appeared(out, force=force)
+        with interrupts_held():
+            if out.exists():
+                os.replace(out, tmp / f"old-{out.name}")
+            os.replace(staged, out)
+    return done
