@@ -88,6 +88,7 @@ bench: $(STAMP) $(BLENDER_STAMP)
 	USDFOREST_BLENDER_PYTHON=$(abspath $(BLENDER))/bin/python $(BIN)/python benchmarks/bench_lod.py
 	$(BIN)/python benchmarks/bench_startup.py
 	$(BIN)/python benchmarks/bench_flight.py
+	$(BIN)/python benchmarks/bench_surveys.py
 	$(BIN)/python benchmarks/bench_floor.py
 	$(BIN)/python benchmarks/bench_leaves.py
 	$(BIN)/python benchmarks/bench_wind.py

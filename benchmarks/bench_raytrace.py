@@ -49,8 +49,8 @@ def _best(fn, repeat: int = 3) -> float:
 def prepare(work: Path) -> Path:
     """Build the quick mixed stand, extract 15 m of it and save what every library needs."""
     from usdforest.recipe import default_recipe_path, read_recipe
-    from usdforest.sensors.lidar.scanners import DepthCamera
     from usdforest.sensors.lidar.presets import PRESETS
+    from usdforest.sensors.lidar.scanners import DepthCamera
     from usdforest.sensors.pose import Pose
     from usdforest.sensors.scene.extraction import extract_scene
     from usdforest.usd.forest import write_forest
@@ -225,8 +225,8 @@ DEFAULT_REACH = 100.0
 def measure_default(device: str, forest: str, out: str) -> dict:
     """Part 2: one caster on the default forest (in its own process)."""
     from usdforest.sensors.cast.raycast import SceneCaster
-    from usdforest.sensors.lidar.scanners import DepthCamera
     from usdforest.sensors.lidar.presets import PRESETS
+    from usdforest.sensors.lidar.scanners import DepthCamera
     from usdforest.sensors.pose import Pose
     from usdforest.sensors.scene.extraction import extract_scene
 

@@ -236,8 +236,8 @@ def _forest_floor(kind: str) -> tuple[int, str, str]:
 
     from usdforest.recipe import default_recipe_path, read_recipe
     from usdforest.sensors.cast.raycast import RayCaster
-    from usdforest.sensors.lidar.scanners import DepthCamera
     from usdforest.sensors.lidar.presets import PRESETS
+    from usdforest.sensors.lidar.scanners import DepthCamera
     from usdforest.usd.forest import write_forest
 
     if "quick" not in _CACHE:

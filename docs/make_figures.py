@@ -843,11 +843,129 @@ def landscape(out: Path, work: Path) -> None:
     save_figure(fig, out / "landscape-tiles.png")
 
 
+def scan_patterns(out: Path, work: Path) -> None:
+    """Each survey scanner's pattern on flat ground, 30 m below a platform flying at 8 m/s
+    (positions from the directions the scanners fire along): a line, an oscillating, a
+    conical and a rosette scanner, and a terrestrial station's angular grid."""
+    import numpy as np
+
+    from usdforest.sensors.lidar.patterns import (
+        ConicalScanner,
+        LineScanner,
+        OscillatingScanner,
+    )
+    from usdforest.sensors.lidar.presets import PRESETS
+
+    h, v = 30.0, 8.0
+    rates = {"pulse_rate": 4e3, "scan_rate": 5.0, "fov": 90.0}
+    kinds = (
+        (LineScanner(**rates), 1.0, "line: rotating mirror, 5 lines/s, 1 s"),
+        (OscillatingScanner(**rates), 1.0, "oscillating: zig-zag, 5 lines/s, 1 s"),
+        (ConicalScanner(pulse_rate=4e3, scan_rate=2.0, fov=60.0), 1.0,
+         "conical (Palmer): 60 deg cone, 2 turns/s, 1 s"),
+        (PRESETS["livox-mid-40"], 0.05, "rosette: Livox Mid-40's prisms, 0.05 s"),
+    )  # fmt: skip
+    fig, axes = plt.subplots(1, 5, figsize=(19, 4.8), dpi=100)
+    for ax, (lidar, t1, title) in zip(axes[:4], kinds, strict=True):
+        f = lidar.firing(0.0, t1)
+        down = f.dirs[:, 2] < -1e-6
+        d, t = f.dirs[down], f.t[down]
+        xy = np.column_stack([v * t, np.zeros(len(t))]) + h * d[:, :2] / -d[:, 2:3]
+        ax.scatter(xy[:, 1], xy[:, 0], s=0.8, c=t, cmap="viridis", linewidths=0)
+        ax.set_aspect("equal")
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("across track (m, left +)")
+    axes[0].set_ylabel("along track (m)")
+    tls = PRESETS["vz-400"]
+    coarse = type(tls)(**{**tls.__dict__, "azimuth_step": 4.0, "elevation_step": 2.0})
+    az, el = coarse.grid()
+    axes[4].scatter(az, el, s=1.5, c=np.arange(len(az)), cmap="viridis", linewidths=0)
+    axes[4].set_title("tls: VZ-400's lines (+60/-40 deg), 4 x 2 deg", fontsize=9)
+    axes[4].set_xlabel("head azimuth (deg)")
+    axes[4].set_ylabel("elevation (deg)")
+    fig.suptitle(f"survey scan patterns on flat ground ({h:g} m below, {v:g} m/s; colour: time)")
+    save_figure(fig, out / "scan-patterns.png")
+
+
+def surveys(out: Path, work: Path) -> None:
+    """The default forest surveyed: a drone plan's lines over it, the drone cloud seen from
+    above coloured by treeID, and a five-station terrestrial plot from above by class."""
+    import numpy as np
+
+    from usdforest.recipe import default_recipe_path
+    from usdforest.sensors.lidar.las import for_instance_classes
+    from usdforest.sensors.lidar.presets import PRESETS
+    from usdforest.sensors.platforms.campaign import run_survey
+    from usdforest.sensors.platforms.plans import SurveyPlan, flight_lines
+
+    stage = work / "default.usda"
+    if not stage.exists():
+        write_forest(read_recipe(default_recipe_path()), stage, thumbnail=False)
+    drone = SurveyPlan(kind="flight", region=(10.0, 10.0, 90.0, 90.0), height=40.0, speed=8.0,
+                       side_overlap=0.5, scan_angle=40.0)  # fmt: skip
+    vux = type(PRESETS["vux-1uav"])(**{**PRESETS["vux-1uav"].__dict__, "pulse_rate": 60e3})
+    flown = run_survey(stage, drone, vux)
+    cloud, _ = flown.merged()
+    tls = type(PRESETS["vz-400"])(**{**PRESETS["vz-400"].__dict__, "azimuth_step": 0.3,
+                                     "elevation_step": 0.3})  # fmt: skip
+    stations = ((40.0, 40.0), (55.0, 40.0), (40.0, 55.0), (55.0, 55.0), (47.5, 47.5))
+    plot = run_survey(stage, SurveyPlan(kind="tls", stations=stations, height=1.5), tls)
+    tcloud, _ = plot.merged()
+    img, (u0, u1, v0, v1), _ = render_stage(stage, view="top", size=(500, 500))
+    fig, axes = plt.subplots(1, 3, figsize=(18, 6.2), dpi=100)
+    axes[0].imshow(img, extent=(u0, u1, v0, v1), interpolation="nearest")
+    lines = flight_lines(drone.region, drone.heading, drone.spacing_between_lines)
+    for a, b in lines:
+        axes[0].annotate(
+            "", xy=b, xytext=a, arrowprops={"arrowstyle": "->", "color": "w", "lw": 1.5}
+        )
+    x0, y0, x1, y1 = drone.region
+    axes[0].plot([x0, x1, x1, x0, x0], [y0, y0, y1, y1, y0], "w--", lw=1)
+    axes[0].plot(*np.array(stations).T, "r^", ms=8)
+    axes[0].set_title(f"{len(lines)} drone lines ({drone.height:g} m up, {drone.side_overlap:.0%} "
+                      "side overlap) and 5 TLS stations", fontsize=10)  # fmt: skip
+    top = np.argsort(cloud.points[:, 2])
+    tid = np.where(cloud.tree >= 0, cloud.tree + 1, 0)[top]
+    rng = np.random.default_rng(0)
+    colours = rng.uniform(0.15, 0.95, (int(tid.max()) + 1, 3))
+    colours[0] = (0.55, 0.5, 0.45)
+    axes[1].scatter(cloud.points[top, 0], cloud.points[top, 1], s=0.2, c=colours[tid],
+                    linewidths=0)  # fmt: skip
+    axes[1].set_title(
+        f"drone cloud ({len(cloud):,} points, "
+        f"{flown.measured_density:,.0f} first returns/m²) by treeID",
+        fontsize=10,
+    )
+    codes = for_instance_classes(tcloud.cls, tcloud.tree)
+    palette = {0: "k", 1: "#9acd32", 2: "#8b7355", 4: "#5b3a1a", 5: "#2e8b57", 6: "#c08040"}
+    near = np.hypot(tcloud.points[:, 0] - 47.5, tcloud.points[:, 1] - 47.5) < 30
+    height = tcloud.height
+    keep = near & (height > 1.0) & (height < 2.0)  # a slice about breast height
+    names = {1: "1 low vegetation", 2: "2 terrain", 4: "4 stem", 5: "5 live branches",
+             6: "6 woody branches", 0: "0 unclassified"}  # fmt: skip
+    for code in (1, 2, 5, 6, 0, 4):  # stems drawn last, larger
+        sel = keep & (codes == code)
+        axes[2].scatter(tcloud.points[sel, 0], tcloud.points[sel, 1], s=2.0 if code == 4 else 0.3,
+                        c=palette[code], linewidths=0, label=names[code])  # fmt: skip
+    axes[2].plot(*np.array(stations).T, "r^", ms=6)
+    axes[2].legend(markerscale=8, fontsize=8, loc="upper right")
+    axes[2].set_title(f"TLS plot, 1-2 m above the ground ({int(keep.sum()):,} of "
+                      f"{len(tcloud):,} points), FOR-instance classes", fontsize=10)  # fmt: skip
+    for ax in axes:
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (m)")
+    axes[1].set_xlim(x0, x1)
+    axes[1].set_ylim(y0, y1)
+    axes[2].set_xlim(17.5, 77.5)
+    axes[2].set_ylim(17.5, 77.5)
+    save_figure(fig, out / "surveys.png")
+
+
 FIGURES = (
     "paper_stages", "paper_views", "profile_trees", "ipp_levels", "stands", "stand_pattern",
     "canopy_gaps", "crowns", "leaves", "gallery", "allometric", "sensors", "forest_sensors",
     "camera_model", "seasons", "wind", "sonar_wind", "dead_wood", "ground_vegetation",
-    "terrain", "landscape",
+    "terrain", "landscape", "scan_patterns", "surveys",
 )  # fmt: skip
 
 

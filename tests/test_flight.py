@@ -337,9 +337,8 @@ def test_lidar_intensity_follows_the_lidar_equation_on_a_wall(tmp_path):
     exact cloud (``noise = False``)."""
     from dataclasses import replace
 
-    from usdforest.sensors.lidar.scanners import scan
-
     from usdforest.sensors.lidar.presets import PRESETS
+    from usdforest.sensors.lidar.scanners import scan
 
     scene = extract_scene(_wall(tmp_path, 10.0))
     r = scan(scene, replace(PRESETS["vlp-16"], noise=False), Pose(0, 0, 0))

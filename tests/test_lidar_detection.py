@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from test_lidar_returns import _beam, _stage
 
+from usdforest.sensors.lidar.presets import PRESETS
 from usdforest.sensors.lidar.returns import merge_echoes
 from usdforest.sensors.lidar.scanners import SpinningLidar, scan
-from usdforest.sensors.lidar.presets import PRESETS
 from usdforest.sensors.pose import Pose
 
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdGeom
 
+from usdforest.sensors.lidar.presets import PRESETS
 from usdforest.sensors.lidar.returns import beam_pattern, merge_echoes, subray_directions
 from usdforest.sensors.lidar.scanners import SpinningLidar, scan
-from usdforest.sensors.lidar.presets import PRESETS
 from usdforest.sensors.pose import Pose
 from usdforest.sensors.scene.extraction import extract_scene
 

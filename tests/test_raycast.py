@@ -16,9 +16,9 @@ from usdforest.errors import UsdForestError
 from usdforest.recipe import read_recipe
 from usdforest.sensors.cast.raycast import SceneCaster, resolve_device
 from usdforest.sensors.cast.warpcast import cuda_devices
+from usdforest.sensors.lidar.presets import PRESETS
 from usdforest.sensors.lidar.returns import beam_pattern, subray_directions
 from usdforest.sensors.lidar.scanners import DepthCamera, SpinningLidar, scan
-from usdforest.sensors.lidar.presets import PRESETS
 from usdforest.sensors.pose import Pose
 from usdforest.sensors.scene.extraction import extract_scene
 from usdforest.usd.forest import write_forest

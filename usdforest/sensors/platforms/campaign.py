@@ -51,7 +51,7 @@ class Survey:
     """A survey's clouds, one a station or line (``parts``, point source = its number from
     1), where each started (``starts``: stations (n, 3) or line ends (n, 2, 3)), the plan's
     pulse density (pulses/m², flights) and the one measured (first returns within the
-    swath, over the region less half a swath on each side), and the tree table."""
+    swath, where every swath that would cover the ground is flown), and the tree table."""
 
     plan: SurveyPlan
     lidar: LaserScanner
@@ -191,23 +191,36 @@ def _following(scene, a, b, height, speed, t0) -> Trajectory:
 
 
 def _measured(survey: Survey, region) -> float | None:
-    """First returns within the plan's scan angle per m² of the region less half a swath
-    on each side (``None`` where nothing is left)."""
-    half = survey.plan.swath / 2
-    x0, y0, x1, y1 = region[0] + half, region[1] + half, region[2] - half, region[3] - half
-    if x1 <= x0 or y1 <= y0:
+    """First returns within the plan's scan angle per m² of the ground where every swath
+    that would cover it is flown: inside the region, across the track from a swath's half
+    less a spacing inside the outermost lines (the lines beyond them, not flown, would have
+    covered the rest); ``None`` where nothing is left."""
+    plan = survey.plan
+    h = math.radians(plan.heading)
+    across = np.array([math.cos(h), -math.sin(h)])
+    lines = survey.starts[:, :, :2].mean(axis=1) @ across
+    reach = plan.swath / 2 - plan.spacing_between_lines
+    lo, hi = lines.min() + reach, lines.max() - reach
+    if hi <= lo:
         return None
-    n = 0
+    x0, y0, x1, y1 = region
+    # the window's area: cells of a 2,000 x 2,000 grid over the region, inside the window
+    n = 2000
+    cx = x0 + (np.arange(n) + 0.5) * (x1 - x0) / n
+    cy = y0 + (np.arange(n) + 0.5) * (y1 - y0) / n
+    a = cx[:, None] * across[0] + cy[None, :] * across[1]
+    area = np.count_nonzero((a > lo) & (a < hi)) * (x1 - x0) * (y1 - y0) / n**2
+    if area <= 0:
+        return None
+    count = 0
     for p in survey.parts:
-        first = p.return_number == 1
-        inside = (
-            (p.points[:, 0] >= x0) & (p.points[:, 0] < x1)
-            & (p.points[:, 1] >= y0) & (p.points[:, 1] < y1)
-        )  # fmt: skip
-        n += int(
-            np.count_nonzero(first & inside & (np.abs(p.scan_angle) <= survey.plan.scan_angle))
-        )
-    return n / ((x1 - x0) * (y1 - y0))
+        xy = p.points[:, :2]
+        inside = (xy[:, 0] >= x0) & (xy[:, 0] < x1) & (xy[:, 1] >= y0) & (xy[:, 1] < y1)
+        c = xy @ across
+        window = (c > lo) & (c < hi)
+        swath = np.abs(p.scan_angle) <= plan.scan_angle
+        count += int(np.count_nonzero((p.return_number == 1) & inside & window & swath))
+    return count / area
 
 
 def tree_table(stage, scene: Scene, parts) -> dict[str, np.ndarray]:
