@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from usdforest.errors import UsdForestError
-from usdforest.sensors.lidar.scanners import LaserScanner
+from usdforest.sensors.lidar.scanners import LaserScanner, check_vfov
 
 MAX_PULSE_RATE = 1e7  # Hz: beyond any scanner's (the fastest airborne ones fire 2-4 MHz)
 MAX_SCAN_RATE = 1e4  # lines or turns a second
@@ -54,6 +54,11 @@ class Firing:
     dirs: np.ndarray
     channel: np.ndarray
     angle: np.ndarray
+
+
+def _check_pulse_rate(rate: float) -> None:
+    if not (np.isfinite(rate) and 0 < rate <= MAX_PULSE_RATE):
+        raise UsdForestError(f"lidar.pulse_rate: must be in (0, {MAX_PULSE_RATE:g}] Hz")
 
 
 def pulse_indices(t0: float, t1: float, rate: float) -> np.ndarray:
@@ -87,8 +92,7 @@ class _Timed(LaserScanner):
 
     def check(self) -> None:
         super().check()
-        if not (np.isfinite(self.pulse_rate) and 0 < self.pulse_rate <= MAX_PULSE_RATE):
-            raise UsdForestError(f"lidar.pulse_rate: must be in (0, {MAX_PULSE_RATE:g}] Hz")
+        _check_pulse_rate(self.pulse_rate)
         if not (np.isfinite(self.scan_rate) and 0 < self.scan_rate <= MAX_SCAN_RATE):
             raise UsdForestError(f"lidar.scan_rate: must be in (0, {MAX_SCAN_RATE:g}] a second")
         if not (np.isfinite(self.fov) and 0 < self.fov <= 360):
@@ -215,10 +219,8 @@ class TerrestrialScanner(LaserScanner):
 
     def check(self) -> None:
         super().check()
-        if not (np.isfinite(self.pulse_rate) and 0 < self.pulse_rate <= MAX_PULSE_RATE):
-            raise UsdForestError(f"lidar.pulse_rate: must be in (0, {MAX_PULSE_RATE:g}] Hz")
-        if not -90 <= self.vfov_min <= self.vfov_max <= 90:
-            raise UsdForestError("lidar.vfov_min/vfov_max: need -90 <= min <= max <= 90")
+        _check_pulse_rate(self.pulse_rate)
+        check_vfov(self.vfov_min, self.vfov_max)
         if not 0 < self.hfov <= 360:
             raise UsdForestError("lidar.hfov: must be in (0, 360] degrees")
         for key in ("azimuth_step", "elevation_step"):

@@ -124,6 +124,12 @@ class LaserScanner:
         return 1 + 3 * k * (k + 1)
 
 
+def check_vfov(lo: float, hi: float) -> None:
+    """Elevations from ``lo`` to ``hi`` degrees, within the sphere's."""
+    if not -90 <= lo <= hi <= 90:
+        raise UsdForestError("lidar.vfov_min/vfov_max: need -90 <= min <= max <= 90")
+
+
 @dataclass(frozen=True)
 class SpinningLidar(LaserScanner):
     """Channels evenly spread over [vfov_min, vfov_max] degrees, a full turn in azimuth
@@ -143,8 +149,7 @@ class SpinningLidar(LaserScanner):
             raise UsdForestError("lidar.channels: must be 1 to 1024")
         if not 0.01 <= self.azimuth_step <= 360:
             raise UsdForestError("lidar.azimuth_step: must be in [0.01, 360] degrees")
-        if not -90 <= self.vfov_min <= self.vfov_max <= 90:
-            raise UsdForestError("lidar.vfov_min/vfov_max: need -90 <= min <= max <= 90")
+        check_vfov(self.vfov_min, self.vfov_max)
 
     def angles(self) -> tuple[np.ndarray, np.ndarray]:
         """Azimuth and elevation (degrees) of every ray, azimuth-major (firing order)."""
