@@ -156,6 +156,23 @@ def test_ctrl_c_or_sigterm_during_a_flight_ends_in_one_line(tmp_path, sig):
         p.communicate(timeout=600)
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_or_sigterm_during_a_survey_ends_in_one_line(tmp_path, sig):
+    """A survey stopped while it works leaves no folder and no staging folder: nothing, or
+    the whole folder if the signal landed while it was moved into place."""
+    write_forest(read_recipe(TWO_TREES), tmp_path / "f.usda", thumbnail=False)
+    (tmp_path / "plan.toml").write_text(
+        '[survey]\nkind = "tls"\nstations = [[0.0, 2.0], [8.0, 2.0]]\n'
+        "[lidar]\nazimuth_step = 0.2\nelevation_step = 0.2\n"
+    )
+    p = _usdforest("survey", "f.usda", "--plan", "plan.toml", "-o", "plot", "-q", cwd=tmp_path)
+    if _wait_for(p, lambda: bool(list(tmp_path.glob(".plot.build-*")))):
+        _one_line_interrupt(p, tmp_path, sig, keep=("f.usda", "f_assets", "plan.toml"),
+                            whole=("plot",))  # fmt: skip
+    else:
+        p.communicate(timeout=600)
+
+
 @pytest.mark.parametrize("delay", [0.0, 0.01, 0.05, 0.3])
 def test_ctrl_c_at_any_moment_leaves_nothing(tmp_path, delay):
     """Whenever it lands - also inside the interpreter's own start-up, before any usdforest
