@@ -188,3 +188,29 @@ def test_the_api_surveys_from_a_mapping_and_checks_its_arguments(tmp_path):
         usdforest.survey(ground, {"survey": {"kind": "tls", "orbit": 1}})
     with pytest.raises(UsdForestError, match="plan"):
         usdforest.survey(ground, 42)
+
+
+def test_a_laz_survey_holds_the_same_points_in_the_same_bytes(tmp_path):
+    """``laz = true``: LAZ (laspy's lazrs, one thread) that reads back as the LAS does, and
+    the same bytes twice."""
+    pytest.importorskip("lazrs", reason="LAZ needs lazrs (pip install 'usdforest[laz]')")
+    ground = _plane(tmp_path / "g.usda", [(-5, -5, 0), (5, -5, 0), (5, 5, 0), (-5, 5, 0)])
+    tables = {"survey": {"kind": "tls", "stations": [[0.0, 0.0]]},
+              "lidar": {"azimuth_step": 2.0, "elevation_step": 2.0}}  # fmt: skip
+    import usdforest
+
+    usdforest.survey(ground, tables, out=tmp_path / "las")
+    laz = {**tables, "survey": {**tables["survey"], "laz": True}}
+    for k in (1, 2):
+        usdforest.survey(ground, laz, out=tmp_path / f"laz{k}")
+    a, b = (
+        laspy.read(str(tmp_path / "las" / "plot.las")),
+        laspy.read(str(tmp_path / "laz1" / "plot.laz")),
+    )
+    assert len(a.points) == len(b.points) > 100
+    for dim in ("X", "Y", "Z", "gps_time", "classification", "treeID", "intensity"):
+        assert np.array_equal(np.asarray(a[dim]), np.asarray(b[dim])), dim
+    assert (tmp_path / "laz1" / "plot.laz").read_bytes() == (
+        tmp_path / "laz2" / "plot.laz"
+    ).read_bytes()
+    assert (tmp_path / "laz1" / "stations" / "station_001.laz").is_file()

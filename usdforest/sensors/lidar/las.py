@@ -172,7 +172,8 @@ def write_las(
     off any tree, so ``treeID - 1`` is the tree's ``id`` in ``trees.csv``). ``labels =
     "for-instance"`` writes the benchmarks' classification instead of ASPRS's
     (:func:`for_instance_classes`). With a ``crs`` the global encoding's WKT bit is set and a
-    WKT CRS record written (pyproj). ``point_source``: each point's source instead of
+    WKT CRS record written (pyproj). A name ending ``.laz`` is written compressed (laspy's
+    lazrs backend, ``usdforest[laz]``). ``point_source``: each point's source instead of
     ``flight_line`` (a merged survey's stations or lines)."""
     import laspy
 
@@ -235,6 +236,14 @@ def write_las(
     las.tree_id = r.tree
     las.usdforest_class = r.cls
     las.treeID = np.where(r.tree >= 0, r.tree.astype(np.int64) + 1, 0).astype(np.int32)
+    compress = Path(out).suffix.lower() == ".laz"
+    backend = None
+    if compress:
+        if laspy.LazBackend.Lazrs not in laspy.LazBackend.detect_available():
+            raise UsdForestError(
+                f"{out}: LAZ needs laspy's lazrs backend: pip install 'usdforest[laz]'"
+            )
+        backend = laspy.LazBackend.Lazrs  # one thread: the same bytes on every machine
     with atomic_path(out) as tmp:
-        las.write(str(tmp))
+        las.write(str(tmp), do_compress=compress, laz_backend=backend)
     return out

@@ -284,21 +284,23 @@ def _inventory(stage, ids: np.ndarray):
 def write_survey(survey: Survey, out: Path, *, crs=None, origin=None) -> list[Path]:
     """The survey's files in the folder ``out``: ``stations/station_NNN.las`` or
     ``lines/line_NNN.las``, the merged ``plot.las`` (tls) or ``survey.las`` with each
-    point's station or line as its point source, ``trees.csv`` and ``survey.json``."""
+    point's station or line as its point source (``.laz`` with the plan's ``laz``),
+    ``trees.csv`` and ``survey.json``."""
     plan = survey.plan
     start = plan.start_time or None
     if start is not None:
         gps_times(np.zeros(1), start)
     part = "station" if plan.kind == "tls" else "line"
+    ext = ".laz" if plan.laz else ".las"
     files = []
     (out / f"{part}s").mkdir(parents=True, exist_ok=True)
     for k, r in enumerate(survey.parts):
-        path = out / f"{part}s" / f"{part}_{k + 1:03d}.las"
+        path = out / f"{part}s" / f"{part}_{k + 1:03d}{ext}"
         write_las(r, path, crs=crs, origin=origin, flight_line=k + 1, start_time=start,
                   labels=plan.labels)  # fmt: skip
         files.append(path)
     merged, source = survey.merged()
-    whole = out / ("plot.las" if plan.kind == "tls" else "survey.las")
+    whole = out / (("plot" if plan.kind == "tls" else "survey") + ext)
     write_las(merged, whole, crs=crs, origin=origin, start_time=start, labels=plan.labels,
               point_source=source)  # fmt: skip
     files.append(whole)

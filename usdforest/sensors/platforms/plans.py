@@ -14,6 +14,7 @@ A plan is a TOML file::
     side_overlap = 0.5       # of neighbouring swaths (or line_spacing = metres)
     scan_angle = 45.0        # the swath: pulses within this many degrees of the nadir
     labels = "for-instance"  # the LAS classification (or "asprs")
+    laz = false              # LAZ (laspy's lazrs backend, usdforest[laz]) instead of LAS
 
     [lidar]                  # settings over the preset, as scan's and fly's [lidar]
 
@@ -65,6 +66,7 @@ class SurveyPlan:
     scan_angle: float = 45.0
     start_time: str = ""
     seed: int = 0
+    laz: bool = False
 
     def check(self, where: str = "survey") -> None:
         from usdforest.sensors.lidar.las import LABELS
