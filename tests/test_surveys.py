@@ -214,3 +214,34 @@ def test_a_laz_survey_holds_the_same_points_in_the_same_bytes(tmp_path):
         tmp_path / "laz2" / "plot.laz"
     ).read_bytes()
     assert (tmp_path / "laz1" / "stations" / "station_001.laz").is_file()
+
+
+def test_a_flight_survey_on_one_or_two_dask_workers_gives_the_same_points(
+    forest_folder, runner, tmp_path
+):
+    """The lines as Dask tasks, each writing its own LAS: one worker (the same tasks here)
+    and two give the same bytes, and the same as the survey in one process."""
+    pytest.importorskip("distributed", reason="needs dask.distributed (usdforest[dask])")
+    text = beech_and_pine(1) + '[ground]\nkind = "plane"\nmargin = 5.0\n'
+    forest, _ = forestcache.text_forest(forest_folder, "beech-pine-ground", text)
+    plan = tmp_path / "drone.toml"
+    plan.write_text('[survey]\nkind = "flight"\nregion = [0.0, 0.0, 20.0, 20.0]\nheight = 20.0\n'
+                    "scan_angle = 40.0\n[lidar]\npulse_rate = 20000.0\n")  # fmt: skip
+    outs = {}
+    for workers in (0, 1, 2):
+        out = tmp_path / f"w{workers}"
+        args = ["survey", str(forest), "--plan", str(plan), "-o", str(out), "--json"]
+        r = runner.invoke(app, [*args, "--workers", str(workers)])
+        assert r.exit_code == 0, r.output
+        outs[workers] = json.loads(r.stdout.strip().splitlines()[-1])
+        assert outs[workers]["parts"] == 2
+    lines = [sorted((tmp_path / f"w{w}" / "lines").iterdir()) for w in (0, 1, 2)]
+    assert [p.name for p in lines[0]] == ["line_001.las", "line_002.las"]
+    for a, b, c in zip(*lines, strict=True):
+        assert a.read_bytes() == b.read_bytes() == c.read_bytes()
+    assert outs[1]["points"] == outs[2]["points"] == outs[0]["points"] > 10_000
+    assert outs[1]["measured_first_return_density"] == outs[0]["measured_first_return_density"]
+    assert (tmp_path / "w1" / "trees.csv").read_text() == (
+        tmp_path / "w2" / "trees.csv"
+    ).read_text()
+    assert not (tmp_path / "w2" / "survey.las").exists()  # the lines are the survey's cloud

@@ -225,13 +225,17 @@ def survey(
     out: str | Path | None = None,
     seed: int | None = None,
     force: bool = False,
+    workers: int = 0,
+    scheduler: str | None = None,
     progress: Callable[[str, int, int], None] | bool | None = None,
 ) -> Survey:
     """Survey ``stage`` as ``plan`` says: a TOML file, or its tables as a mapping
     (``{"survey": {"kind": "tls", "stations": [[10, 10]]}, "lidar": {...}}``; see
     :mod:`usdforest.sensors.platforms.plans`). With ``out``, its files are written there as
     ``usdforest survey`` writes them (``force`` to replace an existing folder). ``seed``
-    overrides the plan's; ``progress`` as :func:`build_forest` takes it."""
+    overrides the plan's; ``progress`` as :func:`build_forest` takes it. ``workers`` (1 or
+    more) or a Dask ``scheduler`` fly a flight survey's lines as tasks, each writing its own
+    LAS into ``out`` (needed then); the returned survey's ``parts`` are then empty."""
     from usdforest import arguments
     from usdforest.progress import resolve_progress
     from usdforest.sensors.platforms import campaign, plans
@@ -250,13 +254,20 @@ def survey(
         the_plan = dataclasses.replace(the_plan, seed=seed)
     lidar = sensor_settings("lidar", the_plan.lidar, table, where=where)
     tick = resolve_progress(progress)
+    workers = arguments.integer(workers, "workers", 0, arguments.MAX_WORKERS)
+    if scheduler is not None:
+        from usdforest.cluster import scheduler_address
+
+        scheduler_address(scheduler)
     if out is None:
+        if workers or scheduler is not None:
+            raise UsdForestError("workers: a survey on workers writes its lines: give out")
         return campaign.run_survey(stage, the_plan, lidar, progress=tick)
     arguments.path(out, "out")
     return campaign.survey_folder(
         stage, the_plan, lidar, out, force=arguments.flag(force, "force"), inputs=inputs,
-        progress=tick,
-    )  # fmt: skip
+        progress=tick, workers=workers, scheduler=scheduler,
+    )[0]  # fmt: skip
 
 
 __all__ = ["build_forest", "fly", "grow_tree", "load_recipe", "recipes", "scan", "survey"]

@@ -38,7 +38,9 @@ def run_tasks(
                 exc = f.exception()
                 if isinstance(exc, UsdForestError):
                     raise exc
-                kind = "survey" if stage == "sampling sites" else "tile"
+                kind = {"sampling sites": "survey", "flight lines": "flight line"}.get(
+                    stage, "tile"
+                )
                 raise UsdForestError(f"a {kind} task failed: {type(exc).__name__}: {exc}")
         tick(stage, len(jobs), len(jobs))
         return client.gather(futures)

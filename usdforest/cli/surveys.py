@@ -23,6 +23,7 @@ from usdforest.cli.app import (
     out,
     progress_bars,
 )
+from usdforest.errors import UsdForestError
 
 
 @app.command("survey", cls=Command)
@@ -50,6 +51,19 @@ def survey_cmd(
         int | None,
         typer.Option(min=0, max=MAX_SEED, help="Seed for range noise (default: the plan's)."),
     ] = None,
+    workers: Annotated[
+        int,
+        typer.Option(
+            min=0,
+            max=256,
+            help="Fly a flight survey's lines as tasks on this many local Dask workers (1: "
+            "the same tasks here), each writing its own LAS; 0 (default): one scene, here.",
+        ),
+    ] = 0,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(help="A running Dask scheduler (tcp://host:port) to fly the lines on."),
+    ] = None,
     force: ForceOption = False,
     quiet: QuietOption = False,
     as_json: SummaryJsonOption = False,
@@ -61,11 +75,19 @@ def survey_cmd(
     import dataclasses
     import time
 
-    from usdforest.sensors.platforms.campaign import survey_folder, survey_summary
+    from usdforest.sensors.platforms.campaign import survey_folder
     from usdforest.sensors.platforms.plans import pulse_density, read_plan
     from usdforest.sensors.platforms.survey import sensor_settings
 
+    if scheduler is not None:
+        from usdforest.cluster import scheduler_address
+
+        scheduler_address(scheduler, "--scheduler")
     survey_plan, table = read_plan(plan)
+    if (workers or scheduler is not None) and survey_plan.kind != "flight":
+        raise UsdForestError(
+            f"--workers: {plan} is a tls survey; workers fly a flight survey's lines"
+        )
     if seed is not None:
         survey_plan = dataclasses.replace(survey_plan, seed=seed)
     lidar = sensor_settings("lidar", survey_plan.lidar, table, where=str(plan))
@@ -79,10 +101,11 @@ def survey_cmd(
         )
     t0 = time.perf_counter()
     with progress_bars(not (quiet or as_json), t0) as tick:
-        done = survey_folder(
-            stage, survey_plan, lidar, output, force=force, inputs=(plan,), progress=tick
-        )
-    summary = survey_summary(done) | {"seconds": round(time.perf_counter() - t0, 3)}
+        done, summary = survey_folder(
+            stage, survey_plan, lidar, output, force=force, inputs=(plan,), progress=tick,
+            workers=workers, scheduler=scheduler,
+        )  # fmt: skip
+    summary = summary | {"seconds": round(time.perf_counter() - t0, 3)}
     if as_json:
         sys.stdout.write(json.dumps(summary) + "\n")
         return

@@ -43,6 +43,7 @@ from usdforest.sensors.scene.scenetypes import Scene
 BREAST = 1.3  # m: the tree table's position at breast height
 CHUNK = 400_000  # pulses a terrestrial station casts at once (7 sub-rays each: 2.8 M rays)
 WAYPOINT = 5.0  # m between a flight line's points that follow the ground
+RELIEF = 2000.0  # m of ground relief a cluster task's scene allows for around its line
 Progress = Callable[[str, int, int], None]
 
 
@@ -190,37 +191,47 @@ def _following(scene, a, b, height, speed, t0) -> Trajectory:
     return Trajectory(t0 + s * length / speed, np.column_stack([xy, z]))
 
 
-def _measured(survey: Survey, region) -> float | None:
-    """First returns within the plan's scan angle per m² of the ground where every swath
-    that would cover it is flown: inside the region, across the track from a swath's half
-    less a spacing inside the outermost lines (the lines beyond them, not flown, would have
-    covered the rest); ``None`` where nothing is left."""
-    plan = survey.plan
+def _window(plan: SurveyPlan, starts: np.ndarray, region):
+    """Where every swath that would cover the ground is flown: inside the region, across
+    the track from a swath's half less a spacing inside the outermost lines (the lines
+    beyond them, not flown, would have covered the rest): ``(lo, hi, area)`` along the
+    across-track axis, or ``None`` where nothing is left."""
     h = math.radians(plan.heading)
     across = np.array([math.cos(h), -math.sin(h)])
-    lines = survey.starts[:, :, :2].mean(axis=1) @ across
+    lines = starts[:, :, :2].mean(axis=1) @ across
     reach = plan.swath / 2 - plan.spacing_between_lines
-    lo, hi = lines.min() + reach, lines.max() - reach
+    lo, hi = float(lines.min() + reach), float(lines.max() - reach)
     if hi <= lo:
         return None
     x0, y0, x1, y1 = region
-    # the window's area: cells of a 2,000 x 2,000 grid over the region, inside the window
-    n = 2000
+    n = 2000  # the window's area from the cells of a 2,000 x 2,000 grid over the region
     cx = x0 + (np.arange(n) + 0.5) * (x1 - x0) / n
     cy = y0 + (np.arange(n) + 0.5) * (y1 - y0) / n
     a = cx[:, None] * across[0] + cy[None, :] * across[1]
     area = np.count_nonzero((a > lo) & (a < hi)) * (x1 - x0) * (y1 - y0) / n**2
-    if area <= 0:
+    return (lo, hi, float(area), tuple(float(v) for v in region)) if area > 0 else None
+
+
+def _first_in_window(p: FlightReturns, plan: SurveyPlan, window) -> int:
+    """First returns of ``p`` within the plan's scan angle that land in ``window``."""
+    if window is None:
+        return 0
+    lo, hi, _, (x0, y0, x1, y1) = window
+    h = math.radians(plan.heading)
+    c = p.points[:, :2] @ np.array([math.cos(h), -math.sin(h)])
+    xy = p.points[:, :2]
+    inside = (xy[:, 0] >= x0) & (xy[:, 0] < x1) & (xy[:, 1] >= y0) & (xy[:, 1] < y1)
+    keep = (p.return_number == 1) & inside & (c > lo) & (c < hi)
+    return int(np.count_nonzero(keep & (np.abs(p.scan_angle) <= plan.scan_angle)))
+
+
+def _measured(survey: Survey, region) -> float | None:
+    """First returns within the plan's scan angle per m² of :func:`_window` (``None``
+    where nothing is left)."""
+    window = _window(survey.plan, survey.starts, region)
+    if window is None:
         return None
-    count = 0
-    for p in survey.parts:
-        xy = p.points[:, :2]
-        inside = (xy[:, 0] >= x0) & (xy[:, 0] < x1) & (xy[:, 1] >= y0) & (xy[:, 1] < y1)
-        c = xy @ across
-        window = (c > lo) & (c < hi)
-        swath = np.abs(p.scan_angle) <= plan.scan_angle
-        count += int(np.count_nonzero((p.return_number == 1) & inside & window & swath))
-    return count / area
+    return sum(_first_in_window(p, survey.plan, window) for p in survey.parts) / window[2]
 
 
 def tree_table(stage, scene: Scene, parts) -> dict[str, np.ndarray]:
@@ -356,11 +367,15 @@ def survey_folder(
     force: bool = False,
     inputs: tuple = (),
     progress: Progress | None = None,
-) -> Survey:
+    workers: int = 0,
+    scheduler: str | None = None,
+) -> tuple[Survey, dict]:
     """:func:`run_survey` written to the folder ``out`` (:func:`write_survey`) as every
     writing command writes: ``out`` never one of the stage's layers or ``inputs`` (the plan's
     file), an existing one replaced only with ``force``, built beside it and moved into
-    place whole, nothing left by an interrupted survey."""
+    place whole, nothing left by an interrupted survey. With ``workers`` (1 or more) or a
+    ``scheduler``, a flight survey's lines are Dask tasks (:func:`survey_on_cluster`: the
+    survey's parts then stay in its files). Returns the survey and its summary."""
     import os
 
     from usdforest.atomic import interrupts_held, output_lock, refuse_appeared, staging_folder
@@ -374,13 +389,116 @@ def survey_folder(
     claim_outputs([], inputs=lambda: [*reads(), *inputs], folders=[out], force=force)
     with output_lock(out), staging_folder(out) as tmp:
         claim_outputs([], inputs=lambda: [*reads(), *inputs], folders=[out], force=force)
-        done = run_survey(stage, plan, lidar, progress=progress)
-        crs, origin = stage_georeference(stage)
         staged = tmp / out.name
-        write_survey(done, staged, crs=crs, origin=origin)
+        if workers or scheduler is not None:
+            from usdforest.cluster import dask_client
+
+            with dask_client(max(workers, 1), scheduler) as client:
+                done, summary = survey_on_cluster(stage, plan, lidar, staged, client,
+                                                  progress=progress)  # fmt: skip
+        else:
+            done = run_survey(stage, plan, lidar, progress=progress)
+            crs, origin = stage_georeference(stage)
+            write_survey(done, staged, crs=crs, origin=origin)
+            summary = survey_summary(done)
         refuse_appeared(out, force=force)
         with interrupts_held():
             if out.exists():
                 os.replace(out, tmp / f"old-{out.name}")
             os.replace(staged, out)
-    return done
+    return done, summary
+
+
+def survey_on_cluster(
+    stage: str | Path,
+    plan: SurveyPlan,
+    lidar: LaserScanner,
+    out: Path,
+    client,
+    *,
+    progress: Progress | None = None,
+) -> tuple[Survey, dict]:
+    """A flight survey as Dask tasks, one flight line each (``client`` None: here, one after
+    another, the same tasks): each task gathers the scene within reach of its line, flies
+    it and writes its LAS into ``out/lines/``; only counts come back, so the client's memory
+    stays flat however large the survey. ``out`` then holds the lines, ``trees.csv`` (the
+    trees of every line's scene, their points summed) and ``survey.json``; no merged cloud
+    (merge the lines with PDAL or lasmerge)."""
+    from usdforest.cluster import run_tasks
+    from usdforest.sensors.scene.extraction import extract_scene
+
+    tick = progress or (lambda stage, done, total: None)
+    if plan.kind != "flight":
+        raise UsdForestError("survey: workers fly a flight survey's lines; a tls survey runs here")
+    lidar.check()
+    frame = extract_scene(
+        stage,
+        instancing=True,
+        leaf_triangles=False,
+        reflectors=False,
+        centre=np.zeros(3),
+        radius=0.0,
+    )  # the bounds and the ground only
+    region = region_of(plan, frame)
+    lines = flight_lines(region, plan.heading, plan.spacing_between_lines)
+    lengths = np.hypot(*(lines[:, 1] - lines[:, 0]).T)
+    starts = np.concatenate([[0.0], np.cumsum(lengths / plan.speed)[:-1]])
+    ends = [np.column_stack([ln, ground_height(frame, ln) + plan.height]) for ln in lines]
+    window = _window(plan, np.array(ends), region)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "lines").mkdir(exist_ok=True)
+    crs, origin = stage_georeference(stage)
+    shared = (str(stage), plan, lidar, str(out), window, crs, origin)
+    jobs = [(j, lines[j], float(starts[j])) for j in range(len(lines))]
+    done = run_tasks(client, _line_task, jobs, shared, tick, "flight lines")
+    trees: dict[int, dict] = {}
+    for d in done:
+        for row in d["trees"]:
+            kept = trees.setdefault(row["id"], {**row, "points": 0})
+            kept["points"] += row["points"]
+    ids = sorted(trees)
+    table = {k: np.array([trees[i][k] for i in ids], dtype=object if k == "species" else None)
+             for k in (next(iter(trees.values())) if trees else {"id": 0})}  # fmt: skip
+    if trees:
+        _write_trees(table, out / "trees.csv")
+    area = window[2] if window else 0.0
+    summary = {
+        "plan": asdict(plan), "lidar": asdict(lidar), "kind": plan.kind, "parts": len(done),
+        "pulses": sum(d["pulses"] for d in done), "points": sum(d["points"] for d in done),
+        "trees": len(ids), "trees_seen": sum(1 for i in ids if trees[i]["points"]),
+        "expected_pulse_density": pulse_density(plan, lidar),
+        "measured_first_return_density": sum(d["first"] for d in done) / area if area else None,
+        "merged": False,
+    }  # fmt: skip
+    with atomic_path(out / "survey.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=2) + "\n")
+    survey = Survey(plan, lidar, (), np.array(ends), summary["expected_pulse_density"],
+                    summary["measured_first_return_density"], table)  # fmt: skip
+    return survey, summary
+
+
+def _line_task(j: int, line: np.ndarray, t0: float, shared) -> dict:
+    """One flight line: its scene (everything within its length and its reach), flown,
+    written; its counts."""
+    from usdforest.sensors.scene.extraction import extract_scene
+
+    stage, plan, lidar, out, window, crs, origin = shared
+    mid = line.mean(axis=0)
+    half = float(np.hypot(*(line[1] - line[0]))) / 2
+    # what the line's rays can reach, from any height over any relief (RELIEF)
+    reach = half + lidar.max_range + plan.height + RELIEF
+    scene = extract_scene(stage, centre=np.array([mid[0], mid[1], 0.0]), radius=reach,
+                          reflectors=False)  # fmt: skip
+    traj = _following(scene, line[0], line[1], plan.height, plan.speed, t0)
+    r = fly_lidar(scene, lidar, traj, seed=plan.seed, key=(j,))
+    ext = ".laz" if plan.laz else ".las"
+    name = Path(out) / "lines" / f"line_{j + 1:03d}{ext}"
+    write_las(r, name, crs=crs, origin=origin, flight_line=j + 1,
+              start_time=plan.start_time or None, labels=plan.labels)  # fmt: skip
+    table = tree_table(stage, scene, [r])
+    rows = [{k: (v[i].item() if hasattr(v[i], "item") else v[i]) for k, v in table.items()}
+            for i in range(len(table["id"]))]  # fmt: skip
+    return {
+        "pulses": r.n_rays, "points": len(r), "trees": rows,
+        "first": _first_in_window(r, plan, window),
+    }  # fmt: skip
