@@ -64,6 +64,10 @@ class Survey:
 
     def merged(self) -> tuple[FlightReturns, np.ndarray]:
         """All parts as one cloud, and each point's part (1-based)."""
+        if not self.parts:
+            raise UsdForestError(
+                "survey: no points here (a survey on workers keeps its lines' files)"
+            )
         names = [f.name for f in fields(FlightReturns)]
         arrays = {
             n: np.concatenate([getattr(p, n) for p in self.parts])
@@ -79,6 +83,21 @@ class Survey:
             [np.full(len(p), k + 1, np.uint16) for k, p in enumerate(self.parts)]
         )
         return merged, source
+
+
+def check_pairing(plan: SurveyPlan, lidar: LaserScanner) -> None:
+    """The plan's kind and its scanner agree, and the scanner's settings are sound."""
+    if (plan.kind == "tls") != isinstance(lidar, TerrestrialScanner):
+        raise UsdForestError(
+            f"survey.lidar: a {plan.kind} survey needs "
+            + ("a terrestrial scanner (kind tls)" if plan.kind == "tls" else "an airborne one")
+        )
+    if plan.kind == "flight" and not hasattr(lidar, "firing"):
+        raise UsdForestError(
+            f"survey.lidar: {lidar.kind!r} has no swath; a flight survey flies a line, "
+            "oscillating, conical or rosette scanner"
+        )
+    lidar.check()
 
 
 def region_of(plan: SurveyPlan, scene: Scene) -> tuple[float, float, float, float]:
@@ -100,17 +119,7 @@ def run_survey(
     from usdforest.sensors.scene.extraction import extract_scene
 
     tick = progress or (lambda stage, done, total: None)
-    if (plan.kind == "tls") != isinstance(lidar, TerrestrialScanner):
-        raise UsdForestError(
-            f"survey.lidar: a {plan.kind} survey needs "
-            + ("a terrestrial scanner (kind tls)" if plan.kind == "tls" else "an airborne one")
-        )
-    if plan.kind == "flight" and not hasattr(lidar, "firing"):
-        raise UsdForestError(
-            f"survey.lidar: {lidar.kind!r} has no swath; a flight survey flies a line, "
-            "oscillating, conical or rosette scanner"
-        )
-    lidar.check()
+    check_pairing(plan, lidar)
     scene = extract_scene(stage, reflectors=False, progress=progress)
     caster = SceneCaster(scene)
     region = region_of(plan, scene)
@@ -381,6 +390,7 @@ def survey_folder(
     from usdforest.atomic import interrupts_held, output_lock, refuse_appeared, staging_folder
     from usdforest.paths import claim_outputs, require_output, stage_inputs
 
+    check_pairing(plan, lidar)  # before anything is claimed or cast
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise UsdForestError(f"{out}: the output must be a folder, and this is a file")
@@ -430,7 +440,7 @@ def survey_on_cluster(
     tick = progress or (lambda stage, done, total: None)
     if plan.kind != "flight":
         raise UsdForestError("survey: workers fly a flight survey's lines; a tls survey runs here")
-    lidar.check()
+    check_pairing(plan, lidar)
     frame = extract_scene(
         stage,
         instancing=True,
