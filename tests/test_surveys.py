@@ -245,3 +245,35 @@ def test_a_flight_survey_on_one_or_two_dask_workers_gives_the_same_points(
         tmp_path / "w2" / "trees.csv"
     ).read_text()
     assert not (tmp_path / "w2" / "survey.las").exists()  # the lines are the survey's cloud
+
+
+def test_the_platforms_attitude_turns_its_pattern(tmp_path):
+    """A line flown east 30 m above flat ground rolled 10 deg (its right side down): the
+    nadir pulses land h tan(10 deg) to the left of the track; crabbed 10 deg, the scan line
+    turns with the platform."""
+    ground = _plane(
+        tmp_path / "g.usda", [(-200, -200, 0), (200, -200, 0), (200, 200, 0), (-200, 200, 0)]
+    )
+    lidar = PRESETS["vux-1uav"].__class__(**{**PRESETS["vux-1uav"].__dict__, "pulse_rate": 20e3,
+                                             "beam_rings": 0, "noise": False})  # fmt: skip
+    base = {"kind": "flight", "region": (0.0, -5.0, 40.0, 5.0), "height": 30.0,
+            "heading": 90.0, "line_spacing": 100.0}  # fmt: skip
+    level = run_survey(ground, SurveyPlan(**base), lidar)
+    rolled = run_survey(ground, SurveyPlan(**base, roll=10.0), lidar)
+    crabbed = run_survey(ground, SurveyPlan(**base, crab=10.0), lidar)
+
+    def nadir(s):  # the pulses the mirror sends along the platform's own down axis
+        p = s.parts[0]
+        return p.points[np.abs(p.azimuth) < 0.5]
+
+    assert np.allclose(nadir(level)[:, 1], 0.0, atol=0.05)
+    np.testing.assert_allclose(nadir(rolled)[:, 1], 30.0 * math.tan(math.radians(10.0)), atol=0.05)
+    # the LAS scan angle includes the roll (ASPRS): its 0 is still straight down
+    p = rolled.parts[0]
+    np.testing.assert_allclose(p.points[np.abs(p.scan_angle) < 0.5][:, 1], 0.0, atol=0.27)
+    line = crabbed.parts[0].points
+    first = line[np.abs(crabbed.parts[0].gps_time - crabbed.parts[0].gps_time.min()) < 1 / 100.0]
+    slope = np.polyfit(first[:, 1], first[:, 0], 1)[0]  # the scan line's x per y
+    assert slope == pytest.approx(-math.tan(math.radians(10.0)), abs=0.02)
+    with pytest.raises(UsdForestError, match=r"survey\.roll"):
+        SurveyPlan(**base, roll=60.0).check()

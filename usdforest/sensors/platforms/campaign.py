@@ -137,7 +137,7 @@ def run_survey(
     lines = flight_lines(region, plan.heading, plan.spacing_between_lines)
     parts, ends, t0 = [], [], 0.0
     for j, (a, b) in enumerate(lines):
-        traj = _following(scene, a, b, plan.height, plan.speed, t0)
+        traj = _following(scene, a, b, plan, t0)
         parts.append(fly_lidar(scene, lidar, traj, caster=caster, seed=plan.seed, key=(j,)))
         ends.append(traj.position[[0, -1]])
         t0 = float(traj.t[-1])
@@ -189,15 +189,20 @@ def _station(scene, caster, lidar, at, t0, seed, k, tick) -> FlightReturns:
     )
 
 
-def _following(scene, a, b, height, speed, t0) -> Trajectory:
-    """A flight line from ``a`` to ``b`` (x, y) at ``height`` above the scene's ground,
-    level, at ``speed`` from ``t0``."""
+def _following(scene, a, b, plan: SurveyPlan, t0) -> Trajectory:
+    """A flight line from ``a`` to ``b`` (x, y) at the plan's height above the scene's
+    ground and speed from ``t0``, facing along it (less its crab) at its roll and pitch."""
     length = float(np.hypot(*(np.asarray(b) - a)))
     n = max(2, math.ceil(length / WAYPOINT) + 1)
     s = np.linspace(0.0, 1.0, n)
     xy = np.asarray(a) + s[:, None] * (np.asarray(b) - a)
-    z = ground_height(scene, xy) + height
-    return Trajectory(t0 + s * length / speed, np.column_stack([xy, z]))
+    z = ground_height(scene, xy) + plan.height
+    track = math.degrees(math.atan2(b[1] - a[1], b[0] - a[0]))
+    return Trajectory(
+        t0 + s * length / plan.speed, np.column_stack([xy, z]),
+        yaw=np.full(n, track + plan.crab), pitch=np.full(n, plan.pitch),
+        roll=np.full(n, plan.roll),
+    )  # fmt: skip
 
 
 def _window(plan: SurveyPlan, starts: np.ndarray, region):
@@ -499,7 +504,7 @@ def _line_task(j: int, line: np.ndarray, t0: float, shared) -> dict:
     reach = half + lidar.max_range + plan.height + RELIEF
     scene = extract_scene(stage, centre=np.array([mid[0], mid[1], 0.0]), radius=reach,
                           reflectors=False)  # fmt: skip
-    traj = _following(scene, line[0], line[1], plan.height, plan.speed, t0)
+    traj = _following(scene, line[0], line[1], plan, t0)
     r = fly_lidar(scene, lidar, traj, seed=plan.seed, key=(j,))
     ext = ".laz" if plan.laz else ".las"
     name = Path(out) / "lines" / f"line_{j + 1:03d}{ext}"

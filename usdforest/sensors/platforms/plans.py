@@ -15,6 +15,9 @@ A plan is a TOML file::
     scan_angle = 45.0        # the swath: pulses within this many degrees of the nadir
     labels = "for-instance"  # the LAS classification (or "asprs")
     laz = false              # LAZ (laspy's lazrs backend, usdforest[laz]) instead of LAS
+    roll = 0.0               # the platform's attitude along its lines, degrees: roll about
+    pitch = 0.0              # its forward axis (positive: the right side down), pitch (nose
+    crab = 0.0               # up) and crab (its heading off the track, to the left)
 
     [lidar]                  # settings over the preset, as scan's and fly's [lidar]
 
@@ -67,6 +70,9 @@ class SurveyPlan:
     start_time: str = ""
     seed: int = 0
     laz: bool = False
+    roll: float = 0.0
+    pitch: float = 0.0
+    crab: float = 0.0
 
     def check(self, where: str = "survey") -> None:
         from usdforest.sensors.lidar.las import LABELS
@@ -101,6 +107,9 @@ class SurveyPlan:
             raise UsdForestError(f"{where}.scan_angle: must be in [1, 80] degrees")
         if self.stations or self.spacing:
             raise UsdForestError(f"{where}: stations and spacing are a tls plan's keys")
+        for key in ("roll", "pitch", "crab"):
+            if not -45 <= getattr(self, key) <= 45:
+                raise UsdForestError(f"{where}.{key}: must be within +-45 degrees")
 
     @property
     def swath(self) -> float:
