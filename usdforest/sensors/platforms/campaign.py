@@ -463,7 +463,8 @@ def survey_on_cluster(
     out.mkdir(parents=True, exist_ok=True)
     (out / "lines").mkdir(exist_ok=True)
     crs, origin = stage_georeference(stage)
-    shared = (str(stage), plan, lidar, str(out), window, crs, origin)
+    # absolute: a worker's current folder need not be this process's
+    shared = (str(Path(stage).resolve()), plan, lidar, str(out.resolve()), window, crs, origin)
     jobs = [(j, lines[j], float(starts[j])) for j in range(len(lines))]
     done = run_tasks(client, _line_task, jobs, shared, tick, "flight lines")
     trees: dict[int, dict] = {}
