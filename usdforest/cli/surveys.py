@@ -23,7 +23,6 @@ from usdforest.cli.app import (
     out,
     progress_bars,
 )
-from usdforest.errors import UsdForestError
 
 
 @app.command("survey", cls=Command)
@@ -84,10 +83,6 @@ def survey_cmd(
 
         scheduler_address(scheduler, "--scheduler")
     survey_plan, table = read_plan(plan)
-    if (workers or scheduler is not None) and survey_plan.kind != "flight":
-        raise UsdForestError(
-            f"--workers: {plan} is a tls survey; workers fly a flight survey's lines"
-        )
     if seed is not None:
         survey_plan = dataclasses.replace(survey_plan, seed=seed)
     lidar = sensor_settings("lidar", survey_plan.lidar, table, where=str(plan))

@@ -5,7 +5,7 @@ ground under each point, the stage's georeference)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +48,20 @@ class FlightReturns:
 
     def __len__(self) -> int:
         return len(self.range)
+
+    @staticmethod
+    def concat(parts: list[FlightReturns]) -> FlightReturns:
+        """``parts`` (one sensor's, at least one) as one: their points in order, their rays
+        and sweeps summed."""
+        arrays = {
+            f.name: np.concatenate([getattr(p, f.name) for p in parts])
+            for f in fields(FlightReturns)
+            if isinstance(getattr(parts[0], f.name), np.ndarray)
+        }
+        return replace(
+            parts[0], **arrays, n_rays=sum(p.n_rays for p in parts),
+            sweeps=sum(p.sweeps for p in parts),
+        )  # fmt: skip
 
 
 def scan_angles(dirs: np.ndarray, forward: np.ndarray) -> np.ndarray:

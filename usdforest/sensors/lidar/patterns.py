@@ -235,16 +235,20 @@ class TerrestrialScanner(LaserScanner):
     def grid(self) -> tuple[np.ndarray, np.ndarray]:
         """Azimuth and elevation (degrees) of each pulse of the station, in firing order:
         line by line (azimuth-major), each line rising."""
-        n_az = max(1, math.floor(self.hfov / self.azimuth_step + 1e-9))
-        n_el = math.floor((self.vfov_max - self.vfov_min) / self.elevation_step + 1e-9) + 1
+        n_az, n_el = self.lines()
         az = np.arange(n_az) * self.azimuth_step
         el = self.vfov_min + np.arange(n_el) * self.elevation_step
         a, e = np.meshgrid(az, el, indexing="ij")
         return a.ravel(), e.ravel()
 
-    def station_pulses(self) -> int:
+    def lines(self) -> tuple[int, int]:
+        """The station's vertical lines, and the pulses in each."""
         n_az = max(1, math.floor(self.hfov / self.azimuth_step + 1e-9))
         n_el = math.floor((self.vfov_max - self.vfov_min) / self.elevation_step + 1e-9) + 1
+        return n_az, n_el
+
+    def station_pulses(self) -> int:
+        n_az, n_el = self.lines()
         return n_az * n_el
 
     def pulses(self, duration: float = 0.0, rate: float = 0.0) -> int:

@@ -13,7 +13,7 @@ import csv
 import json
 import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -68,21 +68,10 @@ class Survey:
             raise UsdForestError(
                 "survey: no points here (a survey on workers keeps its lines' files)"
             )
-        names = [f.name for f in fields(FlightReturns)]
-        arrays = {
-            n: np.concatenate([getattr(p, n) for p in self.parts])
-            for n in names
-            if isinstance(getattr(self.parts[0], n), np.ndarray)
-        }
-        first = self.parts[0]
-        merged = replace(
-            first, **arrays, n_rays=sum(p.n_rays for p in self.parts),
-            sweeps=sum(p.sweeps for p in self.parts),
-        )  # fmt: skip
         source = np.concatenate(
             [np.full(len(p), k + 1, np.uint16) for k, p in enumerate(self.parts)]
         )
-        return merged, source
+        return FlightReturns.concat(list(self.parts)), source
 
 
 def check_pairing(plan: SurveyPlan, lidar: LaserScanner) -> None:
@@ -159,34 +148,22 @@ def _station(scene, caster, lidar, at, t0, seed, k, tick) -> FlightReturns:
         e = cast_pulses(caster, np.broadcast_to(at, d.shape), d, lidar)
         r, intensity = observed(e, lidar, rng)
         p = i + e.pulse
-        pts = at + dirs[p] * r[:, None]
-        out.append((pts, times[p], r, e, p, intensity))
+        n = len(p)
+        out.append(FlightReturns(
+            points=at + dirs[p] * r[:, None], gps_time=times[p], range=r,
+            cls=e.cls.astype(np.uint8), tree=e.tree.astype(np.int32),
+            path=e.path.astype(np.int32), paths=scene.paths, n_rays=len(d), sweeps=0,
+            ring=np.zeros(n, np.uint16), azimuth=(az[p] + 180.0) % 360.0 - 180.0,
+            intensity=intensity.astype(np.uint16),
+            return_number=e.return_number.astype(np.uint8),
+            number_of_returns=e.number_of_returns.astype(np.uint8),
+            scan_angle=np.zeros(n),  # LAS's scan angle is an airborne one
+            height=np.zeros(n), system=lidar.model or "OTHER",
+        ))  # fmt: skip
         tick(f"station {k + 1}", min(i + CHUNK, len(dirs)), len(dirs))
-    pts = np.concatenate([o[0] for o in out])
-    pulse = np.concatenate([o[4] for o in out])
-
-    def cat(name):
-        return np.concatenate([getattr(o[3], name) for o in out])
-
-    return FlightReturns(
-        points=pts,
-        gps_time=np.concatenate([o[1] for o in out]),
-        range=np.concatenate([o[2] for o in out]),
-        cls=cat("cls").astype(np.uint8),
-        tree=cat("tree").astype(np.int32),
-        path=cat("path").astype(np.int32),
-        paths=scene.paths,
-        n_rays=len(dirs),
-        sweeps=1,
-        ring=np.zeros(len(pts), np.uint16),
-        azimuth=(az[pulse] + 180.0) % 360.0 - 180.0,
-        intensity=np.concatenate([o[5] for o in out]).astype(np.uint16),
-        return_number=cat("return_number").astype(np.uint8),
-        number_of_returns=cat("number_of_returns").astype(np.uint8),
-        scan_angle=np.zeros(len(pts)),  # LAS's scan angle is an airborne one
-        height=pts[:, 2] - ground_height(scene, pts[:, :2]),
-        system=lidar.model or "OTHER",
-    )
+    whole = FlightReturns.concat(out)
+    height = whole.points[:, 2] - ground_height(scene, whole.points[:, :2])
+    return replace(whole, sweeps=1, height=height)
 
 
 def _following(scene, a, b, plan: SurveyPlan, t0) -> Trajectory:
@@ -217,13 +194,16 @@ def _window(plan: SurveyPlan, starts: np.ndarray, region):
     lo, hi = float(lines.min() + reach), float(lines.max() - reach)
     if hi <= lo:
         return None
+    from shapely.geometry import Polygon, box
+
     x0, y0, x1, y1 = region
-    n = 2000  # the window's area from the cells of a 2,000 x 2,000 grid over the region
-    cx = x0 + (np.arange(n) + 0.5) * (x1 - x0) / n
-    cy = y0 + (np.arange(n) + 0.5) * (y1 - y0) / n
-    a = cx[:, None] * across[0] + cy[None, :] * across[1]
-    area = np.count_nonzero((a > lo) & (a < hi)) * (x1 - x0) * (y1 - y0) / n**2
-    return (lo, hi, float(area), tuple(float(v) for v in region)) if area > 0 else None
+    along = np.array([math.sin(h), math.cos(h)])
+    far = float(np.hypot(*np.abs([(x0, y0), (x1, y1)]).max(axis=0))) + 1.0  # past every corner
+    strip = Polygon(
+        [c * across + t * far * along for c, t in ((lo, -1), (lo, 1), (hi, 1), (hi, -1))]
+    )
+    area = float(box(x0, y0, x1, y1).intersection(strip).area)
+    return (lo, hi, area, tuple(float(v) for v in region)) if area > 0 else None
 
 
 def _first_in_window(p: FlightReturns, plan: SurveyPlan, window) -> int:
@@ -338,32 +318,40 @@ def write_survey(survey: Survey, out: Path, *, crs=None, origin=None) -> list[Pa
 
 
 def _write_trees(trees: dict[str, np.ndarray], path: Path) -> Path:
-    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(list(trees))
-        for i in range(len(trees["id"])):
-            w.writerow([_cell(trees[k][i]) for k in trees])
+    """The tree table as the forest's ``trees.csv`` is written (:mod:`usdforest.csvtext`:
+    ids and counts whole, figures to 4 decimals, ``nan`` where there is none)."""
+    from usdforest import csvtext
+
+    def column(name: str, v: np.ndarray) -> np.ndarray:
+        if name == "species":
+            names, codes = np.unique(np.asarray(v, dtype=str), return_inverse=True)
+            return csvtext.labels(codes, list(names))
+        if np.issubdtype(np.asarray(v).dtype, np.integer):
+            return csvtext.integers(v)
+        return csvtext.fixed(np.asarray(v, dtype=float), 4)
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write((",".join(trees) + "\n").encode())
+        if len(trees["id"]):
+            f.write(csvtext.rows([column(k, v) for k, v in trees.items()]))
     return path
 
 
-def _cell(v) -> str:
-    if isinstance(v, str):
-        return v
-    if isinstance(v, np.integer | int):
-        return str(int(v))
-    return "" if not math.isfinite(float(v)) else f"{float(v):.4f}"
-
-
-def survey_summary(survey: Survey) -> dict:
-    """What a survey was and what it gave, as JSON-ready values."""
+def survey_summary(survey: Survey, counts: tuple[int, int, int] | None = None) -> dict:
+    """What a survey was and what it gave, as JSON-ready values; ``counts`` (parts, pulses,
+    points) where its parts stayed in files (a survey on workers)."""
     plan = survey.plan
-    points = sum(len(p) for p in survey.parts)
+    parts, pulses, points = counts or (
+        len(survey.parts),
+        sum(p.n_rays for p in survey.parts),
+        sum(len(p) for p in survey.parts),
+    )
     return {
         "plan": asdict(plan),
         "lidar": asdict(survey.lidar),
         "kind": plan.kind,
-        "parts": len(survey.parts),
-        "pulses": sum(p.n_rays for p in survey.parts),
+        "parts": parts,
+        "pulses": pulses,
         "points": points,
         "trees": len(survey.trees["id"]),
         "trees_seen": int(np.count_nonzero(survey.trees["points"])),
@@ -390,12 +378,12 @@ def survey_folder(
     place whole, nothing left by an interrupted survey. With ``workers`` (1 or more) or a
     ``scheduler``, a flight survey's lines are Dask tasks (:func:`survey_on_cluster`: the
     survey's parts then stay in its files). Returns the survey and its summary."""
-    import os
-
-    from usdforest.atomic import interrupts_held, output_lock, refuse_appeared, staging_folder
+    from usdforest.atomic import interrupts_held, output_lock, publish, staging_folder
     from usdforest.paths import claim_outputs, require_output, stage_inputs
 
     check_pairing(plan, lidar)  # before anything is claimed or cast
+    if workers or scheduler is not None:
+        _check_on_workers(plan)
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise UsdForestError(f"{out}: the output must be a folder, and this is a file")
@@ -416,12 +404,16 @@ def survey_folder(
             crs, origin = stage_georeference(stage)
             write_survey(done, staged, crs=crs, origin=origin)
             summary = survey_summary(done)
-        refuse_appeared(out, force=force)
         with interrupts_held():
-            if out.exists():
-                os.replace(out, tmp / f"old-{out.name}")
-            os.replace(staged, out)
+            publish(tmp, out, staged, [], force=force)
     return done, summary
+
+
+def _check_on_workers(plan: SurveyPlan) -> None:
+    if plan.kind != "flight":
+        raise UsdForestError(
+            f"workers: a {plan.kind} survey runs here; workers fly a flight survey's lines"
+        )
 
 
 def survey_on_cluster(
@@ -443,8 +435,7 @@ def survey_on_cluster(
     from usdforest.sensors.scene.extraction import extract_scene
 
     tick = progress or (lambda stage, done, total: None)
-    if plan.kind != "flight":
-        raise UsdForestError("survey: workers fly a flight survey's lines; a tls survey runs here")
+    _check_on_workers(plan)
     check_pairing(plan, lidar)
     frame = extract_scene(
         stage,
@@ -473,23 +464,18 @@ def survey_on_cluster(
             kept = trees.setdefault(row["id"], {**row, "points": 0})
             kept["points"] += row["points"]
     ids = sorted(trees)
+    columns = next(iter(trees.values())) if trees else {"id": 0, "points": 0}
     table = {k: np.array([trees[i][k] for i in ids], dtype=object if k == "species" else None)
-             for k in (next(iter(trees.values())) if trees else {"id": 0})}  # fmt: skip
+             for k in columns}  # fmt: skip
     if trees:
         _write_trees(table, out / "trees.csv")
     area = window[2] if window else 0.0
-    summary = {
-        "plan": asdict(plan), "lidar": asdict(lidar), "kind": plan.kind, "parts": len(done),
-        "pulses": sum(d["pulses"] for d in done), "points": sum(d["points"] for d in done),
-        "trees": len(ids), "trees_seen": sum(1 for i in ids if trees[i]["points"]),
-        "expected_pulse_density": pulse_density(plan, lidar),
-        "measured_first_return_density": sum(d["first"] for d in done) / area if area else None,
-        "merged": False,
-    }  # fmt: skip
+    survey = Survey(plan, lidar, (), np.array(ends), pulse_density(plan, lidar),
+                    sum(d["first"] for d in done) / area if area else None, table)  # fmt: skip
+    counts = (len(done), sum(d["pulses"] for d in done), sum(d["points"] for d in done))
+    summary = survey_summary(survey, counts) | {"merged": False}
     with atomic_path(out / "survey.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=2) + "\n")
-    survey = Survey(plan, lidar, (), np.array(ends), summary["expected_pulse_density"],
-                    summary["measured_first_return_density"], table)  # fmt: skip
     return survey, summary
 
 
