@@ -278,6 +278,67 @@ def camera_forest_floor() -> tuple[int, str, str]:
     return _forest_floor("camera")
 
 
+def las_1m_returns() -> tuple[int, str, str]:
+    """write_las of 1M returns (asprs labels), and what its treeID dimension (issue 62)
+    costs: the same fields written by laspy directly with and without it, each the best of
+    three in this run; the record sizes from the headers."""
+    import laspy
+
+    from usdforest.sensors.lidar.las import FlightReturns, write_las
+
+    n = 1_000_000
+    rng = np.random.default_rng(1)
+    r = FlightReturns(
+        points=rng.uniform(0, 100, (n, 3)), gps_time=np.sort(rng.uniform(0, 10, n)),
+        range=rng.uniform(1, 50, n), cls=rng.integers(0, 7, n).astype(np.uint8),
+        tree=rng.integers(-1, 500, n).astype(np.int32), path=np.zeros(n, np.int32), paths=(),
+        n_rays=n, sweeps=100, ring=rng.integers(0, 16, n).astype(np.uint16),
+        azimuth=rng.uniform(-180, 180, n), intensity=rng.integers(0, 65535, n).astype(np.uint16),
+        return_number=np.ones(n, np.uint8), number_of_returns=np.ones(n, np.uint8),
+        scan_angle=rng.uniform(-90, 90, n), height=rng.uniform(0, 30, n),
+    )  # fmt: skip
+    dims = [("ring", np.uint16, r.ring), ("azimuth", np.float32, r.azimuth),
+            ("height", np.float32, r.height), ("tree_id", np.int32, r.tree),
+            ("usdforest_class", np.uint8, r.cls)]  # fmt: skip
+    tree_dim = [("treeID", np.int32, np.where(r.tree >= 0, r.tree + 1, 0))]
+
+    def plain(path: Path, extra: list) -> int:
+        header = laspy.LasHeader(point_format=6, version="1.4")
+        header.scales = np.array([1e-4, 1e-4, 1e-4])
+        header.offsets = np.floor(r.points.min(axis=0))
+        header.add_extra_dims([laspy.ExtraBytesParams(name=k, type=t) for k, t, _ in extra])
+        las = laspy.LasData(header)
+        las.x, las.y, las.z = r.points.T
+        las.gps_time, las.intensity, las.classification = r.gps_time, r.intensity, r.cls
+        las.return_number, las.number_of_returns = r.return_number, r.number_of_returns
+        las.scan_angle = np.round(r.scan_angle / 0.006).astype(np.int16)
+        for k, _, v in extra:
+            las[k] = v
+        las.write(str(path))
+        return header.point_format.size
+
+    best = {"write_las": 1e9, "with": 1e9, "without": 1e9}
+    with tempfile.TemporaryDirectory() as tmp:
+        for _ in range(3):
+            for key, run in (
+                ("write_las", lambda: write_las(r, Path(tmp) / "a.las")),
+                ("with", lambda: plain(Path(tmp) / "b.las", dims + tree_dim)),
+                ("without", lambda: plain(Path(tmp) / "c.las", dims)),
+            ):
+                t0 = time.perf_counter()
+                run()
+                best[key] = min(best[key], time.perf_counter() - t0)
+        size_with = plain(Path(tmp) / "b.las", dims + tree_dim)
+        size_without = plain(Path(tmp) / "c.las", dims)
+    note = (
+        f"write_las {1000 * best['write_las']:.0f} ms; treeID's cost, the same fields with and "
+        f"without it: {1000 * best['with']:.0f} vs {1000 * best['without']:.0f} ms "
+        f"({best['with'] / best['without']:.2f}x), {size_with} vs {size_without} bytes a "
+        f"point ({size_with / size_without:.2f}x)"
+    )
+    return n, "returns", note
+
+
 BENCHMARKS = {
     "lidar: 1M rays, pine tree": lidar_1m_rays,
     "sonar: echo of ~100k leaves": sonar_100k_leaves,
@@ -291,4 +352,5 @@ BENCHMARKS = {
     "sensors: default forest opened at full detail": full_detail_open,
     "lidar: quick-mixed 15 m, VLP-16 vs Embree on copied triangles": lidar_forest_floor,
     "camera: quick-mixed 15 m, 640 x 480 vs Embree on copied triangles": camera_forest_floor,
+    "las: 1M returns written, with treeID vs without": las_1m_returns,
 }
