@@ -127,7 +127,7 @@ def test_site_plots_from_pipeline_and_csv(tmp_path, runner):
     assert f"{n:,} sites" in r.stdout
     csv.write_text("a,b\n1,2\n")
     r = runner.invoke(app, ["plot-sites", str(tmp_path / "c.png"), "--sites", str(csv)])
-    assert r.exit_code == 2 and "expected columns replicate,x,y" in r.stderr
+    assert r.exit_code == 2 and "needs the columns replicate, x, y; it has a, b" in r.stderr
 
 
 def _not_ground(img: np.ndarray, stage_path) -> np.ndarray:
@@ -306,8 +306,34 @@ def test_site_plots_refuse_a_replicate_the_csv_lacks_and_binary_files(tmp_path, 
     r = runner.invoke(
         app, ["plot-sites", str(tmp_path / "p.png"), "--sites", str(tmp_path / "b.csv")]
     )
-    assert r.exit_code == 2 and "not a text file" in r.stderr, r.output
+    assert r.exit_code == 2 and "not UTF-8 text" in r.stderr, r.output
     assert len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("replicate,x,x,y\n0,1,2,3\n", "names x more than once"),
+        ("replicate,x,y\n0,nan,1\n", "line 2: x = nan is not a finite number"),
+        ("replicate,x,y\n0,1e300,1\n", "line 2: x = 1e+300 is beyond 1e+08 m"),
+        ("replicate,x,y,scale\n0,1,1,0\n", "line 2: scale = 0 must be above 0"),
+        ("replicate,x,y,variant\n0,1,1,-1\n", "line 2: variant = '-1' is not a whole"),
+        ("replicate,x,y\n0.5,1,1\n", "line 2: replicate = '0.5' is not a whole"),
+        ("replicate,x,y,height\n0,1,1,3\n", "unknown columns height"),
+        ("replicate,x,y\n0,1\n", "line 2: 2 fields where the header has 3"),
+    ],
+)
+def test_site_plots_read_their_csv_as_strictly_as_stem_maps(tmp_path, runner, text, says):
+    """plot-sites had its own reader: a second x column was read in place of the first,
+    and nan, 1e300 or a scale of 0 were plotted without a word. It now reads through
+    sites.stemmap, as a recipe's stem map does: one line naming the file and the line."""
+    csv = tmp_path / "s.csv"
+    csv.write_text(text)
+    r = runner.invoke(app, ["plot-sites", str(tmp_path / "p.png"), "--sites", str(csv)])
+    assert r.exit_code == 2, r.output
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "s.csv" in lines[0] and says in lines[0], r.stderr
+    assert not (tmp_path / "p.png").exists()
 
 
 @pytest.mark.parametrize(("suffix", "fmt"), [(".jpg", "JPEG"), (".PNG", "PNG"), (".webp", "WEBP")])

@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 
 from usdforest.atomic import atomic_path
-from usdforest.paths import require_file
 from usdforest.recipe import Recipe
 from usdforest.seeds import stream
 from usdforest.sites.cells import grid, sample_cells
@@ -80,46 +79,40 @@ def write_sites_csv(path: str | Path, replicates: list[Sites]) -> None:
 
 
 def read_sites_csv(path: str | Path, names: tuple[str, ...], replicate: int = 0) -> Sites:
-    """One replicate of a sites CSV written by :func:`write_sites_csv`."""
-    import csv
-    import io
-
+    """One replicate of a sites CSV written by :func:`write_sites_csv`, read as stem maps
+    are (:mod:`usdforest.sites.stemmap`: each column once, finite numbers, positions within
+    1e8 m, the file and line named in one line); ``scale`` above 0, ``variant`` a whole
+    number 0 or more."""
     from usdforest.errors import UsdForestError
+    from usdforest.paths import shown
+    from usdforest.sites.stemmap import number, position, read_table
 
     path = Path(path)
-    require_file(path, "CSV file")
+    name = shown(path)
+    _, table = read_table(
+        path,
+        ("replicate", "x", "y"),
+        known=("replicate", "x", "y", "species", "variant", "yaw", "scale"),
+    )
     rows = []
     last = -1  # the highest replicate the file has
-    try:
-        text = path.read_text()
-    except UnicodeDecodeError:
-        raise UsdForestError(f"{path}: not a text file (expected a sites CSV)") from None
-    with io.StringIO(text, newline="") as f:
-        reader = csv.DictReader(f)
-        need = {"replicate", "x", "y"}
-        if not reader.fieldnames or not need <= set(reader.fieldnames):
-            raise UsdForestError(f"{path}: expected columns replicate,x,y (and marks)")
-        for lineno, row in enumerate(reader, 2):
-            try:
-                k = int(row["replicate"])
-                last = max(last, k)
-                if k != replicate:
-                    continue
-                rows.append(
-                    (
-                        float(row["x"]),
-                        float(row["y"]),
-                        row.get("species") or names[0],
-                        int(row.get("variant") or 0),
-                        float(row.get("yaw") or 0.0),
-                        float(row.get("scale") or 1.0),
-                    )
-                )
-            except ValueError as exc:
-                raise UsdForestError(f"{path}: line {lineno}: {exc}") from None
+    for row in table:
+        k = _whole(row, "replicate", name)
+        last = max(last, k)
+        if k != replicate:
+            continue
+        x, y = position(row, name)
+        scale = number(row, "scale", name)
+        if scale is not None and scale <= 0:
+            raise UsdForestError(f"{name} line {row['line']}: scale = {scale:g} must be above 0")
+        yaw = number(row, "yaw", name)
+        variant = _whole(row, "variant", name) if row.get("variant") else 0
+        rows.append(
+            (x, y, row.get("species") or names[0], variant, yaw or 0.0, scale or 1.0)
+        )
     if replicate > last:
         has = "no sites" if last < 0 else f"replicates 0 to {last}"
-        raise UsdForestError(f"{path}: no replicate {replicate} (the file has {has})")
+        raise UsdForestError(f"{name}: no replicate {replicate} (the file has {has})")
     all_names = tuple(dict.fromkeys([*names, *(r[2] for r in rows)]))
     xy = np.array([[r[0], r[1]] for r in rows], dtype=float).reshape(-1, 2)
     return Sites(
@@ -127,6 +120,18 @@ def read_sites_csv(path: str | Path, names: tuple[str, ...], replicate: int = 0)
         xy,
         np.array([all_names.index(r[2]) for r in rows], dtype=np.int32),
         np.array([r[3] for r in rows], dtype=np.int32),
-        np.array([r[4] for r in rows]),
-        np.array([r[5] for r in rows]),
+        np.array([r[4] for r in rows], dtype=float),
+        np.array([r[5] for r in rows], dtype=float),
     )
+
+
+def _whole(row: dict[str, str], key: str, name: str) -> int:
+    """``row[key]`` as a whole number 0 or more, or a one-line error naming the line."""
+    from usdforest.errors import UsdForestError
+
+    text = row.get(key, "")
+    if not text.isdigit() or int(text) > 2**31 - 1:
+        raise UsdForestError(
+            f"{name} line {row['line']}: {key} = {text!r} is not a whole number 0 or more"
+        )
+    return int(text)
