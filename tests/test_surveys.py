@@ -108,19 +108,21 @@ def test_stations_see_a_wall_in_one_frame(tmp_path):
 def test_a_survey_writes_the_plot_its_stations_and_its_trees(forest_folder, runner, tmp_path):
     """``usdforest survey`` of a beech and a pine from two stations: per-station and merged
     LAS (point source = station), treeID as trees.csv's id + 1, and the tree table's DBH,
-    height and position as trees.csv gives them, its point counts the plot's."""
+    height and position as trees.csv gives them, its point counts the plot's; with ``ply``
+    the plot as FOR-instanceV2's PLY, read by a reader written here from the format
+    (binary little-endian, ``semantic_seg`` 1 ground, 2 wood, 3 leaf, 0 unlabelled)."""
     text = beech_and_pine(1) + '[ground]\nkind = "plane"\nmargin = 5.0\n'
     forest, _ = forestcache.text_forest(forest_folder, "beech-pine-ground", text)
     plan = tmp_path / "plot.toml"
-    plan.write_text('[survey]\nkind = "tls"\nstations = [[10.0, 4.0], [10.0, 16.0]]\n'
+    plan.write_text('[survey]\nkind = "tls"\nstations = [[10.0, 4.0], [10.0, 16.0]]\nply = true\n'
                     "[lidar]\nazimuth_step = 0.5\nelevation_step = 0.5\n")  # fmt: skip
     out = tmp_path / "plot"
     r = runner.invoke(app, ["survey", str(forest), "--plan", str(plan), "-o", str(out), "--json"])
     assert r.exit_code == 0, r.output
     summary = json.loads(r.stdout.strip().splitlines()[-1])
     assert summary["parts"] == 2 and summary["trees_seen"] == 2
-    assert sorted(p.name for p in out.iterdir()) == ["plot.las", "stations", "survey.json",
-                                                     "trees.csv"]  # fmt: skip
+    assert sorted(p.name for p in out.iterdir()) == ["plot.las", "plot.ply", "stations",
+                                                     "survey.json", "trees.csv"]  # fmt: skip
     plot = laspy.read(str(out / "plot.las"))
     stations = [laspy.read(str(out / "stations" / f"station_00{k}.las")) for k in (1, 2)]
     assert len(plot.points) == sum(len(s.points) for s in stations) == summary["points"]
@@ -141,6 +143,37 @@ def test_a_survey_writes_the_plot_its_stations_and_its_trees(forest_folder, runn
         assert 0 < float(row["crown_base"]) < float(row["height"])
         assert 0 < float(row["crown_radius"]) < float(row["height"])
     assert set(np.unique(plot.classification)) <= {0, 1, 2, 4, 5, 6}  # for-instance, the default
+    ply = _ply_vertices(out / "plot.ply")
+    assert len(ply) == len(plot.points)
+    assert np.abs(ply["x"] - plot.x).max() < 1e-4 and np.abs(ply["z"] - plot.z).max() < 1e-4
+    assert np.array_equal(ply["treeID"], tree_id)
+    assert np.array_equal(ply["point_source"], plot.point_source_id)
+    # FOR-instance's stem and woody branches are wood, its live branches leaf, its terrain
+    # and low vegetation ground (FOR-instanceV2's three classes)
+    v1 = np.asarray(plot.classification)
+    expect = np.select([np.isin(v1, [4, 6]), v1 == 5, np.isin(v1, [1, 2])], [2, 3, 1], 0)
+    assert np.array_equal(ply["semantic_seg"], expect)
+    assert {1, 2, 3} <= set(np.unique(ply["semantic_seg"]))
+    assert np.all((ply["treeID"] > 0) == np.isin(ply["semantic_seg"], [2, 3]))
+
+
+def _ply_vertices(path) -> np.ndarray:
+    """The ``vertex`` element of a binary little-endian PLY, read from the format's header
+    (``element vertex N``, then ``property <type> <name>`` lines, ``end_header``)."""
+    types = {"double": "<f8", "float": "<f4", "int": "<i4", "uint": "<u4", "short": "<i2",
+             "ushort": "<u2", "uchar": "u1", "char": "i1"}  # fmt: skip
+    data = path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    lines = data[:end].decode("ascii").splitlines()
+    assert lines[0] == "ply" and lines[1] == "format binary_little_endian 1.0"
+    count, fields = 0, []
+    for line in lines:
+        words = line.split()
+        if words[:2] == ["element", "vertex"]:
+            count = int(words[2])
+        elif words[0] == "property":
+            fields.append((words[2], types[words[1]]))
+    return np.frombuffer(data, dtype=fields, count=count, offset=end)
 
 
 @pytest.mark.parametrize(
@@ -220,13 +253,13 @@ def test_a_flight_survey_on_one_or_two_dask_workers_gives_the_same_points(
     forest_folder, runner, tmp_path
 ):
     """The lines as Dask tasks, each writing its own LAS: one worker (the same tasks here)
-    and two give the same bytes, and the same as the survey in one process."""
+    and two give the same bytes, and the same as the survey in one process (their PLY too)."""
     pytest.importorskip("distributed", reason="needs dask.distributed (usdforest[dask])")
     text = beech_and_pine(1) + '[ground]\nkind = "plane"\nmargin = 5.0\n'
     forest, _ = forestcache.text_forest(forest_folder, "beech-pine-ground", text)
     plan = tmp_path / "drone.toml"
     plan.write_text('[survey]\nkind = "flight"\nregion = [0.0, 0.0, 20.0, 20.0]\nheight = 20.0\n'
-                    "scan_angle = 40.0\n[lidar]\npulse_rate = 20000.0\n")  # fmt: skip
+                    "scan_angle = 40.0\nply = true\n[lidar]\npulse_rate = 20000.0\n")  # fmt: skip
     outs = {}
     for workers in (0, 1, 2):
         out = tmp_path / f"w{workers}"
@@ -236,7 +269,8 @@ def test_a_flight_survey_on_one_or_two_dask_workers_gives_the_same_points(
         outs[workers] = json.loads(r.stdout.strip().splitlines()[-1])
         assert outs[workers]["parts"] == 2
     lines = [sorted((tmp_path / f"w{w}" / "lines").iterdir()) for w in (0, 1, 2)]
-    assert [p.name for p in lines[0]] == ["line_001.las", "line_002.las"]
+    assert [p.name for p in lines[0]] == ["line_001.las", "line_001.ply", "line_002.las",
+                                          "line_002.ply"]  # fmt: skip
     for a, b, c in zip(*lines, strict=True):
         assert a.read_bytes() == b.read_bytes() == c.read_bytes()
     assert outs[1]["points"] == outs[2]["points"] == outs[0]["points"] > 10_000

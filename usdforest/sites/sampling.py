@@ -107,9 +107,7 @@ def read_sites_csv(path: str | Path, names: tuple[str, ...], replicate: int = 0)
             raise UsdForestError(f"{name} line {row['line']}: scale = {scale:g} must be above 0")
         yaw = number(row, "yaw", name)
         variant = _whole(row, "variant", name) if row.get("variant") else 0
-        rows.append(
-            (x, y, row.get("species") or names[0], variant, yaw or 0.0, scale or 1.0)
-        )
+        rows.append((x, y, row.get("species") or names[0], variant, yaw or 0.0, scale or 1.0))
     if replicate > last:
         has = "no sites" if last < 0 else f"replicates 0 to {last}"
         raise UsdForestError(f"{name}: no replicate {replicate} (the file has {has})")

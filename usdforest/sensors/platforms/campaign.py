@@ -30,6 +30,7 @@ from usdforest.sensors.lidar.las import (
     write_las,
 )
 from usdforest.sensors.lidar.patterns import TerrestrialScanner
+from usdforest.sensors.lidar.ply import write_ply
 from usdforest.sensors.lidar.scanners import LaserScanner, cast_pulses, observed
 from usdforest.sensors.platforms.flight import Trajectory, fly_lidar
 from usdforest.sensors.platforms.plans import (
@@ -289,8 +290,9 @@ def _inventory(stage, ids: np.ndarray):
 def write_survey(survey: Survey, out: Path, *, crs=None, origin=None) -> list[Path]:
     """The survey's files in the folder ``out``: ``stations/station_NNN.las`` or
     ``lines/line_NNN.las``, the merged ``plot.las`` (tls) or ``survey.las`` with each
-    point's station or line as its point source (``.laz`` with the plan's ``laz``),
-    ``trees.csv`` and ``survey.json``."""
+    point's station or line as its point source (``.laz`` with the plan's ``laz``; with its
+    ``ply``, each of them also as FOR-instanceV2's PLY beside it,
+    :func:`usdforest.sensors.lidar.ply.write_ply`), ``trees.csv`` and ``survey.json``."""
     plan = survey.plan
     start = plan.start_time or None
     if start is not None:
@@ -304,11 +306,17 @@ def write_survey(survey: Survey, out: Path, *, crs=None, origin=None) -> list[Pa
         write_las(r, path, crs=crs, origin=origin, flight_line=k + 1, start_time=start,
                   labels=plan.labels)  # fmt: skip
         files.append(path)
+        if plan.ply:
+            files.append(write_ply(r, path.with_suffix(".ply"), origin=origin,
+                                   point_source=np.full(len(r), k + 1)))  # fmt: skip
     merged, source = survey.merged()
     whole = out / (("plot" if plan.kind == "tls" else "survey") + ext)
     write_las(merged, whole, crs=crs, origin=origin, start_time=start, labels=plan.labels,
               point_source=source)  # fmt: skip
     files.append(whole)
+    if plan.ply:
+        files.append(write_ply(merged, whole.with_suffix(".ply"), origin=origin,
+                               point_source=source))  # fmt: skip
     files.append(_write_trees(survey.trees, out / "trees.csv"))
     summary = survey_summary(survey)
     with atomic_path(out / "survey.json") as tmp:
@@ -430,7 +438,7 @@ def survey_on_cluster(
     it and writes its LAS into ``out/lines/``; only counts come back, so the client's memory
     stays flat however large the survey. ``out`` then holds the lines, ``trees.csv`` (the
     trees of every line's scene, their points summed) and ``survey.json``; no merged cloud
-    (merge the lines with PDAL or lasmerge)."""
+    (merge the lines with PDAL or lasmerge); with the plan's ``ply``, each line's PLY beside it."""
     from usdforest.cluster import run_tasks
     from usdforest.sensors.scene.extraction import extract_scene
 
@@ -497,6 +505,9 @@ def _line_task(j: int, line: np.ndarray, t0: float, shared) -> dict:
     name = Path(out) / "lines" / f"line_{j + 1:03d}{ext}"
     write_las(r, name, crs=crs, origin=origin, flight_line=j + 1,
               start_time=plan.start_time or None, labels=plan.labels)  # fmt: skip
+    if plan.ply:
+        write_ply(r, name.with_suffix(".ply"), origin=origin,
+                  point_source=np.full(len(r), j + 1))  # fmt: skip
     table = tree_table(stage, scene, [r])
     rows = [{k: (v[i].item() if hasattr(v[i], "item") else v[i]) for k, v in table.items()}
             for i in range(len(table["id"]))]  # fmt: skip

@@ -15,6 +15,7 @@ A plan is a TOML file::
     scan_angle = 45.0        # the swath: pulses within this many degrees of the nadir
     labels = "for-instance"  # the LAS classification (or "asprs")
     laz = false              # LAZ (laspy's lazrs backend, usdforest[laz]) instead of LAS
+    ply = false              # every cloud also as FOR-instanceV2's PLY (semantic_seg, treeID)
     roll = 0.0               # the platform's attitude along its lines, degrees: roll about
     pitch = 0.0              # its forward axis (positive: the right side down), pitch (nose
     crab = 0.0               # up) and crab (its heading off the track, to the left)
@@ -70,6 +71,7 @@ class SurveyPlan:
     start_time: str = ""
     seed: int = 0
     laz: bool = False
+    ply: bool = False
     roll: float = 0.0
     pitch: float = 0.0
     crab: float = 0.0
