@@ -7,13 +7,17 @@ Usage: ``python benchmarks/bench_surveys.py`` (``make bench`` runs it after the 
 table). One run; the survey's parts timed in process from its progress: the scene (its
 prototypes read from the scene cache, which a first extraction fills), then the station or
 the lines. Targets (issue 62): a station in at most 60 s after the scene is cached, the
-drone survey at least as fast as the real flight (its flight time over its wall time >= 1).
+drone survey at least as fast as the real flight (its flight time over its wall time >= 1);
+on two Dask workers, the client's memory flat: the same peak for a quarter hectare and for
+the hectare (four times the points), each measured in a process of its own.
 Prints a Markdown table.
 """
 
 from __future__ import annotations
 
+import json
 import resource
+import subprocess
 import sys
 import tempfile
 import time
@@ -34,6 +38,38 @@ def _timed(stage, plan, lidar):
     wall = time.perf_counter() - t0
     part = "station 1" if plan.kind == "tls" else "flight lines"
     return survey, wall, first.get(part, 0.0)
+
+
+CLIENT = """
+import json, resource, sys, time
+import usdforest
+stage, out, x1 = sys.argv[1], sys.argv[2], float(sys.argv[3])
+plan = {"survey": {"kind": "flight", "lidar": "vux-1uav", "region": [0.0, 0.0, x1, 100.0],
+                   "height": 60.0, "speed": 6.0, "side_overlap": 0.5, "scan_angle": 40.0},
+        "lidar": {"pulse_rate": 375e3, "beam_rings": 0}}
+t = time.perf_counter()
+usdforest.survey(stage, plan, out=out, workers=2)
+print(json.dumps({"wall": time.perf_counter() - t,
+                  "peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+
+
+def _on_workers(stage: Path, tmp: Path, x1: float) -> dict:
+    """The survey of the region 0..x1 x 0..100 on two local Dask workers, in a process of
+    its own: its wall time and the client's own peak memory (MiB; the workers not
+    counted)."""
+    out = subprocess.run(
+        [sys.executable, "-c", CLIENT, str(stage), str(tmp / f"w{x1:g}"), str(x1)],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    points = 0
+    import laspy
+
+    for f in (tmp / f"w{x1:g}" / "lines").glob("*.las"):
+        with laspy.open(str(f)) as las:
+            points += las.header.point_count
+    return {**report, "points": points}
 
 
 def main() -> None:
@@ -79,6 +115,14 @@ def main() -> None:
             f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:,.0f} MiB |",
             flush=True,
         )
+        quarter, whole = (_on_workers(stage, Path(tmp), x1) for x1 in (25.0, 100.0))
+        for name, r in (("0.25 ha", quarter), ("1 ha", whole)):
+            print(
+                f"| drone {name} as above, lines on 2 Dask workers | | {r['points']:,} | "
+                f"(each task its own) | | {r['wall']:.1f} s | client memory flat: "
+                f"{r['peak']:,.0f} MiB | {r['peak']:,.0f} MiB (client) |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":
