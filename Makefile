@@ -55,7 +55,7 @@ SIDE_ENVS := USDFOREST_PHYSICS_PYTHON=$(abspath $(PHYS))/bin/python \
 
 # the whole suite, with the three side environments (installed the first time)
 test: $(STAMP) $(PHYS_STAMP) $(CHECK_STAMP) $(BLENDER_STAMP)
-	@echo "== the whole test suite (about 14-16 minutes on 2 cores; make test-quick: about 4)"
+	@echo "== the whole test suite (14-30 minutes on 2 cores, by the machine; make test-quick: 4-10)"
 	$(SIDE_ENVS) $(PYTEST)
 
 # the inner loop: no side environments, no shipped forest, no test measured at 5 s or more
