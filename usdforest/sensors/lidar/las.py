@@ -134,6 +134,23 @@ def for_instance_classes(cls: np.ndarray, tree: np.ndarray) -> np.ndarray:
     return np.where(on_tree, tree_lut[cls], lut[cls]).astype(np.uint8)
 
 
+def map_shift(origin: np.ndarray | None) -> np.ndarray:
+    """What the stage's points are moved by into the map frame the point files share: the
+    stage origin's map position ``origin`` (x, y; None: none) and no change in z."""
+    shift = np.zeros(3)
+    if origin is not None:
+        shift[:2] = origin
+    return shift
+
+
+def benchmark_tree_ids(tree: np.ndarray) -> np.ndarray:
+    """The tree-segmentation benchmarks' instance label (``treeID``, int32) of returns on
+    trees ``tree`` (-1: on none): ``tree + 1``, 0 on no tree, so ``treeID - 1`` is the tree's
+    ``id`` in ``trees.csv``."""
+    tree = np.asarray(tree)
+    return np.where(tree >= 0, tree.astype(np.int64) + 1, 0).astype(np.int32)
+
+
 def stage_georeference(stage: str | Path) -> tuple[str | None, np.ndarray]:
     """The CRS a forest's root layer records (``customLayerData`` ``crs``, e.g. "EPSG:32633")
     and where the stage's origin is in it (``crsOrigin``, x and y); ``(None, 0)`` for a stage
@@ -196,9 +213,7 @@ def write_las(
     from usdforest import __version__
 
     gps = gps_times(r.gps_time, start_time)  # checks start_time before any work
-    shift = np.zeros(3)
-    if origin is not None:
-        shift[:2] = origin
+    shift = map_shift(origin)
     points = r.points + shift
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.scales = np.array([1e-4, 1e-4, 1e-4])
@@ -249,7 +264,7 @@ def write_las(
     las.height = r.height.astype(np.float32)
     las.tree_id = r.tree
     las.usdforest_class = r.cls
-    las.treeID = np.where(r.tree >= 0, r.tree.astype(np.int64) + 1, 0).astype(np.int32)
+    las.treeID = benchmark_tree_ids(r.tree)
     compress = Path(out).suffix.lower() == ".laz"
     backend = None
     if compress:

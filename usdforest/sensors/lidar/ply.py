@@ -19,7 +19,12 @@ from pathlib import Path
 import numpy as np
 
 from usdforest.atomic import atomic_path
-from usdforest.sensors.lidar.las import FlightReturns, for_instance_classes
+from usdforest.sensors.lidar.las import (
+    FlightReturns,
+    benchmark_tree_ids,
+    for_instance_classes,
+    map_shift,
+)
 
 # FOR-instance's codes (las.FOR_INSTANCE, las.FOR_INSTANCE_TREE) to FOR-instanceV2's
 FOR_INSTANCE_V2 = {0: 0, 1: 1, 2: 1, 3: 0, 4: 2, 5: 3, 6: 2}
@@ -51,10 +56,7 @@ def write_ply(
     with plyfile, atomically."""
     from plyfile import PlyData, PlyElement
 
-    shift = np.zeros(3)
-    if origin is not None:
-        shift[:2] = origin
-    xyz = np.asarray(r.points, dtype=float) + shift
+    xyz = np.asarray(r.points, dtype=float) + map_shift(origin)
     rows = np.empty(
         len(r),
         dtype=[
@@ -70,7 +72,7 @@ def write_ply(
     rows["gps_time"] = r.gps_time
     rows["point_source"] = 1 if point_source is None else np.asarray(point_source, np.uint16)
     rows["semantic_seg"] = for_instance_v2_classes(r.cls, r.tree)
-    rows["treeID"] = np.where(r.tree >= 0, r.tree.astype(np.int64) + 1, 0)
+    rows["treeID"] = benchmark_tree_ids(r.tree)
     from usdforest import __version__
 
     ply = PlyData(

@@ -24,6 +24,7 @@ from usdforest.seeds import stream
 from usdforest.sensors.cast.raycast import SceneCaster
 from usdforest.sensors.lidar.las import (
     FlightReturns,
+    benchmark_tree_ids,
     gps_times,
     ground_height,
     stage_georeference,
@@ -259,7 +260,7 @@ def tree_table(stage, scene: Scene, parts) -> dict[str, np.ndarray]:
     species, dbh, height = _inventory(stage, ids)
     bh = base + BREAST * up
     return {
-        "treeID": ids + 1, "id": ids, "species": species,
+        "treeID": benchmark_tree_ids(ids), "id": ids, "species": species,
         "x": base[:, 0], "y": base[:, 1], "z": base[:, 2],
         "x_1.3": bh[:, 0], "y_1.3": bh[:, 1], "z_1.3": bh[:, 2],
         "dbh": dbh, "height": height, "crown_base": crown_base, "crown_radius": crown_radius,
