@@ -281,10 +281,13 @@ def camera_forest_floor() -> tuple[int, str, str]:
 def las_1m_returns() -> tuple[int, str, str]:
     """write_las of 1M returns (asprs labels), and what its treeID dimension (issue 62)
     costs: the same fields written by laspy directly with and without it, each the best of
-    three in this run; the record sizes from the headers."""
+    three in this run; the record sizes from the headers; and what a survey's ``ply = true``
+    adds: write_ply of the same returns (FOR-instanceV2's PLY), its time and file size
+    against write_las's."""
     import laspy
 
-    from usdforest.sensors.lidar.las import FlightReturns, write_las
+    from usdforest.sensors.lidar.las import FlightReturns, benchmark_tree_ids, write_las
+    from usdforest.sensors.lidar.ply import write_ply
 
     n = 1_000_000
     rng = np.random.default_rng(1)
@@ -300,7 +303,7 @@ def las_1m_returns() -> tuple[int, str, str]:
     dims = [("ring", np.uint16, r.ring), ("azimuth", np.float32, r.azimuth),
             ("height", np.float32, r.height), ("tree_id", np.int32, r.tree),
             ("usdforest_class", np.uint8, r.cls)]  # fmt: skip
-    tree_dim = [("treeID", np.int32, np.where(r.tree >= 0, r.tree + 1, 0))]
+    tree_dim = [("treeID", np.int32, benchmark_tree_ids(r.tree))]
 
     def plain(path: Path, extra: list) -> int:
         header = laspy.LasHeader(point_format=6, version="1.4")
@@ -317,11 +320,12 @@ def las_1m_returns() -> tuple[int, str, str]:
         las.write(str(path))
         return header.point_format.size
 
-    best = {"write_las": 1e9, "with": 1e9, "without": 1e9}
+    best = {"write_las": 1e9, "write_ply": 1e9, "with": 1e9, "without": 1e9}
     with tempfile.TemporaryDirectory() as tmp:
         for _ in range(3):
             for key, run in (
                 ("write_las", lambda: write_las(r, Path(tmp) / "a.las")),
+                ("write_ply", lambda: write_ply(r, Path(tmp) / "a.ply")),
                 ("with", lambda: plain(Path(tmp) / "b.las", dims + tree_dim)),
                 ("without", lambda: plain(Path(tmp) / "c.las", dims)),
             ):
@@ -330,11 +334,14 @@ def las_1m_returns() -> tuple[int, str, str]:
                 best[key] = min(best[key], time.perf_counter() - t0)
         size_with = plain(Path(tmp) / "b.las", dims + tree_dim)
         size_without = plain(Path(tmp) / "c.las", dims)
+        las_bytes, ply_bytes = ((Path(tmp) / f).stat().st_size for f in ("a.las", "a.ply"))
     note = (
         f"write_las {1000 * best['write_las']:.0f} ms; treeID's cost, the same fields with and "
         f"without it: {1000 * best['with']:.0f} vs {1000 * best['without']:.0f} ms "
         f"({best['with'] / best['without']:.2f}x), {size_with} vs {size_without} bytes a "
-        f"point ({size_with / size_without:.2f}x)"
+        f"point ({size_with / size_without:.2f}x); ply = true adds write_ply, "
+        f"{1000 * best['write_ply']:.0f} ms ({best['write_ply'] / best['write_las']:.2f}x "
+        f"write_las) and {ply_bytes / n:.0f} bytes a point ({ply_bytes / las_bytes:.2f}x the LAS)"
     )
     return n, "returns", note
 
