@@ -258,8 +258,8 @@ def test_a_drone_flight_writes_the_benchmarks_labels(forest_folder, runner, tmp_
     """A line scanner (its 330 degree line, as on a car or a low drone) flown 3 m above the
     ground beside a beech and a pine with ``--labels for-instance``: stem,
     live and woody branch points carry their tree's treeID (its trees.csv id + 1), every stem
-    point lies within its tree's trunk of that tree's axis (the trees.csv position), terrain
-    and low vegetation carry none."""
+    point lies within its tree's trunk of that tree's leaning axis (trees.csv's base and
+    breast-height point), terrain and low vegetation carry none."""
     import csv
 
     text = beech_and_pine(1) + '[ground]\nkind = "plane"\nmargin = 5.0\n'
@@ -283,8 +283,14 @@ def test_a_drone_flight_writes_the_benchmarks_labels(forest_folder, runner, tmp_
     assert stem.size > 100
     for i in stem:
         t = trees[int(tree_id[i]) - 1]
-        d = math.hypot(xyz[i, 0] - float(t["x"]), xyz[i, 1] - float(t["y"]))
-        assert d <= float(t["dbh"]) / 2 * 1.5 + 0.02, (i, t["id"], d)
+        base = np.array([float(t[a]) for a in "xyz"])
+        axis = np.array([float(t[f"{a}_bh"]) for a in "xyz"]) - base
+        axis /= np.linalg.norm(axis)
+        off = xyz[i] - base
+        d = float(np.linalg.norm(off - (off @ axis) * axis))
+        # the trunk's widest at the foot: the stump diameter 1.3-1.45 DBH (Laasasenaho 1975,
+        # 2 + 1.25 DBH cm), out of round by a few percent
+        assert d <= float(t["dbh"]) / 2 * 1.7 + 0.02, (i, t["id"], d)
 
 
 def test_the_label_sets_are_one_list_and_bad_ones_are_refused(runner, tmp_path):

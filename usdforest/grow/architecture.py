@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from usdforest.grow import exact
+from usdforest.grow.stems import SAPLING, StemForm, relative_diameter, taper_from_base
 
 # the conical trunk template (templates/make_cad.py: trunk_cone): ring vertices and foot
 TRUNK_SECTIONS = 24
@@ -105,13 +106,13 @@ class Architecture:
 def trunk_base_radius(size: TreeSize) -> float:
     """Radius the skeleton gives the trunk's base so that the conical trunk template, a girth
     tape round it at 1.3 m reads ``size.dbh``."""
-    return 0.5 * size.dbh / (float(_taper(BREAST_HEIGHT, size.height, 0.95)) * _GIRTH)
+    return 0.5 * size.dbh / (float(_cone(BREAST_HEIGHT, size.height, 0.95)) * _GIRTH)
 
 
 def dbh_of_base(base: np.ndarray, height: np.ndarray) -> np.ndarray:
     """The DBH a tree of ``height`` is grown with for its trunk's base to measure ``base``
     across (:func:`trunk_base_radius`'s inverse)."""
-    return np.asarray(base, dtype=float) * _taper(BREAST_HEIGHT, height, 0.95) * _GIRTH
+    return np.asarray(base, dtype=float) * _cone(BREAST_HEIGHT, height, 0.95) * _GIRTH
 
 
 def scaled_dbh(dbh: np.ndarray, height: np.ndarray, scale: np.ndarray) -> np.ndarray:
@@ -120,7 +121,7 @@ def scaled_dbh(dbh: np.ndarray, height: np.ndarray, scale: np.ndarray) -> np.nda
     that: a sapling)."""
     h = np.asarray(height, dtype=float)
     s = np.asarray(scale, dtype=float)
-    d = s * np.asarray(dbh) * _taper(BREAST_HEIGHT / s, h, 0.95) / _taper(BREAST_HEIGHT, h, 0.95)
+    d = s * np.asarray(dbh) * _cone(BREAST_HEIGHT / s, h, 0.95) / _cone(BREAST_HEIGHT, h, 0.95)
     return np.where(h * s < BREAST_HEIGHT, 0.0, d)
 
 
@@ -139,7 +140,7 @@ def _f(x: float) -> str:
 
 
 def grammar(
-    size: TreeSize, arch: Architecture, rng: np.random.Generator
+    size: TreeSize, arch: Architecture, rng: np.random.Generator, stem: StemForm | None = None
 ) -> tuple[str, tuple[str, ...], int]:
     """The axiom, rules and derivation steps that grow a tree of ``size``.
 
@@ -150,6 +151,12 @@ def grammar(
     """
     h = size.height
     r0 = trunk_base_radius(size)
+
+    def _taper(z, h):  # the species' own stem, where it has one
+        return _cone(z, h) if stem is None else taper_from_base(stem, z, h)
+
+    if stem is not None and h * SAPLING > BREAST_HEIGHT:
+        r0 = 0.5 * size.dbh * float(relative_diameter(stem, 0.0, h, size.dbh))
     parts = [f"!({_f(r0)})"]
     z = 0.0
     azimuth = float(rng.uniform(0.0, 360.0))
@@ -222,7 +229,7 @@ def grammar(
     return " ".join(parts), rules, min(steps, 100)
 
 
-def _taper(z, h, cap: float = 1.0):
+def _cone(z, h, cap: float = 1.0):
     """The conical trunk template's radius at height ``z`` of a trunk ``h`` long, as a
     fraction of its base radius (arrays or numbers); ``cap`` stops the fraction of the height
     short of the apex (a breast height near a small tree's top)."""

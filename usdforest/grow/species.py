@@ -30,6 +30,7 @@ from usdforest.grow.allometry import ALLOMETRY
 from usdforest.grow.architecture import Architecture, TreeSize, grammar
 from usdforest.grow.lsystem import DEFAULT_MAX_MODULES, Derivation, LSystem, derive, make_lsystem
 from usdforest.grow.skeleton import Skeleton
+from usdforest.grow.stems import STEM_FORMS
 from usdforest.grow.turtle import TurtleConfig, interpret
 
 
@@ -637,7 +638,8 @@ def sized(species: Species, size: TreeSize, rng: np.random.Generator) -> Species
     :func:`usdforest.grow.architecture.grammar`)."""
     if species.architecture is None:
         return species
-    axiom, rules, steps = grammar(size, species.architecture, rng)
+    stem = STEM_FORMS.get(species.allometry or "")
+    axiom, rules, steps = grammar(size, species.architecture, rng, stem)
     return replace(species, axiom=axiom, rules=rules, iterations=steps)
 
 

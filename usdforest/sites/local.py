@@ -243,6 +243,7 @@ class Plan:
     lean: np.ndarray
     first_id: np.ndarray | None
     grown: np.ndarray | None = None
+    girths: tuple | None = None  # each prototype's girth tape (usdforest.usd.trunk)
 
 
 def classes_for(recipe, sums: StandSums) -> dict[str, SizeClasses]:
@@ -296,9 +297,11 @@ def place(recipe, square: Square, plan: Plan, replicate: int = 0) -> Placed:
         if len(at):
             classes = plan.classes[name]
             # an inventory's trees as tall as their rows, tops included
-            grown = None if plan.grown is None else plan.grown[plan.lookup[k, : len(classes.sizes)]]
+            protos = plan.lookup[k, : len(classes.sizes)]
+            grown = None if plan.grown is None else plan.grown[protos]
+            girths = None if plan.girths is None else tuple(plan.girths[i] for i in protos)
             variant[at], scale[at] = classes.of(
-                loc.height[own][at], loc.dbh[own][at], loc.exact[own][at], grown
+                loc.height[own][at], loc.dbh[own][at], loc.exact[own][at], grown, girths
             )
     proto_index = plan.lookup[sites.species, variant].astype(np.int32)
     away = loc.away[own]

@@ -280,12 +280,15 @@ class SizeClasses:
         dbh: np.ndarray,
         exact: np.ndarray | None = None,
         grown: np.ndarray | None = None,
+        girths: tuple | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Each tree's class and its scale: its height over its class's (over the class's
         tree as ``grown``, when given per class). A tree marked ``exact`` (an inventory row
         that gives both sizes) takes instead the class whose scaled trunk measures its DBH
         best (within ``EXACT_DBH`` if any does, the nearest in height among those), so its
-        DBH does not depend on where the class grid fell."""
+        DBH does not depend on where the class grid fell: by each class's own girth tape
+        where ``girths`` gives them (:class:`usdforest.usd.trunk.StemGirth`), else by the
+        conical trunk's (:func:`scaled_dbh`)."""
         coarse = np.floor_divide(fine_keys(height, dbh, self.split), np.left_shift(1, self.shift))
         variant = np.full(len(height), -1, dtype=np.int32)
         for c, key in enumerate(self.keys):
@@ -298,8 +301,12 @@ class SizeClasses:
         if len(rows):
             d_class = np.array([s.dbh for s in self.sizes])
             ratio = height[rows, None] / tall[None, :]
+            if girths is None:
+                measured = scaled_dbh(d_class, h_class, ratio)
+            else:
+                measured = np.stack([g.dbh(ratio[:, c]) for c, g in enumerate(girths)], axis=1)
             with np.errstate(divide="ignore"):  # a class that would leave it no DBH: inf
-                err = np.abs(libm.log(scaled_dbh(d_class, h_class, ratio) / dbh[rows, None]))
+                err = np.abs(libm.log(measured / dbh[rows, None]))
             far = np.abs(libm.log(ratio))
             close = err <= EXACT_DBH
             score = np.where(close, far, 1e3 + err)  # any close class before every other

@@ -53,6 +53,7 @@ from usdforest.cluster import Progress, dask_client, run_tasks
 from usdforest.errors import UsdForestError
 from usdforest.grow import exact
 from usdforest.grow.bounds import EMPTY_EXTENT
+from usdforest.grow.stems import lean_matrix
 from usdforest.paths import claim_outputs, require_output
 from usdforest.recipe import Recipe, recipe_inputs, resolved_toml
 from usdforest.sites.local import Plan, classes_for, first_ids, place, squares, whole
@@ -62,6 +63,7 @@ from usdforest.usd.beneath import has_beneath, litter, write_beneath
 from usdforest.usd.ground import ground_layer
 from usdforest.usd.instances import (
     ForestBuild,
+    ProtoSizes,
     anchor_of,
     instancer_layer,
     level_extent,
@@ -317,17 +319,15 @@ def _write_forest(
         check_samples(int(by_species.sum()), w, sum(len(t.limbs) for t in ordered))
     proto_extent = np.stack([t.sized_extent for t in ordered])
     grown = proto_extent[:, 1, 2] - proto_extent[:, 0, 2] if recipe.sites is not None else None
-    plan = Plan(classes, lookup, _leans(ordered), first_ids(recipe, surveys), grown)
+    girths = tuple(t.girth for t in ordered)
+    plan = Plan(classes, lookup, _leans(ordered), first_ids(recipe, surveys), grown, girths)
 
-    # per prototype: its height and (allometric trees) its DBH; a tree's are its scale times
-    proto_sizes = np.stack(
-        [
-            proto_extent[:, 1, 2] - proto_extent[:, 0, 2],
-            [t.size.dbh if t.size is not None else np.nan for t in ordered],
-            [t.size.height if t.size is not None else np.nan for t in ordered],
-        ],
-        axis=1,
-    ).reshape(-1, 3)
+    # per prototype: its height, the girth tape on its stem and the stem's direction
+    proto_sizes = ProtoSizes(
+        proto_extent[:, 1, 2] - proto_extent[:, 0, 2],
+        girths,
+        np.array([lean_matrix(*t.lean)[:, 2] for t in ordered]).reshape(-1, 3),
+    )
     # the layers are written about an anchor (see ForestBuild); trees.csv keeps the recipe's
     # coordinates
     anchor = anchor_of(recipe)
@@ -535,7 +535,7 @@ def _untiled(
         anchor,
     )
 
-    def write_csv(path: Path, proto_sizes: np.ndarray) -> None:
+    def write_csv(path: Path, proto_sizes: ProtoSizes) -> None:
         write_trees_csv(path, csv_sites, proto_sizes, placed.proto_index, ground_z, placed.ids)
 
     return build, write_csv

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Sdf, Vt
 
-from usdforest.grow.architecture import scaled_dbh
+from usdforest.grow.architecture import BREAST_HEIGHT
 from usdforest.grow.bounds import yawed_extent
 from usdforest.recipe import Recipe
 from usdforest.sites.table import Sites
@@ -171,23 +171,49 @@ def level_extent(
     return np.stack([np.minimum(selected[0], proxy[0]), np.maximum(selected[1], proxy[1])])
 
 
+@dataclass(frozen=True, eq=False)
+class ProtoSizes:
+    """What ``trees.csv`` reads of each prototype: its ``height`` as grown (P,), the girth
+    tape on its stem (``girths``: an object whose ``dbh(scale)`` gives the DBH of the
+    prototype scaled by ``scale``; see :mod:`usdforest.usd.trunk`) and its stem's direction
+    (``axes`` (P, 3), +Z for an upright one)."""
+
+    height: np.ndarray
+    girths: tuple
+    axes: np.ndarray
+
+    def dbh(self, proto_index: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        """Each tree's DBH: its prototype's girth tape 1.3 m up its scaled stem."""
+        out = np.full(len(proto_index), np.nan)
+        for k, girth in enumerate(self.girths):
+            at = np.flatnonzero(proto_index == k)
+            if len(at) and girth is not None:
+                out[at] = girth.dbh(scale[at])
+        return out
+
+
 def write_trees_csv(
     path: Path,
     sites: Sites,
-    proto_sizes: np.ndarray,
+    sizes: ProtoSizes,
     proto_index: np.ndarray,
     z: np.ndarray,
     ids: np.ndarray | None = None,
 ) -> None:
-    """``trees.csv``: one row per tree; ``proto_sizes`` (P, 3) holds each prototype's height, and
-    an allometric prototype's DBH and target height (NaN for others): a tree's height is its
-    scale times its prototype's, its DBH measured at 1.3 m on the scaled trunk."""
+    """``trees.csv``: one row per tree: where its stem meets the ground (x, y, z), its
+    height (its scale times its prototype's), its DBH (a girth tape 1.3 m up its stem,
+    perpendicular to it: :class:`ProtoSizes`) and where the stem's axis passes 1.3 m up it
+    (``x_bh, y_bh, z_bh``: the stem leans)."""
     from usdforest import csvtext
 
-    height = proto_sizes[proto_index, 0] * sites.scale
-    dbh = scaled_dbh(proto_sizes[proto_index, 1], proto_sizes[proto_index, 2], sites.scale)
+    height = sizes.height[proto_index] * sites.scale
+    dbh = sizes.dbh(proto_index, sites.scale)
+    q = yaw_quaternions(sites.yaw).astype(np.float16).astype(np.float64)  # as stored
+    c, s_ = 1.0 - 2.0 * q[:, 2] ** 2, 2.0 * q[:, 2] * q[:, 3]  # cos, sin of the yaw
+    a = sizes.axes[proto_index] * BREAST_HEIGHT
+    bh = np.stack([c * a[:, 0] - s_ * a[:, 1], s_ * a[:, 0] + c * a[:, 1], a[:, 2]], axis=1)
     with path.open("wb") as f:
-        f.write(b"id,x,y,z,species,variant,yaw,scale,height,dbh\n")
+        f.write(b"id,x,y,z,species,variant,yaw,scale,height,dbh,x_bh,y_bh,z_bh\n")
         csvtext.write_rows(
             f,
             len(sites),
@@ -202,5 +228,8 @@ def write_trees_csv(
                 csvtext.fixed(sites.scale[i], 4),
                 csvtext.fixed(height[i], 3),
                 csvtext.fixed(dbh[i], 4),
+                csvtext.fixed(sites.xy[i, 0] + bh[i, 0], 4),
+                csvtext.fixed(sites.xy[i, 1] + bh[i, 1], 4),
+                csvtext.fixed(z[i] + bh[i, 2], 4),
             ],
         )

@@ -26,7 +26,13 @@ from usdforest.sites.local import Plan, Square, place, survey
 from usdforest.sites.table import Sites
 from usdforest.sites.terrain import HeightField
 from usdforest.usd.ground import add_ground
-from usdforest.usd.instances import instancer_layer, level_extent, shifted, write_trees_csv
+from usdforest.usd.instances import (
+    ProtoSizes,
+    instancer_layer,
+    level_extent,
+    shifted,
+    write_trees_csv,
+)
 from usdforest.usd.layers import prim, save_layer
 from usdforest.usd.physics import author_capsules, instance_capsules
 
@@ -49,7 +55,7 @@ class TileKit:
     plan: Plan
     prototypes: tuple[tuple[str, int], ...]
     protos: tuple[Proto, ...]
-    proto_sizes: np.ndarray
+    proto_sizes: ProtoSizes
     assets: tuple[str, ...]
     anchor: np.ndarray
 

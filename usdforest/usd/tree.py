@@ -47,7 +47,7 @@ from pxr import Gf, Sdf, Vt
 from usdforest.atomic import output_lock, publish, staging_folder
 from usdforest.cad.library import template_dir, template_path
 from usdforest.errors import UsdForestError
-from usdforest.grow.architecture import TreeSize
+from usdforest.grow.architecture import BREAST_HEIGHT, TreeSize
 from usdforest.grow.bounds import (
     EMPTY,
     EMPTY_EXTENT,
@@ -61,6 +61,15 @@ from usdforest.grow.placement import Placement, place
 from usdforest.grow.proxy import Levels, levels
 from usdforest.grow.seasons import keep_leaves
 from usdforest.grow.species import Geometry, Grown, Species, grow, sized, tree_size
+from usdforest.grow.stems import (
+    STEM_FORMS,
+    StemForm,
+    StemMesh,
+    lean_draw,
+    lean_matrix,
+    ovality_draw,
+    stem_mesh,
+)
 from usdforest.paths import claim_outputs, require_output
 from usdforest.seeds import stream
 from usdforest.usd.layers import (
@@ -77,7 +86,17 @@ from usdforest.usd.layers import (
     vec3f,
 )
 from usdforest.usd.physics import add_colliders
-from usdforest.usd.template import TemplateInfo, read_template
+from usdforest.usd.template import TemplateInfo, read_template, write_template
+from usdforest.usd.trunk import (
+    ConeGirth,
+    StemGirth,
+    StemTemplate,
+    form_provenance,
+    leaned,
+    placeholder_shape,
+    stem_name,
+    stem_template,
+)
 
 
 def resolve_template(name: str, base: Path | None = None) -> Path:
@@ -129,6 +148,16 @@ class TreeBuild:
     summer_leaf_area: float | None = None
     # the mean (y, x) of all its leaves (a season's too), None without any: its crown's lean
     leaf_centre: np.ndarray | None = None
+    stem: StemTemplate | None = None  # its own trunk template (usdforest.usd.trunk)
+    girth: StemGirth | ConeGirth | None = None  # the girth tape on it, at any scale
+    lean: tuple[float, float] = (0.0, 0.0)  # its stem's lean and azimuth (degrees)
+
+    def dbh_at(self, scale: np.ndarray) -> np.ndarray:
+        """The DBH (m) of this tree scaled by ``scale``: a girth tape 1.3 m up the stem,
+        perpendicular to it (NaN for a tree without an allometric size, 0 for one shorter
+        than its breast height)."""
+        s = np.asarray(scale, dtype=float)
+        return self.girth.dbh(s) if self.girth is not None else np.full(s.shape, np.nan)
 
     @property
     def sized_extent(self) -> np.ndarray:
@@ -196,7 +225,10 @@ def copy_templates(build: TreeBuild, folder: Path, prefix: str) -> dict[str, str
     refs = {}
     for name, info in build.used_templates().items():
         dest = folder / info.path.name
-        if not dest.exists():
+        if build.stem is not None and name == build.stem.name:
+            if not dest.exists():
+                write_template(build.stem.part(), dest)
+        elif not dest.exists():
             shutil.copyfile(info.path, dest)
         refs[name] = prefix + info.path.name
     return refs
@@ -222,13 +254,26 @@ def build_tree(
         species = sized(species, size, rng)
     g = species.geometry
     grown = grow(species, seed=int(stream(seed, species.name, variant, "lsystem").integers(2**63)))
+    form = STEM_FORMS.get(species.allometry or "") if size is not None else None
+    stem_rng = stream(seed, species.name, variant, "stem")
+    lean = (0.0, 0.0)
+    if form is not None:  # its own stem (usdforest.usd.trunk), the tree leaned with it
+        lean = lean_draw(form, stem_rng)
+        if size.asymmetry > 0:  # towards the side its crown reaches (the light)
+            lean = (lean[0], 0.0)
+        grown = replace(grown, skeleton=leaned(grown.skeleton, lean_matrix(*lean)))
+        g = replace(g, trunk=stem_name(species.name, seed, variant, size))
     leaf_names = species.clumps.templates if species.clumps is not None else (g.leaf,)
     stouter = {n: stouter_variants(n, template_base) for n in g.branches}
     wood_names = dict.fromkeys([g.trunk, *g.branches, g.twig, *sum(stouter.values(), ())])
     names = dict.fromkeys([*wood_names, *leaf_names])
-    infos = {n: read_template(resolve_template(n, template_base)) for n in names}
+    infos = {
+        n: read_template(resolve_template(n, template_base))
+        for n in names
+        if form is None or n != g.trunk
+    }
     for n in wood_names:
-        if infos[n].part == "leaf":
+        if n in infos and infos[n].part == "leaf":
             raise UsdForestError(
                 f"template {n!r} is a leaf; the {species.name} wood needs "
                 "a trunk, branch or twig template"
@@ -238,14 +283,19 @@ def build_tree(
             raise UsdForestError(f"template {n!r} is a {infos[n].part}, not a leaf")
     if size is not None:
         g = foliage_for(g, size.leaf_area, grown.skeleton.n_leaves, infos[g.leaf].measurements)
+    shapes = {n: infos[n].wood_shape() if n in infos else placeholder_shape() for n in wood_names}
     placement = place(
         grown.skeleton,
         g,
-        {n: infos[n].wood_shape() for n in wood_names},
+        shapes,
         stream(seed, species.name, variant, "place"),
         clumps=species.clumps,
         stouter={n: v for n, v in stouter.items() if v},
     )
+    stem = None
+    if form is not None:
+        placement, stem = _stem(placement, infos, species, form, size, lean, stem_rng)
+        infos[g.trunk] = stem[1]
     summer, summer_area = None, None
     centre = placement.leaf_position[:, 1::-1].mean(axis=0) if placement.n_leaves else None
     if g.leaf_on < 1.0:  # a season's leaves (usdforest.grow.seasons)
@@ -254,6 +304,13 @@ def build_tree(
         rng = stream(seed, species.name, variant, "leaf on")
         placement = keep_leaves(placement, g.leaf_on, rng)
     lv, bounds = _levels_and_bounds(placement, infos)
+    girth = (
+        StemGirth(stem[2])
+        if stem is not None
+        else ConeGirth(
+            size.dbh if size is not None else math.nan, size.height if size is not None else 1.0
+        )
+    )
     return TreeBuild(
         grown,
         placement,
@@ -267,7 +324,53 @@ def build_tree(
         summer,
         summer_area,
         centre,
+        stem[0] if stem is not None else None,
+        girth,
+        lean,
     )
+
+
+def _stem(
+    placement: Placement,
+    infos: dict[str, TemplateInfo],
+    species: Species,
+    form: StemForm,
+    size: TreeSize,
+    lean: tuple[float, float],
+    rng: np.random.Generator,
+) -> tuple[Placement, tuple[StemTemplate, TemplateInfo, StemMesh]]:
+    """The tree's own stem, drawn after its crown is placed: the trunk's length and the
+    tree's height as grown (its top: leaves and shoots over the stem) set where 1.3 m falls
+    on the asset when its instances stand as tall as its target, and the girth tape there
+    reads the target's DBH. The trunk prim is scaled uniformly by its length."""
+    i = placement.trunk
+    length = float(placement.scale[i, 2])
+    scale = np.array(placement.scale, dtype=float)
+    scale[i] = length
+    placement = replace(placement, scale=scale)
+    name = placement.templates[placement.template[i]]
+    r = float(placement.radius[i]) / length
+    ring = [
+        (r * math.cos(a), r * math.sin(a), z) for a in np.arange(8) * (math.pi / 4) for z in (0, 1)
+    ]
+    cylinder = replace(next(iter(infos.values())), name=name, hull=np.array(ring), part="trunk")
+    wood = _wood_bounds(placement, {**infos, name: cylinder})
+    top = Bounds.union([wood, _leaf_bounds(placement, infos)]).extent[1, 2]
+    grown = max(float(top), length)
+    breast = BREAST_HEIGHT * grown / size.height
+    dbh = size.dbh * grown / size.height
+    mesh = stem_mesh(form, length, grown, breast, dbh, ovality_draw(form, rng), rng)
+    rows = placement.wood_matrices()[i]
+    g = species.geometry
+    template, info = stem_template(
+        name,
+        mesh,
+        rows,
+        breast,
+        g.bark_color,
+        form_provenance(species.name, form, mesh.ovality, lean),
+    )
+    return placement, (template, info, mesh)
 
 
 def foliage_for(g: Geometry, leaf_area: float, sites: int, leaf: Mapping) -> Geometry:

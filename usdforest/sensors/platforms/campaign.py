@@ -257,8 +257,9 @@ def tree_table(stage, scene: Scene, parts) -> dict[str, np.ndarray]:
         at = np.searchsorted(ids, on)
         ok = (at < len(ids)) & (ids[np.minimum(at, len(ids) - 1)] == on)
         np.add.at(counts, at[ok], 1)
-    species, dbh, height = _inventory(stage, ids)
-    bh = base + BREAST * up
+    species, dbh, height, offset = _inventory(stage, ids)
+    # 1.3 m along the stem: trees.csv's breast-height point (a stem leans in its asset)
+    bh = base + np.where(np.isfinite(offset), offset, BREAST * up)
     return {
         "treeID": benchmark_tree_ids(ids), "id": ids, "species": species,
         "x": base[:, 0], "y": base[:, 1], "z": base[:, 2],
@@ -269,14 +270,16 @@ def tree_table(stage, scene: Scene, parts) -> dict[str, np.ndarray]:
 
 
 def _inventory(stage, ids: np.ndarray):
-    """Species, DBH and height of trees ``ids`` from the forest's ``trees.csv`` (beside
-    the stage as ``<stem>_assets/trees.csv``); empty and NaN where it has none."""
+    """Species, DBH, height and breast-height point (from the base) of trees ``ids`` from
+    the forest's ``trees.csv`` (beside the stage as ``<stem>_assets/trees.csv``); empty and
+    NaN where it has none."""
     path = Path(stage)
     table = path.parent / f"{path.stem}_assets" / "trees.csv"
     species = np.full(len(ids), "", dtype=object)
     dbh, height = np.full(len(ids), np.nan), np.full(len(ids), np.nan)
+    offset = np.full((len(ids), 3), np.nan)
     if not table.is_file():
-        return species, dbh, height
+        return species, dbh, height, offset
     where = {int(i): j for j, i in enumerate(ids)}
     with open(table, newline="") as f:
         for row in csv.DictReader(f):
@@ -285,7 +288,9 @@ def _inventory(stage, ids: np.ndarray):
                 species[j] = row.get("species", "")
                 dbh[j] = float(row.get("dbh") or "nan")
                 height[j] = float(row.get("height") or "nan")
-    return species, dbh, height
+                if row.get("x_bh"):  # where the stem passes 1.3 m up it, from its base
+                    offset[j] = [float(row[f"{a}_bh"]) - float(row[a]) for a in "xyz"]
+    return species, dbh, height, offset
 
 
 def write_survey(survey: Survey, out: Path, *, crs=None, origin=None) -> list[Path]:

@@ -1,0 +1,178 @@
+"""A tree asset's own trunk: the stem form of :mod:`usdforest.grow.stems` as a template layer
+(``templates/stem_<hash>.usdc`` beside the CAD-derived ones, referenced by ``/Tree/Trunk`` as
+any trunk template is), and the girth tape on a tree of any scale.
+
+The stem is drawn in the frame the trunk template's placement gives it (base at the origin,
+axis +Z, unit length times the trunk's length), leaned with the rest of the tree
+(:func:`usdforest.grow.stems.lean_matrix` turns the skeleton), and its foot sheared flush with
+level ground: the lowest 30 cm of the stem (less on a small one) follow the tilt back, so the
+tree stands on its base point with no gap under the high side of the foot and nothing below
+z = 0.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from usdforest.grow.architecture import BREAST_HEIGHT, TreeSize, scaled_dbh
+from usdforest.grow.bounds import hull_vertices
+from usdforest.grow.placement import CENTRELINE_SAMPLES, WoodShape
+from usdforest.grow.skeleton import Skeleton
+from usdforest.grow.stems import StemForm, StemMesh
+from usdforest.usd.template import TemplateInfo
+
+FOOT_BLEND = 0.3  # m of the stem over which the foot's shear fades
+
+
+def stem_name(species: str, seed: int, variant: int, size: TreeSize) -> str:
+    """A stem template's name: unique to the tree it is drawn for (the same tree, the same
+    name and bytes)."""
+    key = f"{species}|{seed}|{variant}|{sorted(size.as_dict().items())}"
+    return "stem_" + hashlib.sha1(key.encode()).hexdigest()[:12]
+
+
+def placeholder_shape() -> WoodShape:
+    """The shape placement sizes a stem template by: its normalised base radius is the
+    trunk's own (so the template is placed at the trunk's length, uniformly), straight."""
+    return WoodShape(1.0, np.zeros((CENTRELINE_SAMPLES, 2)), 0.0)
+
+
+def leaned(sk: Skeleton, rotation: np.ndarray) -> Skeleton:
+    """The skeleton turned about its base by ``rotation`` (column vectors)."""
+    r = np.asarray(rotation, dtype=float)
+    frames = np.einsum("ij,mkj->mki", r, sk.leaf_frame)  # rows: heading, left, up
+    return replace(
+        sk,
+        start=sk.start @ r.T,
+        end=sk.end @ r.T,
+        leaf_position=sk.leaf_position @ r.T,
+        leaf_frame=frames,
+    )
+
+
+def flush_foot(points: np.ndarray, rows: np.ndarray, breast: float) -> np.ndarray:
+    """``points`` (the stem's frame) with the foot sheared so that, placed by the row-vector
+    transform ``rows`` (4 x 4), the lowest ring lies on z = 0; the shear fades linearly over
+    :data:`FOOT_BLEND` (at most half the breast height: the tape's section is untouched)."""
+    p = points.copy()
+    m = np.asarray(rows, dtype=float)
+    lift = -(p[:, 0] * m[0, 2] + p[:, 1] * m[1, 2] + m[3, 2]) / m[2, 2]
+    blend = min(FOOT_BLEND, 0.5 * breast)
+    w = np.clip(1.0 - p[:, 2] / blend, 0.0, 1.0)
+    p[:, 2] += lift * w
+    return p
+
+
+@dataclass(frozen=True, eq=False)
+class StemTemplate:
+    """A stem drawn for one tree asset, ready to be written as a template layer (unit
+    length, the foot flush): :meth:`part` is what :func:`usdforest.usd.template.write_template`
+    takes (the CAD stack loads only then)."""
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    measurements: dict
+    provenance: dict
+    color: tuple[float, float, float]
+
+    def part(self):
+        from usdforest.cad.parts import Measurements, TemplatePart
+        from usdforest.meshes import vertex_normals
+
+        return TemplatePart(
+            name=self.name,
+            part="trunk",
+            vertices=self.vertices,
+            faces=self.faces,
+            normals=vertex_normals(self.vertices, self.faces),
+            measurements=Measurements(**self.measurements),
+            provenance=self.provenance,
+            color=self.color,
+        )
+
+
+def stem_template(
+    name: str,
+    mesh: StemMesh,
+    rows: np.ndarray,
+    breast: float,
+    color: tuple[float, float, float],
+    provenance: dict,
+) -> tuple[StemTemplate, TemplateInfo]:
+    """The stem as a template (unit length) and the info a tree build reads of it.
+
+    ``rows`` is the trunk prim's transform with a uniform scale of the stem's length (the
+    template's normalised base radius is the trunk's: :func:`placeholder_shape`)."""
+    length = mesh.length
+    v = flush_foot(mesh.vertices(), rows / np.array([[length], [length], [length], [1.0]]), breast)
+    f = mesh.faces()
+    scaled = v / length
+    tri = v[f]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    measurements = {
+        "length": length,
+        "base_radius": float(np.mean(np.linalg.norm(mesh.xy[0], axis=1))),
+        "tip_radius": 0.0,
+        "width": 2.0 * float(np.linalg.norm(mesh.xy, axis=2).max()),
+        "surface_area": float(area.sum()),
+        "leaf_area": 0.0,
+        "equivalent_disk_radius": 0.0,
+        "triangles": len(f),
+    }
+    info = TemplateInfo(
+        path=Path(f"{name}.usdc"),
+        part="trunk",
+        name=name,
+        base_radius=1.0,
+        tip_radius=0.0,
+        measurements=measurements,
+        centreline=np.zeros((CENTRELINE_SAMPLES, 2)),
+        hull=hull_vertices(scaled),
+    )
+    return StemTemplate(name, scaled, f, measurements, provenance, color), info
+
+
+@dataclass(frozen=True, eq=False)
+class StemGirth:
+    """The girth tape on a tree asset's own stem: the DBH of the asset scaled by ``scale``
+    (the section 1.3 m up its stem, perpendicular to it, 1.3 / scale on the asset)."""
+
+    mesh: StemMesh
+
+    def dbh(self, scale: np.ndarray) -> np.ndarray:
+        s = np.asarray(scale, dtype=float)
+        z = np.round(BREAST_HEIGHT / s, 5)  # a tenth of a millimetre: one section each
+        return s * self.mesh.girth_dbh(z).reshape(s.shape)
+
+
+@dataclass(frozen=True)
+class ConeGirth:
+    """The girth tape on the shared conical trunk template (:func:`scaled_dbh`); NaN for a
+    tree without an allometric size."""
+
+    dbh0: float
+    height: float
+
+    def dbh(self, scale: np.ndarray) -> np.ndarray:
+        s = np.asarray(scale, dtype=float)
+        if not math.isfinite(self.dbh0):
+            return np.full(s.shape, np.nan)
+        return scaled_dbh(np.full(s.shape, self.dbh0), np.full(s.shape, self.height), s)
+
+
+def form_provenance(species: str, form: StemForm, ovality: float, lean: tuple) -> dict:
+    """What a stem template records of where it came from."""
+    return {
+        "generator": "usdforest.grow.stems",
+        "species": species,
+        "taper": form.taper,
+        "ovality": round(ovality, 4),
+        "leanDegrees": round(float(lean[0]), 3),
+        "leanAzimuth": round(float(lean[1]), 2),
+    }
