@@ -70,7 +70,11 @@ def test_a_hard_core_stand_is_found_regular():
     c = rng.uniform(0, 300, (rng.poisson(0.05 * 9e4), 2))
     xy = c[matern_ii(c, 2.0, rng)]
     f = fit_stand(xy, BOX)
-    assert f.interaction == "hard core" and f.hard_core == pytest.approx(2.0, abs=0.01)
+    # Matérn II is no Gibbs process: the model chosen carries its 2 m hard core (the
+    # Strauss process with a hard core fits its pairs just beyond it, rarer than Poisson's)
+    assert f.interaction in ("hard core", "strauss-hard-core")
+    hard = f.hard_core if f.interaction == "hard core" else f.inhibition.hard_core
+    assert hard == pytest.approx(2.0, abs=0.01)
     assert f.clark_evans > 1.1
 
 
@@ -107,8 +111,11 @@ def test_the_fitted_recipe_makes_stands_like_the_map(tmp_path, runner, kind):
                             "-o", str(out), "--json"])  # fmt: skip
     assert r.exit_code == 0, r.output
     fit = json.loads(r.stdout)
-    want = {"clustered": "thomas", "inhibited": "hard core", "soft": "strauss"}[kind]
-    assert fit["interaction"] == want
+    # (a Matérn II map is no Gibbs process: any model with a hard core or a soft one that
+    # makes stands like it will do; its L below)
+    inhibited = ("hard core", "strauss-hard-core", "diggle-gratton", "soft-core")
+    want = {"clustered": ("thomas",), "inhibited": inhibited, "soft": ("strauss",)}[kind]
+    assert fit["interaction"] in want
     assert fit["species"]["scots-pine"] == pytest.approx(np.mean(species == "scots-pine"))
     recipe = read_recipe(out)
     radii = np.linspace(0.5, 25, 50)

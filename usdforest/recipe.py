@@ -276,7 +276,7 @@ DEADWOOD_KEYS = {
 }
 MAX_DEADWOOD = 2000.0  # m³/ha: beyond the richest old-growth stands measured
 CLUSTER_KEYS = {"kind", "scale", "offspring"}
-INHIBITION_KEYS = {"kind", "radius", "gamma"}
+INHIBITION_KEYS = {"kind", "radius", "gamma", "hard_core", "kappa", "sigma", "delta"}
 GROUND_KEYS = {"kind", "margin", "color", "file", "max", "bounds"}
 FOREST_KEYS = {
     "variants",
@@ -447,16 +447,32 @@ def _parse_inhibition(t: Any, explicit_sites: bool, clusters: Any, hard_core: fl
             "remove one"
         )
     check_keys(t, INHIBITION_KEYS, "inhibition")
-    for key in ("radius", "gamma"):
+    kind = coerce(t.get("kind", "strauss"), str, "inhibition.kind")
+    needs = {
+        "strauss": ("radius", "gamma"),
+        "strauss-hard-core": ("radius", "gamma", "hard_core"),
+        "diggle-gratton": ("radius", "kappa"),
+        "soft-core": ("sigma", "kappa"),
+    }.get(kind, ("radius", "gamma"))
+    may = {"diggle-gratton": ("delta", "hard_core"), "soft-core": ("hard_core",)}.get(kind, ())
+    for key in needs:
         if key not in t:
             raise RecipeError(
-                f'inhibition.{key}: missing (e.g. kind = "strauss", radius = 2.0, gamma = 0.3)'
+                f"inhibition.{key}: missing (kind {kind!r} takes {', '.join(needs)}; e.g. "
+                'kind = "strauss", radius = 2.0, gamma = 0.3)'
             )
-    return Inhibition(
-        coerce(t.get("kind", "strauss"), str, "inhibition.kind"),
-        _num(t["radius"], "inhibition.radius", positive=True),
-        _num(t["gamma"], "inhibition.gamma", lo=0),
-    )
+    for key in sorted(set(t) - {"kind", *needs, *may}):
+        raise RecipeError(
+            f"inhibition.{key}: not a key of kind {kind!r} (it takes {', '.join((*needs, *may))})"
+        )
+    needs = (*needs, *(k for k in may if k in t))
+    num = {
+        k: _num(t[k], f"inhibition.{k}", positive=True)
+        if k in ("radius", "sigma")
+        else _num(t[k], f"inhibition.{k}", lo=0)
+        for k in needs
+    }
+    return Inhibition(kind, **num)
 
 
 def parse_region(t: Any, where: str, base: Path = Path(".")) -> Any:

@@ -166,6 +166,7 @@ def fit_cmd(
         "kappa": fitted.kappa,
         "hard_core": fitted.hard_core,
         "inhibition": fitted.inhibition.describe() if fitted.inhibition else None,
+        "models": fitted.models,  # each inhibition model's composite-likelihood AIC
         "first_order": list(fitted.first_order) if fitted.first_order else None,
         "covariates": {
             c.name: {"coefficient": b, "se": e, "mean": c.mean, "sd": c.sd}
@@ -214,10 +215,11 @@ def fit_cmd(
         rows["hard_core"] = f"{fitted.hard_core:.3g} m"
     if fitted.inhibition is not None:
         i, t = fitted.inhibition, fitted.first_order
+        shown = ", ".join(f"{k} {v:.3g}" for k, v in i.describe().items() if k != "kind")
         rows["inhibition"] = (
-            f"Strauss radius {i.radius:.3g} m, gamma {i.gamma:.3g}; first-order term "
-            + (f"exp({t[0]:.3f} + {t[1]:.3f} u + {t[2]:.3f} v)" if fitted.trend
-               else f"{math.exp(t[0]):.5g} trees/m²")
+            f"{i.kind} ({shown}; the smallest AIC of {len(fitted.models)} models); first-order "
+            + (f"term exp({t[0]:.3f} + {t[1]:.3f} u + {t[2]:.3f} v)" if fitted.trend
+               else f"term {math.exp(t[0]):.5g} trees/m²")
         )  # fmt: skip
     if fitted.species:
         rows["species"] = ", ".join(f"{k} {v:.0%}" for k, v in fitted.species.items())
@@ -228,15 +230,17 @@ def fit_cmd(
 def _fit_method(f) -> str:
     if f.interaction == "thomas":
         return "Thomas process, minimum contrast on K (q = 1/4)"
-    if f.interaction == "strauss":
+    if f.inhibition is not None:
         return (
-            "below the Poisson envelope: Strauss process by logistic composite likelihood "
-            "(Baddeley et al. 2014; border correction), its radius profiled"
+            f"below the Poisson envelope: {f.interaction} by logistic composite likelihood "
+            "(Baddeley et al. 2014; border correction), its irregular parameters profiled, "
+            "chosen among the hard core, Strauss, Strauss with a hard core, Diggle-Gratton "
+            "and the soft core by the smallest composite-likelihood AIC"
         )
     if f.interaction == "hard core":
         return (
-            "below the Poisson envelope, a Strauss fit all but a hard core: Matérn II at the "
-            "shortest neighbour distance"
+            "below the Poisson envelope, a hard core (or a Strauss fit all but one) by the "
+            "smallest composite-likelihood AIC: Matérn II at the shortest neighbour distance"
         )
     return "inside the fitted Poisson process's envelope (39 simulations)"
 

@@ -17,12 +17,15 @@ Three steps, each a published method (Baddeley, Rubak and Turner 2015, chapters 
    envelope at short range: a Thomas cluster process fitted by minimum contrast on K
    (Diggle 1983; ``sum (K^q - K_theory^q)^2`` with q = 1/4 over ``r`` up to a quarter of the
    shorter side); the trend is then tested again with the variance the clusters give the
-   coefficients (:func:`thomas_covariance`) and dropped where it fails. Below it: a
-   Strauss process fitted by logistic composite likelihood (Baddeley et al. 2014;
-   :func:`fit_strauss`, the border correction), its radius profiled over a grid of radii
-   (spatstat's ``profilepl``); its first-order term is log-linear like the intensity.
-   Where the fitted interaction is all but a hard core (gamma below ``HARD_GAMMA``): a Matérn
-   II hard core at the shortest nearest-neighbour distance. Inside: Poisson.
+   coefficients (:func:`thomas_covariance`) and dropped where it fails. Below it: the
+   inhibition models foresters' statisticians use - a hard core, Strauss, Strauss with a
+   hard core, Diggle-Gratton and the soft core - each fitted by logistic composite
+   likelihood (Baddeley et al. 2014, the border correction), its irregular parameters
+   profiled over a grid (spatstat's ``profilepl``), and the one of the smallest
+   composite-likelihood AIC chosen (:mod:`usdforest.sites.gibbsfit`); its first-order term
+   is log-linear like the intensity. A chosen hard core, or a Strauss gamma below
+   ``HARD_GAMMA``, is written as a Matérn II hard core at the shortest nearest-neighbour
+   distance. Inside: Poisson.
 3. **Marks**: species shares from a ``species`` column, and per species the mean and
    coefficient of variation of ``dbh`` (metres) when the map has them.
 """
@@ -37,13 +40,13 @@ import numpy as np
 from usdforest.errors import UsdForestError
 from usdforest.sites.clusters import MAX_SCALE, Clusters
 from usdforest.sites.covariates import Covariate, quadrature
+from usdforest.sites.gibbsfit import choose, fit_models, fit_strauss  # noqa: F401 (API)
 from usdforest.sites.inhibition import MAX_RADIUS, Inhibition
 from usdforest.sites.pattern import Bounds, _checked, clark_evans, inhomogeneous_k, pair_rmax
 
 CHI2_2DF_95 = 5.991  # the 95 % quantile of chi-squared with 2 degrees of freedom
 CHI2_1DF_95 = 3.841  # and with 1
 NSIM = 39
-DUMMIES_PER_TREE = 4  # of a Strauss fit's logistic regression
 HARD_GAMMA = 0.05  # a fitted Strauss gamma below this is written as a hard core
 
 
@@ -60,7 +63,7 @@ class FittedStand:
     kappa: float | None
     hard_core: float
     clark_evans: float
-    interaction: str  # "poisson", "thomas", "strauss" or "hard core"
+    interaction: str  # "poisson", "thomas", "hard core" or an Inhibition kind
     species: dict[str, float] = field(default_factory=dict)
     dbh: dict[str, tuple[float, float]] = field(default_factory=dict)  # mean, cv
     inhibition: Inhibition | None = None
@@ -69,6 +72,8 @@ class FittedStand:
     covariates: tuple[Covariate, ...] = ()
     slopes: tuple[float, ...] = ()  # the intensity's coefficient of each covariate
     slopes_se: tuple[float, ...] = ()
+    # each inhibition model's composite-likelihood AIC, where one was chosen among them
+    models: dict[str, float] = field(default_factory=dict)
 
     def intensity(
         self, x: np.ndarray, y: np.ndarray, coefficients: tuple[float, ...] | None = None
@@ -230,79 +235,6 @@ def _thomas_contrast(k_hat: np.ndarray, r: np.ndarray) -> tuple[float, float]:
     return math.exp(best.x[0]), math.exp(best.x[1])
 
 
-def fit_strauss(
-    pts: np.ndarray,
-    window: Bounds,
-    trend: bool,
-    radii: np.ndarray,
-    border: float,
-    covariates: tuple[Covariate, ...] = (),
-) -> tuple[float, float, tuple[float, ...]]:
-    """``(radius, gamma, log-beta coefficients)`` of the Strauss process that best fits
-    ``pts`` over ``radii``, by the logistic-regression estimator of Baddeley, Coeurjolly,
-    Rubak and Waagepetersen (2014, Biometrika 101:377; spatstat's ``ppm(..., method =
-    "logi")``): with the conditional intensity ``lambda(u) = exp(theta z(u)) gamma^t(u)``
-    (``t``: the data points within the radius, a data point's own aside) and dummy points
-    of intensity ``rho`` (``DUMMIES_PER_TREE`` a tree, one uniform point in each cell of a
-    grid), it maximises ``sum_data log(lambda / (lambda + rho)) + sum_dummies log(rho /
-    (lambda + rho))``, whose estimating equations are unbiased however few the dummies (a
-    Berman-Turner quadrature of the pseudo-likelihood with the usual 4 grid dummies a tree
-    biased gamma up by 0.05-0.1 and beta down by 20 %: the interaction varies on the
-    radius's scale, finer than the grid). Only points ``border`` or more inside the window
-    count (one border for every radius, so their fits compare); gamma in [exp(-30), 1].
-    The log-beta coefficients are b0, b1, b2 (0 without ``trend``), then one a covariate."""
-    from scipy.optimize import minimize
-    from scipy.spatial import cKDTree
-
-    x0, y0, x1, y1 = window
-    n = len(pts)
-    area = (x1 - x0) * (y1 - y0)
-    side = math.sqrt(area / max(DUMMIES_PER_TREE * n, 1))
-    gx = np.arange(x0, x1, side)
-    gy = np.arange(y0, y1, side)
-    corner = np.stack(np.meshgrid(gx, gy), -1).reshape(-1, 2)
-    rng = np.random.default_rng(0)  # fixed: the same fit for the same map
-    dummy = corner + rng.uniform(0, side, corner.shape)
-    dummy = dummy[(dummy[:, 0] < x1) & (dummy[:, 1] < y1)]
-    rho = len(dummy) / area
-    quad = np.concatenate([pts, dummy])
-    data = np.arange(len(quad)) < n
-    rb = float(border)
-    keep = (quad[:, 0] - x0 >= rb) & (x1 - quad[:, 0] >= rb)
-    keep &= (quad[:, 1] - y0 >= rb) & (y1 - quad[:, 1] >= rb)
-    quad, data = quad[keep], data[keep]
-    u, v = _scaled(window, quad[:, 0], quad[:, 1])
-    z = np.column_stack(
-        [*([np.ones(len(quad)), u, v] if trend else [np.ones(len(quad))]),
-         *(c(quad[:, 0], quad[:, 1]) for c in covariates)]
-    )  # fmt: skip
-    tree = cKDTree(pts)
-    log_rho = math.log(rho)
-    best = None
-    for r in radii:
-        t = tree.query_ball_point(quad, r, return_length=True) - data
-        zz = np.column_stack([z, t])
-
-        def neg(p, zz=zz):
-            eta = zz @ p
-            # log(lambda + rho) and lambda / (lambda + rho), without overflow
-            both = np.logaddexp(eta, log_rho)
-            share = np.exp(eta - both)
-            value = both.sum() - eta[data].sum() - log_rho * (len(eta) - data.sum())
-            return float(value), zz.T @ share - zz[data].sum(axis=0)
-
-        start = np.zeros(zz.shape[1])
-        start[0] = math.log(max(data.sum(), 1) / max(len(quad) - data.sum(), 1) * rho)
-        bounds = [(None, None)] * (zz.shape[1] - 1) + [(-30.0, 0.0)]
-        m = minimize(neg, start, jac=True, method="L-BFGS-B", bounds=bounds)
-        if best is None or m.fun < best[0]:
-            best = (m.fun, float(r), m.x)
-    _, r, p = best
-    head = [float(p[0]), float(p[1]), float(p[2])] if trend else [float(p[0]), 0.0, 0.0]
-    slopes = [float(c) for c in p[(3 if trend else 1) : -1]]
-    return r, math.exp(float(p[-1])), (*head, *slopes)
-
-
 MIN_TREES = 20  # a fit of fewer is refused (also by `usdforest fit`, naming the map)
 
 
@@ -367,20 +299,21 @@ def fit_stand(
         clusters = Clusters("thomas", min(sigma, MAX_SCALE), min(max(bound / kappa, 1e-3), 1e4))
         kind = "thomas"
     inhibition, first_order = None, None
+    models: dict[str, float] = {}
     if kind == "poisson" and np.any(k_hat[short] < lo[short]):
         from scipy.spatial import cKDTree
 
         nn = cKDTree(pts).query(pts, k=2)[0][:, 1]
         top = max(min(3 * nn.mean(), rmax / 2, MAX_RADIUS), nn.min())
-        coarse = np.linspace(nn.min(), top, 24)
-        radius, gamma, theta = fit_strauss(pts, window, trend, coarse, top, covariates)
-        step = coarse[1] - coarse[0]  # then a tenth of a step around the best
-        fine = np.linspace(max(radius - step, nn.min()), min(radius + step, top), 21)
-        radius, gamma, theta = fit_strauss(pts, window, trend, fine, top, covariates)
-        if gamma < HARD_GAMMA:
+        fits = fit_models(pts, window, trend, covariates, top)
+        models = {f.kind: f.aic for f in fits}
+        chosen = choose(fits)
+        if chosen.kind == "hard core" or (
+            chosen.kind == "strauss" and chosen.inhibition.gamma < HARD_GAMMA
+        ):
             hard_core, kind = float(nn.min()), "hard core"
         else:
-            inhibition, first_order, kind = Inhibition("strauss", radius, gamma), theta, "strauss"
+            inhibition, first_order, kind = chosen.inhibition, chosen.theta, chosen.kind
     shares: dict[str, float] = {}
     sizes: dict[str, tuple[float, float]] = {}
     if species is not None:
@@ -394,7 +327,7 @@ def fit_stand(
                     sizes[name] = (float(sel.mean()), float(sel.std(ddof=1) / sel.mean()))
     return FittedStand(
         window, n, beta, se, trend, clusters, kappa, hard_core, ce, kind, shares, sizes,
-        inhibition, first_order, covariates, slopes, slopes_se,
+        inhibition, first_order, covariates, slopes, slopes_se, models,
     )  # fmt: skip
 
 

@@ -1,5 +1,7 @@
-"""Soft inhibition: the Strauss process (Strauss 1975; Kelly and Ripley 1976), a Gibbs
-process in which trees closer than ``radius`` repel each other without forbidding each other.
+"""Soft inhibition: pairwise-interaction Gibbs processes, the Strauss process (Strauss 1975;
+Kelly and Ripley 1976) first, in which trees closer than ``radius`` repel each other without
+forbidding each other, and the Strauss process with a hard core, Diggle and Gratton's and the
+soft core (:class:`Inhibition`), whose pair correlations rise from 0 as real stands' do.
 
 A pattern ``x`` in the window ``W`` has density (with respect to the unit-rate Poisson
 process) ``f(x) ∝ prod_i beta(x_i) * gamma^s(x)``, where ``s(x)`` counts the pairs closer than
@@ -9,7 +11,8 @@ rises gradually towards 1 inside ``radius`` instead of jumping there (Illian et 
 *Statistical Analysis and Modelling of Spatial Point Patterns*, section 3.6; spatstat's
 ``rStrauss`` and ``ppm(..., Strauss(r))``). The recipe's ``[intensity]`` is ``beta(x, y)``,
 the process's first-order term: the stand is sparser than ``beta``, by about
-``lambda = W(beta G) / G`` with ``G = (1 - gamma) pi radius^2`` and ``W`` Lambert's function
+``lambda = W(beta G) / G`` with ``G = (1 - gamma) pi radius^2`` (the integral of ``1 - phi``
+for the other interactions) and ``W`` Lambert's function
 (the Poisson-saddlepoint approximation of Baddeley and Nair 2012, Statistics and Computing
 22:1247; exact for ``gamma = 1``).
 
@@ -19,7 +22,8 @@ spatstat's ``rmh``): starting from the Poisson process of intensity ``beta``, ea
 proposes with probability 1/2 a birth at a uniform point ``u`` of the window's bounding box
 ``B``, accepted with probability ``min(1, beta(u) |B| gamma^t(u) / (n + 1))``, and otherwise
 the death of a uniformly chosen tree ``x_i``, accepted with probability ``min(1, n / (beta(x_i)
-|B| gamma^t(x_i)))``, where ``t`` counts the trees within ``radius`` of the point. The chain
+|B| gamma^t(x_i)))``, where ``t`` counts the trees within ``radius`` of the point (for the
+other interactions ``gamma^t`` is the product of ``phi`` over the trees near it). The chain
 runs ``STEPS_PER_TREE`` steps per tree of the starting pattern (and at least ``MIN_STEPS``),
 in numba, with the trees in a grid of cells at least ``radius`` wide so that each step looks
 at the 3 x 3 cells around its point.
@@ -40,40 +44,133 @@ import numpy as np
 
 from usdforest.errors import RecipeError
 
-KINDS = ("strauss",)
+KINDS = ("strauss", "strauss-hard-core", "diggle-gratton", "soft-core")
+CODES = {k: i for i, k in enumerate(KINDS)}  # the kernel's interaction codes
 MAX_RADIUS = 50.0  # metres
 STEPS_PER_TREE = 50
 MIN_STEPS = 20_000
 CHUNK = 1_000_000  # steps whose random numbers are drawn at once
 MAX_GRID = 4_000_000  # cells of the neighbour grid
+SOFT_REACH = 1e-4  # a soft core's pairs farther apart than where -log phi falls below this
+# are left out
 
 
 @dataclass(frozen=True)
 class Inhibition:
-    """A Strauss interaction: ``radius`` in metres and ``gamma`` in [0, 1] (0: a hard core,
-    1: none)."""
+    """A pairwise interaction ``phi(d)`` of trees ``d`` apart (the chain's conditional
+    intensity is ``beta(u)`` times the product of ``phi`` over the trees near ``u``):
+
+    * ``strauss``: ``gamma`` within ``radius`` (Strauss 1975), ``gamma`` in [0, 1] (0: a
+      hard core at the radius, 1: none);
+    * ``strauss-hard-core``: 0 within ``hard_core``, ``gamma`` from there to ``radius``
+      (spatstat's ``StraussHard``);
+    * ``diggle-gratton``: 0 within ``delta``, ``((d - delta) / (radius - delta))**kappa``
+      from there to ``radius`` (rho), 1 beyond (Diggle and Gratton 1984, JRSS B 46:193;
+      spatstat's ``DiggleGratton``): a pair correlation rising smoothly from 0 to 1,
+      ``kappa`` >= 0 its steepness;
+    * ``soft-core``: ``exp(-(sigma / d)**(2 / kappa))``, ``sigma`` > 0 metres, ``kappa`` in
+      (0, 1) (Ogata and Tanemura 1984; spatstat's ``Softcore``): no range of its own, cut
+      where ``-log phi`` falls below :data:`SOFT_REACH` (:attr:`reach`).
+
+    Diggle-Gratton and the soft core may carry a ``hard_core`` too (0 within it: what a fit
+    to a map with a hard core writes). Distances in metres; each parameter only where the
+    kind has it."""
 
     kind: str
-    radius: float
-    gamma: float
+    radius: float = 0.0
+    gamma: float = 1.0
+    hard_core: float = 0.0
+    kappa: float = 0.0
+    sigma: float = 0.0
+    delta: float = 0.0
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise RecipeError(f"inhibition.kind: {self.kind!r} is not one of {', '.join(KINDS)}")
+        if self.kind == "soft-core":
+            if not (math.isfinite(self.sigma) and 0 < self.sigma <= MAX_RADIUS / 10):
+                raise RecipeError(
+                    f"inhibition.sigma: expected metres in (0, {MAX_RADIUS / 10:g}], "
+                    f"got {self.sigma:g}"
+                )
+            if not (math.isfinite(self.kappa) and 0 < self.kappa < 1):
+                raise RecipeError(
+                    f"inhibition.kappa: expected a number in (0, 1), got {self.kappa:g}"
+                )
+            self._check_hard_core(self.reach)
+            return
         if not (math.isfinite(self.radius) and 0 < self.radius <= MAX_RADIUS):
             raise RecipeError(
                 f"inhibition.radius: expected metres in (0, {MAX_RADIUS:g}], got {self.radius:g}"
             )
         if not (math.isfinite(self.gamma) and 0 <= self.gamma <= 1):
             raise RecipeError(f"inhibition.gamma: expected a number in [0, 1], got {self.gamma:g}")
+        if self.kind != "strauss":
+            self._check_hard_core(self.radius)
+        if self.kind == "diggle-gratton":
+            if not (math.isfinite(self.delta) and 0 <= self.delta < self.radius):
+                raise RecipeError(
+                    f"inhibition.delta: expected metres in [0, radius = {self.radius:g}), "
+                    f"got {self.delta:g}"
+                )
+            if not (math.isfinite(self.kappa) and 0 <= self.kappa <= 50):
+                raise RecipeError(
+                    f"inhibition.kappa: expected a number in [0, 50], got {self.kappa:g}"
+                )
+
+    def _check_hard_core(self, reach: float) -> None:
+        if not (math.isfinite(self.hard_core) and 0 <= self.hard_core < reach):
+            raise RecipeError(
+                f"inhibition.hard_core: expected metres in [0, {reach:g}) (the interaction's "
+                f"range), got {self.hard_core:g}"
+            )
+
+    @property
+    def reach(self) -> float:
+        """The farthest two trees interact (m)."""
+        if self.kind == "soft-core":
+            return min(self.sigma * SOFT_REACH ** (-self.kappa / 2), MAX_RADIUS)
+        return self.radius
+
+    def phi(self, d: np.ndarray) -> np.ndarray:
+        """The interaction of trees ``d`` apart (1: none, 0: forbidden)."""
+        d = np.asarray(d, dtype=float)
+        if self.kind == "strauss":
+            return np.where(d < self.radius, self.gamma, 1.0)
+        if self.kind == "strauss-hard-core":
+            f = np.where(d < self.radius, self.gamma, 1.0)
+        elif self.kind == "diggle-gratton":
+            t = np.clip((d - self.delta) / (self.radius - self.delta), 0.0, 1.0)
+            f = np.where(d <= self.delta, 0.0, t**self.kappa)
+        else:
+            with np.errstate(divide="ignore"):
+                f = np.where(d < self.reach, np.exp(-((self.sigma / d) ** (2 / self.kappa))), 1.0)
+        return np.where(d < self.hard_core, 0.0, f)
+
+    def params(self) -> np.ndarray:
+        """The kernel's parameters: squared reach, gamma, hard core, radius, kappa, sigma,
+        delta."""
+        return np.array(
+            [self.reach**2, self.gamma, self.hard_core, self.radius, self.kappa, self.sigma,
+             self.delta]
+        )  # fmt: skip
+
+    def excluded_area(self) -> float:
+        """``G``, the integral of ``1 - phi`` over the plane (m²): the area a tree takes from
+        its neighbours' chances."""
+        if self.kind == "strauss":
+            return (1 - self.gamma) * math.pi * self.radius**2
+        d = np.linspace(0.0, self.reach, 4001)
+        f = (1.0 - self.phi(d)) * 2 * math.pi * d
+        return float(np.sum(0.5 * (f[1:] + f[:-1]) * np.diff(d)))
 
     def intensity(self, beta):
         """The Poisson-saddlepoint approximation of the stand's intensity where the
         first-order term is ``beta`` (a number or an array; Baddeley and Nair 2012):
-        ``W(beta G) / G``, ``G = (1 - gamma) pi r^2``."""
+        ``W(beta G) / G``, ``G`` :meth:`excluded_area`."""
         from scipy.special import lambertw
 
-        g = (1 - self.gamma) * math.pi * self.radius**2
+        g = self.excluded_area()
         if g == 0:
             return beta
         lam = lambertw(np.asarray(beta, dtype=float) * g).real / g
@@ -90,7 +187,16 @@ class Inhibition:
         return float(np.sum(self.intensity(beta)) * cell)
 
     def describe(self) -> dict:
-        return {"kind": self.kind, "radius": self.radius, "gamma": self.gamma}
+        keys = {
+            "strauss": ("radius", "gamma"),
+            "strauss-hard-core": ("radius", "gamma", "hard_core"),
+            "diggle-gratton": ("radius", "delta", "kappa", "hard_core"),
+            "soft-core": ("sigma", "kappa", "hard_core"),
+        }[self.kind]
+        out = {"kind": self.kind, **{k: getattr(self, k) for k in keys}}
+        if self.kind in ("diggle-gratton", "soft-core") and not self.hard_core:
+            out.pop("hard_core")
+        return out
 
 
 def simulate(inhibition: Inhibition, region, intensity, rng: np.random.Generator) -> np.ndarray:
@@ -102,7 +208,7 @@ def simulate(inhibition: Inhibition, region, intensity, rng: np.random.Generator
     start = thin(region, intensity, rng)
     x0, y0, x1, y1 = region.bounds
     box = (x1 - x0) * (y1 - y0)
-    side = max(inhibition.radius, math.sqrt(box / MAX_GRID))
+    side = max(inhibition.reach, math.sqrt(box / MAX_GRID))
     nx, ny = max(1, math.ceil((x1 - x0) / side)), max(1, math.ceil((y1 - y0) / side))
     cap = 3 * len(start) + 1000  # above any count the chain reaches from a Poisson start
     state = kern.State.empty(cap, nx * ny)
@@ -110,6 +216,7 @@ def simulate(inhibition: Inhibition, region, intensity, rng: np.random.Generator
     kern.insert_all(state.arrays(), start[:, 0], start[:, 1], beta0, x0, y0, side, nx, ny)
     steps = max(STEPS_PER_TREE * len(start), MIN_STEPS)
     r2 = inhibition.radius**2
+    code, params = CODES[inhibition.kind], inhibition.params()
     for done in range(0, steps, CHUNK):
         m = min(CHUNK, steps - done)
         birth = rng.uniform(size=m) < 0.5
@@ -126,10 +233,16 @@ def simulate(inhibition: Inhibition, region, intensity, rng: np.random.Generator
         cb[birth] = b * box
         accept = rng.uniform(size=m)
         pick = rng.uniform(size=m)
-        full = kern.run(
-            state.arrays(), birth, cx, cy, cb, accept, pick,
-            x0, y0, side, nx, ny, r2, inhibition.gamma,
-        )  # fmt: skip
+        if code == 0:  # Strauss: gamma to the number of neighbours
+            full = kern.run(
+                state.arrays(), birth, cx, cy, cb, accept, pick,
+                x0, y0, side, nx, ny, r2, inhibition.gamma,
+            )  # fmt: skip
+        else:
+            full = kern.run_pairwise(
+                state.arrays(), birth, cx, cy, cb, accept, pick,
+                x0, y0, side, nx, ny, code, params,
+            )  # fmt: skip
         if full:
             raise RecipeError(
                 f"inhibition: the chain grew past {cap:,} trees; the [intensity] and "

@@ -130,3 +130,75 @@ def run(state, birth, cx, cy, cb, accept, pick, x0, y0, side, nx, ny, r2, gamma)
                     _link(i, head, s, c)
                 n[0] = last
     return False
+
+
+@njit(cache=True)
+def _log_phi(d2, code, p):
+    """log phi of two trees sqrt(d2) apart (-inf: forbidden); ``p`` as
+    :meth:`usdforest.sites.inhibition.Inhibition.params`."""
+    if d2 >= p[0]:
+        return 0.0
+    d = np.sqrt(d2)
+    if d < p[2]:  # the hard core
+        return -np.inf
+    if code == 1:  # strauss-hard-core
+        return np.log(p[1])
+    if code == 2:  # diggle-gratton
+        if d <= p[6]:
+            return -np.inf
+        return p[4] * np.log((d - p[6]) / (p[3] - p[6]))
+    if d == 0.0:  # soft-core
+        return -np.inf
+    return -((p[5] / d) ** (2.0 / p[4]))
+
+
+@njit(cache=True)
+def _log_product(f, i, head, x, y, skip, x0, y0, side, nx, ny, code, p):
+    """The sum of log phi over the trees near (x, y), slot ``skip`` aside."""
+    c = _cell(x, y, x0, y0, side, nx, ny)
+    cx, cy = c % nx, c // nx
+    total = 0.0
+    for jy in range(max(cy - 1, 0), min(cy + 2, ny)):
+        for jx in range(max(cx - 1, 0), min(cx + 2, nx)):
+            s = head[jy * nx + jx]
+            while s >= 0:
+                if s != skip:
+                    dx, dy = f[X, s] - x, f[Y, s] - y
+                    total += _log_phi(dx * dx + dy * dy, code, p)
+                    if total == -np.inf:
+                        return total
+                s = i[NEXT, s]
+    return total
+
+
+@njit(cache=True)
+def run_pairwise(state, birth, cx, cy, cb, accept, pick, x0, y0, side, nx, ny, code, p):
+    """:func:`run` for any pairwise interaction (``code`` as
+    :data:`usdforest.sites.inhibition.CODES`): ``gamma^t`` is the product of phi."""
+    f, i, head, n = state
+    cap = f.shape[1]
+    for k in range(birth.shape[0]):
+        m = n[0]
+        if birth[k]:
+            if cb[k] <= 0.0:
+                continue
+            lp = _log_product(f, i, head, cx[k], cy[k], -1, x0, y0, side, nx, ny, code, p)
+            if lp > -np.inf and accept[k] * (m + 1) < cb[k] * np.exp(lp):
+                if m == cap:
+                    return True
+                f[X, m], f[Y, m], f[BETA, m] = cx[k], cy[k], cb[k]
+                _link(i, head, m, _cell(cx[k], cy[k], x0, y0, side, nx, ny))
+                n[0] = m + 1
+        elif m > 0:
+            s = min(int(pick[k] * m), m - 1)
+            lp = _log_product(f, i, head, f[X, s], f[Y, s], s, x0, y0, side, nx, ny, code, p)
+            if accept[k] * f[BETA, s] * np.exp(lp) < m:
+                _unlink(i, head, s)
+                last = m - 1
+                if s != last:  # the last slot moves into the freed one
+                    c = i[CELL, last]
+                    _unlink(i, head, last)
+                    f[X, s], f[Y, s], f[BETA, s] = f[X, last], f[Y, last], f[BETA, last]
+                    _link(i, head, s, c)
+                n[0] = last
+    return False
