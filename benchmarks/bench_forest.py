@@ -163,7 +163,71 @@ def exact_functions() -> tuple[int, str, str]:
     return 4 * n, "elements", "; ".join(parts)
 
 
+STEMS_CLIENT = """
+import json, sys, time
+from dataclasses import replace
+from usdforest.recipe import default_recipe_path, read_recipe
+from usdforest.usd.forest import write_forest
+recipe = read_recipe(default_recipe_path())
+recipe = replace(recipe, stems=sys.argv[2] == "stems")
+t = time.perf_counter()
+write_forest(recipe, sys.argv[1], thumbnail=False)
+hwm = next(ln for ln in open("/proc/self/status") if ln.startswith("VmHWM:"))
+print(json.dumps({"wall": time.perf_counter() - t, "peak": int(hwm.split()[1]) / 1024}))
+"""
+
+
+def _trunk_triangles(assets: Path) -> tuple[int, int]:
+    """Trunk templates and their triangles in a forest's templates folder."""
+    from pxr import Usd, UsdGeom
+
+    n = tri = 0
+    for f in sorted((assets / "templates").glob("*.usdc")):
+        if not f.name.startswith(("stem_", "trunk")):
+            continue
+        m = UsdGeom.Mesh(Usd.Stage.Open(str(f)).GetPrimAtPath("/Template/Mesh"))
+        n, tri = n + 1, tri + len(m.GetFaceVertexCountsAttr().Get())
+    return n, tri
+
+
+def stems_cost() -> tuple[int, str, str]:
+    """The default forest built with its stems (each tree asset's own trunk: taper, flare,
+    out-of-round sections, bark) and with the shared conical trunk (``[forest] stems =
+    false``), each in a process of its own in this run: build time, peak memory (VmHWM),
+    trunk triangles and the assets folder."""
+    import json
+    import subprocess
+    import sys
+
+    got = {}
+    for kind in ("stems", "cone"):
+        folder = Path(tempfile.mkdtemp(prefix="usdforest-bench-"))
+        try:
+            out = subprocess.run(
+                [sys.executable, "-c", STEMS_CLIENT, str(folder / "forest.usda"), kind],
+                capture_output=True, text=True, check=True,
+            )  # fmt: skip
+            report = json.loads(out.stdout.strip().splitlines()[-1])
+            assets = folder / "forest_assets"
+            size = sum(p.stat().st_size for p in assets.rglob("*") if p.is_file())
+            got[kind] = {**report, "size": size, "trunks": _trunk_triangles(assets)}
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+    a, b = got["stems"], got["cone"]
+    return (
+        a["trunks"][0],
+        "stems",
+        f"build {a['wall']:.1f} s vs {b['wall']:.1f} s with the cone "
+        f"({a['wall'] / b['wall']:.2f}x), "
+        f"peak {a['peak']:,.0f} vs {b['peak']:,.0f} MiB ({a['peak'] / b['peak']:.2f}x), "
+        f"trunk triangles {a['trunks'][1]:,} in {a['trunks'][0]} stems vs {b['trunks'][1]:,} "
+        f"in {b['trunks'][0]} template, assets {a['size'] / 2**20:.1f} vs "
+        f"{b['size'] / 2**20:.1f} MiB ({a['size'] / b['size']:.2f}x)",
+    )
+
+
 BENCHMARKS = {
+    "build: the default forest's stems vs the shared cone": stems_cost,
     "thin: constant, 1 km², 1 tree/m²": thin_constant,
     "thin: expression, 1 km²": thin_expression,
     "build: stand-1ha": lambda: _build("stand-1ha"),

@@ -961,11 +961,150 @@ def surveys(out: Path, work: Path) -> None:
     save_figure(fig, out / "surveys.png")
 
 
+STEMS = """seed = 5
+sites = [
+  { x = 15.0, y = 15.0, species = "pine", dbh = 0.32, height = 23.0 },
+  { x = 5.0, y = 5.0, species = "spruce", dbh = 0.32, height = 24.0 },
+  { x = 25.0, y = 5.0, species = "birch", dbh = 0.28, height = 21.0 },
+  { x = 5.0, y = 25.0, species = "beech", dbh = 0.32, height = 24.0 },
+  { x = 25.0, y = 25.0, species = "oak", dbh = 0.32, height = 21.0 },
+]
+[region]
+bounds = [0, 0, 30, 30]
+[ground]
+kind = "plane"
+margin = 5.0
+[species.pine]
+preset = "scots-pine"
+[species.spruce]
+preset = "norway-spruce"
+[species.birch]
+preset = "silver-birch"
+[species.beech]
+preset = "european-beech"
+[species.oak]
+preset = "sessile-oak"
+"""
+
+
+def stems(out: Path, work: Path) -> None:
+    """A stem base close up for each allometric preset (the composed stage's trunk meshes,
+    the lowest 1.6 m), and a breast-height slice of a simulated TLS plot round the pine (four
+    VZ-400 stations 6 m off at 0.1 deg, thin beams, 5 mm range noise) with an algebraic
+    circle fit and the mesh's own section."""
+    import csv
+    import tomllib
+
+    import numpy as np
+    from matplotlib.colors import LightSource
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+    from pxr import Usd, UsdGeom
+
+    import usdforest
+
+    stage_path = work / "stems.usda"
+    if not stage_path.exists():
+        recipe = parse_recipe(tomllib.loads(STEMS), work, "stems.toml")
+        write_forest(recipe, stage_path, thumbnail=False)
+    with open(work / "stems_assets" / "trees.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    stage = Usd.Stage.Open(str(stage_path))
+    inst = UsdGeom.PointInstancer(stage.GetPrimAtPath("/Forest/Trees"))
+    xf = np.array(inst.ComputeInstanceTransformsAtTime(Usd.TimeCode.Default(),
+                                                       Usd.TimeCode.Default()))  # fmt: skip
+    idx = np.array(inst.GetProtoIndicesAttr().Get())
+    targets = inst.GetPrototypesRel().GetTargets()
+    cache = UsdGeom.XformCache()
+    trunks = []
+    for i, row in enumerate(rows):
+        proto = stage.GetPrimAtPath(targets[idx[i]])
+        mesh = next(q for q in Usd.PrimRange(proto.GetChild("Trunk"), Usd.TraverseInstanceProxies())
+                    if q.IsA(UsdGeom.Mesh))  # fmt: skip
+        m = (np.array(cache.GetLocalToWorldTransform(mesh))
+             @ np.linalg.inv(np.array(cache.GetLocalToWorldTransform(proto))) @ xf[i])  # fmt: skip
+        g = UsdGeom.Mesh(mesh)
+        pts = np.array(g.GetPointsAttr().Get(), dtype=float) @ m[:3, :3] + m[3, :3]
+        tri = np.array(g.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+        trunks.append((pts, tri, row))
+    fig = plt.figure(figsize=(20, 7.5), dpi=100)
+    light = LightSource(azdeg=250, altdeg=20)
+    order = (("pine", "scots-pine"), ("spruce", "norway-spruce"), ("birch", "silver-birch"),
+             ("beech", "european-beech"), ("oak", "sessile-oak"))  # fmt: skip
+    for k, (short, name) in enumerate(order):
+        pts, tri, row = next(t for t in trunks if t[2]["species"] == short)
+        base = np.array([float(row[a]) for a in "xyz"])
+        keep = np.all(pts[tri][:, :, 2] < base[2] + 1.2, axis=1)
+        faces = pts[tri[keep]] - base
+        n = np.cross(faces[:, 1] - faces[:, 0], faces[:, 2] - faces[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        shade = light.shade_normals(n, fraction=1.0)
+        colour = np.clip(np.array([0.75, 0.58, 0.42])[None] * (0.1 + 1.1 * shade[:, None]), 0, 1)
+        ax = fig.add_subplot(1, 6, k + 1, projection="3d")
+        ax.add_collection3d(Poly3DCollection(faces, facecolors=colour, linewidths=0))
+        r = 0.27
+        ax.set_xlim(-r, r)
+        ax.set_ylim(-r, r)
+        ax.set_zlim(0, 1.2)
+        ax.set_box_aspect((1, 1, 1.2 / (2 * r)))
+        ax.view_init(8, -60)
+        ax.axis("off")
+        ax.set_title(f"{name}\nDBH {float(row['dbh']) * 100:.1f} cm (tape at 1.3 m)", fontsize=9)
+    pine = next(t for t in trunks if t[2]["species"] == "pine")
+    row = pine[2]
+    base = np.array([float(row[a]) for a in "xyz"])
+    axis = np.array([float(row[f"{a}_bh"]) for a in "xyz"]) - base
+    axis /= np.linalg.norm(axis)
+    stations = [[15.0 + dx, 15.0 + dy] for dx, dy in ((6, 0), (0, 6), (-6, 0), (0, -6))]
+    plan = {"survey": {"kind": "tls", "stations": stations},
+            "lidar": {"azimuth_step": 0.1, "elevation_step": 0.1, "beam_rings": 0}}  # fmt: skip
+    folder = work / "stems-plot"
+    if not (folder / "plot.las").exists():
+        usdforest.survey(stage_path, plan, out=folder, force=True)
+    import laspy
+
+    las = laspy.read(str(folder / "plot.las"))
+    xyz = np.column_stack([las.x, las.y, las.z])
+    mine = (np.asarray(las.treeID) == int(row["id"]) + 1) & (np.asarray(las.classification) == 4)
+    centre = base + 1.3 * axis
+    u = np.cross(axis, [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+    slab = mine & (np.abs((xyz - base) @ axis - 1.3) < 0.05)
+    xy = np.column_stack([(xyz[slab] - centre) @ u, (xyz[slab] - centre) @ v]) * 100
+    a = np.column_stack([xy, np.ones(len(xy))])
+    dd, ee, ff = np.linalg.lstsq(a, -(xy**2).sum(axis=1), rcond=None)[0]
+    c = -0.5 * np.array([dd, ee])
+    radius = math.sqrt(c @ c - ff)
+    pts, tri, _ = pine
+    d = (pts - centre) @ axis
+    edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    cut = d[edges[:, 0]] * d[edges[:, 1]] < 0
+    t = d[edges[cut, 0]] / (d[edges[cut, 0]] - d[edges[cut, 1]])
+    sec = pts[edges[cut, 0]] + t[:, None] * (pts[edges[cut, 1]] - pts[edges[cut, 0]])
+    sec = np.column_stack([(sec - centre) @ u, (sec - centre) @ v]) * 100
+    ax = fig.add_subplot(1, 6, 6)
+    ring_order = np.argsort(np.arctan2(sec[:, 1], sec[:, 0]))
+    loop = sec[np.append(ring_order, ring_order[0])]
+    ax.scatter(xy[:, 0], xy[:, 1], s=1, c="C3", label=f"TLS points ({len(xy)})")
+    ax.plot(loop[:, 0], loop[:, 1], "-", c="C0", lw=0.8, label="the mesh's section")
+    ring = np.linspace(0, 2 * math.pi, 200)
+    ax.plot(c[0] + radius * np.cos(ring), c[1] + radius * np.sin(ring), "k-", lw=0.8,
+            label=f"circle fit: {2 * radius:.1f} cm")  # fmt: skip
+    res = np.sqrt(np.mean((np.hypot(*(xy - c).T) - radius) ** 2)) * 10
+    ax.set_title(f"pine at 1.3 m: tape {float(row['dbh']) * 100:.1f} cm, fit RMS {res:.1f} mm",
+                 fontsize=9)  # fmt: skip
+    ax.set_aspect("equal")
+    ax.legend(fontsize=7, loc="lower left", markerscale=3)
+    ax.set_xlabel("cm")
+    fig.suptitle("stems: taper, root flare, out-of-round sections and bark (composed stage)")
+    save_figure(fig, out / "stems.png")
+
+
 FIGURES = (
     "paper_stages", "paper_views", "profile_trees", "ipp_levels", "stands", "stand_pattern",
     "canopy_gaps", "crowns", "leaves", "gallery", "allometric", "sensors", "forest_sensors",
     "camera_model", "seasons", "wind", "sonar_wind", "dead_wood", "ground_vegetation",
-    "terrain", "landscape", "scan_patterns", "surveys",
+    "terrain", "landscape", "scan_patterns", "surveys", "stems",
 )  # fmt: skip
 
 

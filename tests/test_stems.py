@@ -323,3 +323,62 @@ def test_every_inventory_row_keeps_its_dbh_the_smallest_included(forest_folder):
             assert hull_dbh(_section(pts, tri, base + 1.3 * axis, axis)) == pytest.approx(
                 d, rel=0.03
             )
+
+
+def test_stems_lean_down_the_slope(tmp_path):
+    """On a 20 degree slope falling to +x (east), leaning stems lean down it (trees.csv's
+    breast-height point from the base): their mean direction within 30 degrees of down-slope and its
+    resultant over 0.6 (Lamprecht et al. 2020: trunks lean down-slope); on level ground their
+    directions are spread (resultant under 0.5)."""
+    from stands import allometric_stand
+
+    kinds = ("pine", "spruce", "beech", "birch")
+    rows = [f'x = {4 + 8 * (k % 5)}, y = {4 + 8 * (k // 5)}, species = "{kinds[k % 4]}", '
+            "dbh = 0.2, height = 17.0" for k in range(20)]  # fmt: skip
+    ramp = np.tile(np.linspace(1.0, 0.0, 61)[None, :], (61, 1))  # columns west to east
+    np.save(tmp_path / "g.npy", ramp)
+    ground = (
+        '[ground]\nkind = "raster"\nfile = "g.npy"\nmax = {peak}\nbounds = [-10, -10, 50, 50]\n'
+    )
+    results = []
+    for peak in (60 * math.tan(math.radians(20)), 0.0):
+        text = allometric_stand(3, 40, rows, ground.format(peak=peak))
+        (tmp_path / "r.toml").write_text(text)
+        from usdforest.recipe import read_recipe
+        from usdforest.usd.forest import write_forest
+
+        out = tmp_path / f"f{peak:.0f}.usda"
+        write_forest(read_recipe(tmp_path / "r.toml"), out, thumbnail=False)
+        with open(out.parent / f"{out.stem}_assets" / "trees.csv", newline="") as f:
+            table = list(csv.DictReader(f))
+        d = np.array([[float(r["x_bh"]) - float(r["x"]), float(r["y_bh"]) - float(r["y"])]
+                      for r in table])  # fmt: skip
+        d = d[np.linalg.norm(d, axis=1) > 1.3 * math.sin(math.radians(0.3))]
+        unit = d / np.linalg.norm(d, axis=1, keepdims=True)
+        mean = unit.mean(axis=0)
+        results.append((np.linalg.norm(mean), math.degrees(math.atan2(mean[1], mean[0]))))
+    (r_slope, direction), (r_level, _) = results
+    assert r_slope > 0.6 and abs(direction) < 30.0, results
+    assert r_level < 0.5, results
+
+
+def test_a_forest_without_stems_keeps_the_shared_cone(forest_folder):
+    """``[forest] stems = false``: every trunk references the shared conical template, the
+    stems stand upright (the breast-height point 1.3 m straight up) and trees.csv's DBH is
+    still the tape on the composed trunk (within 1 mm)."""
+    from stands import BEECH_AND_PINE, SPECIES
+
+    text = ("seed = 2\n[region]\nbounds = [0.0, 0.0, 20.0, 20.0]\n[forest]\nstems = false\n"
+            + BEECH_AND_PINE + SPECIES)  # fmt: skip
+    forest, _ = forestcache.text_forest(forest_folder, "no-stems", text)
+    with open(forest.parent / "no-stems_assets" / "trees.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert (
+        sorted(p.name for p in (forest.parent / "no-stems_assets" / "templates").glob("stem_*"))
+        == []
+    )
+    for (pts, tri, base, axis), row in zip(_composed_trunks(forest), rows, strict=True):
+        assert axis == pytest.approx([0.0, 0.0, 1.0], abs=1e-6)
+        assert float(row["z_bh"]) - float(row["z"]) == pytest.approx(1.3, abs=1e-4)
+        xy = _section(pts, tri, base + 1.3 * axis, axis)
+        assert hull_dbh(xy) == pytest.approx(float(row["dbh"]), abs=0.001)

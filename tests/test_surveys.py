@@ -138,7 +138,8 @@ def test_a_survey_writes_the_plot_its_stations_and_its_trees(forest_folder, runn
         assert int(row["treeID"]) == int(row["id"]) + 1 and row["species"] == t["species"]
         for k in ("x", "y", "dbh", "height"):
             assert float(row[k]) == pytest.approx(float(t[k]), abs=1e-4)
-        assert float(row["z_1.3"]) == pytest.approx(float(t["z"]) + 1.3, abs=1e-4)
+        for a in "xyz":  # 1.3 m up the leaning stem: trees.csv's breast-height point
+            assert float(row[f"{a}_1.3"]) == pytest.approx(float(t[f"{a}_bh"]), abs=2e-4)
         assert int(row["points"]) == np.count_nonzero(tree_id == int(row["treeID"])) > 1000
         assert 0 < float(row["crown_base"]) < float(row["height"])
         assert 0 < float(row["crown_radius"]) < float(row["height"])

@@ -285,6 +285,7 @@ FOREST_KEYS = {
     "max_trees",
     "colliders",
     "physics_scene",
+    "stems",
     "origin",
     "lod",
 }
@@ -344,6 +345,7 @@ class Recipe:
     regeneration: Any = None  # grow.understorey.RegenerationSpec: the stand's young trees
     wind: Any = None  # grow.sway.WindSpec: the trees' sway, as a layer of time samples
     season: str = "summer"  # the species' leaves and their colour (usdforest.grow.seasons)
+    stems: bool = True  # allometric trees' own stems (usdforest.grow.stems); False: the cone
 
     def __post_init__(self) -> None:
         """The fields a caller may change with ``dataclasses.replace`` checked as the
@@ -797,6 +799,7 @@ def parse_recipe(
                 f"forest.colliders: {colliders!r} is not one of {', '.join(COLLIDER_MODES)}"
             )
         physics_scene = coerce(forest.get("physics_scene", False), bool, "forest.physics_scene")
+        stems = coerce(forest.get("stems", True), bool, "forest.stems")
         ground = _parse_ground(data.get("ground"), region, base)
         origin = coerce(forest.get("origin", "corner"), str, "forest.origin")
         if origin not in ("corner", "centre"):
@@ -870,6 +873,7 @@ def parse_recipe(
         regeneration,
         wind,
         season,
+        stems,
     )
     try:
         expected = recipe.expected_trees()

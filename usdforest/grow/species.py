@@ -633,12 +633,15 @@ def tree_size(
     )
 
 
-def sized(species: Species, size: TreeSize, rng: np.random.Generator) -> Species:
+def sized(
+    species: Species, size: TreeSize, rng: np.random.Generator, stems: bool = True
+) -> Species:
     """The species' grammar for one tree of ``size`` (see
-    :func:`usdforest.grow.architecture.grammar`)."""
+    :func:`usdforest.grow.architecture.grammar`): its trunk tapers as its own stem does
+    (``stems``, :mod:`usdforest.grow.stems`) or as the conical trunk template."""
     if species.architecture is None:
         return species
-    stem = STEM_FORMS.get(species.allometry or "")
+    stem = STEM_FORMS.get(species.allometry or "") if stems else None
     axiom, rules, steps = grammar(size, species.architecture, rng, stem)
     return replace(species, axiom=axiom, rules=rules, iterations=steps)
 

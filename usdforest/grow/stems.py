@@ -199,7 +199,7 @@ def lean_matrix(angle_deg: float, azimuth_deg: float) -> np.ndarray:
     t, a = math.radians(angle_deg), math.radians(azimuth_deg)
     axis = np.array([-math.sin(a), math.cos(a), 0.0])  # +Z tips towards (cos a, sin a)
     k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + math.sin(t) * k + (1.0 - math.cos(t)) * (k @ k)
+    return np.eye(3) + math.sin(t) * k + (1.0 - math.cos(t)) * exact.matmul(k, k)
 
 
 @dataclass(frozen=True, eq=False)

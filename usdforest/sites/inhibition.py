@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from usdforest.errors import RecipeError
+from usdforest.grow import exact
 
 KINDS = ("strauss", "strauss-hard-core", "diggle-gratton", "soft-core")
 CODES = {k: i for i, k in enumerate(KINDS)}  # the kernel's interaction codes
@@ -141,10 +142,11 @@ class Inhibition:
             f = np.where(d < self.radius, self.gamma, 1.0)
         elif self.kind == "diggle-gratton":
             t = np.clip((d - self.delta) / (self.radius - self.delta), 0.0, 1.0)
-            f = np.where(d <= self.delta, 0.0, t**self.kappa)
+            f = np.where(d <= self.delta, 0.0, exact.power(t, self.kappa))
         else:
             with np.errstate(divide="ignore"):
-                f = np.where(d < self.reach, np.exp(-((self.sigma / d) ** (2 / self.kappa))), 1.0)
+                r = exact.power(self.sigma / np.maximum(d, 1e-300), 2 / self.kappa)
+                f = np.where(d < self.reach, exact.exp(-np.minimum(r, 745.0)), 1.0)
         return np.where(d < self.hard_core, 0.0, f)
 
     def params(self) -> np.ndarray:

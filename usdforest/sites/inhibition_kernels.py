@@ -4,6 +4,7 @@ birth-death Metropolis-Hastings steps. Imported on first use; cached on disk."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -138,15 +139,15 @@ def _log_phi(d2, code, p):
     :meth:`usdforest.sites.inhibition.Inhibition.params`."""
     if d2 >= p[0]:
         return 0.0
-    d = np.sqrt(d2)
+    d = math.sqrt(d2)
     if d < p[2]:  # the hard core
         return -np.inf
     if code == 1:  # strauss-hard-core
-        return np.log(p[1])
+        return math.log(p[1])
     if code == 2:  # diggle-gratton
         if d <= p[6]:
             return -np.inf
-        return p[4] * np.log((d - p[6]) / (p[3] - p[6]))
+        return p[4] * math.log((d - p[6]) / (p[3] - p[6]))
     if d == 0.0:  # soft-core
         return -np.inf
     return -((p[5] / d) ** (2.0 / p[4]))
@@ -183,7 +184,7 @@ def run_pairwise(state, birth, cx, cy, cb, accept, pick, x0, y0, side, nx, ny, c
             if cb[k] <= 0.0:
                 continue
             lp = _log_product(f, i, head, cx[k], cy[k], -1, x0, y0, side, nx, ny, code, p)
-            if lp > -np.inf and accept[k] * (m + 1) < cb[k] * np.exp(lp):
+            if lp > -np.inf and accept[k] * (m + 1) < cb[k] * math.exp(lp):
                 if m == cap:
                     return True
                 f[X, m], f[Y, m], f[BETA, m] = cx[k], cy[k], cb[k]
@@ -192,7 +193,7 @@ def run_pairwise(state, birth, cx, cy, cb, accept, pick, x0, y0, side, nx, ny, c
         elif m > 0:
             s = min(int(pick[k] * m), m - 1)
             lp = _log_product(f, i, head, f[X, s], f[Y, s], s, x0, y0, side, nx, ny, code, p)
-            if accept[k] * f[BETA, s] * np.exp(lp) < m:
+            if accept[k] * f[BETA, s] * math.exp(lp) < m:
                 _unlink(i, head, s)
                 last = m - 1
                 if s != last:  # the last slot moves into the freed one

@@ -19,6 +19,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from usdforest.errors import UsdForestError
+from usdforest.grow import exact
 from usdforest.sites.cells import (
     CELL,
     cell_of,
@@ -244,6 +245,8 @@ class Plan:
     first_id: np.ndarray | None
     grown: np.ndarray | None = None
     girths: tuple | None = None  # each prototype's girth tape (usdforest.usd.trunk)
+    # each prototype's stem lean and its azimuth (degrees; (0, 0): upright)
+    stem_lean: np.ndarray | None = None
 
 
 def classes_for(recipe, sums: StandSums) -> dict[str, SizeClasses]:
@@ -307,7 +310,33 @@ def place(recipe, square: Square, plan: Plan, replicate: int = 0) -> Placed:
     away = loc.away[own]
     turn = np.round(away - plan.lean[proto_index], 3) % 360.0
     ok = np.isfinite(away) & np.isfinite(turn)
-    sites = replace(sites, variant=variant, scale=scale, yaw=np.where(ok, turn, sites.yaw))
+    yaw = np.where(ok, turn, sites.yaw)
+    if plan.stem_lean is not None and recipe.ground is not None:
+        yaw = np.where(ok, yaw, downslope_yaw(sites, proto_index, plan.stem_lean, recipe))
+    sites = replace(sites, variant=variant, scale=scale, yaw=yaw)
     rank = loc.rank[own]
     ids = rank if plan.first_id is None else plan.first_id[loc.cell[own]] + rank
     return Placed(sites, proto_index, ids.astype(np.int64))
+
+
+SLOPE_STEP = 1.0  # m: the central differences of the ground's gradient at a tree
+SLOPE_SPREAD = 10.0  # degrees of slope over which the lean's spread about down-slope narrows by e
+
+
+def downslope_yaw(sites: Sites, proto_index: np.ndarray, stem_lean: np.ndarray, recipe):
+    """Yaws that turn each leaning stem's lean down the slope it stands on (trunks lean
+    down-slope: Lamprecht et al. 2020, Remote Sensing 12: 3744), within a spread that
+    narrows as the slope steepens: the tree's own yaw, as an offset of up to 180 degrees
+    from down-slope, times ``exp(-slope / SLOPE_SPREAD)`` (a stated choice). Level ground
+    and upright stems keep their yaw."""
+    ground = recipe.ground["field"]
+    x, y = sites.xy[:, 0], sites.xy[:, 1]
+    h = SLOPE_STEP
+    gx = (ground.height(x + h, y) - ground.height(x - h, y)) / (2 * h)
+    gy = (ground.height(x, y + h) - ground.height(x, y - h)) / (2 * h)
+    slope = np.degrees(exact.arctan2(np.sqrt(gx * gx + gy * gy), np.ones(len(gx))))
+    down = np.degrees(exact.arctan2(-gy, -gx))
+    angle, azimuth = stem_lean[proto_index, 0], stem_lean[proto_index, 1]
+    offset = ((sites.yaw + 180.0) % 360.0 - 180.0) * exact.exp(-slope / SLOPE_SPREAD)
+    turned = np.round(down - azimuth + offset, 3) % 360.0
+    return np.where((slope > 0.5) & (angle > 0), turned, sites.yaw)

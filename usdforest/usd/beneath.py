@@ -175,7 +175,13 @@ def write_understorey(
     for k, (layer, name, stem, (species, variant, base, size)) in enumerate(jobs):
         tick("growing the understorey", k, len(jobs))
         tb = build_tree(
-            species, recipe.seed, variant, template_base=base, colliders="none", target=size
+            species,
+            recipe.seed,
+            variant,
+            template_base=base,
+            colliders="none",
+            target=size,
+            stems=recipe.stems,
         )
         kinds.append(
             Kind(layer, name, stem, float(tb.sized_extent[1, 2]), _footprint(tb), tb.extent)

@@ -306,6 +306,7 @@ def _write_forest(
             variant,
             template_base=entry.template_base,
             colliders=recipe.colliders,
+            stems=recipe.stems,
             target=classes[name].sizes[variant] if name in classes else None,
         )
     tick("growing trees", len(prototypes), len(prototypes))
@@ -320,7 +321,10 @@ def _write_forest(
     proto_extent = np.stack([t.sized_extent for t in ordered])
     grown = proto_extent[:, 1, 2] - proto_extent[:, 0, 2] if recipe.sites is not None else None
     girths = tuple(t.girth for t in ordered)
-    plan = Plan(classes, lookup, _leans(ordered), first_ids(recipe, surveys), grown, girths)
+    stem_lean = np.array([t.lean for t in ordered], dtype=float).reshape(-1, 2)
+    plan = Plan(
+        classes, lookup, _leans(ordered), first_ids(recipe, surveys), grown, girths, stem_lean
+    )
 
     # per prototype: its height, the girth tape on its stem and the stem's direction
     proto_sizes = ProtoSizes(

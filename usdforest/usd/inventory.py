@@ -2,15 +2,15 @@
 
 Read with pxr from the composed stage, not from the build's arrays: every tree instance of the
 forest's PointInstancers (tiles included, once loaded), its prototype's composed geometry and
-the instance's transform. Per tree: height (its composed extent), DBH (a girth tape round the
-composed trunk mesh at 1.3 m above the tree's base: the perimeter of the cross-section's hull
-over pi) and one-sided leaf area (every leaf instance's template area - half the surface of a
-closed needle mesh - times its scale squared) and wood area (half the surface of its trunk and
-branch meshes, the same one-sided convention). Per stand: stems/ha, basal area, quadratic mean
-DBH, DBH and height distributions, leaf and wood area indices (over the region's area) and
-the crown footprint cover (the share of 0.25 m cells of the region under any leaf or wood
-point: crowns' outlines, not what a sensor sees through them; canopy cover and gap fractions
-by rays are :mod:`usdforest.sensors.optics.gaps`').
+the instance's transform. Per tree: height (its composed extent), DBH (a girth tape round
+the composed trunk mesh 1.3 m up its stem, perpendicular to it: the perimeter of the
+cross-section's hull over pi), one-sided leaf area (every leaf instance's template area -
+half the surface of a closed needle mesh - times its scale squared) and wood area (half the
+surface of its trunk and branch meshes, the same one-sided convention). Per stand:
+stems/ha, basal area, quadratic mean DBH, DBH and height distributions, leaf and wood area
+indices (over the region's area) and the crown footprint cover (the share of 0.25 m cells
+of the region under any leaf or wood point: crowns' outlines, not what a sensor sees through
+them; canopy cover and gap fractions by rays are :mod:`usdforest.sensors.optics.gaps`').
 """
 
 from __future__ import annotations
@@ -54,16 +54,30 @@ def _triangles(prim: Usd.Prim) -> np.ndarray | None:
     return idx.reshape(-1, 3) if len(counts) and np.all(counts == 3) else None
 
 
-def girth_dbh(points: np.ndarray, tri: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Girth-tape diameters of the mesh at heights ``z``: hull perimeter of the section / pi."""
+def girth_dbh(
+    points: np.ndarray,
+    tri: np.ndarray,
+    z: np.ndarray,
+    origin: np.ndarray | None = None,
+    axis: np.ndarray | None = None,
+) -> np.ndarray:
+    """Girth-tape diameters of the mesh at distances ``z`` along its stem's ``axis`` from
+    ``origin`` (default: heights above z = 0): the hull perimeter of the section
+    perpendicular to the axis, over pi."""
     import trimesh
     from scipy.spatial import ConvexHull
 
+    o = np.zeros(3) if origin is None else np.asarray(origin, dtype=float)
+    n = np.array([0.0, 0.0, 1.0]) if axis is None else np.asarray(axis, dtype=float)
+    n = n / np.linalg.norm(n)
+    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
     mesh = trimesh.Trimesh(points, tri, process=False)
     out = np.full(len(z), np.nan)
     for i, h in enumerate(z):
-        seg = trimesh.intersections.mesh_plane(mesh, [0, 0, 1], [0, 0, h])
-        xy = seg.reshape(-1, 3)[:, :2]
+        seg = trimesh.intersections.mesh_plane(mesh, n, o + h * n).reshape(-1, 3) - o
+        xy = np.column_stack([seg @ u, seg @ v])
         if len(xy) >= 3:
             try:
                 hull = ConvexHull(xy)
@@ -186,7 +200,8 @@ class _Tree:
         self.leaf_area = self.wood_area = 0.0
         self.wood_tri: list[np.ndarray] = []  # corners not yet summed, an array a mesh
         self.pending = 0
-        self.trunk: tuple[np.ndarray, np.ndarray] | None = None
+        # the trunk's points and triangles, and where its stem starts and its axis
+        self.trunk: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def wood(self, v: np.ndarray, tri: np.ndarray | None) -> None:
         """A wood mesh: its points ``v`` in the tree's space and its triangles ``tri``
@@ -209,7 +224,11 @@ class _Tree:
             v, tri = mesh_world(p, self.cache, self.inv)
             self.wood(v, tri)
             if "/Trunk" in path and tri is not None and self.trunk is None:
-                self.trunk = (v, tri)
+                holder = p
+                while holder.GetName() != "Trunk" and holder.GetParent():
+                    holder = holder.GetParent()
+                m = np.asarray(self.cache.GetLocalToWorldTransform(holder), dtype=float) @ self.inv
+                self.trunk = (v, tri, m[3, :3], m[2, :3])
         elif p.IsA(UsdGeom.PointInstancer):
             pi = UsdGeom.PointInstancer(p)
             mats = np.asarray(
@@ -230,6 +249,7 @@ class _Tree:
             self.leaf_area += float(np.sum(s2 * np.asarray(units)[idx])) * grow2
 
 
+PROBES = 40  # breast heights cut on a prototype's trunk; more are interpolated
 INSTANCE_POINTS = 1_000_000  # instance copies of a prototype's points placed at once
 
 
@@ -275,7 +295,7 @@ def _tree_figures(tree: Usd.Prim, breast: np.ndarray, shapes: dict | None = None
                 continue
             placed.setdefault((key, j), []).append(m)
             if "/Trunk" in path and tri is not None and got.trunk is None:
-                got.trunk = (pts @ m[:3, :3] + m[3, :3], tri)
+                got.trunk = (pts @ m[:3, :3] + m[3, :3], tri, m[3, :3], m[2, :3])
     for (key, j), mats in placed.items():
         _, pts, tri = shapes[key].meshes[j]
         ms = np.stack(mats)
@@ -289,7 +309,11 @@ def _tree_figures(tree: Usd.Prim, breast: np.ndarray, shapes: dict | None = None
     r = bbox.ComputeWorldBound(tree).ComputeAlignedRange()
     ext = np.array([list(r.GetMin()), list(r.GetMax())]) @ inv[:3, :3] + inv[3, :3]
     trunk = got.trunk
-    dbh = girth_dbh(*trunk, breast) if trunk is not None else np.full(len(breast), np.nan)
+    dbh = (
+        girth_dbh(trunk[0], trunk[1], breast, trunk[2], trunk[3])
+        if trunk is not None
+        else np.full(len(breast), np.nan)
+    )
     xy = [*got.wood_xy, *got.leaf_xy]
     return {
         "height": float(ext[:, 2].max() - min(ext[:, 2].min(), 0.0)),
@@ -411,10 +435,10 @@ def stand_figures(
                 continue
             proto = stage.GetPrimAtPath(target)
             s = scale[sel]
-            # DBH at each tree's breast height (1.3 m / its scale on the prototype), read off
-            # the prototype's trunk at a few heights and interpolated
+            # DBH at each tree's breast height (1.3 m / its scale on the prototype, along its
+            # stem), cut at each (to a millimetre), or at 40 heights and interpolated beyond
             zs = np.unique(np.round(BREAST / s, 3))
-            probe = np.linspace(zs.min(), zs.max(), 5) if len(zs) > 5 else zs
+            probe = np.linspace(zs.min(), zs.max(), PROBES) if len(zs) > PROBES else zs
             f = _tree_figures(proto, probe, shapes)
             # a sapling's breast height is above its trunk (no DBH); the others' from the
             # probes that meet the trunk

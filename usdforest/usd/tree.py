@@ -91,6 +91,7 @@ from usdforest.usd.trunk import (
     ConeGirth,
     StemGirth,
     StemTemplate,
+    content_name,
     form_provenance,
     leaned,
     placeholder_shape,
@@ -242,25 +243,28 @@ def build_tree(
     template_base: Path | None = None,
     colliders: str = "trunk",
     target: TreeSize | None = None,
+    stems: bool = True,
 ) -> TreeBuild:
     """Grow a tree and place its templates (no files written); ``colliders`` is ``trunk``,
     ``wood`` or ``none`` (see :mod:`usdforest.grow.colliders`). An allometric species grows to
     ``target`` (default: its allometry at its reference DBH with residuals drawn from the
-    seed) with as many leaves as carry the target's leaf area."""
+    seed) with as many leaves as carry the target's leaf area, and (``stems``) a stem of its
+    own (:mod:`usdforest.usd.trunk`; without, the shared conical trunk template)."""
     size = None
     if species.allometry is not None:
         rng = stream(seed, species.name, variant, "size")
         size = tree_size(species, rng) if target is None else target
-        species = sized(species, size, rng)
+        species = sized(species, size, rng, stems)
     g = species.geometry
     grown = grow(species, seed=int(stream(seed, species.name, variant, "lsystem").integers(2**63)))
-    form = STEM_FORMS.get(species.allometry or "") if size is not None else None
+    form = STEM_FORMS.get(species.allometry or "") if size is not None and stems else None
     stem_rng = stream(seed, species.name, variant, "stem")
     lean = (0.0, 0.0)
     if form is not None:  # its own stem (usdforest.usd.trunk), the tree leaned with it
         lean = lean_draw(form, stem_rng)
         if size.asymmetry > 0:  # towards the side its crown reaches (the light)
             lean = (lean[0], 0.0)
+        lean = (_no_lower(grown.skeleton, *lean), lean[1])
         grown = replace(grown, skeleton=leaned(grown.skeleton, lean_matrix(*lean)))
         g = replace(g, trunk=stem_name(species.name, seed, variant, size))
     leaf_names = species.clumps.templates if species.clumps is not None else (g.leaf,)
@@ -295,6 +299,8 @@ def build_tree(
     stem = None
     if form is not None:
         placement, stem = _stem(placement, infos, species, form, size, lean, stem_rng)
+        g = replace(g, trunk=stem[1].name)
+        infos = {n: v for n, v in infos.items() if n != stem[1].name}
         infos[g.trunk] = stem[1]
     summer, summer_area = None, None
     centre = placement.leaf_position[:, 1::-1].mean(axis=0) if placement.n_leaves else None
@@ -328,6 +334,26 @@ def build_tree(
         girth,
         lean,
     )
+
+
+def _no_lower(sk, angle: float, azimuth: float) -> float:
+    """The lean, no more than keeps every segment and leaf site of the tree as high above
+    the ground as it was or above it (a small tree's lowest branches would dip into the
+    ground on its leaning side)."""
+
+    def low(a: float) -> float:
+        t = leaned(sk, lean_matrix(a, azimuth))
+        return min(float(t.start[:, 2].min(initial=0.0)), float(t.end[:, 2].min(initial=0.0)),
+                   float(t.leaf_position[:, 2].min(initial=0.0)))  # fmt: skip
+
+    floor = min(low(0.0), 0.0) - 1e-9
+    if low(angle) >= floor:
+        return angle
+    lo, hi = 0.0, angle
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if low(mid) >= floor else (lo, mid)
+    return lo
 
 
 def _stem(
@@ -370,7 +396,12 @@ def _stem(
         g.bark_color,
         form_provenance(species.name, form, mesh.ovality, lean),
     )
-    return placement, (template, info, mesh)
+    # named by its content: two trees of one name and size (a preset's second entry, an
+    # understorey's) may still grow different stems, and they share a templates folder
+    own = content_name(template)
+    template, info = replace(template, name=own), replace(info, name=own, path=Path(f"{own}.usdc"))
+    names = tuple(own if t == name else t for t in placement.templates)
+    return replace(placement, templates=names), (template, info, mesh)
 
 
 def foliage_for(g: Geometry, leaf_area: float, sites: int, leaf: Mapping) -> Geometry:

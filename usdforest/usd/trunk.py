@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from usdforest.grow import exact
 from usdforest.grow.architecture import BREAST_HEIGHT, TreeSize, scaled_dbh
 from usdforest.grow.bounds import hull_vertices
 from usdforest.grow.placement import CENTRELINE_SAMPLES, WoodShape
@@ -36,6 +37,17 @@ def stem_name(species: str, seed: int, variant: int, size: TreeSize) -> str:
     return "stem_" + hashlib.sha1(key.encode()).hexdigest()[:12]
 
 
+def content_name(template: StemTemplate) -> str:
+    """A stem template's name from what it holds (its vertices, faces and measurements as
+    stored): the same stem, the same name; another, another."""
+    from usdforest.usd.template import stable_points
+
+    h = hashlib.sha1(stable_points(template.vertices).astype("<f8").tobytes())
+    h.update(np.ascontiguousarray(template.faces, dtype="<i8").tobytes())
+    h.update(repr(sorted(template.measurements.items())).encode())
+    return "stem_" + h.hexdigest()[:16]
+
+
 def placeholder_shape() -> WoodShape:
     """The shape placement sizes a stem template by: its normalised base radius is the
     trunk's own (so the template is placed at the trunk's length, uniformly), straight."""
@@ -44,14 +56,14 @@ def placeholder_shape() -> WoodShape:
 
 def leaned(sk: Skeleton, rotation: np.ndarray) -> Skeleton:
     """The skeleton turned about its base by ``rotation`` (column vectors)."""
-    r = np.asarray(rotation, dtype=float)
-    frames = np.einsum("ij,mkj->mki", r, sk.leaf_frame)  # rows: heading, left, up
+    rt = np.ascontiguousarray(np.asarray(rotation, dtype=float).T)
+    # (exact.matmul: the same bits whatever BLAS kernel numpy picks; rows are vectors)
     return replace(
         sk,
-        start=sk.start @ r.T,
-        end=sk.end @ r.T,
-        leaf_position=sk.leaf_position @ r.T,
-        leaf_frame=frames,
+        start=exact.matmul(sk.start, rt),
+        end=exact.matmul(sk.end, rt),
+        leaf_position=exact.matmul(sk.leaf_position, rt),
+        leaf_frame=exact.matmul(sk.leaf_frame, rt),  # rows: heading, left, up
     )
 
 
