@@ -69,22 +69,35 @@ def _unlink(i, head, s):
         i[PREV, q] = p
 
 
+@njit(cache=True, inline="always")
+def _born(f, i, head, n, x, y, b, c):
+    """A tree at (x, y) with beta x |box| ``b`` in cell ``c``, in the next slot."""
+    m = n[0]
+    f[X, m], f[Y, m], f[BETA, m] = x, y, b
+    _link(i, head, m, c)
+    n[0] = m + 1
+
+
+@njit(cache=True, inline="always")
+def _die(f, i, head, n, s):
+    """Tree ``s`` gone; the last slot moves into the freed one."""
+    _unlink(i, head, s)
+    last = n[0] - 1
+    if s != last:
+        c = i[CELL, last]
+        _unlink(i, head, last)
+        f[X, s], f[Y, s], f[BETA, s] = f[X, last], f[Y, last], f[BETA, last]
+        _link(i, head, s, c)
+    n[0] = last
+
+
+COUNT = -1  # the interaction code that counts the trees within sqrt(p[0]) (the Strauss chain)
+
+
 @njit(cache=True)
-def _near(f, i, head, x, y, skip, x0, y0, side, nx, ny, r2):
-    """Trees within sqrt(r2) of (x, y), slot ``skip`` aside."""
-    c = _cell(x, y, x0, y0, side, nx, ny)
-    cx, cy = c % nx, c // nx
-    t = 0
-    for jy in range(max(cy - 1, 0), min(cy + 2, ny)):
-        for jx in range(max(cx - 1, 0), min(cx + 2, nx)):
-            s = head[jy * nx + jx]
-            while s >= 0:
-                if s != skip:
-                    dx, dy = f[X, s] - x, f[Y, s] - y
-                    if dx * dx + dy * dy <= r2:
-                        t += 1
-                s = i[NEXT, s]
-    return t
+def _near(f, i, head, x, y, skip, x0, y0, side, nx, ny, p):
+    """Trees within sqrt(p[0]) of (x, y), slot ``skip`` aside."""
+    return int(_log_product(f, i, head, x, y, skip, x0, y0, side, nx, ny, COUNT, p))
 
 
 @njit(cache=True)
@@ -106,37 +119,33 @@ def run(state, birth, cx, cy, cb, accept, pick, x0, y0, side, nx, ny, r2, gamma)
     Metropolis-Hastings ratio. Returns True when the slots ran out (nothing done since)."""
     f, i, head, n = state
     cap = f.shape[1]
+    within = np.full(7, 0.0)
+    within[0] = r2
     for k in range(birth.shape[0]):
         m = n[0]
         if birth[k]:
             if cb[k] <= 0.0:
                 continue
-            t = _near(f, i, head, cx[k], cy[k], -1, x0, y0, side, nx, ny, r2)
+            t = _near(f, i, head, cx[k], cy[k], -1, x0, y0, side, nx, ny, within)
             if accept[k] * (m + 1) < cb[k] * gamma**t:
                 if m == cap:
                     return True
-                f[X, m], f[Y, m], f[BETA, m] = cx[k], cy[k], cb[k]
-                _link(i, head, m, _cell(cx[k], cy[k], x0, y0, side, nx, ny))
-                n[0] = m + 1
+                _born(f, i, head, n, cx[k], cy[k], cb[k], _cell(cx[k], cy[k], x0, y0, side, nx, ny))
         elif m > 0:
             s = min(int(pick[k] * m), m - 1)
-            t = _near(f, i, head, f[X, s], f[Y, s], s, x0, y0, side, nx, ny, r2)
+            t = _near(f, i, head, f[X, s], f[Y, s], s, x0, y0, side, nx, ny, within)
             if accept[k] * f[BETA, s] * gamma**t < m:
-                _unlink(i, head, s)
-                last = m - 1
-                if s != last:  # the last slot moves into the freed one
-                    c = i[CELL, last]
-                    _unlink(i, head, last)
-                    f[X, s], f[Y, s], f[BETA, s] = f[X, last], f[Y, last], f[BETA, last]
-                    _link(i, head, s, c)
-                n[0] = last
+                _die(f, i, head, n, s)
     return False
 
 
 @njit(cache=True)
 def _log_phi(d2, code, p):
     """log phi of two trees sqrt(d2) apart (-inf: forbidden); ``p`` as
-    :meth:`usdforest.sites.inhibition.Inhibition.params`."""
+    :meth:`usdforest.sites.inhibition.Inhibition.params` (for :data:`COUNT`: 1 within
+    sqrt(p[0]), else 0)."""
+    if code == COUNT:
+        return 1.0 if d2 <= p[0] else 0.0
     if d2 >= p[0]:
         return 0.0
     d = math.sqrt(d2)
@@ -155,7 +164,8 @@ def _log_phi(d2, code, p):
 
 @njit(cache=True)
 def _log_product(f, i, head, x, y, skip, x0, y0, side, nx, ny, code, p):
-    """The sum of log phi over the trees near (x, y), slot ``skip`` aside."""
+    """The sum of log phi over the trees near (x, y), slot ``skip`` aside (a count for
+    :data:`COUNT`)."""
     c = _cell(x, y, x0, y0, side, nx, ny)
     cx, cy = c % nx, c // nx
     total = 0.0
@@ -187,19 +197,10 @@ def run_pairwise(state, birth, cx, cy, cb, accept, pick, x0, y0, side, nx, ny, c
             if lp > -np.inf and accept[k] * (m + 1) < cb[k] * math.exp(lp):
                 if m == cap:
                     return True
-                f[X, m], f[Y, m], f[BETA, m] = cx[k], cy[k], cb[k]
-                _link(i, head, m, _cell(cx[k], cy[k], x0, y0, side, nx, ny))
-                n[0] = m + 1
+                _born(f, i, head, n, cx[k], cy[k], cb[k], _cell(cx[k], cy[k], x0, y0, side, nx, ny))
         elif m > 0:
             s = min(int(pick[k] * m), m - 1)
             lp = _log_product(f, i, head, f[X, s], f[Y, s], s, x0, y0, side, nx, ny, code, p)
             if accept[k] * f[BETA, s] * math.exp(lp) < m:
-                _unlink(i, head, s)
-                last = m - 1
-                if s != last:  # the last slot moves into the freed one
-                    c = i[CELL, last]
-                    _unlink(i, head, last)
-                    f[X, s], f[Y, s], f[BETA, s] = f[X, last], f[Y, last], f[BETA, last]
-                    _link(i, head, s, c)
-                n[0] = last
+                _die(f, i, head, n, s)
     return False
