@@ -47,7 +47,7 @@ from pxr import Gf, Sdf, Vt
 from usdforest.atomic import output_lock, publish, staging_folder
 from usdforest.cad.library import template_dir, template_path
 from usdforest.errors import UsdForestError
-from usdforest.grow.architecture import BREAST_HEIGHT, TreeSize
+from usdforest.grow.architecture import TreeSize
 from usdforest.grow.bounds import (
     EMPTY,
     EMPTY_EXTENT,
@@ -61,15 +61,7 @@ from usdforest.grow.placement import Placement, place
 from usdforest.grow.proxy import Levels, levels
 from usdforest.grow.seasons import keep_leaves
 from usdforest.grow.species import Geometry, Grown, Species, grow, sized, tree_size
-from usdforest.grow.stems import (
-    STEM_FORMS,
-    StemForm,
-    StemMesh,
-    lean_draw,
-    lean_matrix,
-    ovality_draw,
-    stem_mesh,
-)
+from usdforest.grow.stems import STEM_FORMS, StemForm, StemMesh, lean_draw, lean_matrix
 from usdforest.paths import claim_outputs, require_output
 from usdforest.seeds import stream
 from usdforest.usd.layers import (
@@ -91,12 +83,12 @@ from usdforest.usd.trunk import (
     ConeGirth,
     StemGirth,
     StemTemplate,
-    content_name,
-    form_provenance,
+    draw_stem,
+    lean_within,
     leaned,
     placeholder_shape,
     stem_name,
-    stem_template,
+    uniform_trunk,
 )
 
 
@@ -264,7 +256,7 @@ def build_tree(
         lean = lean_draw(form, stem_rng)
         if size.asymmetry > 0:  # towards the side its crown reaches (the light)
             lean = (lean[0], 0.0)
-        lean = (_no_lower(grown.skeleton, *lean), lean[1])
+        lean = (lean_within(grown.skeleton, *lean), lean[1])
         grown = replace(grown, skeleton=leaned(grown.skeleton, lean_matrix(*lean)))
         g = replace(g, trunk=stem_name(species.name, seed, variant, size))
     leaf_names = species.clumps.templates if species.clumps is not None else (g.leaf,)
@@ -336,26 +328,6 @@ def build_tree(
     )
 
 
-def _no_lower(sk, angle: float, azimuth: float) -> float:
-    """The lean, no more than keeps every segment and leaf site of the tree as high above
-    the ground as it was or above it (a small tree's lowest branches would dip into the
-    ground on its leaning side)."""
-
-    def low(a: float) -> float:
-        t = leaned(sk, lean_matrix(a, azimuth))
-        return min(float(t.start[:, 2].min(initial=0.0)), float(t.end[:, 2].min(initial=0.0)),
-                   float(t.leaf_position[:, 2].min(initial=0.0)))  # fmt: skip
-
-    floor = min(low(0.0), 0.0) - 1e-9
-    if low(angle) >= floor:
-        return angle
-    lo, hi = 0.0, angle
-    for _ in range(30):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if low(mid) >= floor else (lo, mid)
-    return lo
-
-
 def _stem(
     placement: Placement,
     infos: dict[str, TemplateInfo],
@@ -365,43 +337,21 @@ def _stem(
     lean: tuple[float, float],
     rng: np.random.Generator,
 ) -> tuple[Placement, tuple[StemTemplate, TemplateInfo, StemMesh]]:
-    """The tree's own stem, drawn after its crown is placed: the trunk's length and the
-    tree's height as grown (its top: leaves and shoots over the stem) set where 1.3 m falls
-    on the asset when its instances stand as tall as its target, and the girth tape there
-    reads the target's DBH. The trunk prim is scaled uniformly by its length."""
+    """The tree's own stem (:func:`usdforest.usd.trunk.draw_stem`), drawn after its crown is
+    placed, for the tree's top as grown: its wood (the trunk as a cylinder of its radius)
+    and leaves' bounds."""
+    placement = uniform_trunk(placement)
     i = placement.trunk
-    length = float(placement.scale[i, 2])
-    scale = np.array(placement.scale, dtype=float)
-    scale[i] = length
-    placement = replace(placement, scale=scale)
     name = placement.templates[placement.template[i]]
-    r = float(placement.radius[i]) / length
+    r = float(placement.radius[i]) / float(placement.scale[i, 2])
     ring = [
         (r * math.cos(a), r * math.sin(a), z) for a in np.arange(8) * (math.pi / 4) for z in (0, 1)
     ]
     cylinder = replace(next(iter(infos.values())), name=name, hull=np.array(ring), part="trunk")
     wood = _wood_bounds(placement, {**infos, name: cylinder})
-    top = Bounds.union([wood, _leaf_bounds(placement, infos)]).extent[1, 2]
-    grown = max(float(top), length)
-    breast = BREAST_HEIGHT * grown / size.height
-    dbh = size.dbh * grown / size.height
-    mesh = stem_mesh(form, length, grown, breast, dbh, ovality_draw(form, rng), rng)
-    rows = placement.wood_matrices()[i]
-    g = species.geometry
-    template, info = stem_template(
-        name,
-        mesh,
-        rows,
-        breast,
-        g.bark_color,
-        form_provenance(species.name, form, mesh.ovality, lean),
-    )
-    # named by its content: two trees of one name and size (a preset's second entry, an
-    # understorey's) may still grow different stems, and they share a templates folder
-    own = content_name(template)
-    template, info = replace(template, name=own), replace(info, name=own, path=Path(f"{own}.usdc"))
-    names = tuple(own if t == name else t for t in placement.templates)
-    return replace(placement, templates=names), (template, info, mesh)
+    top = float(Bounds.union([wood, _leaf_bounds(placement, infos)]).extent[1, 2])
+    return draw_stem(placement, top, species.name, species.geometry.bark_color, form, size,
+                     lean, rng)  # fmt: skip
 
 
 def foliage_for(g: Geometry, leaf_area: float, sites: int, leaf: Mapping) -> Geometry:

@@ -22,9 +22,9 @@ import numpy as np
 from usdforest.grow import exact
 from usdforest.grow.architecture import BREAST_HEIGHT, TreeSize, scaled_dbh
 from usdforest.grow.bounds import hull_vertices
-from usdforest.grow.placement import CENTRELINE_SAMPLES, WoodShape
+from usdforest.grow.placement import CENTRELINE_SAMPLES, Placement, WoodShape
 from usdforest.grow.skeleton import Skeleton
-from usdforest.grow.stems import StemForm, StemMesh
+from usdforest.grow.stems import StemForm, StemMesh, lean_matrix, ovality_draw, stem_mesh
 from usdforest.usd.template import TemplateInfo
 
 FOOT_BLEND = 0.3  # m of the stem over which the foot's shear fades
@@ -188,3 +188,64 @@ def form_provenance(species: str, form: StemForm, ovality: float, lean: tuple) -
         "leanDegrees": round(float(lean[0]), 3),
         "leanAzimuth": round(float(lean[1]), 2),
     }
+
+
+def lean_within(sk: Skeleton, angle: float, azimuth: float) -> float:
+    """The lean, no more than keeps every segment and leaf site of the tree as high above
+    the ground as it was or above it (a small tree's lowest branches would dip into the
+    ground on its leaning side)."""
+
+    def low(a: float) -> float:
+        t = leaned(sk, lean_matrix(a, azimuth))
+        return min(float(t.start[:, 2].min(initial=0.0)), float(t.end[:, 2].min(initial=0.0)),
+                   float(t.leaf_position[:, 2].min(initial=0.0)))  # fmt: skip
+
+    floor = min(low(0.0), 0.0) - 1e-9
+    if low(angle) >= floor:
+        return angle
+    lo, hi = 0.0, angle
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if low(mid) >= floor else (lo, mid)
+    return lo
+
+
+def uniform_trunk(placement: Placement) -> Placement:
+    """``placement`` with its trunk prim scaled uniformly by its length (a stem template's
+    normalised base radius is the trunk's own: :func:`placeholder_shape`)."""
+    i = placement.trunk
+    scale = np.array(placement.scale, dtype=float)
+    scale[i] = float(scale[i, 2])
+    return replace(placement, scale=scale)
+
+
+def draw_stem(
+    placement: Placement,
+    top: float,
+    species: str,
+    color: tuple[float, float, float],
+    form: StemForm,
+    size: TreeSize,
+    lean: tuple[float, float],
+    rng: np.random.Generator,
+) -> tuple[Placement, tuple[StemTemplate, TemplateInfo, StemMesh]]:
+    """A tree's own stem, drawn after its crown is placed (``placement``, its trunk scaled
+    uniformly: :func:`uniform_trunk`): the trunk's length and the tree's ``top`` as grown
+    (leaves and shoots over the stem) set where 1.3 m falls on the asset when its instances
+    stand as tall as its target ``size``, and the girth tape there reads the target's DBH.
+    Returns the placement with the template's name (its content's: two trees of one name
+    and size, a preset's second entry or an understorey's, may grow different stems and
+    share a templates folder), the template, its info and the mesh."""
+    i = placement.trunk
+    length = float(placement.scale[i, 2])
+    name = placement.templates[placement.template[i]]
+    grown = max(top, length)
+    breast = BREAST_HEIGHT * grown / size.height
+    dbh = size.dbh * grown / size.height
+    mesh = stem_mesh(form, length, grown, breast, dbh, ovality_draw(form, rng), rng)
+    made = form_provenance(species, form, mesh.ovality, lean)
+    template, info = stem_template(name, mesh, placement.wood_matrices()[i], breast, color, made)
+    own = content_name(template)
+    template, info = replace(template, name=own), replace(info, name=own, path=Path(f"{own}.usdc"))
+    names = tuple(own if t == name else t for t in placement.templates)
+    return replace(placement, templates=names), (template, info, mesh)
