@@ -183,9 +183,10 @@ def _trunk_triangles(assets: Path) -> tuple[int, int]:
 
     n = tri = 0
     for f in sorted((assets / "templates").glob("*.usdc")):
-        if not f.name.startswith(("stem_", "trunk")):
+        if not (f.name.startswith("stem_") or f.name == "trunk_cone.usdc"):
             continue
-        m = UsdGeom.Mesh(Usd.Stage.Open(str(f)).GetPrimAtPath("/Template/Mesh"))
+        stage = Usd.Stage.Open(str(f))
+        m = UsdGeom.Mesh(stage.GetPrimAtPath("/Template/Mesh"))
         n, tri = n + 1, tri + len(m.GetFaceVertexCountsAttr().Get())
     return n, tri
 

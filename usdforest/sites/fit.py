@@ -40,7 +40,7 @@ import numpy as np
 from usdforest.errors import UsdForestError
 from usdforest.sites.clusters import MAX_SCALE, Clusters
 from usdforest.sites.covariates import Covariate, quadrature
-from usdforest.sites.gibbsfit import choose, fit_models, fit_strauss  # noqa: F401 (API)
+from usdforest.sites.gibbsfit import _scaled, choose, fit_models, fit_strauss  # noqa: F401
 from usdforest.sites.inhibition import MAX_RADIUS, Inhibition
 from usdforest.sites.pattern import Bounds, _checked, clark_evans, inhomogeneous_k, pair_rmax
 
@@ -109,11 +109,6 @@ class FittedStand:
         u = f"(x - {cx:.10g}) / {hx:.10g}"
         v = f"(y - {cy:.10g}) / {hy:.10g}"
         return f"exp({b0:.10g} + {b1:.10g} * {u} + {b2:.10g} * {v})"
-
-
-def _scaled(window: Bounds, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    x0, y0, x1, y1 = window
-    return (2 * (np.asarray(x) - x0) / (x1 - x0) - 1, 2 * (np.asarray(y) - y0) / (y1 - y0) - 1)
 
 
 def _log_integral(b: float) -> tuple[float, float, float]:

@@ -56,6 +56,12 @@ SOFT_KAPPAS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 MODELS = ("hard core", "strauss", "strauss-hard-core", "diggle-gratton", "soft-core")
 
 
+def _scaled(window, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The coordinates scaled to [-1, 1] over the window (the log-linear terms' u, v)."""
+    x0, y0, x1, y1 = window
+    return (2 * (np.asarray(x) - x0) / (x1 - x0) - 1, 2 * (np.asarray(y) - y0) / (y1 - y0) - 1)
+
+
 @dataclass(frozen=True)
 class Fitted:
     """One model fitted: its ``kind`` (:data:`MODELS`), the interaction (``None`` for the
@@ -81,8 +87,6 @@ class _Quadrature:
 
 def _quadrature(pts, window, trend, covariates, border, reach) -> _Quadrature:
     from scipy.spatial import cKDTree
-
-    from usdforest.sites.fit import _scaled
 
     x0, y0, x1, y1 = window
     n = len(pts)
