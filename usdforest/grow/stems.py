@@ -30,9 +30,10 @@ asset, a trunk of its own (:func:`stem_mesh`) in place of the shared conical tem
 * **lean**: each tree's stem leans from the vertical by a Rayleigh angle of scale ``lean``
   degrees (a stated choice: no stand's distribution was reachable here; most stems of
   managed stands lean less than 2-3 degrees), towards its crown's one-sided side where it
-  has one (trunks lean towards light: Lamprecht et al. 2020, Remote Sensing 12: 3744).
+  has one (trunks lean towards light: Lamprecht et al. 2020, Remote Sensing 12: 3744) and
+  down the slope where the ground slopes (:func:`usdforest.sites.local.downslope_yaw`).
 
-A girth tape reads the hull of a section: :func:`girth_dbh` gives it, perpendicular to the
+A girth tape reads the hull of a section: :meth:`StemMesh.girth_dbh` gives it, perpendicular to the
 stem, at any height of the mesh, and the tree's ``trees.csv`` DBH is that (the equivalent
 circle: the tape's perimeter over pi).
 """
