@@ -167,8 +167,10 @@ def dask_client(workers: int, scheduler: str | None):
             yield client
         return
     with _spawned_ignoring_ctrl_c():
+        # its HTTP server on a free port (":0"): with none named the scheduler still served
+        # on 8787, and a second build at once warned "Port 8787 is already in use"
         cluster = LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0"
         )
     with cluster, Client(cluster) as client:
         yield client
