@@ -22,12 +22,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from usdforest.grow import exact
-from usdforest.grow.stems import SAPLING, StemForm, relative_diameter, taper_from_base
+from usdforest.grow.stems import BREAST, SAPLING, StemForm, relative_diameter, taper_from_base
 
 # the conical trunk template (templates/make_cad.py: trunk_cone): ring vertices and foot
 TRUNK_SECTIONS = 24
 TRUNK_FOOT = 0.03
-BREAST_HEIGHT = 1.3  # metres
+BREAST_HEIGHT = BREAST  # metres (usdforest.grow.stems')
 # a girth tape round the 24-gon reads its perimeter, short of the circle's by this factor
 _GIRTH = TRUNK_SECTIONS * math.sin(math.pi / TRUNK_SECTIONS) / math.pi
 

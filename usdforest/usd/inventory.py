@@ -26,6 +26,7 @@ from pxr import Usd, UsdGeom
 
 from usdforest.cad.parts import one_sided_area, triangle_areas
 from usdforest.errors import UsdForestError
+from usdforest.grow.stems import hull_perimeter
 from usdforest.progress import Progress
 from usdforest.usd.debris import dead_wood_figures, is_dead_wood
 from usdforest.usd.floor import ground_vegetation_figures, is_ground_vegetation
@@ -65,7 +66,6 @@ def girth_dbh(
     ``origin`` (default: heights above z = 0): the hull perimeter of the section
     perpendicular to the axis, over pi."""
     import trimesh
-    from scipy.spatial import ConvexHull
 
     o = np.zeros(3) if origin is None else np.asarray(origin, dtype=float)
     n = np.array([0.0, 0.0, 1.0]) if axis is None else np.asarray(axis, dtype=float)
@@ -77,14 +77,9 @@ def girth_dbh(
     out = np.full(len(z), np.nan)
     for i, h in enumerate(z):
         seg = trimesh.intersections.mesh_plane(mesh, n, o + h * n).reshape(-1, 3) - o
-        xy = np.column_stack([seg @ u, seg @ v])
-        if len(xy) >= 3:
-            try:
-                hull = ConvexHull(xy)
-            except Exception:  # degenerate section
-                continue
-            p = xy[hull.vertices]
-            out[i] = float(np.linalg.norm(p - np.roll(p, 1, axis=0), axis=1).sum()) / math.pi
+        girth = hull_perimeter(np.column_stack([seg @ u, seg @ v]))
+        if girth > 0:  # (0: no section, or a degenerate one)
+            out[i] = girth / math.pi
     return out
 
 

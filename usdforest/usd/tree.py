@@ -80,6 +80,7 @@ from usdforest.usd.layers import (
 from usdforest.usd.physics import add_colliders
 from usdforest.usd.template import TemplateInfo, read_template, write_template
 from usdforest.usd.trunk import (
+    PLACEHOLDER,
     ConeGirth,
     StemGirth,
     StemTemplate,
@@ -87,7 +88,6 @@ from usdforest.usd.trunk import (
     lean_within,
     leaned,
     placeholder_shape,
-    stem_name,
     uniform_trunk,
 )
 
@@ -258,7 +258,7 @@ def build_tree(
             lean = (lean[0], 0.0)
         lean = (lean_within(grown.skeleton, *lean), lean[1])
         grown = replace(grown, skeleton=leaned(grown.skeleton, lean_matrix(*lean)))
-        g = replace(g, trunk=stem_name(species.name, seed, variant, size))
+        g = replace(g, trunk=PLACEHOLDER)
     leaf_names = species.clumps.templates if species.clumps is not None else (g.leaf,)
     stouter = {n: stouter_variants(n, template_base) for n in g.branches}
     wood_names = dict.fromkeys([g.trunk, *g.branches, g.twig, *sum(stouter.values(), ())])

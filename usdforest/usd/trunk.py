@@ -30,11 +30,7 @@ from usdforest.usd.template import TemplateInfo
 FOOT_BLEND = 0.3  # m of the stem over which the foot's shear fades
 
 
-def stem_name(species: str, seed: int, variant: int, size: TreeSize) -> str:
-    """A stem template's name: unique to the tree it is drawn for (the same tree, the same
-    name and bytes)."""
-    key = f"{species}|{seed}|{variant}|{sorted(size.as_dict().items())}"
-    return "stem_" + hashlib.sha1(key.encode()).hexdigest()[:12]
+PLACEHOLDER = "stem"  # the stem template's name until it is drawn (then its content's)
 
 
 def content_name(template: StemTemplate) -> str:
